@@ -1,0 +1,2 @@
+"""BreastBiomech."""
+__version__ = "0.1.0"

@@ -1,0 +1,79 @@
+"""A four-node tetrahedral mesh with per-node and per-element data.
+
+Nodes in millimetres, ITK physical space (LPS). Element connectivity is 0-based and positively
+oriented (the signed volume of each tet is positive). Cell data ``tissue`` holds label values of
+:mod:`BreastBiomechLib.labels`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import vtk
+from vtk.util import numpy_support as nps
+
+
+def _signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    p = nodes[tets]
+    return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
+
+
+@dataclass
+class TetMesh:
+    """Nodes (N, 3) LPS mm, tets (M, 4) int64, and named point/cell arrays (first axis N or M)."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+    point_data: dict[str, np.ndarray] = field(default_factory=dict)
+    cell_data: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.nodes = np.ascontiguousarray(self.nodes, dtype=np.float64).reshape(-1, 3)
+        self.tets = np.ascontiguousarray(self.tets, dtype=np.int64).reshape(-1, 4)
+        if len(self.tets) and (self.tets.min() < 0 or self.tets.max() >= len(self.nodes)):
+            raise ValueError(f"tet connectivity refers to nodes outside 0..{len(self.nodes) - 1}")
+        for kind, data, n in (("point", self.point_data, len(self.nodes)), ("cell", self.cell_data, len(self.tets))):
+            for name, values in data.items():
+                values = np.asarray(values)
+                if values.shape[0] != n:
+                    raise ValueError(f"{kind} array {name!r} has {values.shape[0]} rows, the mesh has {n} {kind}s")
+                data[name] = values
+
+    @property
+    def volumes(self) -> np.ndarray:
+        """Signed element volumes (mm^3); positive for a valid mesh."""
+        return _signed_volumes(self.nodes, self.tets)
+
+    def to_vtk(self) -> vtk.vtkUnstructuredGrid:
+        """The mesh as a vtkUnstructuredGrid (points in LPS mm), arrays copied."""
+        grid = vtk.vtkUnstructuredGrid()
+        points = vtk.vtkPoints()
+        points.SetData(nps.numpy_to_vtk(self.nodes, deep=True))
+        grid.SetPoints(points)
+        cells = vtk.vtkCellArray()
+        offsets = nps.numpy_to_vtk(np.arange(0, 4 * len(self.tets) + 1, 4, dtype=np.int64), deep=True)
+        conn = nps.numpy_to_vtk(self.tets.ravel(), deep=True, array_type=vtk.VTK_ID_TYPE)
+        cells.SetData(offsets, conn)
+        grid.SetCells(vtk.VTK_TETRA, cells)
+        for data, target in ((self.point_data, grid.GetPointData()), (self.cell_data, grid.GetCellData())):
+            for name, values in data.items():
+                array = nps.numpy_to_vtk(np.ascontiguousarray(values), deep=True)
+                array.SetName(name)
+                target.AddArray(array)
+        return grid
+
+    @classmethod
+    def from_vtk(cls, grid: vtk.vtkUnstructuredGrid) -> "TetMesh":
+        """Read a vtkUnstructuredGrid of tetrahedra (points taken as LPS mm)."""
+        n_cells = grid.GetNumberOfCells()
+        if n_cells and not np.all(nps.vtk_to_numpy(grid.GetDistinctCellTypesArray()) == vtk.VTK_TETRA):
+            raise ValueError("the unstructured grid holds cells other than linear tetrahedra")
+        nodes = nps.vtk_to_numpy(grid.GetPoints().GetData()).astype(np.float64) if grid.GetPoints() else np.zeros((0, 3))
+        conn = nps.vtk_to_numpy(grid.GetCells().GetConnectivityArray()).astype(np.int64).reshape(-1, 4)
+
+        def arrays(data):
+            return {data.GetArrayName(i): nps.vtk_to_numpy(data.GetArray(i)).copy()
+                    for i in range(data.GetNumberOfArrays()) if data.GetArray(i) is not None}
+
+        return cls(nodes, conn, arrays(grid.GetPointData()), arrays(grid.GetCellData()))

@@ -1,0 +1,36 @@
+"""The only bridge between the library and MRML (Slicer's scene). Nothing else imports slicer.
+
+Works inside the Slicer application and headless with the ``slicer-core`` wheel. The library
+works in ITK physical space (LPS); MRML nodes hold RAS. Every function here converts, so callers
+never flip an axis themselves. Each converter takes the scene explicitly (inside Slicer pass
+``slicer.mrmlScene``).
+"""
+
+from BreastBiomechLib.mrml.markups import landmarks_from_markups_node, landmarks_to_markups_node
+from BreastBiomechLib.mrml.models import tetmesh_from_model_node, tetmesh_to_model_node
+from BreastBiomechLib.mrml.parameters import ParameterNode
+from BreastBiomechLib.mrml.segmentations import (
+    labels_from_segmentation_node,
+    labels_to_segmentation_node,
+    register_segmentation_converters,
+)
+from BreastBiomechLib.mrml.transforms import (
+    displacement_field_from_grid_transform_node,
+    displacement_field_to_grid_transform_node,
+)
+from BreastBiomechLib.mrml.volumes import image_from_volume_node, image_to_volume_node
+
+__all__ = [
+    "ParameterNode",
+    "displacement_field_from_grid_transform_node",
+    "displacement_field_to_grid_transform_node",
+    "image_from_volume_node",
+    "image_to_volume_node",
+    "labels_from_segmentation_node",
+    "labels_to_segmentation_node",
+    "landmarks_from_markups_node",
+    "landmarks_to_markups_node",
+    "register_segmentation_converters",
+    "tetmesh_from_model_node",
+    "tetmesh_to_model_node",
+]

@@ -1,0 +1,106 @@
+"""Label images (LPS) <-> MRML segmentation nodes, one segment per tissue of the label table."""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+import slicer
+import vtk
+
+from BreastBiomechLib import labels as lt
+from BreastBiomechLib.mrml.volumes import image_from_volume_node, image_to_volume_node
+
+
+def register_segmentation_converters() -> None:
+    """Register the labelmap <-> closed-surface converter rules (the Slicer application does this
+    at start-up; headless scenes need it once per process). Idempotent."""
+    factory = slicer.vtkSegmentationConverterFactory.GetInstance()
+    have = {rule.GetName() for rule in factory.GetConverterRules()}
+    rules = [slicer.vtkBinaryLabelmapToClosedSurfaceConversionRule(),
+             slicer.vtkClosedSurfaceToBinaryLabelmapConversionRule()]
+    for rule in rules:
+        if rule.GetName() not in have:
+            factory.RegisterConverterRule(rule)
+
+
+def labels_to_segmentation_node(label_image: sitk.Image, scene, name: str = "Tissues", node=None,
+                                closed_surface: bool = False):
+    """Make (or refill) a segmentation node with one segment per tissue present in ``label_image``.
+
+    Segment IDs and names are the tissue names of :mod:`BreastBiomechLib.labels`, colours its
+    colours. Unknown label values are an error. ``closed_surface`` also builds the closed-surface
+    representation (for 3D display and for meshing)."""
+    values = np.unique(sitk.GetArrayViewFromImage(label_image))
+    unknown = sorted(set(int(v) for v in values) - {lt.BACKGROUND} - set(lt.BY_LABEL))
+    if unknown:
+        raise ValueError(f"label values {unknown} are not in the tissue label table "
+                         f"({', '.join(f'{t.label}={t.name}' for t in lt.TISSUES)})")
+    register_segmentation_converters()
+    if node is None:
+        node = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
+        node.CreateDefaultDisplayNodes()
+    segmentation = node.GetSegmentation()
+    segmentation.RemoveAllSegments()
+    labelmap = image_to_volume_node(sitk.Cast(label_image, sitk.sitkUInt8), scene, name + "_import",
+                                    labelmap=True, display=False)
+    try:
+        node.SetReferenceImageGeometryParameterFromVolumeNode(labelmap)
+        updated = vtk.vtkStringArray()
+        for value in range(1, int(values.max()) + 1 if values.size else 1):
+            tissue = lt.BY_LABEL.get(value)
+            if tissue is not None and value in values:
+                segmentation.AddEmptySegment(tissue.name, tissue.name, list(tissue.color))
+                updated.InsertNextValue(tissue.name)
+            else:
+                updated.InsertNextValue("")
+        if updated.GetNumberOfValues() and not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(
+                labelmap, node, updated):
+            raise RuntimeError("Slicer could not import the label map into the segmentation node")
+    finally:
+        scene.RemoveNode(labelmap)
+    if closed_surface:
+        node.CreateClosedSurfaceRepresentation()
+    return node
+
+
+def labels_from_segmentation_node(node, scene, reference: sitk.Image | None = None) -> sitk.Image:
+    """The segmentation as a label image (uint8, label-table values from the segment names).
+
+    With ``reference`` the label image has exactly its grid (LPS); otherwise the segmentation's
+    own reference geometry. Segment names must be tissue names of the label table."""
+    register_segmentation_converters()
+    segmentation = node.GetSegmentation()
+    ids = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
+    names = [segmentation.GetSegment(i).GetName() for i in ids]
+    unknown = [n for n in names if n not in lt.BY_NAME]
+    if unknown:
+        raise ValueError(f"segments {unknown} are not tissues of the label table; rename them to one of "
+                         f"{[t.name for t in lt.TISSUES]}")
+    labelmap = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "export")
+    reference_node = None
+    try:
+        if reference is not None:
+            blank = sitk.Image(reference.GetSize(), sitk.sitkUInt8)
+            blank.CopyInformation(reference)
+            reference_node = image_to_volume_node(blank, scene, "reference", display=False)
+        id_array = vtk.vtkStringArray()
+        for i in ids:
+            id_array.InsertNextValue(i)
+        extent_mode = slicer.vtkSegmentation.EXTENT_REFERENCE_GEOMETRY
+        ok = slicer.vtkSlicerSegmentationsModuleLogic.ExportSegmentsToLabelmapNode(
+            node, id_array, labelmap, reference_node, extent_mode)
+        if not ok:
+            raise RuntimeError("Slicer could not export the segmentation to a label map")
+        exported = image_from_volume_node(labelmap)
+    finally:
+        scene.RemoveNode(labelmap)
+        if reference_node is not None:
+            scene.RemoveNode(reference_node)
+    # exported values are 1..n in the order of ``ids``; map them to the table's values
+    lookup = np.zeros(len(ids) + 1, dtype=np.uint8)
+    for k, n in enumerate(names, start=1):
+        lookup[k] = lt.BY_NAME[n].label
+    out = sitk.GetImageFromArray(lookup[sitk.GetArrayViewFromImage(exported).astype(np.int64)])
+    out.CopyInformation(exported)
+    return out
+

@@ -1,0 +1,69 @@
+"""A phantom case on disk: NRRD images, a Slicer point list, parameters.json and overview.png.
+
+Layout of a case folder::
+
+    mr.nrrd                 MR volume (float32)
+    labels.nrrd             tissue labels (uint8, the label table of BreastBiomechLib.labels)
+    fraction_<tissue>.nrrd  partial-volume fraction per tissue (float32, 0-1)
+    bias_field.nrrd         the multiplicative bias field applied to mr.nrrd
+    landmarks.mrk.json      17 landmarks (LPS), loadable in Slicer
+    parameters.json         every generating parameter, and the measured summary
+    overview.png            three orthogonal slices with label contours and landmarks
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from BreastBiomechLib.io.images import read_image, write_image
+from BreastBiomechLib.io.markups import read_markups, write_markups
+from BreastBiomechLib.phantom.generate import PhantomCase
+from BreastBiomechLib.phantom.parameters import PhantomParameters
+
+
+def write_phantom(case: PhantomCase, out_dir: str | Path, overview: bool = True) -> dict[str, Path]:
+    """Write ``case`` into ``out_dir`` (created if needed); returns the written paths by role."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {
+        "mr": write_image(out / "mr.nrrd", case.image),
+        "labels": write_image(out / "labels.nrrd", case.labels),
+        "bias_field": write_image(out / "bias_field.nrrd", case.bias_field),
+        "landmarks": write_markups(out / "landmarks.mrk.json", case.landmarks, name="Landmarks"),
+    }
+    for name, image in case.fractions.items():
+        paths[f"fraction_{name}"] = write_image(out / f"fraction_{name}.nrrd", image)
+    document = {"parameters": case.parameters.to_dict(), "summary": case.summary}
+    paths["parameters"] = out / "parameters.json"
+    paths["parameters"].write_text(json.dumps(document, indent=2) + "\n")
+    if overview:
+        from BreastBiomechLib.visualisation import save_overview
+
+        paths["overview"] = save_overview(
+            out / "overview.png", case.image, case.labels, case.landmarks,
+            title=f"Breast phantom, seed {case.parameters.seed}: "
+                  f"{case.summary['breast_volume_cm3']:.0f} cm³, "
+                  f"density {case.summary['glandular_density']:.0%}",
+        )
+    return paths
+
+
+def read_phantom(case_dir: str | Path) -> PhantomCase:
+    """Read a case folder written by :func:`write_phantom`."""
+    folder = Path(case_dir)
+    if not (folder / "parameters.json").is_file():
+        raise FileNotFoundError(f"{folder}: not a phantom case folder (no parameters.json); "
+                                "make one with `breastbiomech phantom --out DIR`")
+    document = json.loads((folder / "parameters.json").read_text())
+    params = PhantomParameters.from_dict(document["parameters"])
+    fractions = {p.name[len("fraction_"):-len(".nrrd")]: read_image(p) for p in sorted(folder.glob("fraction_*.nrrd"))}
+    return PhantomCase(
+        parameters=params,
+        image=read_image(folder / "mr.nrrd"),
+        labels=read_image(folder / "labels.nrrd"),
+        fractions=fractions,
+        bias_field=read_image(folder / "bias_field.nrrd"),
+        landmarks=read_markups(folder / "landmarks.mrk.json"),
+        summary=document["summary"],
+    )

@@ -1,0 +1,348 @@
+"""Generate a synthetic prone breast MR case with ground truth.
+
+The anatomy is evaluated on a fine grid (voxels split about 0.5 mm in-plane) and averaged into the
+MR voxels, so the per-tissue fraction images are exact partial volumes of the analytic anatomy and
+the MR intensities carry the same partial-volume mixing. A smooth multiplicative bias field and
+Rician noise follow. All geometry in ITK physical space (LPS), millimetres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage
+
+from BreastBiomechLib import labels as lt
+from BreastBiomechLib.landmarks import Landmarks
+from BreastBiomechLib.phantom.anatomy import BreastAnatomy, DuctTree, tumour_phi_factory
+from BreastBiomechLib.phantom.parameters import INTENSITY, PhantomParameters
+
+# Fine-grid material codes: the truth tissues plus structures imaged but not modelled.
+_LUNG, _RIB, _INTERCOSTAL = 6, 7, 8
+_MATERIAL_INTENSITY = np.zeros(9, dtype=np.float32)
+for _code, _name in [(1, "fat"), (2, "glandular"), (3, "muscle"), (4, "tumour"), (5, "skin"),
+                     (_LUNG, "lung"), (_RIB, "rib"), (_INTERCOSTAL, "muscle")]:
+    _MATERIAL_INTENSITY[_code] = INTENSITY[_name]
+_FINE_MM = 0.6  # target fine-grid spacing
+
+
+@dataclass
+class PhantomCase:
+    """One generated case. Images share one grid (LPS, mm)."""
+
+    parameters: PhantomParameters
+    image: sitk.Image                 # MR, float32, arbitrary units (fat about 1000)
+    labels: sitk.Image                # uint8, values from the label table
+    fractions: dict[str, sitk.Image]  # tissue name -> float32 volume fraction per voxel
+    bias_field: sitk.Image            # float32 multiplicative field applied to the image
+    landmarks: Landmarks              # 17: 12 internal, 4 skin fiducials, nipple
+    summary: dict                     # measured volumes, density, tumour size, timing
+
+
+class _Grid:
+    """Voxel-centre coordinates of an axis-aligned grid, arrays ordered (z, y, x) as in SimpleITK."""
+
+    def __init__(self, origin, spacing, size):
+        self.origin = np.asarray(origin, float)
+        self.spacing = np.asarray(spacing, float)
+        self.size = np.asarray(size, int)  # (nx, ny, nz)
+
+    def axes(self):
+        return [self.origin[i] + self.spacing[i] * np.arange(self.size[i]) for i in range(3)]
+
+    def broadcast(self):
+        x, y, z = self.axes()
+        return x[None, None, :], y[None, :, None], z[:, None, None]
+
+    def refined(self, factors):
+        factors = np.asarray(factors, int)
+        spacing = self.spacing / factors
+        origin = self.origin - 0.5 * self.spacing + 0.5 * spacing
+        return _Grid(origin, spacing, self.size * factors)
+
+    def index_of(self, points):
+        """Nearest voxel index (z, y, x) of LPS points, clipped to the grid."""
+        ijk = np.rint((np.atleast_2d(points) - self.origin) / self.spacing).astype(int)
+        ijk = np.clip(ijk, 0, self.size - 1)
+        return ijk[:, 2], ijk[:, 1], ijk[:, 0]
+
+
+def _block_mean(fine: np.ndarray, factors) -> np.ndarray:
+    fx, fy, fz = factors
+    nz, ny, nx = fine.shape[0] // fz, fine.shape[1] // fy, fine.shape[2] // fx
+    return fine.reshape(nz, fz, ny, fy, nx, fx).mean(axis=(1, 3, 5), dtype=np.float64).astype(np.float32)
+
+
+def _upsample2(coarse: np.ndarray, shape) -> np.ndarray:
+    """Linear interpolation of a grid sampled at every second fine voxel back onto the fine grid."""
+    out = coarse
+    for axis, n in enumerate(shape):
+        pos = np.arange(n) / 2.0
+        i0 = np.minimum(np.floor(pos).astype(int), out.shape[axis] - 1)
+        i1 = np.minimum(i0 + 1, out.shape[axis] - 1)
+        w = (pos - i0).astype(np.float32)
+        view = [None] * out.ndim
+        view[axis] = slice(None)
+        out = out.take(i0, axis=axis) * (1 - w[tuple(view)]) + out.take(i1, axis=axis) * w[tuple(view)]
+    return out
+
+
+def _calibrated_anatomy(params: PhantomParameters, rng_state: int) -> BreastAnatomy:
+    """Find the base radius whose breast tissue volume (anterior to the muscle) is the requested
+    one, measured on a 1.5 mm grid; three secant-like updates on volume ~ scale^3."""
+    target = params.volume_cm3 * 1000.0
+    scale = (target / (2.0 / 3.0 * np.pi * params.aspect_si * params.aspect_depth)) ** (1 / 3) * 0.9
+    for _ in range(4):
+        anatomy = BreastAnatomy(params, np.random.default_rng(rng_state), scale)
+        lo, hi = anatomy.extent(10.0)
+        step = 1.5
+        grid = _Grid(lo, (step, step, step), np.ceil((hi - lo) / step).astype(int) + 1)
+        x, y, z = grid.broadcast()
+        inside = (anatomy.body_phi(x, y, z) < 0) & (y < anatomy.muscle_front_y(x, z))
+        volume = inside.sum() * step**3
+        scale *= (target / volume) ** (1 / 3)
+    return BreastAnatomy(params, np.random.default_rng(rng_state), scale)
+
+
+def _smooth_noise(rng, shape, sigma_vox) -> np.ndarray:
+    field = ndimage.gaussian_filter(rng.standard_normal(shape).astype(np.float32), sigma_vox, mode="reflect")
+    return field / (field.std() + 1e-12)
+
+
+def _ray_to_surface(anatomy: BreastAnatomy, start, direction, reach=250.0) -> np.ndarray:
+    """First point (LPS mm) where the body surface is crossed going from ``start`` (inside)."""
+    direction = np.asarray(direction, float) / np.linalg.norm(direction)
+    s = np.arange(0.0, reach, 0.05)
+    pts = np.asarray(start)[None, :] + s[:, None] * direction[None, :]
+    phi = anatomy.body_phi(pts[:, 0], pts[:, 1], pts[:, 2])
+    k = int(np.argmax(phi > 0))
+    if k == 0:
+        raise RuntimeError("phantom: skin fiducial ray did not leave the body")
+    t = phi[k - 1] / (phi[k - 1] - phi[k])
+    return pts[k - 1] + t * (pts[k] - pts[k - 1])
+
+
+def _farthest_points(candidates: np.ndarray, count: int, seed_points: np.ndarray) -> np.ndarray:
+    """Greedy farthest-point choice of ``count`` rows of ``candidates`` (indices), spreading away
+    from ``seed_points`` and from each other."""
+    chosen = []
+    dist = np.full(len(candidates), np.inf)
+    for p in seed_points:
+        dist = np.minimum(dist, np.linalg.norm(candidates - p, axis=1))
+    for _ in range(min(count, len(candidates))):
+        k = int(np.argmax(dist))
+        chosen.append(k)
+        dist = np.minimum(dist, np.linalg.norm(candidates - candidates[k], axis=1))
+    return np.array(chosen, dtype=int)
+
+
+def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
+    """Generate the case described by ``params`` (deterministic in ``params.seed``)."""
+    params = params or PhantomParameters()
+    started = time.perf_counter()
+    rng = np.random.default_rng(params.seed)
+    anatomy = _calibrated_anatomy(params, params.seed)
+    tree = anatomy.grow_duct_tree(rng)
+
+    # --- grids ---------------------------------------------------------------------------------
+    spacing = np.array(params.spacing_mm)
+    lo, hi = anatomy.extent(params.margin_mm)
+    size = np.ceil((hi - lo) / spacing).astype(int) + 1
+    grid = _Grid(lo, spacing, size)
+    factors = np.maximum(1, np.rint(spacing / _FINE_MM)).astype(int)
+    factors += factors % 2  # even, so the half-resolution grid below lands on fine voxels
+    fine = grid.refined(factors)
+    half = _Grid(fine.origin, fine.spacing * 2, (fine.size + 1) // 2)
+    x, y, z = fine.broadcast()
+
+    # --- body, skin, muscle, thorax ------------------------------------------------------------
+    phi = anatomy.body_phi(x, y, z).astype(np.float32)
+    gz, gy, gx = np.gradient(phi, *fine.spacing[::-1])
+    depth = -phi / np.maximum(np.sqrt(gx**2 + gy**2 + gz**2), 0.3)  # mm below the skin surface
+    del gx, gy, gz
+    body = phi < 0
+    front = anatomy.muscle_front_y(x, z)
+    back = front + anatomy.muscle_thickness(x, z)
+    material = np.zeros(phi.shape, dtype=np.uint8)
+    breast = body & (y < front)
+    material[breast] = 1
+    material[body & (y >= front) & (y < back)] = 3
+    thorax = body & (y >= back)
+    rib_centre_y = back + 7.0
+    rib_phase = np.mod(z - anatomy.b * 0.37, 24.0) - 12.0
+    rib = thorax & ((y - rib_centre_y) ** 2 + rib_phase**2 < 5.5**2)
+    material[thorax] = _LUNG
+    material[thorax & (y < back + 14.0)] = _INTERCOSTAL
+    material[rib] = _RIB
+    skin = body & (depth < params.skin_thickness_mm) & (y < back)
+    material[skin] = 5
+    nip_base, nip_tip = anatomy.nipple_axis()
+    nipple = body & (anatomy.nipple_phi(x, y, z) < 0.5) & (y < nip_base[1])
+    material[nipple] = 5
+
+    # --- tumour --------------------------------------------------------------------------------
+    tumour_phi = None
+    tumour_centre = None
+    if params.tumour_diameter_mm > 0:
+        depth_frac = rng.uniform(0.35, 0.55)
+        tumour_centre = np.array([rng.uniform(-0.25, 0.25) * anatomy.a, -depth_frac * anatomy.d,
+                                  rng.uniform(-0.2, 0.2) * anatomy.b - anatomy.droop * depth_frac**2])
+        tumour_phi = tumour_phi_factory(tumour_centre, params.tumour_diameter_mm / 2, rng)
+        # calibrate the lobulated shape's equivalent diameter on a local 0.25 mm grid
+        r = params.tumour_diameter_mm
+        ax = np.arange(-r, r, 0.25)
+        vol = (tumour_phi(tumour_centre[0] + ax[None, None, :], tumour_centre[1] + ax[None, :, None],
+                          tumour_centre[2] + ax[:, None, None]) < 0).sum() * 0.25**3
+        target = np.pi / 6 * params.tumour_diameter_mm**3
+        shrink = (target / vol) ** (1 / 3)
+        base_phi = tumour_phi
+
+        def tumour_phi(x_, y_, z_, _c=tumour_centre, _s=shrink, _f=base_phi):
+            return _f(_c[0] + (x_ - _c[0]) / _s, _c[1] + (y_ - _c[1]) / _s, _c[2] + (z_ - _c[2]) / _s) * _s
+
+        material[breast & ~skin & (tumour_phi(x, y, z) < 0)] = 4
+
+    # --- fibroglandular tissue: duct tree + lobules, blurred, thresholded to the density -------
+    ducts = np.zeros(half.size[::-1], dtype=np.float32)
+    lobules = np.zeros_like(ducts)
+    for i in np.flatnonzero(tree.parent >= 0):
+        a, b = tree.nodes[tree.parent[i]], tree.nodes[i]
+        n = max(2, int(np.linalg.norm(b - a) / 0.5))
+        pts = a + np.linspace(0, 1, n)[:, None] * (b - a)
+        np.add.at(ducts, half.index_of(pts), 1.0 / (1 + tree.generation[i]))
+    # lobules (terminal duct lobular units) cluster around duct ends and side branches
+    anchors = tree.nodes[tree.terminal | (tree.generation >= 1)]
+    clusters = np.repeat(anchors, 8, axis=0) + rng.normal(0.0, 4.0, (8 * len(anchors), 3))
+    np.add.at(lobules, half.index_of(clusters), rng.uniform(0.5, 1.5, len(clusters)))
+    sig = lambda mm: mm / half.spacing[::-1]  # noqa: E731  (mm -> voxels, z y x)
+    field = (ndimage.gaussian_filter(ducts, sig(1.2)) + ndimage.gaussian_filter(lobules, sig(2.0))
+             + 0.5 * ndimage.gaussian_filter(lobules, sig(9.0)))
+    # log-domain texture: fat lobules interleaved with glandular tissue at a few millimetres
+    gland = np.log(field + 1e-4 * field.max()) + 0.9 * _smooth_noise(rng, field.shape, sig(2.5))
+    gland -= gland.min()
+    del field
+    gland = _upsample2(gland, phi.shape)
+    taper = np.clip((depth - 2.0) / 6.0, 0, 1) * np.clip((front - y - 2.0) / 6.0, 0, 1)
+    gland *= taper
+    candidate = material == 1
+    n_breast = int(np.count_nonzero(np.isin(material, (1, 2, 4, 5))))
+    n_gland = int(round(params.density * n_breast))
+    values = gland[candidate]
+    if n_gland >= np.count_nonzero(values > 0):
+        raise ValueError(
+            f"phantom: a glandular density of {params.density:.2f} does not fit this breast shape; "
+            "lower the density or raise the volume"
+        )
+    threshold = np.partition(values, len(values) - n_gland)[len(values) - n_gland]
+    material[candidate & (gland >= threshold)] = 2
+    del gland, taper, values
+
+    # --- truth images ----------------------------------------------------------------------------
+    fractions = {t.name: _block_mean(material == t.label, factors) for t in lt.TISSUES}
+    if not params.skin_separate:
+        fractions["fat"] = fractions["fat"] + fractions.pop("skin")
+    names = list(fractions)
+    stack = np.stack([fractions[n] for n in names])
+    label_values = np.array([lt.tissue(n).label for n in names], dtype=np.uint8)
+    tissue_total = stack.sum(axis=0)
+    labels = np.where(tissue_total >= 0.5, label_values[np.argmax(stack, axis=0)], 0).astype(np.uint8)
+
+    # --- MR signal: partial-volume mix, texture, bias, Rician noise ----------------------------
+    texture = _upsample2(_smooth_noise(rng, half.size[::-1], sig(1.5)), phi.shape)
+    signal = _block_mean(_MATERIAL_INTENSITY[material] * (1.0 + 0.035 * texture), factors)
+    del texture, phi, depth
+    bias = _bias_field(grid, _block_mean(body, factors) > 0.5, params.bias_strength, rng)
+    sigma = INTENSITY["fat"] / params.snr
+    noisy = np.sqrt((signal * bias + sigma * rng.standard_normal(signal.shape)) ** 2
+                    + (sigma * rng.standard_normal(signal.shape)) ** 2).astype(np.float32)
+
+    # --- landmarks -------------------------------------------------------------------------------
+    landmarks = _landmarks(anatomy, tree, material, fine, tumour_centre, rng)
+
+    def to_image(array, pixel=None):
+        img = sitk.GetImageFromArray(array if pixel is None else array.astype(pixel))
+        img.SetOrigin(tuple(grid.origin))
+        img.SetSpacing(tuple(grid.spacing))
+        return img
+
+    voxel_cm3 = float(np.prod(grid.spacing)) / 1000.0
+    volumes = {n: float(fractions[n].sum() * voxel_cm3) for n in names}
+    breast_cm3 = sum(v for n, v in volumes.items() if n != "muscle")
+    summary = {
+        "breast_volume_cm3": breast_cm3,
+        "tissue_volumes_cm3": volumes,
+        "glandular_density": volumes["glandular"] / breast_cm3,
+        "tumour_equivalent_diameter_mm": float((6 * volumes["tumour"] * 1000 / np.pi) ** (1 / 3)),
+        "size_voxels": [int(s) for s in grid.size],
+        "spacing_mm": [float(s) for s in grid.spacing],
+        "base_radius_mm": float(anatomy.a),
+        "duct_tree_nodes": int(len(tree.nodes)),
+        "seconds": round(time.perf_counter() - started, 2),
+    }
+    return PhantomCase(
+        parameters=params,
+        image=to_image(noisy),
+        labels=to_image(labels),
+        fractions={n: to_image(f) for n, f in fractions.items()},
+        bias_field=to_image(bias.astype(np.float32)),
+        landmarks=landmarks,
+        summary=summary,
+    )
+
+
+def _bias_field(grid: _Grid, body: np.ndarray, strength: float, rng) -> np.ndarray:
+    """Smooth multiplicative field 1 + strength * f, f a random 2nd-order polynomial in the
+    normalised coordinates scaled so that it spans exactly [-1, 1] inside the body."""
+    x, y, z = grid.broadcast()
+    u = [(c - c.mean()) / (np.ptp(c) / 2 + 1e-9) for c in (x, y, z)]
+    terms = [u[0], u[1], u[2], u[0] * u[1], u[1] * u[2], u[0] * u[2], u[0] ** 2, u[1] ** 2, u[2] ** 2]
+    coef = rng.normal(size=len(terms)) * np.array([1, 1, 1, 0.6, 0.6, 0.6, 0.5, 0.5, 0.5])
+    f = sum(c * t for c, t in zip(coef, terms))
+    f = np.broadcast_to(f, body.shape).astype(np.float64)
+    inside = f[body]
+    lo, hi = inside.min(), inside.max()
+    f = 2.0 * (f - lo) / (hi - lo) - 1.0
+    return 1.0 + strength * f
+
+
+def _landmarks(anatomy: BreastAnatomy, tree: DuctTree, material, fine: _Grid, tumour_centre, rng) -> Landmarks:
+    """17 landmarks as in the seed: 12 internal at tissue features, 4 skin fiducials, nipple."""
+    positions, labels, descriptions = [], [], []
+
+    def add(p, label, text):
+        positions.append(np.asarray(p, float))
+        labels.append(label)
+        descriptions.append(text)
+
+    internal = []
+    if tumour_centre is not None:
+        internal.append((tumour_centre, "tumour centre"))
+    for sx in (-0.45, 0.45):
+        xz = np.array([sx * anatomy.a, 0.15 * anatomy.b])
+        p = np.array([xz[0], anatomy.muscle_front_y(xz[0], xz[1]), xz[1]])
+        internal.append((p, "pectoral fascia below the breast base"))
+    in_gland = material[fine.index_of(tree.nodes)] == 2
+    branch = np.intersect1d(tree.branch_points, np.flatnonzero(in_gland))
+    lobule = np.flatnonzero(tree.terminal & in_gland)
+    pool = np.concatenate([branch, lobule])
+    kinds = ["duct branching"] * len(branch) + ["lobule centre"] * len(lobule)
+    need = 12 - len(internal)
+    if len(pool) < need:
+        raise RuntimeError("phantom: too few glandular features for 12 internal landmarks; raise the density")
+    chosen = _farthest_points(tree.nodes[pool], need, np.array([p for p, _ in internal]))
+    internal += [(tree.nodes[pool[k]], kinds[k]) for k in chosen]
+    for i, (p, text) in enumerate(internal, start=1):
+        add(p, f"L{i:02d}", text)
+
+    mid = np.array([0.0, -0.45 * anatomy.d, -anatomy.droop * 0.2])
+    for i, (name, direction) in enumerate(
+        [("medial", (-1, 0, 0)), ("lateral", (1, 0, 0)), ("superior", (0, 0, 1)), ("inferior", (0, 0, -1))],
+        start=1,
+    ):
+        add(_ray_to_surface(anatomy, mid, direction), f"F{i}", f"skin fiducial, {name}")
+    _, tip = anatomy.nipple_axis()
+    add(_ray_to_surface(anatomy, tip, (0, -1, 0)), "nipple", "nipple tip")
+    return Landmarks(np.array(positions), labels, descriptions)

@@ -1,0 +1,42 @@
+"""Shared fixtures: a fresh real MRML scene per test (slicer-core wheel), small phantom cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+
+@pytest.fixture
+def scene():
+    """A new vtkMRMLScene with the default colour tables, as the Slicer application sets it up."""
+    slicer = pytest.importorskip("slicer", reason="needs the slicer-core wheel (pip install -e .[test])")
+    scene = slicer.vtkMRMLScene()
+    colors = slicer.vtkMRMLColorLogic()
+    colors.SetMRMLScene(scene)
+    yield scene
+    colors.SetMRMLScene(None)
+    scene.Clear(True)
+
+
+def oblique_direction() -> np.ndarray:
+    """A non-identity, non-axis-aligned rotation (det +1)."""
+    a, b = np.radians(30.0), np.radians(-20.0)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    return rz @ rx
+
+
+@pytest.fixture
+def oblique_geometry():
+    """(origin, spacing, direction) with anisotropic spacing and an oblique direction, LPS."""
+    return (12.5, -40.25, 7.0), (0.7, 1.3, 2.5), tuple(oblique_direction().ravel())
+
+
+def make_image(array: np.ndarray, geometry) -> sitk.Image:
+    image = sitk.GetImageFromArray(array, isVector=array.ndim == 4)
+    origin, spacing, direction = geometry
+    image.SetOrigin(origin)
+    image.SetSpacing(spacing)
+    image.SetDirection(direction)
+    return image

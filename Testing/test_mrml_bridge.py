@@ -1,0 +1,192 @@
+"""Round trips between library data (LPS) and real MRML nodes (RAS) in a slicer-core scene."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import vtk
+from vtk.util import numpy_support as nps
+
+from BreastBiomechLib import labels as lt
+from BreastBiomechLib.io.markups import read_markups, write_markups
+from BreastBiomechLib.landmarks import Landmarks
+from BreastBiomechLib.mesh import TetMesh
+from conftest import make_image
+
+slicer = pytest.importorskip("slicer")
+mrml = pytest.importorskip("BreastBiomechLib.mrml")
+
+pytestmark = pytest.mark.mrml
+
+
+def _ras_of_voxel(node, ijk):
+    m = vtk.vtkMatrix4x4()
+    node.GetIJKToRASMatrix(m)
+    return np.array(m.MultiplyPoint([*ijk, 1.0])[:3])
+
+
+def test_volume_round_trip_keeps_geometry_and_voxels(scene, oblique_geometry):
+    rng = np.random.default_rng(0)
+    array = rng.normal(size=(6, 7, 9)).astype(np.float32)
+    image = make_image(array, oblique_geometry)
+    node = mrml.image_to_volume_node(image, scene, "MR")
+    # a voxel's physical position: LPS from ITK, RAS from the node, related by the x/y flip
+    ijk = (4, 2, 5)
+    lps = np.array(image.TransformIndexToPhysicalPoint(ijk))
+    np.testing.assert_allclose(_ras_of_voxel(node, ijk), lps * [-1, -1, 1], atol=1e-9)
+    back = mrml.image_from_volume_node(node)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(back), array)
+    np.testing.assert_allclose(back.GetOrigin(), image.GetOrigin(), atol=1e-9)
+    np.testing.assert_allclose(back.GetSpacing(), image.GetSpacing(), atol=1e-9)
+    np.testing.assert_allclose(back.GetDirection(), image.GetDirection(), atol=1e-9)
+
+
+def test_labelmap_node_and_bad_image(scene, oblique_geometry):
+    labels = make_image(np.arange(24, dtype=np.uint8).reshape(2, 3, 4) % 5, oblique_geometry)
+    node = mrml.image_to_volume_node(labels, scene, "labels", labelmap=True)
+    assert node.IsA("vtkMRMLLabelMapVolumeNode")
+    vector = make_image(np.zeros((2, 3, 4, 3), np.float32), oblique_geometry)
+    with pytest.raises(ValueError, match="3D scalar image"):
+        mrml.image_to_volume_node(vector, scene)
+
+
+def _phantom_like_labels(geometry) -> sitk.Image:
+    z, y, x = np.mgrid[0:12, 0:16, 0:18]
+    a = np.zeros((12, 16, 18), np.uint8)
+    a[(x - 9) ** 2 + (y - 8) ** 2 + ((z - 6) * 1.5) ** 2 < 40] = lt.FAT.label
+    a[(x - 9) ** 2 + (y - 8) ** 2 + ((z - 6) * 1.5) ** 2 < 12] = lt.GLANDULAR.label
+    a[y >= 13] = lt.MUSCLE.label
+    a[5:7, 6:8, 4:6] = lt.TUMOUR.label
+    return make_image(a, geometry)
+
+
+def test_segmentation_round_trip_names_colours_and_voxels(scene, oblique_geometry):
+    labels = _phantom_like_labels(oblique_geometry)
+    node = mrml.labels_to_segmentation_node(labels, scene, "Tissues", closed_surface=True)
+    segmentation = node.GetSegmentation()
+    names = [segmentation.GetNthSegment(i).GetName() for i in range(segmentation.GetNumberOfSegments())]
+    assert names == ["fat", "glandular", "muscle", "tumour"]
+    for name in names:
+        assert segmentation.GetSegment(name).GetColor() == pytest.approx(lt.BY_NAME[name].color)
+        surface = node.GetClosedSurfaceInternalRepresentation(name)
+        assert surface is not None and surface.GetNumberOfPoints() > 0
+    back = mrml.labels_from_segmentation_node(node, scene, reference=labels)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(back), sitk.GetArrayFromImage(labels))
+    np.testing.assert_allclose(back.GetDirection(), labels.GetDirection(), atol=1e-9)
+    np.testing.assert_allclose(back.GetOrigin(), labels.GetOrigin(), atol=1e-9)
+
+
+def test_segmentation_rejects_unknown_labels_and_segments(scene, oblique_geometry):
+    bad = make_image(np.full((2, 2, 2), 9, np.uint8), oblique_geometry)
+    with pytest.raises(ValueError, match=r"label values \[9\]"):
+        mrml.labels_to_segmentation_node(bad, scene)
+    node = mrml.labels_to_segmentation_node(_phantom_like_labels(oblique_geometry), scene)
+    node.GetSegmentation().GetSegment("fat").SetName("Segment_1")
+    with pytest.raises(ValueError, match="Segment_1"):
+        mrml.labels_from_segmentation_node(node, scene)
+
+
+def _two_tets() -> TetMesh:
+    nodes = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10], [10, 10, 10]], float) + [5.0, -3.0, 2.0]
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    tets[1] = tets[1][[1, 0, 2, 3]] if TetMesh(nodes, tets[1:]).volumes[0] < 0 else tets[1]
+    return TetMesh(nodes, tets,
+                   point_data={"displacement": np.arange(15, dtype=float).reshape(5, 3), "chest_wall": np.array([1, 0, 0, 1, 0], np.uint8)},
+                   cell_data={"tissue": np.array([1, 4], np.uint8), "fraction_glandular": np.array([0.25, 0.5])})
+
+
+def test_tetmesh_model_node_round_trip(scene):
+    mesh = _two_tets()
+    node = mrml.tetmesh_to_model_node(mesh, scene, "Mesh")
+    grid = node.GetUnstructuredGrid()
+    assert grid.GetNumberOfCells() == 2
+    np.testing.assert_allclose(grid.GetPoint(1), mesh.nodes[1] * [-1, -1, 1])
+    back = mrml.tetmesh_from_model_node(node)
+    np.testing.assert_allclose(back.nodes, mesh.nodes)
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+    assert np.all(back.volumes > 0)
+    for key in mesh.point_data:
+        np.testing.assert_array_equal(back.point_data[key], mesh.point_data[key])
+    for key in mesh.cell_data:
+        np.testing.assert_array_equal(back.cell_data[key], mesh.cell_data[key])
+    # the displacement array is a vector: flipped with the points in the scene
+    u_ras = nps.vtk_to_numpy(grid.GetPointData().GetArray("displacement"))
+    np.testing.assert_allclose(u_ras, mesh.point_data["displacement"] * [-1, -1, 1])
+
+
+def test_model_node_without_volume_mesh_is_refused(scene):
+    node = scene.AddNewNodeByClass("vtkMRMLModelNode", "surface")
+    with pytest.raises(ValueError, match="unstructured grid"):
+        mrml.tetmesh_from_model_node(node)
+
+
+def _landmarks() -> Landmarks:
+    return Landmarks(np.array([[1.5, -2.0, 30.25], [-40.0, 12.0, -3.5], [0.0, -95.0, 1.0]]),
+                     ["L01", "F1", "nipple"], ["duct branching", "skin fiducial, medial", "nipple tip"])
+
+
+def test_markups_node_round_trip(scene):
+    landmarks = _landmarks()
+    node = mrml.landmarks_to_markups_node(landmarks, scene)
+    assert node.GetNumberOfControlPoints() == 3
+    ras = [0.0, 0.0, 0.0]
+    node.GetNthControlPointPosition(2, ras)
+    np.testing.assert_allclose(ras, landmarks.positions[2] * [-1, -1, 1])
+    back = mrml.landmarks_from_markups_node(node)
+    np.testing.assert_allclose(back.positions, landmarks.positions)
+    assert back.labels == landmarks.labels and back.descriptions == landmarks.descriptions
+
+
+def test_mrk_json_file_is_read_by_slicers_own_reader(scene, tmp_path):
+    landmarks = _landmarks()
+    path = write_markups(tmp_path / "landmarks.mrk.json", landmarks)
+    storage = scene.AddNode(slicer.vtkMRMLMarkupsJsonStorageNode())
+    storage.SetFileName(str(path))
+    node = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode")
+    assert storage.ReadData(node)
+    back = mrml.landmarks_from_markups_node(node)
+    np.testing.assert_allclose(back.positions, landmarks.positions, atol=1e-9)
+    assert back.labels == landmarks.labels
+    # and a file written by Slicer's writer (RAS or LPS, its choice) reads back with our reader
+    out = tmp_path / "slicer.mrk.json"
+    storage.SetFileName(str(out))
+    assert storage.WriteData(node)
+    assert json.loads(out.read_text())["markups"][0]["type"] == "Fiducial"
+    np.testing.assert_allclose(read_markups(out).positions, landmarks.positions, atol=1e-6)
+
+
+def test_grid_transform_round_trip_and_point_mapping(scene, oblique_geometry):
+    z, y, x = np.mgrid[0:5, 0:6, 0:7].astype(float)
+    u = np.stack([0.3 * x + 0.1 * z, -0.2 * y, 0.05 * x * y], axis=-1)  # LPS mm, smooth
+    field = make_image(u, oblique_geometry)
+    node = mrml.displacement_field_to_grid_transform_node(field, scene)
+    # a grid point p (LPS) goes to p + u(p): check through the node's own to-parent transform
+    ijk = (3, 2, 1)
+    p = np.array(field.TransformIndexToPhysicalPoint(ijk))
+    moved_ras = np.array(node.GetTransformToParent().TransformPoint(*(p * [-1, -1, 1])))
+    np.testing.assert_allclose(moved_ras * [-1, -1, 1], p + u[ijk[2], ijk[1], ijk[0]], atol=1e-6)
+    back = mrml.displacement_field_from_grid_transform_node(node)
+    np.testing.assert_allclose(sitk.GetArrayFromImage(back), u, atol=1e-12)
+    np.testing.assert_allclose(back.GetOrigin(), field.GetOrigin(), atol=1e-9)
+    np.testing.assert_allclose(back.GetSpacing(), field.GetSpacing(), atol=1e-9)
+    np.testing.assert_allclose(back.GetDirection(), field.GetDirection(), atol=1e-9)
+
+
+def test_parameter_node_typed_values_and_references(scene, oblique_geometry):
+    defaults = {"seed": 1, "volume_cm3": 800.0, "tumour": True, "case": "custom"}
+    params = mrml.ParameterNode(scene, "BreastBiomech", defaults, roles=("volume",))
+    assert params["volume_cm3"] == 800.0 and params["tumour"] is True
+    params["seed"] = 7
+    params["tumour"] = False
+    volume = mrml.image_to_volume_node(make_image(np.zeros((2, 2, 2), np.float32), oblique_geometry), scene)
+    params.set_reference("volume", volume)
+    again = mrml.ParameterNode(scene, "BreastBiomech", defaults, roles=("volume",))
+    assert again.node is params.node
+    assert again["seed"] == 7 and again["tumour"] is False and again.reference("volume") is volume
+    with pytest.raises(KeyError, match="unknown parameter"):
+        again["nope"]
+    with pytest.raises(ValueError):
+        again["seed"] = "seven"
