@@ -254,7 +254,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
     texture = _upsample2(_smooth_noise(rng, half.size[::-1], sig(1.5)), phi.shape)
     signal = _block_mean(_MATERIAL_INTENSITY[material] * (1.0 + 0.035 * texture), factors)
     del texture, phi, depth
-    bias = _bias_field(grid, _block_mean(body, factors) > 0.5, params.bias_strength, rng)
+    bias = _bias_field(grid, labels > 0, params.bias_strength, rng)
     sigma = INTENSITY["fat"] / params.snr
     noisy = np.sqrt((signal * bias + sigma * rng.standard_normal(signal.shape)) ** 2
                     + (sigma * rng.standard_normal(signal.shape)) ** 2).astype(np.float32)
@@ -295,7 +295,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
 
 def _bias_field(grid: _Grid, body: np.ndarray, strength: float, rng) -> np.ndarray:
     """Smooth multiplicative field 1 + strength * f, f a random 2nd-order polynomial in the
-    normalised coordinates scaled so that it spans exactly [-1, 1] inside the body."""
+    normalised coordinates scaled so that it spans exactly [-1, 1] over the modelled tissues."""
     x, y, z = grid.broadcast()
     u = [(c - c.mean()) / (np.ptp(c) / 2 + 1e-9) for c in (x, y, z)]
     terms = [u[0], u[1], u[2], u[0] * u[1], u[1] * u[2], u[0] * u[2], u[0] ** 2, u[1] ** 2, u[2] ** 2]

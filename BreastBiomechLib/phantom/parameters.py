@@ -31,7 +31,7 @@ class PhantomParameters:
     muscle_thickness_mm: float = 11.0  # pectoral muscle, mean thickness
     skin_separate: bool = False        # keep skin as its own label; by default folded into fat (seed 2.2.1)
     snr: float = 30.0                  # fat signal / noise standard deviation (Rician noise)
-    bias_strength: float = 0.2         # multiplicative bias field spans 1 +- this inside the body
+    bias_strength: float = 0.2         # multiplicative bias field spans 1 +- this over the breast and muscle
     spacing_mm: tuple[float, float, float] = (1.0, 1.0, 2.5)  # voxel size along L, P, S
     aspect_si: float = 0.9             # superior-inferior base radius / left-right base radius
     aspect_depth: float = 0.95         # anterior projection / left-right base radius (pendulous > 0.8)
