@@ -9,6 +9,7 @@ Rician noise follow. All geometry in ITK physical space (LPS), millimetres.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,16 +93,20 @@ def _upsample2(coarse: np.ndarray, shape) -> np.ndarray:
 
 def _calibrated_anatomy(params: PhantomParameters, rng_state: int) -> BreastAnatomy:
     """Find the base radius whose breast tissue volume (anterior to the muscle) is the requested
-    one, measured on a 1.5 mm grid; three secant-like updates on volume ~ scale^3."""
+    one, measured on a 1.5 mm grid; four fixed-point updates on volume ~ scale^3."""
     target = params.volume_cm3 * 1000.0
     scale = (target / (2.0 / 3.0 * np.pi * params.aspect_si * params.aspect_depth)) ** (1 / 3) * 0.9
     for _ in range(4):
         anatomy = BreastAnatomy(params, np.random.default_rng(rng_state), scale)
-        lo, hi = anatomy.extent(10.0)
+        lo, hi = anatomy.extent(params.margin_mm)  # the image's field of view: the chest layer counts
         step = 1.5
         grid = _Grid(lo, (step, step, step), np.ceil((hi - lo) / step).astype(int) + 1)
         x, y, z = grid.broadcast()
-        inside = (anatomy.body_phi(x, y, z) < 0) & (y < anatomy.muscle_front_y(x, z))
+        # sub-voxel occupancy from the (near-distance) implicit values: unbiased on a coarse grid
+        phi = anatomy.body_phi(x, y, z)
+        gradient = np.sqrt(sum(g**2 for g in np.gradient(phi, step)))
+        inside = np.clip(0.5 - phi / np.maximum(gradient, 0.3) / step, 0, 1) * np.clip(
+            0.5 + (anatomy.muscle_front_y(x, z) - y) / step, 0, 1)
         volume = inside.sum() * step**3
         scale *= (target / volume) ** (1 / 3)
     return BreastAnatomy(params, np.random.default_rng(rng_state), scale)
@@ -139,10 +144,15 @@ def _farthest_points(candidates: np.ndarray, count: int, seed_points: np.ndarray
     return np.array(chosen, dtype=int)
 
 
-def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
-    """Generate the case described by ``params`` (deterministic in ``params.seed``)."""
+def generate_phantom(params: PhantomParameters | None = None,
+                     progress: Callable[[float, str], None] | None = None) -> PhantomCase:
+    """Generate the case described by ``params`` (deterministic in ``params.seed``).
+
+    ``progress(fraction, message)`` is called as the stages finish (for progress bars)."""
     params = params or PhantomParameters()
+    report = progress or (lambda fraction, message: None)
     started = time.perf_counter()
+    report(0.0, "shaping the breast to the requested volume")
     rng = np.random.default_rng(params.seed)
     anatomy = _calibrated_anatomy(params, params.seed)
     tree = anatomy.grow_duct_tree(rng)
@@ -158,6 +168,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
     half = _Grid(fine.origin, fine.spacing * 2, (fine.size + 1) // 2)
     x, y, z = fine.broadcast()
 
+    report(0.1, "body, skin, pectoral muscle and chest wall")
     # --- body, skin, muscle, thorax ------------------------------------------------------------
     phi = anatomy.body_phi(x, y, z).astype(np.float32)
     gz, gy, gx = np.gradient(phi, *fine.spacing[::-1])
@@ -205,6 +216,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
 
         material[breast & ~skin & (tumour_phi(x, y, z) < 0)] = 4
 
+    report(0.4, "fibroglandular tissue")
     # --- fibroglandular tissue: duct tree + lobules, blurred, thresholded to the density -------
     ducts = np.zeros(half.size[::-1], dtype=np.float32)
     lobules = np.zeros_like(ducts)
@@ -240,6 +252,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
     material[candidate & (gland >= threshold)] = 2
     del gland, taper, values
 
+    report(0.7, "partial-volume truth images")
     # --- truth images ----------------------------------------------------------------------------
     fractions = {t.name: _block_mean(material == t.label, factors) for t in lt.TISSUES}
     if not params.skin_separate:
@@ -250,6 +263,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
     tissue_total = stack.sum(axis=0)
     labels = np.where(tissue_total >= 0.5, label_values[np.argmax(stack, axis=0)], 0).astype(np.uint8)
 
+    report(0.8, "MR signal, bias field and noise")
     # --- MR signal: partial-volume mix, texture, bias, Rician noise ----------------------------
     texture = _upsample2(_smooth_noise(rng, half.size[::-1], sig(1.5)), phi.shape)
     signal = _block_mean(_MATERIAL_INTENSITY[material] * (1.0 + 0.035 * texture), factors)
@@ -259,6 +273,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
     noisy = np.sqrt((signal * bias + sigma * rng.standard_normal(signal.shape)) ** 2
                     + (sigma * rng.standard_normal(signal.shape)) ** 2).astype(np.float32)
 
+    report(0.95, "landmarks")
     # --- landmarks -------------------------------------------------------------------------------
     landmarks = _landmarks(anatomy, tree, material, fine, tumour_centre, rng)
 
@@ -282,6 +297,7 @@ def generate_phantom(params: PhantomParameters | None = None) -> PhantomCase:
         "duct_tree_nodes": int(len(tree.nodes)),
         "seconds": round(time.perf_counter() - started, 2),
     }
+    report(1.0, "done")
     return PhantomCase(
         parameters=params,
         image=to_image(noisy),

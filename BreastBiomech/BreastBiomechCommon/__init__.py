@@ -1,0 +1,82 @@
+"""Helpers shared by the BreastBiomech scripted modules (not a module itself: Slicer only loads
+the ``*.py`` files directly in this folder as modules).
+
+- the Slicer framework base classes, or a stand-in where only the ``slicer-core`` wheel is present
+  (headless: Logic classes work; Module, Widget and Test classes refuse to be instantiated);
+- finding ``BreastBiomechLib`` and the shared ``Resources/`` both in a built extension (copied
+  beside the module scripts) and in a source checkout (one folder up);
+- installing missing Python dependencies on first use, after asking the user.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+
+_HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the module scripts' folder
+_SOURCE_ROOT = os.path.dirname(_HERE)                                 # a source checkout's root
+
+try:  # inside the Slicer application
+    from slicer.ScriptedLoadableModule import (  # noqa: F401
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
+
+    IN_SLICER_APPLICATION = True
+except ImportError:  # the slicer-core wheel: MRML and module logic only, no application or Qt
+
+    class _ApplicationOnly:
+        """Headless stand-in for the application's Module/Widget/Test base classes: those classes
+        can be defined (so the module file imports) but are never instantiated headless."""
+
+        def __init__(self, *args, **kwargs):
+            raise RuntimeError("this class needs the Slicer application; headless, use the Logic class")
+
+    ScriptedLoadableModule = ScriptedLoadableModuleWidget = ScriptedLoadableModuleTest = _ApplicationOnly
+    IN_SLICER_APPLICATION = False
+
+# Python packages the library needs that a Slicer installation may lack: import name -> pip name
+DEPENDENCIES = {"scipy": "scipy", "SimpleITK": "SimpleITK", "matplotlib": "matplotlib",
+                "tetgen": "tetgen", "warp": "warp-lang"}
+
+
+def ensure_library_importable() -> None:
+    """Make ``import BreastBiomechLib`` work when the modules run from a source checkout."""
+    if importlib.util.find_spec("BreastBiomechLib") is None and os.path.isdir(
+            os.path.join(_SOURCE_ROOT, "BreastBiomechLib")):
+        sys.path.insert(0, _SOURCE_ROOT)
+
+
+def resource_path(relative: str) -> str:
+    """Absolute path of a shared resource, e.g. ``resource_path("UI/BreastBiomech.ui")``."""
+    for root in (_HERE, _SOURCE_ROOT):
+        candidate = os.path.join(root, "Resources", relative)
+        if os.path.exists(candidate):
+            return candidate
+    raise FileNotFoundError(f"BreastBiomech resource {relative!r} not found beside {_HERE} or in {_SOURCE_ROOT}")
+
+
+def missing_dependencies(names) -> list[str]:
+    """pip names of the dependencies among ``names`` (import names) that cannot be imported."""
+    return [DEPENDENCIES[n] for n in names if importlib.util.find_spec(n) is None]
+
+
+def ensure_dependencies(names) -> bool:
+    """Inside Slicer: offer to pip-install what is missing; True when everything is importable."""
+    missing = missing_dependencies(names)
+    if not missing:
+        return True
+    if not IN_SLICER_APPLICATION:
+        raise ImportError(f"missing Python packages {missing}: pip install {' '.join(missing)}")
+    import slicer
+
+    if not slicer.util.confirmOkCancelDisplay(
+            f"BreastBiomech needs these Python packages: {', '.join(missing)}.\n"
+            "Install them now into Slicer's Python (this downloads them)?",
+            "BreastBiomech dependencies"):
+        return False
+    slicer.util.pip_install(" ".join(missing))
+    importlib.invalidate_caches()
+    return not missing_dependencies(names)

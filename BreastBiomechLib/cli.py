@@ -1,0 +1,134 @@
+"""Command line: ``breastbiomech phantom|demo|bench``.
+
+Each sub-command is a thin layer over library functions; results go to files and a short report
+on standard output (``--json`` where a machine reads it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+from BreastBiomechLib import __version__
+
+
+def _phantom_parameters(args):
+    from BreastBiomechLib.phantom import PhantomParameters, table1_case
+
+    params = table1_case(args.case) if args.case else PhantomParameters()
+    overrides = {
+        "seed": args.seed, "volume_cm3": args.volume_cm3, "density": args.density,
+        "tumour_diameter_mm": args.tumour_mm, "snr": args.snr, "bias_strength": args.bias,
+        "spacing_mm": tuple(args.spacing) if args.spacing else None,
+        "skin_separate": True if args.skin_separate else None,
+    }
+    values = params.to_dict()
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return PhantomParameters.from_dict(values)
+
+
+def _add_phantom_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--case", type=int, choices=range(1, 6), metavar="1-5",
+                   help="start from the preset for case 1-5 of the seed paper's Table 1")
+    p.add_argument("--seed", type=int, help="random seed (same seed, same case)")
+    p.add_argument("--volume-cm3", type=float, help="breast volume, 400-1500 cm^3")
+    p.add_argument("--density", type=float, help="glandular volume fraction, 0.05-0.65")
+    p.add_argument("--tumour-mm", type=float, help="tumour diameter in mm (0: none)")
+    p.add_argument("--snr", type=float, help="fat signal / noise sigma")
+    p.add_argument("--bias", type=float, help="bias field amplitude (0.2 = +-20%%)")
+    p.add_argument("--spacing", type=float, nargs=3, metavar=("L", "P", "S"), help="voxel size in mm")
+    p.add_argument("--skin-separate", action="store_true", help="keep skin as its own label")
+
+
+def cmd_phantom(args) -> int:
+    from BreastBiomechLib.phantom import generate_phantom, write_phantom
+
+    case = generate_phantom(_phantom_parameters(args))
+    paths = write_phantom(case, args.out, overview=not args.no_overview)
+    s = case.summary
+    print(f"phantom written to {args.out}: {s['breast_volume_cm3']:.0f} cm3 breast, "
+          f"density {s['glandular_density']:.1%}, grid {s['size_voxels']} at {s['spacing_mm']} mm, "
+          f"{len(case.landmarks)} landmarks, {s['seconds']:.1f} s")
+    for role, path in paths.items():
+        print(f"  {role:20s} {path}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """The main job on the built-in phantom (grows with the pipeline)."""
+    from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
+
+    out = Path(args.out)
+    print(f"BreastBiomech {__version__} demo -> {out}")
+    print("1/1 phantom: Table 1 case 1 (1364 cm3, tumour), 1 x 1 x 2.5 mm voxels")
+    case = generate_phantom(table1_case(1))
+    paths = write_phantom(case, out / "phantom")
+    s = case.summary
+    volumes = ", ".join(f"{k} {v:.0f}" for k, v in s["tissue_volumes_cm3"].items())
+    print(f"    tissue volumes (cm3): {volumes}; density {s['glandular_density']:.1%}; {s['seconds']:.1f} s")
+    print(f"    overview picture: {paths['overview']}")
+    print(f"demo finished: open {paths['mr']} with {paths['labels']} and {paths['landmarks']} in Slicer")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from BreastBiomechLib.phantom import generate_phantom, table1_case
+
+    if args.what == "phantom":
+        figures = {"benchmark": "phantom", "version": __version__, "machine": platform.machine(),
+                   "python": platform.python_version(), "cases": {}}
+        for number in args.cases:
+            started = time.perf_counter()
+            case = generate_phantom(table1_case(number))
+            figures["cases"][number] = {
+                "seconds": round(time.perf_counter() - started, 2),
+                "breast_volume_cm3": round(case.summary["breast_volume_cm3"], 1),
+                "voxels": int(case.image.GetNumberOfPixels()),
+            }
+        if args.json:
+            print(json.dumps(figures))
+        else:
+            for number, f in figures["cases"].items():
+                print(f"case {number}: {f['seconds']:.1f} s, {f['voxels']} voxels, {f['breast_volume_cm3']} cm3")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="breastbiomech", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("phantom", help="generate a synthetic breast MR case with ground truth")
+    p.add_argument("--out", required=True, help="output folder")
+    _add_phantom_options(p)
+    p.add_argument("--no-overview", action="store_true", help="skip the PNG overview")
+    p.set_defaults(func=cmd_phantom)
+
+    p = sub.add_parser("demo", help="run the main job on the built-in phantom")
+    p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("bench", help="print benchmark figures")
+    p.add_argument("what", choices=["phantom"], help="what to time")
+    p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
+    p.add_argument("--json", action="store_true", help="one JSON line of figures")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"breastbiomech {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
