@@ -1,0 +1,220 @@
+"""Warp kernels of the TLED solver (total Lagrangian explicit dynamics).
+
+All kernels work on a batch of B models that share one mesh: node arrays hold B*N entries
+(model b's node a at b*N + a), element arrays B*M entries. Units inside the kernels are SI:
+metres, pascal, kilograms, seconds, newtons. Vectors are in the mesh frame (LPS axes).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+LOAD_POLY345 = 0
+LOAD_RAMP = 1
+
+
+@wp.func
+def load_factor(t: float, total: float, shape: int) -> float:
+    """Relative load at time t: POLY345 (10r^3 - 15r^4 + 6r^5) or RAMP (r), r = t/total in [0, 1]."""
+    r = wp.clamp(t / total, 0.0, 1.0)
+    if shape == LOAD_RAMP:
+        return r
+    return r * r * r * (10.0 + r * (-15.0 + 6.0 * r))
+
+
+@wp.func
+def deformation_gradient(u: wp.array(dtype=wp.vec3), base: int, n0: int, n1: int, n2: int, n3: int,
+                         d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3) -> wp.mat33:
+    """F = I + sum_a u_a (x) dN_a/dX."""
+    return (wp.identity(n=3, dtype=float) + wp.outer(u[base + n0], d0) + wp.outer(u[base + n1], d1)
+            + wp.outer(u[base + n2], d2) + wp.outer(u[base + n3], d3))
+
+
+@wp.func
+def second_piola_kirchhoff(F: wp.mat33, mu: float, kappa: float, eta: float, a: wp.vec3) -> wp.mat33:
+    """S = 2 dW/dC for W = mu/2 (I1bar - 3) + kappa/2 (J - 1)^2 + eta/2 (I4bar - 1)^2."""
+    C = wp.transpose(F) * F
+    J = wp.determinant(F)
+    Cinv = wp.inverse(C)
+    I1 = C[0, 0] + C[1, 1] + C[2, 2]
+    J23 = wp.pow(J, -2.0 / 3.0)
+    eye = wp.identity(n=3, dtype=float)
+    S = mu * J23 * (eye - (I1 / 3.0) * Cinv) + kappa * J * (J - 1.0) * Cinv
+    if eta > 0.0:
+        I4 = wp.dot(a, C * a)
+        S = S + 2.0 * eta * (J23 * I4 - 1.0) * J23 * (wp.outer(a, a) - (I4 / 3.0) * Cinv)
+    return S
+
+
+@wp.func
+def strain_energy_density(F: wp.mat33, mu: float, kappa: float, eta: float, a: wp.vec3) -> float:
+    C = wp.transpose(F) * F
+    J = wp.determinant(F)
+    J23 = wp.pow(J, -2.0 / 3.0)
+    W = 0.5 * mu * (J23 * (C[0, 0] + C[1, 1] + C[2, 2]) - 3.0) + 0.5 * kappa * (J - 1.0) * (J - 1.0)
+    if eta > 0.0:
+        I4b = J23 * wp.dot(a, C * a)
+        W = W + 0.5 * eta * (I4b - 1.0) * (I4b - 1.0)
+    return W
+
+
+@wp.kernel
+def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                   vol0: wp.array(dtype=float), kappa: wp.array(dtype=float), n_nodes: int, n_elements: int,
+                   pressure_volume: wp.array(dtype=float)):
+    """ANP pass 1: accumulate kappa (J_e - 1) V_e at each node of each element."""
+    tid = wp.tid()
+    b = tid // n_elements
+    e = tid - b * n_elements
+    base = b * n_nodes
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    F = deformation_gradient(u, base, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
+    pv = kappa[tid] * (wp.determinant(F) - 1.0) * vol0[e]
+    wp.atomic_add(pressure_volume, base + n0, pv)
+    wp.atomic_add(pressure_volume, base + n1, pv)
+    wp.atomic_add(pressure_volume, base + n2, pv)
+    wp.atomic_add(pressure_volume, base + n3, pv)
+
+
+@wp.kernel
+def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                   vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
+                   eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), use_anp: int,
+                   pressure_volume: wp.array(dtype=float), node_volume: wp.array(dtype=float),
+                   n_nodes: int, n_elements: int, step: wp.array(dtype=int),
+                   forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
+    """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the averaged nodal pressure,
+    as NiftySim's T4ANP). Elements with J <= 0 are counted and the first one and its step recorded
+    in ``inverted`` = [count, element, step, frozen]; once frozen the whole step loop stands still,
+    keeping the last configuration for inspection instead of producing NaN."""
+    tid = wp.tid()
+    if inverted[3] != 0:
+        return
+    b = tid // n_elements
+    e = tid - b * n_elements
+    base = b * n_nodes
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+    F = deformation_gradient(u, base, n0, n1, n2, n3, d0, d1, d2, d3)
+    J = wp.determinant(F)
+    if J <= 0.0:
+        if wp.atomic_add(inverted, 0, 1) == 0:
+            inverted[1] = e
+            inverted[2] = step[0]
+        return
+    if use_anp != 0:
+        pm = 0.25 * (pressure_volume[base + n0] / node_volume[n0] + pressure_volume[base + n1] / node_volume[n1]
+                     + pressure_volume[base + n2] / node_volume[n2] + pressure_volume[base + n3] / node_volume[n3])
+        Jm = pm / kappa[tid] + 1.0
+        if Jm <= 0.0:
+            if wp.atomic_add(inverted, 0, 1) == 0:
+                inverted[1] = e
+                inverted[2] = step[0]
+            return
+        F = wp.pow(Jm / J, 1.0 / 3.0) * F
+    P = vol0[e] * (F * second_piola_kirchhoff(F, mu[tid], kappa[tid], eta[tid], fibre[tid]))
+    wp.atomic_add(forces, base + n0, P * d0)
+    wp.atomic_add(forces, base + n1, P * d1)
+    wp.atomic_add(forces, base + n2, P * d2)
+    wp.atomic_add(forces, base + n3, P * d3)
+
+
+@wp.kernel
+def central_difference(u_curr: wp.array(dtype=wp.vec3), u_prev_to_next: wp.array(dtype=wp.vec3),
+                       forces: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), gravity: wp.vec3,
+                       damping: float, dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
+                       inverted: wp.array(dtype=int)):
+    """u_next = (R - F + 2m/dt^2 u - (m/dt^2 - a m/(2dt)) u_prev) / (m/dt^2 + a m/(2dt)), seed eq. (15).
+    Overwrites the previous displacement with the next one (it is not needed afterwards)."""
+    i = wp.tid()
+    if inverted[0] != 0:
+        return
+    m = mass[i]
+    t = float(step[0] + 1) * dt
+    external = m * load_factor(t, t_total, load_shape) * gravity
+    inv_dt2 = 1.0 / (dt * dt)
+    c = 0.5 * damping / dt
+    a = 1.0 / (m * inv_dt2 + m * c)
+    u_prev_to_next[i] = a * (external - forces[i] + 2.0 * m * inv_dt2 * u_curr[i]
+                             - (m * inv_dt2 - m * c) * u_prev_to_next[i])
+
+
+@wp.kernel
+def apply_constraints(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), mask: wp.array(dtype=wp.vec3),
+                      value: wp.array(dtype=wp.vec3), n_nodes: int, n_constrained: int,
+                      dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
+                      inverted: wp.array(dtype=int)):
+    """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m)."""
+    tid = wp.tid()
+    if inverted[0] != 0:
+        return
+    b = tid // n_constrained
+    k = tid - b * n_constrained
+    i = b * n_nodes + nodes[k]
+    s = load_factor(float(step[0] + 1) * dt, t_total, load_shape)
+    m = mask[k]
+    target = s * value[tid]
+    x = u[i]
+    u[i] = wp.vec3(wp.where(m[0] > 0.0, target[0], x[0]), wp.where(m[1] > 0.0, target[1], x[1]),
+                   wp.where(m[2] > 0.0, target[2], x[2]))
+
+
+@wp.kernel
+def plate_contact(u: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3), slaves: wp.array(dtype=int),
+                  plate_of_slave: wp.array(dtype=int), plate_point: wp.array(dtype=wp.vec3),
+                  plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
+                  forces: wp.array(dtype=wp.vec3), n_nodes: int, n_slaves: int, n_plates: int,
+                  dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
+                  plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
+    """Kinematic frictionless contact with rigid planes: a slave node behind its plate is moved
+    back onto it along the normal (free to slide). The plate force is the sum of the internal
+    forces of the nodes in contact: the force the plate applies to the tissue (N)."""
+    tid = wp.tid()
+    if inverted[0] != 0:
+        return
+    b = tid // n_slaves
+    k = tid - b * n_slaves
+    p = plate_of_slave[k]
+    node = slaves[k]
+    i = b * n_nodes + node
+    s = load_factor(float(step[0] + 1) * dt, t_total, load_shape)
+    point = plate_point[p] + s * plate_motion[b * n_plates + p]
+    n = plate_normal[p]
+    gap = wp.dot(x0[node] + u[i] - point, n)
+    if gap < 0.0:
+        u[i] = u[i] - gap * n
+        wp.atomic_add(plate_force, b * n_plates + p, wp.dot(forces[i], n) * n)
+
+
+@wp.kernel
+def advance_step(step: wp.array(dtype=int), inverted: wp.array(dtype=int)):
+    """Next step, or freeze the loop once an inverted element was found."""
+    if inverted[0] != 0:
+        inverted[3] = 1
+    else:
+        step[0] = step[0] + 1
+
+
+@wp.kernel
+def energies(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+             dt: float, n_nodes: int, kinetic: wp.array(dtype=float)):
+    """Kinetic energy per model, velocity (u_curr - u_prev) / dt (J)."""
+    i = wp.tid()
+    v = (u_curr[i] - u_prev[i]) / dt
+    wp.atomic_add(kinetic, i // n_nodes, 0.5 * mass[i] * wp.dot(v, v))
+
+
+@wp.kernel
+def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                    vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
+                    eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), n_nodes: int, n_elements: int,
+                    energy: wp.array(dtype=float)):
+    """Stored strain energy per model, sum of V0 W(F) (J)."""
+    tid = wp.tid()
+    b = tid // n_elements
+    e = tid - b * n_elements
+    base = b * n_nodes
+    F = deformation_gradient(u, base, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3],
+                             dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
+    if wp.determinant(F) > 0.0:
+        wp.atomic_add(energy, b, vol0[e] * strain_energy_density(F, mu[tid], kappa[tid], eta[tid], fibre[tid]))

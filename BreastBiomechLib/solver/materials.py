@@ -1,0 +1,108 @@
+"""Hyperelastic materials of the solver: neo-Hookean (NH) and transversely isotropic NH (TI).
+
+Strain energy with the isochoric/volumetric split (C-bar = J^(-2/3) C), as in NiftySim and the
+seed's eq. (8):
+
+    NH: W = mu/2 (I1bar - 3) + kappa/2 (J - 1)^2
+    TI: W = NH + eta/2 (I4bar - 1)^2,   I4bar = a . Cbar a,  a the unit fibre direction
+
+Parameters in pascal; mu = E / (2 (1 + nu)), kappa = E / (3 (1 - 2 nu)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def lame_from_young(E, nu) -> tuple[np.ndarray, np.ndarray]:
+    """(mu, kappa) in Pa from Young's modulus ``E`` (Pa) and Poisson's ratio ``nu`` (< 0.5)."""
+    E = np.asarray(E, dtype=np.float64)
+    nu = np.asarray(nu, dtype=np.float64)
+    if np.any(E <= 0):
+        raise ValueError("Young's modulus must be positive (Pa)")
+    if np.any((nu <= -1.0) | (nu >= 0.5)):
+        raise ValueError("Poisson's ratio must lie in (-1, 0.5); use 0.45-0.4999 for soft tissue")
+    return E / (2.0 * (1.0 + nu)), E / (3.0 * (1.0 - 2.0 * nu))
+
+
+def fibre_direction(gamma, alpha) -> np.ndarray:
+    """Unit fibre vector from the seed's eq. (6) angles (radians):
+    A = (sin g cos a, sin g sin a, cos g); gamma from e3 in [0, pi/2], alpha from e1 in [0, pi].
+
+    (The seed prints cos(alpha) for the third component; cos(gamma) is the unit-vector form that
+    matches its description of gamma as the angle between A and e3.)"""
+    gamma = np.asarray(gamma, dtype=np.float64)
+    alpha = np.asarray(alpha, dtype=np.float64)
+    return np.stack([np.sin(gamma) * np.cos(alpha), np.sin(gamma) * np.sin(alpha), np.cos(gamma)], axis=-1)
+
+
+@dataclass(frozen=True)
+class Material:
+    """One tissue's material: ``E`` (Pa), ``nu``, ``eta`` (Pa; 0 = isotropic NH), fibre direction
+    (unit vector, LPS), density (kg/m^3)."""
+
+    E: float
+    nu: float
+    eta: float = 0.0
+    fibre: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    density: float = 1000.0
+
+    def __post_init__(self) -> None:
+        lame_from_young(self.E, self.nu)
+        if self.eta < 0:
+            raise ValueError("eta (fibre reinforcement) must be >= 0 Pa")
+        if self.density <= 0:
+            raise ValueError("density must be positive (kg/m^3)")
+        if not np.isclose(np.linalg.norm(self.fibre), 1.0, atol=1e-6):
+            raise ValueError(f"fibre direction {self.fibre} must be a unit vector")
+
+    @property
+    def mu(self) -> float:
+        return float(lame_from_young(self.E, self.nu)[0])
+
+    @property
+    def kappa(self) -> float:
+        return float(lame_from_young(self.E, self.nu)[1])
+
+
+@dataclass
+class ElementMaterials:
+    """Per-element material arrays (length M): mu, kappa, eta in Pa, fibre (M, 3) unit vectors,
+    density kg/m^3. Heterogeneous models are just different values."""
+
+    mu: np.ndarray
+    kappa: np.ndarray
+    eta: np.ndarray
+    fibre: np.ndarray
+    density: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.mu = np.asarray(self.mu, np.float64)
+        m = self.mu.shape[0]
+        self.kappa = np.broadcast_to(np.asarray(self.kappa, np.float64), (m,)).copy()
+        self.eta = np.broadcast_to(np.asarray(self.eta, np.float64), (m,)).copy()
+        self.density = np.broadcast_to(np.asarray(self.density, np.float64), (m,)).copy()
+        self.fibre = np.broadcast_to(np.asarray(self.fibre, np.float64), (m, 3)).copy()
+        norms = np.linalg.norm(self.fibre, axis=1)
+        if np.any(np.abs(norms - 1.0) > 1e-6):
+            raise ValueError("fibre directions must be unit vectors")
+        if np.any(self.mu <= 0) or np.any(self.kappa <= 0) or np.any(self.density <= 0):
+            raise ValueError("mu, kappa and density must be positive in every element")
+
+    @classmethod
+    def from_tissues(cls, tissue: np.ndarray, materials: dict[int, Material]) -> "ElementMaterials":
+        """Per-element arrays from element tissue labels and a {label: Material} table."""
+        tissue = np.asarray(tissue)
+        missing = sorted(set(np.unique(tissue).tolist()) - set(materials))
+        if missing:
+            raise ValueError(f"no material given for tissue labels {missing}")
+        pick = lambda f: np.array([f(materials[int(t)]) for t in tissue])  # noqa: E731
+        return cls(mu=pick(lambda m: m.mu), kappa=pick(lambda m: m.kappa), eta=pick(lambda m: m.eta),
+                   fibre=np.array([materials[int(t)].fibre for t in tissue]).reshape(-1, 3),
+                   density=pick(lambda m: m.density))
+
+    @classmethod
+    def uniform(cls, n_elements: int, material: Material) -> "ElementMaterials":
+        return cls.from_tissues(np.zeros(n_elements, int), {0: material})

@@ -1,0 +1,120 @@
+"""The finite-element model the solver runs: mesh + element materials + loading.
+
+Inputs in the library's units: node positions and displacements in millimetres (LPS), moduli in
+pascal, density kg/m^3, time in seconds, gravity in m/s^2. The solver converts to SI.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.solver.materials import ElementMaterials
+
+FORMULATIONS = ("T4ANP", "T4")
+LOAD_SHAPES = ("POLY345", "RAMP")
+
+
+@dataclass
+class Plate:
+    """A rigid planar plate in frictionless contact.
+
+    ``point`` (mm) lies on the plate at t = 0 and ``normal`` (unit) points towards the tissue:
+    slave nodes are kept on the side ``(x - point) . normal >= 0``. The plate translates by
+    ``displacement`` (mm) over the loading with the load curve. ``slave_nodes`` are the node ids
+    that may touch it (e.g. the skin surface nodes)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    displacement: np.ndarray
+    slave_nodes: np.ndarray
+    name: str = "plate"
+
+    def __post_init__(self) -> None:
+        self.point = np.asarray(self.point, float).reshape(3)
+        normal = np.asarray(self.normal, float).reshape(3)
+        norm = np.linalg.norm(normal)
+        if norm == 0:
+            raise ValueError(f"plate {self.name!r}: the normal must not be zero")
+        self.normal = normal / norm
+        self.displacement = np.asarray(self.displacement, float).reshape(3)
+        self.slave_nodes = np.unique(np.asarray(self.slave_nodes, dtype=np.int64).ravel())
+
+
+@dataclass
+class Constraint:
+    """Prescribed displacement components: node ids, a (K, 3) mask of constrained components and
+    their final values (mm, applied with the load curve; zeros = fixed)."""
+
+    nodes: np.ndarray
+    mask: np.ndarray
+    values: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.nodes = np.asarray(self.nodes, dtype=np.int64).ravel()
+        self.mask = np.broadcast_to(np.asarray(self.mask, bool), (len(self.nodes), 3)).copy()
+        values = np.zeros((len(self.nodes), 3)) if self.values is None else self.values
+        self.values = np.broadcast_to(np.asarray(values, float), (len(self.nodes), 3)).copy()
+
+    @classmethod
+    def fixed(cls, nodes, components=(True, True, True)) -> "Constraint":
+        """Fix the given components (e.g. (False, True, False): anterior-posterior only)."""
+        return cls(nodes, np.asarray(components, bool)[None, :].repeat(len(np.ravel(nodes)), axis=0))
+
+
+@dataclass
+class Loading:
+    """Constraints, plates and gravity (m/s^2), applied over ``total_time`` seconds with
+    ``load_shape``; the solve then continues for ``settle_time`` seconds at full load."""
+
+    constraints: list[Constraint] = field(default_factory=list)
+    plates: list[Plate] = field(default_factory=list)
+    gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    total_time: float = 1.0
+    load_shape: str = "POLY345"
+    settle_time: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.gravity = np.asarray(self.gravity, float).reshape(3)
+        if self.total_time <= 0 or self.settle_time < 0:
+            raise ValueError("total_time must be positive and settle_time >= 0 (s)")
+        if self.load_shape not in LOAD_SHAPES:
+            raise ValueError(f"load_shape must be one of {LOAD_SHAPES}")
+
+
+@dataclass
+class Model:
+    """Mesh (mm, LPS) + per-element materials + loading, and the solver settings.
+
+    ``damping`` is the mass-proportional damping coefficient alpha (1/s) of seed eq. (15);
+    ``time_step`` None picks ``safety`` x the critical step."""
+
+    mesh: TetMesh
+    materials: ElementMaterials
+    loading: Loading
+    formulation: str = "T4ANP"
+    damping: float = 50.0
+    time_step: float | None = None
+    safety: float = 0.8
+
+    def __post_init__(self) -> None:
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"formulation must be one of {FORMULATIONS}")
+        m, n = len(self.mesh.tets), len(self.mesh.nodes)
+        if len(self.materials.mu) != m:
+            raise ValueError(f"materials are given for {len(self.materials.mu)} elements, the mesh has {m}")
+        if np.any(self.mesh.volumes <= 0):
+            bad = np.flatnonzero(self.mesh.volumes <= 0)[:10]
+            raise ValueError(f"elements {bad.tolist()} have zero or negative volume; fix the mesh orientation")
+        for c in self.loading.constraints:
+            if len(c.nodes) and (c.nodes.min() < 0 or c.nodes.max() >= n):
+                raise ValueError("a constraint refers to nodes outside the mesh")
+        for p in self.loading.plates:
+            if len(p.slave_nodes) and (p.slave_nodes.min() < 0 or p.slave_nodes.max() >= n):
+                raise ValueError(f"plate {p.name!r} refers to nodes outside the mesh")
+        if self.damping < 0:
+            raise ValueError("damping must be >= 0 (1/s)")
+        if not 0 < self.safety <= 1:
+            raise ValueError("safety factor must lie in (0, 1]")

@@ -1,0 +1,296 @@
+"""Total Lagrangian explicit dynamics (TLED) on NVIDIA warp: ``solve`` and ``solve_batch``.
+
+Precomputed once: reference shape-function derivatives and volumes of the four-node tets, lumped
+nodal masses, the critical time step. Each step: (ANP nodal pressures), element forces, central
+difference update with mass-proportional damping (seed eq. (15)), prescribed components, plate
+contact. The step loop has no host synchronisation: on CUDA it replays a captured graph of two
+steps (the displacement buffers swap roles each step). Energies, plate forces and the
+inverted-element flag are read every ``sample_every`` steps.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from BreastBiomechLib.solver import kernels as k
+from BreastBiomechLib.solver.materials import ElementMaterials
+from BreastBiomechLib.solver.model import Model
+
+MM = 1e-3  # metres per millimetre
+
+
+@dataclass
+class Solution:
+    """Result of one solve. Displacements in mm (LPS), forces in N, energies in J, times in s.
+
+    ``plate_forces[p]`` is the force plate p applies to the tissue; ``history`` holds sampled
+    ``time``, ``kinetic``, ``internal`` (energies) and ``plate_forces`` (samples, P, 3)."""
+
+    displacement: np.ndarray
+    plate_forces: np.ndarray
+    status: str
+    message: str
+    steps: int
+    time_step: float
+    wall_time: float
+    ke_ie_at_end_of_loading: float
+    history: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "completed"
+
+
+def shape_derivatives(nodes_m: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reference dN_a/dX (M, 4, 3) in 1/m and volumes (M,) in m^3 of linear tets."""
+    x = nodes_m[tets]
+    jac = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2)  # columns
+    vol = np.linalg.det(jac) / 6.0
+    dn_dxi = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    return np.einsum("aj,mjk->mak", dn_dxi, np.linalg.inv(jac)), vol
+
+
+def characteristic_lengths(nodes_m: np.ndarray, tets: np.ndarray, vol: np.ndarray) -> np.ndarray:
+    """Smallest altitude of each tet, 3 V / (largest face area) (m)."""
+    x = nodes_m[tets]
+    faces = [(1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)]
+    areas = np.stack([0.5 * np.linalg.norm(np.cross(x[:, b] - x[:, a], x[:, c] - x[:, a]), axis=1)
+                      for a, b, c in faces], axis=1)
+    return 3.0 * vol / areas.max(axis=1)
+
+
+def critical_time_step(model: Model, materials: list[ElementMaterials]) -> float:
+    """min over elements and batch of L_e / c_d, c_d = sqrt((kappa + 4 mu / 3) / rho) (s)."""
+    nodes = model.mesh.nodes * MM
+    _, vol = shape_derivatives(nodes, model.mesh.tets)
+    length = characteristic_lengths(nodes, model.mesh.tets, vol)
+    return float(min(np.min(length / np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.density)) for m in materials))
+
+
+def _device(device):
+    return wp.get_device(device) if device is not None else wp.get_device()
+
+
+def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> np.ndarray:
+    """Internal nodal forces (N, 3) in newtons for a given displacement field (mm), with the
+    model's formulation and materials: the residual the solver drives to the external load."""
+    wp.init()
+    nodes = model.mesh.nodes * MM
+    N, M = len(nodes), len(model.mesh.tets)
+    dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
+    node_volume = np.bincount(model.mesh.tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
+    mat = model.materials
+    f32 = np.float32
+    with wp.ScopedDevice(_device(device)):
+        u = wp.array(np.asarray(displacement_mm, f32) * f32(MM), dtype=wp.vec3)
+        tets = wp.array(model.mesh.tets.astype(np.int32), dtype=int)
+        d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
+        d_vol = wp.array(vol.astype(f32), dtype=float)
+        kappa = wp.array(mat.kappa.astype(f32), dtype=float)
+        pressure = wp.zeros(N, dtype=float)
+        forces = wp.zeros(N, dtype=wp.vec3)
+        inverted = wp.zeros(4, dtype=int)
+        anp = 1 if model.formulation == "T4ANP" else 0
+        if anp:
+            wp.launch(k.nodal_pressure, M, [u, tets, d_dhdx, d_vol, kappa, N, M, pressure])
+        wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, wp.array(mat.mu.astype(f32), dtype=float), kappa,
+                                         wp.array(mat.eta.astype(f32), dtype=float),
+                                         wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, pressure,
+                                         wp.array(node_volume.astype(f32), dtype=float), N, M,
+                                         wp.zeros(1, dtype=int), forces, inverted])
+        if inverted.numpy()[0]:
+            raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
+        return forces.numpy().astype(np.float64)
+
+
+def solve(model: Model, device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
+          initial_displacement: np.ndarray | None = None) -> Solution:
+    """Solve one model; ``device`` "cpu", "cuda" or None (warp's default: CUDA when present)."""
+    return solve_batch(model, [model.materials], device=device, sample_every=sample_every,
+                       ke_ie_limit=ke_ie_limit, initial_displacement=initial_displacement)[0]
+
+
+def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
+                device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
+                initial_displacement: np.ndarray | None = None) -> list[Solution]:
+    """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
+    ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm. All variants
+    use the smallest critical step of the batch, so results equal separate solves at that step.
+    ``initial_displacement`` (N, 3) mm starts every variant from rest in that configuration."""
+    wp.init()
+    device = _device(device)
+    B, N, M = len(materials), len(model.mesh.nodes), len(model.mesh.tets)
+    if B == 0:
+        raise ValueError("solve_batch needs at least one material set")
+    for mat in materials:
+        if len(mat.mu) != M:
+            raise ValueError(f"a material set has {len(mat.mu)} elements, the mesh has {M}")
+    plates = model.loading.plates
+    P = len(plates)
+    if plate_displacements is None:
+        plate_displacements = [np.array([p.displacement for p in plates]).reshape(P, 3)] * B
+    if len(plate_displacements) != B:
+        raise ValueError("give one plate displacement set per material set")
+
+    nodes = model.mesh.nodes * MM
+    tets = model.mesh.tets.astype(np.int32)
+    dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
+    node_volume = np.bincount(tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
+    mass = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(mat.density * vol / 4.0, 4), minlength=N)
+                           for mat in materials])
+    if np.any(mass <= 0):
+        raise ValueError("some nodes belong to no element (zero mass); remove unused nodes")
+    dt = model.time_step or model.safety * critical_time_step(model, materials)
+    total = model.loading.total_time
+    n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
+    load_shape = {"POLY345": k.LOAD_POLY345, "RAMP": k.LOAD_RAMP}[model.loading.load_shape]
+
+    f32 = np.float32
+    with wp.ScopedDevice(device):
+        arr = lambda a, dtype: wp.array(np.ascontiguousarray(a, dtype=f32 if dtype is not int else np.int32),  # noqa: E731
+                                        dtype=dtype)
+        d_tets = wp.array(tets, dtype=int)
+        d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
+        d_vol = arr(vol, float)
+        d_nodevol = arr(node_volume, float)
+        d_mass = arr(mass, float)
+        d_mu = arr(np.concatenate([m.mu for m in materials]), float)
+        d_kappa = arr(np.concatenate([m.kappa for m in materials]), float)
+        d_eta = arr(np.concatenate([m.eta for m in materials]), float)
+        d_fibre = arr(np.concatenate([m.fibre for m in materials]), wp.vec3)
+        d_x0 = arr(nodes, wp.vec3)
+        u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.tile(
+            np.asarray(initial_displacement, float).reshape(N, 3) * MM, (B, 1))
+        u = [arr(u0, wp.vec3), arr(u0, wp.vec3)]
+        forces = wp.zeros(B * N, dtype=wp.vec3)
+        pressure = wp.zeros(B * N, dtype=float)
+        step = wp.zeros(1, dtype=int)
+        inverted = wp.zeros(4, dtype=int)
+        plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
+        gravity = wp.vec3(*model.loading.gravity.astype(f32))
+
+        cons = model.loading.constraints
+        c_nodes = np.concatenate([c.nodes for c in cons]) if cons else np.zeros(0, np.int64)
+        c_mask = np.concatenate([c.mask for c in cons]) if cons else np.zeros((0, 3))
+        c_vals = np.concatenate([c.values for c in cons]) * MM if cons else np.zeros((0, 3))
+        n_con = len(c_nodes)
+        d_cnodes = arr(c_nodes, int)
+        d_cmask = arr(c_mask.astype(f32), wp.vec3)
+        d_cvals = arr(np.tile(c_vals, (B, 1)), wp.vec3)
+
+        s_nodes = np.concatenate([p.slave_nodes for p in plates]) if plates else np.zeros(0, np.int64)
+        s_plate = np.concatenate([np.full(len(p.slave_nodes), i) for i, p in enumerate(plates)]) if plates \
+            else np.zeros(0, np.int64)
+        n_sl = len(s_nodes)
+        d_snodes = arr(s_nodes, int)
+        d_splate = arr(s_plate, int)
+        d_ppoint = arr(np.array([p.point for p in plates]).reshape(-1, 3) * MM, wp.vec3)
+        d_pnormal = arr(np.array([p.normal for p in plates]).reshape(-1, 3), wp.vec3)
+        d_pmotion = arr(np.concatenate([np.asarray(d, float).reshape(P, 3) for d in plate_displacements]) * MM,
+                        wp.vec3)
+        use_anp = 1 if model.formulation == "T4ANP" else 0
+
+        def one_step(curr, prev):
+            forces.zero_()
+            plate_force.zero_()
+            if use_anp:
+                pressure.zero_()
+                wp.launch(k.nodal_pressure, B * M, [curr, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure])
+            wp.launch(k.element_forces, B * M, [curr, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
+                                                 use_anp, pressure, d_nodevol, N, M, step, forces, inverted])
+            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, float(model.damping),
+                                                     float(dt), step, float(total), load_shape, inverted])
+            if n_con:
+                wp.launch(k.apply_constraints, B * n_con, [prev, d_cnodes, d_cmask, d_cvals, N, n_con,
+                                                            float(dt), step, float(total), load_shape,
+                                                            inverted])
+            if n_sl:
+                wp.launch(k.plate_contact, B * n_sl, [prev, d_x0, d_snodes, d_splate, d_ppoint, d_pnormal,
+                                                       d_pmotion, forces, N, n_sl, P, float(dt), step,
+                                                       float(total), load_shape, plate_force, inverted])
+            wp.launch(k.advance_step, 1, [step, inverted])
+
+        def two_steps():
+            one_step(u[1], u[0])  # u[0] becomes u_{n+1}
+            one_step(u[0], u[1])
+
+        graph = None
+        if device.is_cuda:
+            two_steps()  # compile and warm up outside the capture
+            step.zero_()
+            u[0].assign(u0.astype(f32))
+            u[1].assign(u0.astype(f32))
+            inverted.zero_()
+            with wp.ScopedCapture() as capture:
+                two_steps()
+            graph = capture.graph
+
+        kinetic = wp.zeros(B, dtype=float)
+        internal = wp.zeros(B, dtype=float)
+        history = {"time": [], "kinetic": [], "internal": [], "plate_forces": []}
+        status, message = "completed", "completed"
+        ke_ie_end_of_loading = float("nan")
+        chunk = max(2, sample_every - sample_every % 2)
+        done = 0
+        latest = u[1]  # after an even number of steps u[1] holds u_n and u[0] u_{n-1}
+        wp.synchronize_device(device)
+        started = time.perf_counter()
+        while done < n_steps:
+            pairs = min(chunk, n_steps - done + (n_steps - done) % 2) // 2
+            for _ in range(pairs):
+                if graph is not None:
+                    wp.capture_launch(graph)
+                else:
+                    two_steps()
+            done += 2 * pairs
+            kinetic.zero_()
+            internal.zero_()
+            # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
+            # u_{n-1}: the pair the central-difference scheme conserves to second order
+            wp.launch(k.energies, B * N, [u[1], u[0], d_mass, float(dt), N, kinetic])
+            for state in u:
+                wp.launch(k.internal_energy, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta,
+                                                      d_fibre, N, M, internal])
+            ke, ie = kinetic.numpy().astype(float), 0.5 * internal.numpy().astype(float)
+            history["time"].append(done * dt)
+            history["kinetic"].append(ke)
+            history["internal"].append(ie)
+            history["plate_forces"].append(plate_force.numpy()[: B * P].reshape(B, P, 3).astype(float))
+            flags = inverted.numpy()
+            if flags[0] > 0:
+                status = "inverted elements"
+                message = (f"{flags[0]} element(s) inverted (J <= 0) at step {flags[2]} (t = {flags[2] * dt:.4g} s), "
+                           f"first element {flags[1]}; the displacement returned is that configuration. Reduce "
+                           "the load, refine the mesh there or check the constraints")
+                latest = u[1] if flags[2] % 2 == 0 else u[0]
+                break
+            if not np.all(np.isfinite(ke)) or not np.all(np.isfinite(ie)):
+                status, message = "unstable", (f"the solution diverged by step {done}; reduce the time step "
+                                               f"(now {dt:.3g} s) or the safety factor")
+                break
+            if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
+                ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
+        wp.synchronize_device(device)
+        wall = time.perf_counter() - started
+        displacement = latest.numpy().reshape(B, N, 3).astype(np.float64) / MM
+
+    if status == "completed" and ke_ie_end_of_loading > ke_ie_limit:
+        status = "energy criterion exceeded"
+        message = (f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
+                   f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")
+    solutions = []
+    for b in range(B):
+        hist = {"time": np.array(history["time"]),
+                "kinetic": np.array([h[b] for h in history["kinetic"]]),
+                "internal": np.array([h[b] for h in history["internal"]]),
+                "plate_forces": np.array([h[b] for h in history["plate_forces"]])}
+        solutions.append(Solution(
+            displacement=displacement[b], plate_forces=hist["plate_forces"][-1] if len(hist["time"]) else np.zeros((P, 3)),
+            status=status, message=message, steps=done, time_step=dt, wall_time=wall,
+            ke_ie_at_end_of_loading=ke_ie_end_of_loading, history=hist))
+    return solutions

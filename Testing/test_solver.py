@@ -1,0 +1,230 @@
+"""TLED solver verification on warp's CPU device (the gpu-marked tests repeat it on CUDA):
+patch tests, uniaxial compression against the analytic compressible (TI-)neo-Hookean solution,
+contact, batching, inverted elements, energy conservation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq, minimize
+
+from BreastBiomechLib.mesh.primitives import box_mesh
+from BreastBiomechLib.solver import (Constraint, ElementMaterials, Loading, Material, Model, Plate, solve,
+                                     solve_batch)
+from BreastBiomechLib.solver.tled import critical_time_step, internal_forces
+
+E, NU = 10e3, 0.45
+SIDE = 10.0  # mm
+
+
+def _mu_kappa(E=E, nu=NU):
+    return E / (2 * (1 + nu)), E / (3 * (1 - 2 * nu))
+
+
+def _energy(stretches, eta=0.0, fibre=(0, 0, 1)):
+    mu, kappa = _mu_kappa()
+    l = np.asarray(stretches, float)
+    J = l.prod()
+    C = l**2
+    W = mu / 2 * (J ** (-2 / 3) * C.sum() - 3) + kappa / 2 * (J - 1) ** 2
+    I4bar = J ** (-2 / 3) * np.dot(np.asarray(fibre, float) ** 2, C)
+    return W + eta / 2 * (I4bar - 1) ** 2
+
+
+def analytic_uniaxial(l3, eta=0.0, fibre=(0, 0, 1)):
+    """Lateral stretches (free, zero lateral stress) and nominal stress P33 (Pa) for an axial
+    stretch l3 of a homogeneous block with fibres along a coordinate axis."""
+    res = minimize(lambda l12: _energy([l12[0], l12[1], l3], eta, fibre), [1.1, 1.1], method="Nelder-Mead",
+                   options={"xatol": 1e-12, "fatol": 1e-14, "maxiter": 20000})
+    l1, l2 = res.x
+    h = 1e-6
+    P33 = (_energy([l1, l2, l3 + h], eta, fibre) - _energy([l1, l2, l3 - h], eta, fibre)) / (2 * h)
+    return l1, l2, P33
+
+
+def _block(divisions=4):
+    return box_mesh((SIDE, SIDE, SIDE), (divisions,) * 3)
+
+
+def _boundary(mesh):
+    mask = np.zeros(len(mesh.nodes), bool)
+    for name, values in mesh.point_data.items():
+        if name.startswith("face_"):
+            mask |= values.astype(bool)
+    return mask
+
+
+def _compression_model(mesh, material, strain=0.3, formulation="T4ANP", total_time=0.2):
+    """Quarter model: symmetry planes x = 0 and y = 0, frictionless plates at z = 0 (fixed) and
+    z = SIDE (moving down by strain * SIDE)."""
+    bottom = np.flatnonzero(mesh.point_data["face_zlo"])
+    top = np.flatnonzero(mesh.point_data["face_zhi"])
+    constraints = [Constraint.fixed(np.flatnonzero(mesh.point_data["face_xlo"]), (True, False, False)),
+                   Constraint.fixed(np.flatnonzero(mesh.point_data["face_ylo"]), (False, True, False))]
+    plates = [Plate([0, 0, 0], [0, 0, 1], [0, 0, 0], bottom, "fixed"),
+              Plate([0, 0, SIDE], [0, 0, -1], [0, 0, -strain * SIDE], top, "moving")]
+    materials = ElementMaterials.uniform(len(mesh.tets), material)
+    return Model(mesh, materials, Loading(constraints, plates, total_time=total_time, settle_time=0.1),
+                 formulation=formulation, damping=200.0)
+
+
+@pytest.mark.parametrize("formulation", ["T4", "T4ANP"])
+def test_patch_test_affine_field_gives_zero_interior_forces(formulation):
+    mesh = _block()
+    A = np.array([[0.9, 0.05, 0.0], [0.02, 1.1, 0.03], [0.0, -0.04, 0.95]])
+    u = mesh.nodes @ (A - np.eye(3)).T
+    model = Model(mesh, ElementMaterials.uniform(len(mesh.tets), Material(E, NU, eta=3e3, fibre=(0.6, 0, 0.8))),
+                  Loading(), formulation=formulation)
+    f = internal_forces(model, u, device="cpu")
+    interior = ~_boundary(mesh)
+    assert np.abs(f[interior]).max() < 1e-5 * np.abs(f[~interior]).max()
+    # boundary forces balance (no net force from a homogeneous stress)
+    np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-5 * np.abs(f).max())
+
+
+@pytest.mark.parametrize("formulation", ["T4", "T4ANP"])
+def test_patch_test_dynamic_reproduces_affine_field(formulation):
+    mesh = _block(3)
+    A = np.array([[0.95, 0.03, 0.0], [0.0, 1.04, 0.02], [0.01, 0.0, 0.97]])
+    exact = mesh.nodes @ (A - np.eye(3)).T
+    boundary = np.flatnonzero(_boundary(mesh))
+    loading = Loading([Constraint(boundary, np.ones((len(boundary), 3), bool), exact[boundary])],
+                      total_time=0.1, settle_time=0.15)
+    model = Model(mesh, ElementMaterials.uniform(len(mesh.tets), Material(E, NU)), loading,
+                  formulation=formulation, damping=300.0)
+    s = solve(model, device="cpu")
+    assert s.ok, s.message
+    np.testing.assert_allclose(s.displacement, exact, atol=1e-4)  # mm; float32 round-off and residual motion
+
+
+def test_neo_hookean_compression_matches_analytic_solution():
+    mesh = _block()
+    s = solve(_compression_model(mesh, Material(E, NU)), device="cpu")
+    assert s.ok, s.message
+    l1, l2, P33 = analytic_uniaxial(0.7)
+    corner = np.argmax(mesh.nodes.sum(axis=1))
+    assert 1 + s.displacement[corner, 0] / SIDE == pytest.approx(l1, rel=1e-3)
+    assert 1 + s.displacement[corner, 1] / SIDE == pytest.approx(l2, rel=1e-3)
+    area = (SIDE * 1e-3) ** 2
+    # force of the moving plate on the tissue: -z, magnitude |P33| A0
+    assert s.plate_forces[1, 2] == pytest.approx(P33 * area, rel=0.01)
+    assert s.plate_forces[0, 2] == pytest.approx(-P33 * area, rel=0.01)
+    assert s.ke_ie_at_end_of_loading < 0.05
+
+
+@pytest.mark.parametrize("fibre", [(0, 0, 1), (1, 0, 0)], ids=["along-load", "across-load"])
+def test_transversely_isotropic_compression_matches_analytic_solution(fibre):
+    # eta below the material instability: compressing the fibres of this model (eta/2 (I4bar-1)^2)
+    # by 30 % makes the homogeneous state a saddle for eta of about 5 kPa and more here (the block
+    # then shears sideways between the frictionless plates, a real loss of stability).
+    eta = 3e3
+    mesh = _block()
+    s = solve(_compression_model(mesh, Material(E, NU, eta=eta, fibre=fibre)), device="cpu")
+    assert s.ok, s.message
+    l1, l2, P33 = analytic_uniaxial(0.7, eta, fibre)
+    corner = np.argmax(mesh.nodes.sum(axis=1))
+    assert 1 + s.displacement[corner, 0] / SIDE == pytest.approx(l1, rel=1e-3)
+    assert 1 + s.displacement[corner, 1] / SIDE == pytest.approx(l2, rel=1e-3)
+    assert -s.plate_forces[0, 2] == pytest.approx(P33 * (SIDE * 1e-3) ** 2, rel=0.01)
+    if fibre == (1, 0, 0):
+        assert l1 < l2  # fibres resist the lateral stretch along them
+
+
+def test_contact_keeps_nodes_on_plates_and_forces_balance():
+    mesh = _block()
+    model = _compression_model(mesh, Material(E, 0.49), strain=0.25)
+    s = solve(model, device="cpu")
+    assert s.ok, s.message
+    x = mesh.nodes + s.displacement
+    top_plate_z = SIDE - 0.25 * SIDE
+    assert x[:, 2].min() >= -1e-4 and x[:, 2].max() <= top_plate_z + 1e-4
+    np.testing.assert_allclose(s.plate_forces[0], -s.plate_forces[1], rtol=1e-3, atol=1e-6)
+    assert abs(s.plate_forces[0, 0]) < 1e-6 and abs(s.plate_forces[0, 1]) < 1e-6  # frictionless
+
+
+def test_batched_equals_sequential():
+    mesh = _block(3)
+    model = _compression_model(mesh, Material(E, NU), strain=0.2)
+    variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu, eta=eta, fibre=(0, 0, 1)))
+                for e, nu, eta in [(8e3, 0.45, 0.0), (12e3, 0.47, 2e3), (10e3, 0.46, 0.0)]]
+    motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (1.5, 2.0, 2.5)]
+    batch = solve_batch(model, variants, plate_displacements=motions, device="cpu")
+    for mat, motion, b in zip(variants, motions, batch):
+        single = Model(mesh, mat, model.loading, formulation=model.formulation, damping=model.damping,
+                       time_step=batch[0].time_step)
+        single.loading.plates[1].displacement = motion[1]
+        one = solve(single, device="cpu")
+        np.testing.assert_allclose(b.displacement, one.displacement, atol=1e-5)
+        np.testing.assert_allclose(b.plate_forces, one.plate_forces, rtol=1e-4, atol=1e-7)
+    assert batch[0].displacement[:, 2].min() > batch[2].displacement[:, 2].min()
+
+
+def test_inverted_elements_are_reported_not_nan():
+    mesh = _block(2)
+    top = np.flatnonzero(mesh.point_data["face_zhi"])
+    loading = Loading([Constraint.fixed(np.flatnonzero(mesh.point_data["face_zlo"])),
+                       Constraint(top, np.ones((len(top), 3), bool), np.tile([6.0, 0.0, -11.0], (len(top), 1)))],
+                      total_time=0.05)
+    model = Model(mesh, ElementMaterials.uniform(len(mesh.tets), Material(E, NU)), loading, damping=100.0)
+    s = solve(model, device="cpu", sample_every=20)
+    assert s.status == "inverted elements"
+    assert "first element" in s.message and "at step" in s.message
+    assert np.all(np.isfinite(s.displacement))
+
+
+def test_undamped_free_vibration_conserves_energy():
+    """T4, whose forces are the exact gradient of the stored energy (ANP's averaged pressure has no
+    element-wise energy, so its internal-energy monitor is approximate)."""
+    mesh = _block(2)
+    bottom = np.flatnonzero(mesh.point_data["face_zlo"])
+    model = Model(mesh, ElementMaterials.uniform(len(mesh.tets), Material(E, 0.3)),
+                  Loading([Constraint.fixed(bottom)], total_time=1.0), damping=0.0, formulation="T4")
+    start = np.zeros((len(mesh.nodes), 3))
+    start[:, 0] = 0.05 * mesh.nodes[:, 2] ** 2 / SIDE  # bent sideways, released from rest
+    model.time_step = 0.15 * critical_time_step(model, [model.materials])
+    model.loading.total_time = 10_000 * model.time_step
+    s = solve(model, device="cpu", sample_every=100, initial_displacement=start)
+    total = s.history["kinetic"] + s.history["internal"]
+    assert s.steps >= 10_000
+    assert np.ptp(total) < 0.01 * total.mean()
+    assert s.history["kinetic"].max() > 0.5 * total.mean()  # it really vibrates
+
+
+def test_bad_models_are_refused_with_the_reason():
+    mesh = _block(1)
+    mat = ElementMaterials.uniform(len(mesh.tets), Material(E, NU))
+    with pytest.raises(ValueError, match="Poisson"):
+        Material(E, 0.5)
+    with pytest.raises(ValueError, match="elements"):
+        Model(mesh, ElementMaterials.uniform(3, Material(E, NU)), Loading())
+    with pytest.raises(ValueError, match="formulation"):
+        Model(mesh, mat, Loading(), formulation="H8")
+    with pytest.raises(ValueError, match="outside the mesh"):
+        Model(mesh, mat, Loading([Constraint.fixed([999])]))
+    flipped = type(mesh)(mesh.nodes, mesh.tets[:, [1, 0, 2, 3]])
+    with pytest.raises(ValueError, match="negative volume"):
+        Model(flipped, mat, Loading())
+
+
+def test_analytic_reference_is_right():
+    """The reference itself: small-strain limit gives E."""
+    mu, kappa = _mu_kappa()
+    _, _, P33 = analytic_uniaxial(0.999)
+    assert P33 / -0.001 == pytest.approx(E, rel=2e-3)
+    l_iso = brentq(lambda l: (_energy([l + 1e-7, l, 0.8]) - _energy([l - 1e-7, l, 0.8])), 1.0, 1.5)
+    assert analytic_uniaxial(0.8)[0] == pytest.approx(l_iso, rel=1e-6)
+
+
+@pytest.mark.gpu
+def test_cpu_and_cuda_agree():
+    wp = pytest.importorskip("warp")
+    wp.init()
+    if not wp.is_cuda_available():
+        pytest.skip("no CUDA device")
+    mesh = _block()
+    model = _compression_model(mesh, Material(E, NU, eta=3e3, fibre=(0.6, 0.0, 0.8)))
+    cpu = solve(model, device="cpu")
+    gpu = solve(model, device="cuda")
+    assert cpu.ok and gpu.ok
+    np.testing.assert_allclose(gpu.displacement, cpu.displacement, atol=1e-4)
+    np.testing.assert_allclose(gpu.plate_forces, cpu.plate_forces, rtol=1e-3, atol=1e-6)
