@@ -75,9 +75,58 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _bench_solver(args) -> dict:
+    """One forward solve (or a batch) of the hemi-ellipsoid compression case; figures as a dict."""
+    import numpy as np
+    import warp as wp
+
+    from BreastBiomechLib.solver import solve_batch
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+
+    radii = (80.0, 70.0, 75.0)
+    spacing = (np.pi * 4 * radii[0] * radii[1] * radii[2] / args.tets) ** (1 / 3)
+    model = hemi_ellipsoid_compression(spacing, compression=0.25, total_time=args.total_time,
+                                       settle_time=0.25 * args.total_time)
+    wp.init()
+    device = wp.get_device(args.device)
+    rng = np.random.default_rng(0)
+    base = model.materials
+    variants = [base] + [type(base)(base.mu * f, base.kappa * f, base.eta, base.fibre, base.density)
+                         for f in rng.uniform(0.7, 1.3, args.batch - 1)]
+    warm = hemi_ellipsoid_compression(20.0, total_time=0.05, settle_time=0.0)
+    solve_batch(warm, [warm.materials], device=device)  # compile the kernels once, outside the timing
+    started = time.perf_counter()
+    solutions = solve_batch(model, variants, device=device)
+    wall = time.perf_counter() - started
+    s = solutions[0]
+    n, m = len(model.mesh.nodes), len(model.mesh.tets)
+    bytes_per_step = args.batch * (324 * m + 70 * n)  # reads/writes/atomics per step, see docs
+    return {
+        "benchmark": "solver", "device": str(device), "device_name": getattr(device, "name", ""),
+        "nodes": n, "tets": m, "batch": args.batch, "formulation": model.formulation,
+        "steps": s.steps, "time_step_s": s.time_step, "simulated_s": s.steps * s.time_step,
+        "wall_s": round(wall, 4), "solve_wall_s": round(s.wall_time, 4),
+        "us_per_step": round(1e6 * s.wall_time / s.steps, 3),
+        "us_per_step_per_model": round(1e6 * s.wall_time / s.steps / args.batch, 3),
+        "bytes_per_step": bytes_per_step,
+        "floor_us_per_step_at_3350GBs": round(bytes_per_step / 3.35e9 * 1e6 / 1e3, 3),
+        "status": s.status, "ke_ie_end_of_loading": s.ke_ie_at_end_of_loading,
+        "plate_force_N": float(np.linalg.norm(s.plate_forces[0])),
+        "max_displacement_mm": float(np.abs(s.displacement).max()),
+    }
+
+
 def cmd_bench(args) -> int:
     from BreastBiomechLib.phantom import generate_phantom, table1_case
 
+    if args.what == "solver":
+        figures = _bench_solver(args)
+        if args.json:
+            print(json.dumps(figures))
+        else:
+            for key, value in figures.items():
+                print(f"{key:32s} {value}")
+        return 0
     if args.what == "phantom":
         figures = {"benchmark": "phantom", "version": __version__, "machine": platform.machine(),
                    "python": platform.python_version(), "cases": {}}
@@ -113,8 +162,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom"], help="what to time")
+    p.add_argument("what", choices=["phantom", "solver"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
+    p.add_argument("--tets", type=int, default=160_000, help="solver: about this many tets (hemi-ellipsoid)")
+    p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
+    p.add_argument("--device", default=None, help="solver: cuda, cpu or a warp device name (default: warp's)")
+    p.add_argument("--total-time", type=float, default=1.0, help="solver: loading time in s (+25%% settling)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser

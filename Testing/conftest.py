@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 
 
 @pytest.fixture
@@ -33,7 +32,9 @@ def oblique_geometry():
     return (12.5, -40.25, 7.0), (0.7, 1.3, 2.5), tuple(oblique_direction().ravel())
 
 
-def make_image(array: np.ndarray, geometry) -> sitk.Image:
+def make_image(array: np.ndarray, geometry):
+    import SimpleITK as sitk
+
     image = sitk.GetImageFromArray(array, isVector=array.ndim == 4)
     origin, spacing, direction = geometry
     image.SetOrigin(origin)

@@ -10,8 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import vtk
-from vtk.util import numpy_support as nps
 
 
 def _signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -45,8 +43,11 @@ class TetMesh:
         """Signed element volumes (mm^3); positive for a valid mesh."""
         return _signed_volumes(self.nodes, self.tets)
 
-    def to_vtk(self) -> vtk.vtkUnstructuredGrid:
+    def to_vtk(self):
         """The mesh as a vtkUnstructuredGrid (points in LPS mm), arrays copied."""
+        import vtk  # imported here: the solver uses meshes on machines without VTK
+        from vtk.util import numpy_support as nps
+
         grid = vtk.vtkUnstructuredGrid()
         points = vtk.vtkPoints()
         points.SetData(nps.numpy_to_vtk(self.nodes, deep=True))
@@ -64,8 +65,11 @@ class TetMesh:
         return grid
 
     @classmethod
-    def from_vtk(cls, grid: vtk.vtkUnstructuredGrid) -> "TetMesh":
+    def from_vtk(cls, grid) -> "TetMesh":
         """Read a vtkUnstructuredGrid of tetrahedra (points taken as LPS mm)."""
+        import vtk
+        from vtk.util import numpy_support as nps
+
         n_cells = grid.GetNumberOfCells()
         if n_cells and not np.all(nps.vtk_to_numpy(grid.GetDistinctCellTypesArray()) == vtk.VTK_TETRA):
             raise ValueError("the unstructured grid holds cells other than linear tetrahedra")
