@@ -228,3 +228,20 @@ def test_cpu_and_cuda_agree():
     assert cpu.ok and gpu.ok
     np.testing.assert_allclose(gpu.displacement, cpu.displacement, atol=1e-4)
     np.testing.assert_allclose(gpu.plate_forces, cpu.plate_forces, rtol=1e-3, atol=1e-6)
+
+
+def test_constraints_on_shared_nodes_are_merged_and_conflicts_refused():
+    from BreastBiomechLib.solver.tled import merged_constraints
+
+    mesh = _block(1)
+    mat = ElementMaterials.uniform(len(mesh.tets), Material(E, NU))
+    model = Model(mesh, mat, Loading([Constraint.fixed([0, 1], (True, False, False)),
+                                      Constraint([1, 2], [[False, True, False]] * 2, [[0, 2.0, 0]] * 2)]))
+    nodes, mask, values = merged_constraints(model)
+    assert nodes.tolist() == [0, 1, 2]
+    assert mask.tolist() == [[True, False, False], [True, True, False], [False, True, False]]
+    assert values[1].tolist() == [0.0, 2.0, 0.0]
+    clash = Model(mesh, mat, Loading([Constraint([3], [[True, False, False]], [[1.0, 0, 0]]),
+                                      Constraint([3], [[True, False, False]], [[2.0, 0, 0]])]))
+    with pytest.raises(ValueError, match="different prescribed values"):
+        merged_constraints(clash)

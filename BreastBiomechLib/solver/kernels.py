@@ -161,20 +161,20 @@ def apply_constraints(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), ma
 
 @wp.kernel
 def plate_contact(u: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3), slaves: wp.array(dtype=int),
-                  plate_of_slave: wp.array(dtype=int), plate_point: wp.array(dtype=wp.vec3),
+                  p: int, plate_point: wp.array(dtype=wp.vec3),
                   plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
                   forces: wp.array(dtype=wp.vec3), n_nodes: int, n_slaves: int, n_plates: int,
                   dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
     """Kinematic frictionless contact with rigid planes: a slave node behind its plate is moved
     back onto it along the normal (free to slide). The plate force is the sum of the internal
-    forces of the nodes in contact: the force the plate applies to the tissue (N)."""
+    forces of the nodes in contact: the force the plate applies to the tissue (N). One launch per
+    plate ``p``."""
     tid = wp.tid()
     if inverted[0] != 0:
         return
     b = tid // n_slaves
     k = tid - b * n_slaves
-    p = plate_of_slave[k]
     node = slaves[k]
     i = b * n_nodes + node
     s = load_factor(float(step[0] + 1) * dt, t_total, load_shape)

@@ -72,6 +72,32 @@ def critical_time_step(model: Model, materials: list[ElementMaterials]) -> float
     return float(min(np.min(length / np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.density)) for m in materials))
 
 
+def merged_constraints(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One row per constrained node (node ids, (K, 3) mask, (K, 3) final values in mm): a node in
+    several constraints gets the union of their components. The kernel writes each node from one
+    thread only. Two different values for one component of one node are an error."""
+    cons = model.loading.constraints
+    if not cons:
+        return np.zeros(0, np.int64), np.zeros((0, 3), bool), np.zeros((0, 3))
+    nodes = np.concatenate([c.nodes for c in cons])
+    masks = np.concatenate([c.mask for c in cons])
+    values = np.concatenate([c.values for c in cons])
+    unique, inverse = np.unique(nodes, return_inverse=True)
+    mask = np.zeros((len(unique), 3), bool)
+    merged = np.zeros((len(unique), 3))
+    np.logical_or.at(mask, inverse, masks)
+    np.add.at(merged, inverse, np.where(masks, values, 0.0))
+    count = np.zeros((len(unique), 3))
+    np.add.at(count, inverse, masks.astype(float))
+    merged = np.divide(merged, count, out=np.zeros_like(merged), where=count > 0)
+    spread = np.zeros((len(unique), 3))
+    np.maximum.at(spread, inverse, np.where(masks, np.abs(values - merged[inverse]), 0.0))
+    if np.any(spread > 1e-9):
+        bad = unique[np.any(spread > 1e-9, axis=1)][:5]
+        raise ValueError(f"nodes {bad.tolist()} are given different prescribed values for the same component")
+    return unique, mask, merged
+
+
 def _device(device):
     return wp.get_device(device) if device is not None else wp.get_device()
 
@@ -174,21 +200,16 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
         gravity = wp.vec3(*model.loading.gravity.astype(f32))
 
-        cons = model.loading.constraints
-        c_nodes = np.concatenate([c.nodes for c in cons]) if cons else np.zeros(0, np.int64)
-        c_mask = np.concatenate([c.mask for c in cons]) if cons else np.zeros((0, 3))
-        c_vals = np.concatenate([c.values for c in cons]) * MM if cons else np.zeros((0, 3))
+        c_nodes, c_mask, c_vals = merged_constraints(model)
+        c_vals = c_vals * MM
         n_con = len(c_nodes)
         d_cnodes = arr(c_nodes, int)
         d_cmask = arr(c_mask.astype(f32), wp.vec3)
         d_cvals = arr(np.tile(c_vals, (B, 1)), wp.vec3)
 
-        s_nodes = np.concatenate([p.slave_nodes for p in plates]) if plates else np.zeros(0, np.int64)
-        s_plate = np.concatenate([np.full(len(p.slave_nodes), i) for i, p in enumerate(plates)]) if plates \
-            else np.zeros(0, np.int64)
-        n_sl = len(s_nodes)
-        d_snodes = arr(s_nodes, int)
-        d_splate = arr(s_plate, int)
+        # one contact launch per plate: a node may be a slave of several plates, and the kernel
+        # writes its displacement (threads of one launch must not touch the same node)
+        d_slaves = [arr(p.slave_nodes, int) for p in plates]
         d_ppoint = arr(np.array([p.point for p in plates]).reshape(-1, 3) * MM, wp.vec3)
         d_pnormal = arr(np.array([p.normal for p in plates]).reshape(-1, 3), wp.vec3)
         d_pmotion = arr(np.concatenate([np.asarray(d, float).reshape(P, 3) for d in plate_displacements]) * MM,
@@ -209,10 +230,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 wp.launch(k.apply_constraints, B * n_con, [prev, d_cnodes, d_cmask, d_cvals, N, n_con,
                                                             float(dt), step, float(total), load_shape,
                                                             inverted])
-            if n_sl:
-                wp.launch(k.plate_contact, B * n_sl, [prev, d_x0, d_snodes, d_splate, d_ppoint, d_pnormal,
-                                                       d_pmotion, forces, N, n_sl, P, float(dt), step,
-                                                       float(total), load_shape, plate_force, inverted])
+            for p, d_sl in enumerate(d_slaves):
+                if d_sl.shape[0]:
+                    wp.launch(k.plate_contact, B * d_sl.shape[0], [prev, d_x0, d_sl, p, d_ppoint, d_pnormal,
+                                                                    d_pmotion, forces, N, d_sl.shape[0], P,
+                                                                    float(dt), step, float(total), load_shape,
+                                                                    plate_force, inverted])
             wp.launch(k.advance_step, 1, [step, inverted])
 
         def two_steps():
