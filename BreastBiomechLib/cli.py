@@ -117,8 +117,6 @@ def _bench_solver(args) -> dict:
 
 
 def cmd_bench(args) -> int:
-    from BreastBiomechLib.phantom import generate_phantom, table1_case
-
     if args.what == "solver":
         figures = _bench_solver(args)
         if args.json:
@@ -128,6 +126,8 @@ def cmd_bench(args) -> int:
                 print(f"{key:32s} {value}")
         return 0
     if args.what == "phantom":
+        from BreastBiomechLib.phantom import generate_phantom, table1_case
+
         figures = {"benchmark": "phantom", "version": __version__, "machine": platform.machine(),
                    "python": platform.python_version(), "cases": {}}
         for number in args.cases:
