@@ -99,6 +99,9 @@ def _bench_solver(args) -> dict:
     solutions = solve_batch(model, variants, device=device)
     wall = time.perf_counter() - started
     s = solutions[0]
+    memory_mb = None
+    if device.is_cuda:  # device memory in use after the solve (warp's pool included)
+        memory_mb = round((device.total_memory - device.free_memory) / 2**20, 1)
     n, m = len(model.mesh.nodes), len(model.mesh.tets)
     bytes_per_step = args.batch * (324 * m + 70 * n)  # reads/writes/atomics per step, see docs
     return {
@@ -113,6 +116,7 @@ def _bench_solver(args) -> dict:
         "status": s.status, "ke_ie_end_of_loading": s.ke_ie_at_end_of_loading,
         "plate_force_N": float(np.linalg.norm(s.plate_forces[0])),
         "max_displacement_mm": float(np.abs(s.displacement).max()),
+        "device_memory_in_use_mb": memory_mb,
     }
 
 
