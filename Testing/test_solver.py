@@ -264,3 +264,16 @@ def test_breast_compression_is_quasi_static_and_independent_of_loading_time():
     # both plates push the breast inwards with equal and opposite forces
     np.testing.assert_allclose(slow.plate_forces[0], -slow.plate_forces[1], rtol=0.02)
     assert slow.plate_forces[0, 0] > 0
+
+
+def test_element_materials_from_a_tissue_table():
+    from BreastBiomechLib.solver import lame_from_young
+
+    fat, gland = Material(10e3, 0.49), Material(30e3, 0.45, eta=5e3, fibre=(1.0, 0.0, 0.0))
+    mats = ElementMaterials.from_tissues(np.array([1, 2, 2, 1]), {1: fat, 2: gland})
+    mu, kappa = lame_from_young(30e3, 0.45)
+    assert mats.mu[1] == pytest.approx(mu) and mats.kappa[2] == pytest.approx(kappa)
+    assert mats.mu[0] == pytest.approx(fat.mu) and mats.eta.tolist() == [0, 5e3, 5e3, 0]
+    assert mats.fibre[1].tolist() == [1.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match=r"tissue labels \[3\]"):
+        ElementMaterials.from_tissues(np.array([1, 3]), {1: fat})

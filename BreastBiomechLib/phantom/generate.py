@@ -239,7 +239,10 @@ def generate_phantom(params: PhantomParameters | None = None,
     anchors = tree.nodes[tree.terminal | (tree.generation >= 1)]
     clusters = np.repeat(anchors, 8, axis=0) + rng.normal(0.0, 4.0, (8 * len(anchors), 3))
     np.add.at(lobules, half.index_of(clusters), rng.uniform(0.5, 1.5, len(clusters)))
-    sig = lambda mm: mm / half.spacing[::-1]  # noqa: E731  (mm -> voxels, z y x)
+
+    def sig(mm):  # a length in mm as Gaussian sigmas in half-grid voxels (z, y, x)
+        return mm / half.spacing[::-1]
+
     field = (ndimage.gaussian_filter(ducts, sig(1.2)) + ndimage.gaussian_filter(lobules, sig(2.0))
              + 0.5 * ndimage.gaussian_filter(lobules, sig(9.0)))
     # log-domain texture: fat lobules interleaved with glandular tissue at a few millimetres

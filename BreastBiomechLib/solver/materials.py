@@ -98,10 +98,13 @@ class ElementMaterials:
         missing = sorted(set(np.unique(tissue).tolist()) - set(materials))
         if missing:
             raise ValueError(f"no material given for tissue labels {missing}")
-        pick = lambda f: np.array([f(materials[int(t)]) for t in tissue])  # noqa: E731
-        return cls(mu=pick(lambda m: m.mu), kappa=pick(lambda m: m.kappa), eta=pick(lambda m: m.eta),
-                   fibre=np.array([materials[int(t)].fibre for t in tissue]).reshape(-1, 3),
-                   density=pick(lambda m: m.density))
+        labels = sorted(materials)
+        index = np.searchsorted(labels, tissue)  # each element's row in the per-tissue table
+        table = [materials[t] for t in labels]
+        return cls(mu=np.array([m.mu for m in table])[index], kappa=np.array([m.kappa for m in table])[index],
+                   eta=np.array([m.eta for m in table])[index],
+                   fibre=np.array([m.fibre for m in table]).reshape(-1, 3)[index],
+                   density=np.array([m.density for m in table])[index])
 
     @classmethod
     def uniform(cls, n_elements: int, material: Material) -> "ElementMaterials":

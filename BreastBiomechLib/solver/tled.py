@@ -178,8 +178,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
 
     f32 = np.float32
     with wp.ScopedDevice(device):
-        arr = lambda a, dtype: wp.array(np.ascontiguousarray(a, dtype=f32 if dtype is not int else np.int32),  # noqa: E731
-                                        dtype=dtype)
+
+        def arr(values, dtype):
+            return wp.array(np.ascontiguousarray(values, dtype=np.int32 if dtype is int else f32), dtype=dtype)
+
         d_tets = wp.array(tets, dtype=int)
         d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
         d_vol = arr(vol, float)
