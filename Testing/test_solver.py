@@ -277,3 +277,23 @@ def test_element_materials_from_a_tissue_table():
     assert mats.fibre[1].tolist() == [1.0, 0.0, 0.0]
     with pytest.raises(ValueError, match=r"tissue labels \[3\]"):
         ElementMaterials.from_tissues(np.array([1, 3]), {1: fat})
+
+
+def test_dynamic_relaxation_reaches_the_physical_time_solution():
+    """Mass scaling + adaptive damping + convergence criterion end within 0.1 mm of the settled
+    physical-time solve of the breast compression; an iteration cap is reported, not hidden."""
+    from BreastBiomechLib.solver import DynamicRelaxation
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+
+    physical = solve(hemi_ellipsoid_compression(10.0, total_time=1.0, settle_time=2.0), device="cpu")
+    relaxed = solve(hemi_ellipsoid_compression(10.0), device="cpu",
+                    relaxation=DynamicRelaxation(load_iterations=300, tolerance_mm=0.01))
+    assert physical.ok and relaxed.ok, relaxed.message
+    assert relaxed.estimated_error_mm < 0.01
+    assert np.abs(relaxed.displacement - physical.displacement).max() < 0.1
+    np.testing.assert_allclose(relaxed.plate_forces, physical.plate_forces, rtol=0.01)
+    capped = solve(hemi_ellipsoid_compression(10.0), device="cpu",
+                   relaxation=DynamicRelaxation(load_iterations=300, max_iterations=600, tolerance_mm=1e-6))
+    assert capped.status == "not converged" and "estimated error" in capped.message
+    with pytest.raises(ValueError, match="load_iterations"):
+        DynamicRelaxation(load_iterations=100, max_iterations=50)

@@ -4,7 +4,7 @@ frictionless contact, prescribed displacements, gravity, batched solves."""
 
 from BreastBiomechLib.solver.materials import ElementMaterials, Material, fibre_direction, lame_from_young
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
-from BreastBiomechLib.solver.tled import Solution, solve, solve_batch
+from BreastBiomechLib.solver.tled import DynamicRelaxation, Solution, solve, solve_batch
 
-__all__ = ["Constraint", "ElementMaterials", "Loading", "Material", "Model", "Plate", "Solution",
+__all__ = ["Constraint", "DynamicRelaxation", "ElementMaterials", "Loading", "Material", "Model", "Plate", "Solution",
            "fibre_direction", "lame_from_young", "solve", "solve_batch"]

@@ -122,10 +122,11 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
 @wp.kernel
 def central_difference(u_curr: wp.array(dtype=wp.vec3), u_prev_to_next: wp.array(dtype=wp.vec3),
                        forces: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), gravity: wp.vec3,
-                       damping: float, dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
-                       inverted: wp.array(dtype=int)):
+                       damping: wp.array(dtype=float), n_nodes: int, dt: float, step: wp.array(dtype=int),
+                       t_total: float, load_shape: int, inverted: wp.array(dtype=int)):
     """u_next = (R - F + 2m/dt^2 u - (m/dt^2 - a m/(2dt)) u_prev) / (m/dt^2 + a m/(2dt)), seed eq. (15).
-    Overwrites the previous displacement with the next one (it is not needed afterwards)."""
+    Overwrites the previous displacement with the next one (it is not needed afterwards).
+    ``damping[b]`` is model b's coefficient (1/s), adapted between steps by dynamic relaxation."""
     i = wp.tid()
     if inverted[0] != 0:
         return
@@ -133,7 +134,7 @@ def central_difference(u_curr: wp.array(dtype=wp.vec3), u_prev_to_next: wp.array
     t = float(step[0] + 1) * dt
     external = m * load_factor(t, t_total, load_shape) * gravity
     inv_dt2 = 1.0 / (dt * dt)
-    c = 0.5 * damping / dt
+    c = 0.5 * damping[i // n_nodes] / dt
     a = 1.0 / (m * inv_dt2 + m * c)
     u_prev_to_next[i] = a * (external - forces[i] + 2.0 * m * inv_dt2 * u_curr[i]
                              - (m * inv_dt2 - m * c) * u_prev_to_next[i])
@@ -218,3 +219,18 @@ def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhd
                              dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
     if wp.determinant(F) > 0.0:
         wp.atomic_add(energy, b, vol0[e] * strain_energy_density(F, mu[tid], kappa[tid], eta[tid], fibre[tid]))
+
+
+@wp.kernel
+def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3),
+                     f_curr: wp.array(dtype=wp.vec3), f_prev: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                     n_nodes: int, stiffness: wp.array(dtype=float), inertia: wp.array(dtype=float),
+                     max_increment: wp.array(dtype=float)):
+    """Per model: du.K du ~ du.(F(u_n) - F(u_n-1)), du.M du and max |du| for dynamic relaxation
+    (Rayleigh quotient of the last increment: the lowest eigenvalue once transients have died)."""
+    i = wp.tid()
+    b = i // n_nodes
+    du = u_curr[i] - u_prev[i]
+    wp.atomic_add(stiffness, b, wp.dot(du, f_curr[i] - f_prev[i]))
+    wp.atomic_add(inertia, b, mass[i] * wp.dot(du, du))
+    wp.atomic_max(max_increment, b, wp.length(du))

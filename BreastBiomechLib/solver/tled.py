@@ -25,6 +25,28 @@ MM = 1e-3  # metres per millimetre
 
 
 @dataclass
+class DynamicRelaxation:
+    """Fast path to the static solution (Joldes, Wittek & Miller): element densities scaled so
+    every element has the same stable step (mass scaling), the load applied over
+    ``load_iterations`` steps, then damping set every ``update_every`` steps to twice the square
+    root of the lowest eigenvalue, estimated by the Rayleigh quotient of the last displacement
+    increment; stop when the estimated distance to the static solution,
+    max|du| rho / (1 - rho) with rho the observed contraction per step, is below ``tolerance_mm``
+    for every model of the batch. Time in a relaxation run is fictitious."""
+
+    load_iterations: int = 1000
+    tolerance_mm: float = 0.01
+    max_iterations: int = 50_000
+    update_every: int = 100
+
+    def __post_init__(self) -> None:
+        if self.load_iterations < 2 or self.max_iterations <= self.load_iterations:
+            raise ValueError("dynamic relaxation needs load_iterations >= 2 and max_iterations > load_iterations")
+        if self.tolerance_mm <= 0 or self.update_every < 10:
+            raise ValueError("dynamic relaxation needs tolerance_mm > 0 and update_every >= 10")
+
+
+@dataclass
 class Solution:
     """Result of one solve. Displacements in mm (LPS), forces in N, energies in J, times in s.
 
@@ -40,6 +62,7 @@ class Solution:
     wall_time: float
     ke_ie_at_end_of_loading: float
     history: dict = field(default_factory=dict)
+    estimated_error_mm: float = float("nan")  # dynamic relaxation: distance to the static solution
 
     @property
     def ok(self) -> bool:
@@ -135,15 +158,18 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
 
 
 def solve(model: Model, device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
-          initial_displacement: np.ndarray | None = None) -> Solution:
-    """Solve one model; ``device`` "cpu", "cuda" or None (warp's default: CUDA when present)."""
+          initial_displacement: np.ndarray | None = None, relaxation: DynamicRelaxation | None = None) -> Solution:
+    """Solve one model; ``device`` "cpu", "cuda" or None (warp's default: CUDA when present).
+    With ``relaxation`` the static solution is found by dynamic relaxation (fast path)."""
     return solve_batch(model, [model.materials], device=device, sample_every=sample_every,
-                       ke_ie_limit=ke_ie_limit, initial_displacement=initial_displacement)[0]
+                       ke_ie_limit=ke_ie_limit, initial_displacement=initial_displacement,
+                       relaxation=relaxation)[0]
 
 
 def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
                 device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
-                initial_displacement: np.ndarray | None = None) -> list[Solution]:
+                initial_displacement: np.ndarray | None = None,
+                relaxation: DynamicRelaxation | None = None) -> list[Solution]:
     """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
     ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm. All variants
     use the smallest critical step of the batch, so results equal separate solves at that step.
@@ -167,13 +193,23 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     tets = model.mesh.tets.astype(np.int32)
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
     node_volume = np.bincount(tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
-    mass = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(mat.density * vol / 4.0, 4), minlength=N)
-                           for mat in materials])
+    if relaxation is None:
+        densities = [mat.density for mat in materials]
+        dt = model.time_step or model.safety * critical_time_step(model, materials)
+        total = model.loading.total_time
+        n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
+    else:  # mass scaling: every element's stable step becomes dt / safety (fictitious time)
+        length = characteristic_lengths(nodes, model.mesh.tets, vol)
+        dt = model.safety * float(np.median(length / np.sqrt((materials[0].kappa + 4 * materials[0].mu / 3)
+                                                              / materials[0].density)))
+        densities = [(mat.kappa + 4.0 * mat.mu / 3.0) * (dt / (model.safety * length)) ** 2 for mat in materials]
+        total = relaxation.load_iterations * dt
+        n_steps = relaxation.max_iterations
+        sample_every = relaxation.update_every
+    mass = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=N)
+                           for rho in densities])
     if np.any(mass <= 0):
         raise ValueError("some nodes belong to no element (zero mass); remove unused nodes")
-    dt = model.time_step or model.safety * critical_time_step(model, materials)
-    total = model.loading.total_time
-    n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
     load_shape = {"POLY345": k.LOAD_POLY345, "RAMP": k.LOAD_RAMP}[model.loading.load_shape]
 
     f32 = np.float32
@@ -201,6 +237,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         inverted = wp.zeros(4, dtype=int)
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
         gravity = wp.vec3(*model.loading.gravity.astype(f32))
+        # dynamic relaxation starts critically damped for a mode of period ~ the loading time
+        damping = np.full(B, model.damping if relaxation is None else 4.0 * np.pi / total)
+        d_damping = arr(damping, float)
 
         c_nodes, c_mask, c_vals = merged_constraints(model)
         c_vals = c_vals * MM
@@ -226,7 +265,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 wp.launch(k.nodal_pressure, B * M, [curr, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure])
             wp.launch(k.element_forces, B * M, [curr, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
                                                  use_anp, pressure, d_nodevol, N, M, step, forces, inverted])
-            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, float(model.damping),
+            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, d_damping, N,
                                                      float(dt), step, float(total), load_shape, inverted])
             if n_con:
                 wp.launch(k.apply_constraints, B * n_con, [prev, d_cnodes, d_cmask, d_cvals, N, n_con,
@@ -262,6 +301,22 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         ke_ie_end_of_loading = float("nan")
         chunk = max(2, sample_every - sample_every % 2)
         done = 0
+        estimated_error = np.full(B, np.nan)
+        previous_increment = None
+        updates = checks_below = 0
+        if relaxation is not None:
+            f_curr, f_prev = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
+            pressure_tmp = wp.zeros(B * N, dtype=float)
+            no_flags = wp.zeros(4, dtype=int)
+            stiffness, inertia, increment = (wp.zeros(B, dtype=float) for _ in range(3))
+
+            def internal_force(state, out):
+                out.zero_()
+                if use_anp:
+                    pressure_tmp.zero_()
+                    wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure_tmp])
+                wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
+                                                     use_anp, pressure_tmp, d_nodevol, N, M, step, out, no_flags])
         latest = u[1]  # after an even number of steps u[1] holds u_n and u[0] u_{n-1}
         wp.synchronize_device(device)
         started = time.perf_counter()
@@ -300,11 +355,41 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 break
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
+            if relaxation is not None:
+                internal_force(u[1], f_curr)
+                internal_force(u[0], f_prev)
+                for a in (stiffness, inertia, increment):
+                    a.zero_()
+                wp.launch(k.relaxation_terms, B * N, [u[1], u[0], f_curr, f_prev, d_mass, N, stiffness, inertia,
+                                                       increment])
+                lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
+                du = increment.numpy().astype(float) / MM  # mm per step
+                if done * dt >= total:
+                    ok = lam > 0
+                    damping[ok] = np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt)
+                    d_damping.assign(damping.astype(f32))
+                    if previous_increment is not None:
+                        rate = (du / np.maximum(previous_increment, 1e-300)) ** (1.0 / (2 * pairs))
+                        estimated_error = np.where(rate < 1.0, du * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
+                        # trust the estimate only once the damping has adapted (three updates after
+                        # the load) and it has held for two checks in a row
+                        checks_below = checks_below + 1 if np.all(estimated_error < relaxation.tolerance_mm) else 0
+                        updates += 1
+                        if updates > 3 and checks_below >= 2:
+                            break
+                    previous_increment = du
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
         displacement = latest.numpy().reshape(B, N, 3).astype(np.float64) / MM
 
-    if status == "completed" and ke_ie_end_of_loading > ke_ie_limit:
+    if relaxation is not None:
+        ke_ie_end_of_loading = float("nan")  # fictitious masses: the energy criterion does not apply
+        if status == "completed" and not np.all(estimated_error < relaxation.tolerance_mm):
+            status = "not converged"
+            message = (f"dynamic relaxation stopped after {done} iterations with an estimated error of "
+                       f"{np.nanmax(estimated_error):.3g} mm (tolerance {relaxation.tolerance_mm} mm); raise "
+                       "max_iterations or the tolerance")
+    elif status == "completed" and ke_ie_end_of_loading > ke_ie_limit:
         status = "energy criterion exceeded"
         message = (f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
                    f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")
@@ -317,5 +402,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         solutions.append(Solution(
             displacement=displacement[b], plate_forces=hist["plate_forces"][-1] if len(hist["time"]) else np.zeros((P, 3)),
             status=status, message=message, steps=done, time_step=dt, wall_time=wall,
-            ke_ie_at_end_of_loading=ke_ie_end_of_loading, history=hist))
+            ke_ie_at_end_of_loading=ke_ie_end_of_loading, history=hist,
+            estimated_error_mm=float(estimated_error[b])))
     return solutions
