@@ -257,14 +257,18 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                         wp.vec3)
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
-        def one_step(curr, prev):
-            forces.zero_()
-            plate_force.zero_()
+        def internal_force(state, out, pressure_buffer, flags):
+            """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)."""
+            out.zero_()
             if use_anp:
-                pressure.zero_()
-                wp.launch(k.nodal_pressure, B * M, [curr, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure])
-            wp.launch(k.element_forces, B * M, [curr, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
-                                                 use_anp, pressure, d_nodevol, N, M, step, forces, inverted])
+                pressure_buffer.zero_()
+                wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure_buffer])
+            wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
+                                                 use_anp, pressure_buffer, d_nodevol, N, M, step, out, flags])
+
+        def one_step(curr, prev):
+            plate_force.zero_()
+            internal_force(curr, forces, pressure, inverted)
             wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, d_damping, N,
                                                      float(dt), step, float(total), load_shape, inverted])
             if n_con:
@@ -309,14 +313,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             pressure_tmp = wp.zeros(B * N, dtype=float)
             no_flags = wp.zeros(4, dtype=int)
             stiffness, inertia, increment = (wp.zeros(B, dtype=float) for _ in range(3))
-
-            def internal_force(state, out):
-                out.zero_()
-                if use_anp:
-                    pressure_tmp.zero_()
-                    wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure_tmp])
-                wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
-                                                     use_anp, pressure_tmp, d_nodevol, N, M, step, out, no_flags])
         latest = u[1]  # after an even number of steps u[1] holds u_n and u[0] u_{n-1}
         wp.synchronize_device(device)
         started = time.perf_counter()
@@ -356,8 +352,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
             if relaxation is not None:
-                internal_force(u[1], f_curr)
-                internal_force(u[0], f_prev)
+                internal_force(u[1], f_curr, pressure_tmp, no_flags)
+                internal_force(u[0], f_prev, pressure_tmp, no_flags)
                 for a in (stiffness, inertia, increment):
                     a.zero_()
                 wp.launch(k.relaxation_terms, B * N, [u[1], u[0], f_curr, f_prev, d_mass, N, stiffness, inertia,
