@@ -31,19 +31,23 @@ def deformation_gradient(u: wp.array(dtype=wp.vec3), base: int, n0: int, n1: int
 
 
 @wp.func
-def second_piola_kirchhoff(F: wp.mat33, mu: float, kappa: float, eta: float, a: wp.vec3) -> wp.mat33:
-    """S = 2 dW/dC for W = mu/2 (I1bar - 3) + kappa/2 (J - 1)^2 + eta/2 (I4bar - 1)^2."""
+def isochoric_stress(F: wp.mat33, mu: float, eta: float, a: wp.vec3) -> wp.mat33:
+    """Isochoric second Piola-Kirchhoff stress 2 dW_iso/dC, W_iso = mu/2 (I1bar - 3) + eta/2 (I4bar - 1)^2."""
     C = wp.transpose(F) * F
-    J = wp.determinant(F)
     Cinv = wp.inverse(C)
-    I1 = C[0, 0] + C[1, 1] + C[2, 2]
-    J23 = wp.pow(J, -2.0 / 3.0)
-    eye = wp.identity(n=3, dtype=float)
-    S = mu * J23 * (eye - (I1 / 3.0) * Cinv) + kappa * J * (J - 1.0) * Cinv
+    J23 = wp.pow(wp.determinant(F), -2.0 / 3.0)
+    S = mu * J23 * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
     if eta > 0.0:
         I4 = wp.dot(a, C * a)
         S = S + 2.0 * eta * (J23 * I4 - 1.0) * J23 * (wp.outer(a, a) - (I4 / 3.0) * Cinv)
     return S
+
+
+@wp.func
+def volumetric_stress(F: wp.mat33, kappa: float) -> wp.mat33:
+    """Volumetric second Piola-Kirchhoff stress 2 dW_vol/dC, W_vol = kappa/2 (J - 1)^2."""
+    J = wp.determinant(F)
+    return kappa * J * (J - 1.0) * wp.inverse(wp.transpose(F) * F)
 
 
 @wp.func
@@ -81,12 +85,17 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                    vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
                    eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), use_anp: int,
                    pressure_volume: wp.array(dtype=float), node_volume: wp.array(dtype=float),
+                   n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
+                   visco_state: wp.array(dtype=wp.mat33), update_state: int,
                    n_nodes: int, n_elements: int, step: wp.array(dtype=int),
                    forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the averaged nodal pressure,
-    as NiftySim's T4ANP). Elements with J <= 0 are counted and the first one and its step recorded
-    in ``inverted`` = [count, element, step, frozen]; once frozen the whole step loop stands still,
-    keeping the last configuration for inspection instead of producing NaN."""
+    as NiftySim's T4ANP). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
+    with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
+    (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set.
+    Elements with J <= 0 are counted and the first one and its step recorded in ``inverted`` =
+    [count, element, step, frozen]; once frozen the whole step loop stands still, keeping the last
+    configuration for inspection instead of producing NaN."""
     tid = wp.tid()
     if inverted[3] != 0:
         return
@@ -112,7 +121,16 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                 inverted[2] = step[0]
             return
         F = wp.pow(Jm / J, 1.0 / 3.0) * F
-    P = vol0[e] * (F * second_piola_kirchhoff(F, mu[tid], kappa[tid], eta[tid], fibre[tid]))
+    S_iso = isochoric_stress(F, mu[tid], eta[tid], fibre[tid])
+    S = S_iso + volumetric_stress(F, kappa[tid])
+    for i in range(n_terms):
+        slot = tid * n_terms + i
+        Q = visco_state[slot]
+        if update_state != 0:
+            Q = prony_decay[slot] * Q + (1.0 - prony_decay[slot]) * S_iso
+            visco_state[slot] = Q
+        S = S - prony_g[slot] * Q
+    P = vol0[e] * (F * S)
     wp.atomic_add(forces, base + n0, P * d0)
     wp.atomic_add(forces, base + n1, P * d1)
     wp.atomic_add(forces, base + n2, P * d2)
@@ -234,3 +252,50 @@ def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.
     wp.atomic_add(stiffness, b, wp.dot(du, f_curr[i] - f_prev[i]))
     wp.atomic_add(inertia, b, mass[i] * wp.dot(du, du))
     wp.atomic_max(max_increment, b, wp.length(du))
+
+
+@wp.kernel
+def perturbed(u: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), eps: float, out: wp.array(dtype=wp.vec3)):
+    """out = u + eps v (m): the probe of the finite-difference tangent stiffness."""
+    i = wp.tid()
+    out[i] = u[i] + eps * v[i]
+
+
+@wp.kernel
+def power_iteration_terms(v: wp.array(dtype=wp.vec3), f_probe: wp.array(dtype=wp.vec3),
+                          f_base: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), eps: float,
+                          n_nodes: int, vkv: wp.array(dtype=float), vmv: wp.array(dtype=float),
+                          next_v: wp.array(dtype=wp.vec3), largest: wp.array(dtype=float)):
+    """One power iteration on M^-1 K, K v ~ (f(u + eps v) - f(u)) / eps: per model the Rayleigh
+    quotient parts v.Kv and v.Mv (its ratio is a lower bound of the largest eigenvalue omega_max^2,
+    1/s^2), the next vector M^-1 K v and its largest component (for normalisation)."""
+    i = wp.tid()
+    b = i // n_nodes
+    kv = (f_probe[i] - f_base[i]) / eps
+    wp.atomic_add(vkv, b, wp.dot(v[i], kv))
+    wp.atomic_add(vmv, b, mass[i] * wp.dot(v[i], v[i]))
+    w = kv / mass[i]
+    next_v[i] = w
+    wp.atomic_max(largest, b, wp.max(wp.abs(w)))
+
+
+@wp.kernel
+def normalise_iterate(w: wp.array(dtype=wp.vec3), largest: wp.array(dtype=float), n_nodes: int,
+                      v: wp.array(dtype=wp.vec3)):
+    """v = w / max|w| per model."""
+    i = wp.tid()
+    scale = largest[i // n_nodes]
+    if scale > 0.0:
+        v[i] = w[i] / scale
+
+
+@wp.kernel
+def zero_constrained(v: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), mask: wp.array(dtype=wp.vec3),
+                     n_nodes: int, n_constrained: int):
+    """Zero the prescribed components of v: they take no part in the dynamics."""
+    tid = wp.tid()
+    b = tid // n_constrained
+    i = b * n_nodes + nodes[tid - b * n_constrained]
+    m = mask[tid - b * n_constrained]
+    x = v[i]
+    v[i] = wp.vec3(wp.where(m[0] > 0.0, 0.0, x[0]), wp.where(m[1] > 0.0, 0.0, x[1]), wp.where(m[2] > 0.0, 0.0, x[2]))

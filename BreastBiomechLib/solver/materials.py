@@ -7,6 +7,11 @@ seed's eq. (8):
     TI: W = NH + eta/2 (I4bar - 1)^2,   I4bar = a . Cbar a,  a the unit fibre direction
 
 Parameters in pascal; mu = E / (2 (1 + nu)), kappa = E / (3 (1 - 2 nu)).
+
+Visco-hyperelastic variants (NiftySim's NHV/TIV) relax the isochoric stress with a Prony series
+g(t) = g_inf + sum_i g_i exp(-t / tau_i), g_inf = 1 - sum_i g_i: the instantaneous response is
+the hyperelastic one above, the long-term response has mu and eta scaled by g_inf. The
+volumetric response stays elastic.
 """
 
 from __future__ import annotations
@@ -38,19 +43,31 @@ def fibre_direction(gamma, alpha) -> np.ndarray:
     return np.stack([np.sin(gamma) * np.cos(alpha), np.sin(gamma) * np.sin(alpha), np.cos(gamma)], axis=-1)
 
 
+def check_prony(g: np.ndarray, tau: np.ndarray) -> None:
+    """Prony weights g (M, K) in [0, 1) summing to < 1 per element, time constants tau > 0 s."""
+    if np.any(g < 0) or np.any(g.sum(axis=1) >= 1.0):
+        raise ValueError("Prony weights g_i must be >= 0 and sum to less than 1 (g_inf = 1 - sum g_i > 0)")
+    if np.any(tau[g > 0] <= 0):
+        raise ValueError("Prony time constants tau_i must be positive (s)")
+
+
 @dataclass(frozen=True)
 class Material:
-    """One tissue's material: ``E`` (Pa), ``nu``, ``eta`` (Pa; 0 = isotropic NH), fibre direction
-    (unit vector, LPS), density (kg/m^3)."""
+    """One tissue's material: ``E`` (Pa, instantaneous), ``nu``, ``eta`` (Pa; 0 = isotropic NH),
+    fibre direction (unit vector, LPS), density (kg/m^3), and ``prony``: (g_i, tau_i) pairs,
+    relative weights and time constants (s) of the isochoric relaxation (empty = hyperelastic)."""
 
     E: float
     nu: float
     eta: float = 0.0
     fibre: tuple[float, float, float] = (0.0, 0.0, 1.0)
     density: float = 1000.0
+    prony: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
         lame_from_young(self.E, self.nu)
+        object.__setattr__(self, "prony", tuple((float(g), float(tau)) for g, tau in self.prony))
+        check_prony(np.array([[g for g, _ in self.prony]]), np.array([[tau for _, tau in self.prony]]))
         if self.eta < 0:
             raise ValueError("eta (fibre reinforcement) must be >= 0 Pa")
         if self.density <= 0:
@@ -69,14 +86,18 @@ class Material:
 
 @dataclass
 class ElementMaterials:
-    """Per-element material arrays (length M): mu, kappa, eta in Pa, fibre (M, 3) unit vectors,
-    density kg/m^3. Heterogeneous models are just different values."""
+    """Per-element material arrays (length M): mu, kappa, eta in Pa (instantaneous), fibre (M, 3)
+    unit vectors, density kg/m^3, and Prony weights ``prony_g`` and time constants ``prony_tau``
+    (s), both (M, K) (K = 0: hyperelastic; unused terms have g = 0). Heterogeneous models are just
+    different values."""
 
     mu: np.ndarray
     kappa: np.ndarray
     eta: np.ndarray
     fibre: np.ndarray
     density: np.ndarray
+    prony_g: np.ndarray | None = None
+    prony_tau: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.mu = np.asarray(self.mu, np.float64)
@@ -85,11 +106,29 @@ class ElementMaterials:
         self.eta = np.broadcast_to(np.asarray(self.eta, np.float64), (m,)).copy()
         self.density = np.broadcast_to(np.asarray(self.density, np.float64), (m,)).copy()
         self.fibre = np.broadcast_to(np.asarray(self.fibre, np.float64), (m, 3)).copy()
+        # Prony terms: (K,) for every element or (M, K)
+        g = np.atleast_2d(np.zeros(0) if self.prony_g is None else np.asarray(self.prony_g, np.float64))
+        tau = np.atleast_2d(np.ones(g.shape[1]) if self.prony_tau is None else np.asarray(self.prony_tau, np.float64))
+        if tau.shape[1] != g.shape[1]:
+            raise ValueError("give as many Prony time constants as weights")
+        self.prony_g = np.broadcast_to(g, (m, g.shape[1])).copy()
+        self.prony_tau = np.broadcast_to(tau, (m, g.shape[1])).copy()
         norms = np.linalg.norm(self.fibre, axis=1)
         if np.any(np.abs(norms - 1.0) > 1e-6):
             raise ValueError("fibre directions must be unit vectors")
         if np.any(self.mu <= 0) or np.any(self.kappa <= 0) or np.any(self.density <= 0):
             raise ValueError("mu, kappa and density must be positive in every element")
+        check_prony(self.prony_g, self.prony_tau)
+
+    @property
+    def prony_terms(self) -> int:
+        """Number of Prony terms K (0 for hyperelastic materials)."""
+        return self.prony_g.shape[1]
+
+    def long_term(self) -> "ElementMaterials":
+        """The fully relaxed (equilibrium) hyperelastic materials: mu and eta scaled by g_inf."""
+        g_inf = 1.0 - self.prony_g.sum(axis=1)
+        return ElementMaterials(self.mu * g_inf, self.kappa, self.eta * g_inf, self.fibre, self.density)
 
     @classmethod
     def from_tissues(cls, tissue: np.ndarray, materials: dict[int, Material]) -> "ElementMaterials":
@@ -101,10 +140,16 @@ class ElementMaterials:
         labels = sorted(materials)
         index = np.searchsorted(labels, tissue)  # each element's row in the per-tissue table
         table = [materials[t] for t in labels]
+        terms = max(len(m.prony) for m in table)
+        g = np.zeros((len(table), terms))
+        tau = np.ones((len(table), terms))
+        for row, m in enumerate(table):
+            for col, (gi, ti) in enumerate(m.prony):
+                g[row, col], tau[row, col] = gi, ti
         return cls(mu=np.array([m.mu for m in table])[index], kappa=np.array([m.kappa for m in table])[index],
                    eta=np.array([m.eta for m in table])[index],
                    fibre=np.array([m.fibre for m in table]).reshape(-1, 3)[index],
-                   density=np.array([m.density for m in table])[index])
+                   density=np.array([m.density for m in table])[index], prony_g=g[index], prony_tau=tau[index])
 
     @classmethod
     def uniform(cls, n_elements: int, material: Material) -> "ElementMaterials":

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import warp as wp
@@ -20,6 +21,7 @@ import warp as wp
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import Model
+from BreastBiomechLib.solver.stability import StableStepMonitor
 
 MM = 1e-3  # metres per millimetre
 
@@ -51,7 +53,10 @@ class Solution:
     """Result of one solve. Displacements in mm (LPS), forces in N, energies in J, times in s.
 
     ``plate_forces[p]`` is the force plate p applies to the tissue; ``history`` holds sampled
-    ``time``, ``kinetic``, ``internal`` (energies) and ``plate_forces`` (samples, P, 3)."""
+    ``time``, ``kinetic``, ``internal`` (energies), ``plate_forces`` (samples, P, 3) and
+    ``stable_time_step`` (the power-iteration bound for the deformed model, see
+    :mod:`BreastBiomechLib.solver.stability`). With visco materials ``internal`` is the stored
+    hyperelastic energy at the instantaneous moduli (the dissipated energy is not tracked)."""
 
     displacement: np.ndarray
     plate_forces: np.ndarray
@@ -63,6 +68,7 @@ class Solution:
     ke_ie_at_end_of_loading: float
     history: dict = field(default_factory=dict)
     estimated_error_mm: float = float("nan")  # dynamic relaxation: distance to the static solution
+    stable_time_step: float = float("inf")  # last power-iteration estimate for the deformed model (s)
 
     @property
     def ok(self) -> bool:
@@ -127,13 +133,14 @@ def _device(device):
 
 def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> np.ndarray:
     """Internal nodal forces (N, 3) in newtons for a given displacement field (mm), with the
-    model's formulation and materials: the residual the solver drives to the external load."""
+    model's formulation and its materials at equilibrium (visco terms fully relaxed): the residual
+    the solver drives to the external load."""
     wp.init()
     nodes = model.mesh.nodes * MM
     N, M = len(nodes), len(model.mesh.tets)
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
     node_volume = np.bincount(model.mesh.tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
-    mat = model.materials
+    mat = model.materials.long_term()
     f32 = np.float32
     with wp.ScopedDevice(_device(device)):
         u = wp.array(np.asarray(displacement_mm, f32) * f32(MM), dtype=wp.vec3)
@@ -150,30 +157,44 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, wp.array(mat.mu.astype(f32), dtype=float), kappa,
                                          wp.array(mat.eta.astype(f32), dtype=float),
                                          wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, pressure,
-                                         wp.array(node_volume.astype(f32), dtype=float), N, M,
-                                         wp.zeros(1, dtype=int), forces, inverted])
+                                         wp.array(node_volume.astype(f32), dtype=float), 0,
+                                         wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
+                                         wp.zeros(1, dtype=wp.mat33), 0, N, M, wp.zeros(1, dtype=int), forces,
+                                         inverted])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
         return forces.numpy().astype(np.float64)
 
 
+def _step_too_large(t: float, stable: float, dt: float) -> str:
+    return (f"at t = {t:.4g} s the model's stable time step is at most {stable:.3g} s, below the step used "
+            f"({dt:.3g} s): the solve would diverge. Lower the safety factor or set a smaller time_step")
+
+
 def solve(model: Model, device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
-          initial_displacement: np.ndarray | None = None, relaxation: DynamicRelaxation | None = None) -> Solution:
+          initial_displacement: np.ndarray | None = None, relaxation: DynamicRelaxation | None = None,
+          progress: Callable[[float], bool | None] | None = None) -> Solution:
     """Solve one model; ``device`` "cpu", "cuda" or None (warp's default: CUDA when present).
-    With ``relaxation`` the static solution is found by dynamic relaxation (fast path)."""
+    With ``relaxation`` the static solution is found by dynamic relaxation (fast path).
+    See :func:`solve_batch` for the other arguments."""
     return solve_batch(model, [model.materials], device=device, sample_every=sample_every,
                        ke_ie_limit=ke_ie_limit, initial_displacement=initial_displacement,
-                       relaxation=relaxation)[0]
+                       relaxation=relaxation, progress=progress)[0]
 
 
 def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
                 device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
                 initial_displacement: np.ndarray | None = None,
-                relaxation: DynamicRelaxation | None = None) -> list[Solution]:
+                relaxation: DynamicRelaxation | None = None,
+                progress: Callable[[float], bool | None] | None = None) -> list[Solution]:
     """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
     ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm. All variants
     use the smallest critical step of the batch, so results equal separate solves at that step.
-    ``initial_displacement`` (N, 3) mm starts every variant from rest in that configuration."""
+    ``initial_displacement`` (N, 3) mm starts every variant from rest in that configuration.
+    Every ``sample_every`` steps the energies, plate forces and the stable step are sampled and
+    ``progress(fraction done)`` is called; returning False cancels the solve (status "cancelled",
+    the displacement returned is the last configuration). Dynamic relaxation finds the
+    equilibrium, so visco materials enter it fully relaxed."""
     wp.init()
     device = _device(device)
     B, N, M = len(materials), len(model.mesh.nodes), len(model.mesh.tets)
@@ -184,6 +205,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             raise ValueError(f"a material set has {len(mat.mu)} elements, the mesh has {M}")
     plates = model.loading.plates
     P = len(plates)
+    if relaxation is not None:
+        materials = [mat.long_term() for mat in materials]
     if plate_displacements is None:
         plate_displacements = [np.array([p.displacement for p in plates]).reshape(P, 3)] * B
     if len(plate_displacements) != B:
@@ -193,13 +216,13 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     tets = model.mesh.tets.astype(np.int32)
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
     node_volume = np.bincount(tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
+    length = characteristic_lengths(nodes, model.mesh.tets, vol)
     if relaxation is None:
         densities = [mat.density for mat in materials]
         dt = model.time_step or model.safety * critical_time_step(model, materials)
         total = model.loading.total_time
         n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
     else:  # mass scaling: every element's stable step becomes dt / safety (fictitious time)
-        length = characteristic_lengths(nodes, model.mesh.tets, vol)
         dt = model.safety * float(np.median(length / np.sqrt((materials[0].kappa + 4 * materials[0].mu / 3)
                                                               / materials[0].density)))
         densities = [(mat.kappa + 4.0 * mat.mu / 3.0) * (dt / (model.safety * length)) ** 2 for mat in materials]
@@ -227,6 +250,14 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_kappa = arr(np.concatenate([m.kappa for m in materials]), float)
         d_eta = arr(np.concatenate([m.eta for m in materials]), float)
         d_fibre = arr(np.concatenate([m.fibre for m in materials]), wp.vec3)
+        # visco: K Prony terms per element (padded with g = 0), decay exp(-dt / tau) per step
+        K = max(m.prony_terms for m in materials)
+        prony_g = np.concatenate([np.pad(m.prony_g, ((0, 0), (0, K - m.prony_terms))) for m in materials])
+        prony_tau = np.concatenate([np.pad(m.prony_tau, ((0, 0), (0, K - m.prony_terms)), constant_values=1.0)
+                                    for m in materials])
+        d_prony_g = arr(prony_g.reshape(-1) if K else np.zeros(1), float)
+        d_prony_decay = arr(np.exp(-dt / prony_tau).reshape(-1) if K else np.zeros(1), float)
+        visco_state = wp.zeros(max(B * M * K, 1), dtype=wp.mat33)
         d_x0 = arr(nodes, wp.vec3)
         u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.tile(
             np.asarray(initial_displacement, float).reshape(N, 3) * MM, (B, 1))
@@ -257,18 +288,20 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                         wp.vec3)
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
-        def internal_force(state, out, pressure_buffer, flags):
-            """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)."""
+        def internal_force(state, out, pressure_buffer, flags, update_state=0):
+            """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``);
+            ``update_state`` advances the visco state variables by one step."""
             out.zero_()
             if use_anp:
                 pressure_buffer.zero_()
                 wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure_buffer])
             wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
-                                                 use_anp, pressure_buffer, d_nodevol, N, M, step, out, flags])
+                                                 use_anp, pressure_buffer, d_nodevol, K, d_prony_g, d_prony_decay,
+                                                 visco_state, update_state, N, M, step, out, flags])
 
         def one_step(curr, prev):
             plate_force.zero_()
-            internal_force(curr, forces, pressure, inverted)
+            internal_force(curr, forces, pressure, inverted, update_state=1)
             wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, d_damping, N,
                                                      float(dt), step, float(total), load_shape, inverted])
             if n_con:
@@ -294,13 +327,14 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             u[0].assign(u0.astype(f32))
             u[1].assign(u0.astype(f32))
             inverted.zero_()
+            visco_state.zero_()
             with wp.ScopedCapture() as capture:
                 two_steps()
             graph = capture.graph
 
         kinetic = wp.zeros(B, dtype=float)
         internal = wp.zeros(B, dtype=float)
-        history = {"time": [], "kinetic": [], "internal": [], "plate_forces": []}
+        history = {"time": [], "kinetic": [], "internal": [], "plate_forces": [], "stable_time_step": []}
         status, message = "completed", "completed"
         ke_ie_end_of_loading = float("nan")
         chunk = max(2, sample_every - sample_every % 2)
@@ -308,15 +342,24 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         estimated_error = np.full(B, np.nan)
         previous_increment = None
         updates = checks_below = 0
+        pressure_tmp = wp.zeros(B * N, dtype=float)
+        no_flags = wp.zeros(4, dtype=int)
+
+        def probe_force(state, out):
+            """Internal forces for diagnostics: no visco update, inverted elements not recorded."""
+            internal_force(state, out, pressure_tmp, no_flags)
+
         if relaxation is not None:
             f_curr, f_prev = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
-            pressure_tmp = wp.zeros(B * N, dtype=float)
-            no_flags = wp.zeros(4, dtype=int)
             stiffness, inertia, increment = (wp.zeros(B, dtype=float) for _ in range(3))
         latest = u[1]  # after an even number of steps u[1] holds u_n and u[0] u_{n-1}
         wp.synchronize_device(device)
         started = time.perf_counter()
-        while done < n_steps:
+        monitor = StableStepMonitor(probe_force, d_mass, B, N, 1e-3 * float(np.median(length)), d_cnodes, d_cmask)
+        stable_step = monitor.iterate(u[1], iterations=20)
+        if dt > stable_step.min():
+            status, message = "unstable", _step_too_large(0.0, stable_step.min(), dt)
+        while status == "completed" and done < n_steps:
             pairs = min(chunk, n_steps - done + (n_steps - done) % 2) // 2
             for _ in range(pairs):
                 if graph is not None:
@@ -349,11 +392,19 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 status, message = "unstable", (f"the solution diverged by step {done}; reduce the time step "
                                                f"(now {dt:.3g} s) or the safety factor")
                 break
+            stable_step = monitor.iterate(u[1])
+            history["stable_time_step"].append(stable_step)
+            if dt > stable_step.min():
+                status, message = "unstable", _step_too_large(done * dt, stable_step.min(), dt)
+                break
+            if progress is not None and progress(done / n_steps) is False:
+                status, message = "cancelled", f"cancelled after {done} steps; the displacement returned is that state"
+                break
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
             if relaxation is not None:
-                internal_force(u[1], f_curr, pressure_tmp, no_flags)
-                internal_force(u[0], f_prev, pressure_tmp, no_flags)
+                probe_force(u[1], f_curr)
+                probe_force(u[0], f_prev)
                 for a in (stiffness, inertia, increment):
                     a.zero_()
                 wp.launch(k.relaxation_terms, B * N, [u[1], u[0], f_curr, f_prev, d_mass, N, stiffness, inertia,
@@ -394,10 +445,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         hist = {"time": np.array(history["time"]),
                 "kinetic": np.array([h[b] for h in history["kinetic"]]),
                 "internal": np.array([h[b] for h in history["internal"]]),
+                "stable_time_step": np.array([h[b] for h in history["stable_time_step"]]),
                 "plate_forces": np.array([h[b] for h in history["plate_forces"]])}
         solutions.append(Solution(
             displacement=displacement[b], plate_forces=hist["plate_forces"][-1] if len(hist["time"]) else np.zeros((P, 3)),
             status=status, message=message, steps=done, time_step=dt, wall_time=wall,
             ke_ie_at_end_of_loading=ke_ie_end_of_loading, history=hist,
-            estimated_error_mm=float(estimated_error[b])))
+            estimated_error_mm=float(estimated_error[b]), stable_time_step=float(stable_step[b])))
     return solutions

@@ -1,0 +1,68 @@
+"""Checking the explicit time step against the stiffness of the deformed model.
+
+The automatic step comes from the reference element sizes and wave speeds. As elements deform
+and materials stiffen the stable step changes, so during a solve the largest eigenvalue
+omega_max^2 of M^-1 K (K the tangent stiffness of the current configuration, by finite
+differences of the internal forces) is tracked by power iteration: one iteration per sample,
+warm-started from the previous vector. Its Rayleigh quotient never exceeds omega_max^2, so the
+central-difference limit 2 / omega_max it implies is an upper bound of the true stable step:
+a time step above it is certainly unstable.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import warp as wp
+
+from BreastBiomechLib.solver import kernels as k
+
+
+class StableStepMonitor:
+    """Power iteration for the stable time step (s) of B models sharing a mesh.
+
+    ``internal_force(state, out)`` writes the internal nodal forces (N) of displacement ``state``
+    (m) into ``out``; ``mass`` holds the lumped nodal masses (kg, B*N); ``probe_m`` is the size of
+    the finite-difference probe (m), about 1e-3 of an element."""
+
+    def __init__(self, internal_force: Callable, mass: wp.array, n_models: int, n_nodes: int, probe_m: float,
+                 constrained_nodes: wp.array, constrained_mask: wp.array, seed: int = 0):
+        self._force = internal_force
+        self._mass = mass
+        self._B, self._N = n_models, n_nodes
+        self._eps = float(probe_m)
+        self._cnodes, self._cmask = constrained_nodes, constrained_mask
+        start = np.random.default_rng(seed).uniform(-1.0, 1.0, (n_models * n_nodes, 3)).astype(np.float32)
+        self._v = wp.array(start, dtype=wp.vec3)
+        self._w = wp.zeros_like(self._v)
+        self._probe = wp.zeros_like(self._v)
+        self._f_base = wp.zeros_like(self._v)
+        self._f_probe = wp.zeros_like(self._v)
+        self._vkv, self._vmv, self._largest = (wp.zeros(n_models, dtype=float) for _ in range(3))
+        self._zero_constrained()
+        self.omega_squared = np.zeros(n_models)
+
+    def _zero_constrained(self) -> None:
+        n_con = self._cnodes.shape[0]
+        if n_con:
+            wp.launch(k.zero_constrained, self._B * n_con, [self._v, self._cnodes, self._cmask, self._N, n_con])
+
+    def iterate(self, state: wp.array, iterations: int = 1) -> np.ndarray:
+        """Advance the power iteration at displacement ``state`` (m); returns the stable step
+        estimate 2 / omega (s) per model (inf where no stiffness was seen)."""
+        self._force(state, self._f_base)
+        for _ in range(iterations):
+            wp.launch(k.perturbed, self._B * self._N, [state, self._v, self._eps, self._probe])
+            self._force(self._probe, self._f_probe)
+            for a in (self._vkv, self._vmv, self._largest):
+                a.zero_()
+            wp.launch(k.power_iteration_terms, self._B * self._N,
+                      [self._v, self._f_probe, self._f_base, self._mass, self._eps, self._N, self._vkv, self._vmv,
+                       self._w, self._largest])
+            wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
+            self._zero_constrained()
+        quotient = self._vkv.numpy().astype(float) / np.maximum(self._vmv.numpy().astype(float), 1e-300)
+        self.omega_squared = quotient
+        with np.errstate(divide="ignore"):
+            return np.where(self.omega_squared > 0, 2.0 / np.sqrt(self.omega_squared), np.inf)
