@@ -14,11 +14,15 @@ from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
 def hemi_ellipsoid_compression(spacing_mm: float = 5.0, compression: float = 0.25,
                                material: Material | None = None, radii_mm=(80.0, 70.0, 75.0),
                                total_time: float = 1.0, settle_time: float = 0.25,
-                               damping: float = 30.0, formulation: str = "T4ANP") -> Model:
+                               damping: float = 30.0, formulation: str = "T4ANP",
+                               chest_wall: str = "sliding") -> Model:
     """Two plates tangent to the breast at its medial and lateral extremes (x) close by
-    ``compression`` x the breast's width (half each). Chest-wall nodes (y = 0) are fixed in y,
-    the chest-wall node nearest the centre also in x and z. Default tissue: the seed's solver
-    check (E = 10 kPa, nu = 0.49, 1000 kg/m^3)."""
+    ``compression`` x the breast's width (half each). ``chest_wall`` "sliding" (the seed): the
+    chest-wall nodes (y = 0) are fixed in y, the one nearest the centre also in x and z, which
+    leaves a soft superior-inferior sliding mode; "fixed": the chest wall is fixed in all
+    directions. Default tissue: the seed's solver check (E = 10 kPa, nu = 0.49, 1000 kg/m^3)."""
+    if chest_wall not in ("sliding", "fixed"):
+        raise ValueError('chest_wall must be "sliding" or "fixed"')
     mesh = hemi_ellipsoid_mesh(radii_mm, spacing_mm)
     material = material or Material(E=10e3, nu=0.49)
     chest = np.flatnonzero(mesh.point_data["chest_wall"])
@@ -28,7 +32,10 @@ def hemi_ellipsoid_compression(spacing_mm: float = 5.0, compression: float = 0.2
     travel = 0.5 * compression * (hi - lo)
     plates = [Plate([lo, 0, 0], [1, 0, 0], [travel, 0, 0], surface, "medial"),
               Plate([hi, 0, 0], [-1, 0, 0], [-travel, 0, 0], surface, "lateral")]
-    constraints = [Constraint.fixed(chest, (False, True, False)), Constraint.fixed([anchor], (True, False, True))]
+    if chest_wall == "fixed":
+        constraints = [Constraint.fixed(chest)]
+    else:
+        constraints = [Constraint.fixed(chest, (False, True, False)), Constraint.fixed([anchor], (True, False, True))]
     loading = Loading(constraints, plates, total_time=total_time, settle_time=settle_time)
     return Model(mesh, ElementMaterials.uniform(len(mesh.tets), material), loading,
                  formulation=formulation, damping=damping)
