@@ -1,4 +1,4 @@
-"""Command line: ``breastbiomech phantom|demo|bench``.
+"""Command line: ``breastbiomech phantom|simulate|demo|bench``.
 
 Each sub-command is a thin layer over library functions; results go to files and a short report
 on standard output (``--json`` where a machine reads it).
@@ -73,6 +73,52 @@ def cmd_demo(args) -> int:
     print(f"    overview picture: {paths['overview']}")
     print(f"demo finished: open {paths['mr']} with {paths['labels']} and {paths['landmarks']} in Slicer")
     return 0
+
+
+def cmd_simulate(args) -> int:
+    """Solve CASE.json; write the mesh with its displacement and a JSON summary of the solve."""
+    import numpy as np
+
+    from BreastBiomechLib.io.cases import read_case
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.mesh.tetmesh import TetMesh
+    from BreastBiomechLib.solver import solve
+
+    model, settings = read_case(args.case)
+    device = args.device or settings.device
+    relaxation = settings.relaxation if settings.method == "relaxation" else None
+    mesh = model.mesh
+    print(f"simulate {args.case}: {len(mesh.nodes)} nodes, {len(mesh.tets)} tets, {model.formulation}, "
+          f"{settings.method}, device {device or 'default'}")
+
+    def report(fraction):
+        print(f"\r  {fraction:6.1%} of the step budget", end="", file=sys.stderr, flush=True)
+
+    solution = solve(model, device=device, relaxation=relaxation, progress=None if args.quiet else report)
+    if not args.quiet:
+        print(file=sys.stderr)
+    out = Path(args.out)
+    deformed = TetMesh(mesh.nodes, mesh.tets, point_data={**mesh.point_data, "displacement": solution.displacement},
+                       cell_data=dict(mesh.cell_data))
+    mesh_path = write_vtu(out / "deformed.vtu", deformed)
+    summary = {
+        "status": solution.status, "message": solution.message, "steps": solution.steps,
+        "time_step_s": solution.time_step, "wall_s": solution.wall_time,
+        "ke_ie_at_end_of_loading": solution.ke_ie_at_end_of_loading,
+        "estimated_error_mm": solution.estimated_error_mm, "stable_time_step_s": solution.stable_time_step,
+        "max_displacement_mm": float(np.linalg.norm(solution.displacement, axis=1).max()),
+        "plates": {p.name: solution.plate_forces[i].tolist() for i, p in enumerate(model.loading.plates)},
+        "history": {key: np.asarray(value).tolist() for key, value in solution.history.items()},
+        "units": "mm, N, J, s (plate forces: force of the plate on the tissue, LPS)",
+    }
+    (out / "solution.json").write_text(json.dumps(summary, indent=1, allow_nan=True))
+    print(f"{solution.status}: {solution.message}")
+    print(f"  {solution.steps} steps in {solution.wall_time:.2f} s; max displacement "
+          f"{summary['max_displacement_mm']:.2f} mm")
+    for name, force in summary["plates"].items():
+        print(f"  plate {name}: force {np.linalg.norm(force):.3f} N")
+    print(f"  written: {mesh_path} (point array 'displacement', mm) and {out / 'solution.json'}")
+    return 0 if solution.ok else 1
 
 
 def _bench_solver(args) -> dict:
@@ -163,6 +209,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_phantom_options(p)
     p.add_argument("--no-overview", action="store_true", help="skip the PNG overview")
     p.set_defaults(func=cmd_phantom)
+
+    p = sub.add_parser("simulate", help="solve a case file (mesh + materials + loading, see docs/solver.md)")
+    p.add_argument("case", help="CASE.json")
+    p.add_argument("--out", required=True, help="output folder for deformed.vtu and solution.json")
+    p.add_argument("--device", default=None, help="cuda, cpu or a warp device name (default: the case's, or warp's)")
+    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+    p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("demo", help="run the main job on the built-in phantom")
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh, smooth_hemi_ellipsoid_mesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
 
@@ -15,15 +15,16 @@ def hemi_ellipsoid_compression(spacing_mm: float = 5.0, compression: float = 0.2
                                material: Material | None = None, radii_mm=(80.0, 70.0, 75.0),
                                total_time: float = 1.0, settle_time: float = 0.25,
                                damping: float = 30.0, formulation: str = "T4ANP",
-                               chest_wall: str = "sliding") -> Model:
+                               chest_wall: str = "sliding", smooth: bool = False) -> Model:
     """Two plates tangent to the breast at its medial and lateral extremes (x) close by
     ``compression`` x the breast's width (half each). ``chest_wall`` "sliding" (the seed): the
     chest-wall nodes (y = 0) are fixed in y, the one nearest the centre also in x and z, which
     leaves a soft superior-inferior sliding mode; "fixed": the chest wall is fixed in all
-    directions. Default tissue: the seed's solver check (E = 10 kPa, nu = 0.49, 1000 kg/m^3)."""
+    directions. ``smooth`` meshes the smooth surface with TetGen (edges of about ``spacing_mm``)
+    instead of the stair-stepped Kuhn grid. Default tissue: the seed's solver check (E = 10 kPa, nu = 0.49, 1000 kg/m^3)."""
     if chest_wall not in ("sliding", "fixed"):
         raise ValueError('chest_wall must be "sliding" or "fixed"')
-    mesh = hemi_ellipsoid_mesh(radii_mm, spacing_mm)
+    mesh = smooth_hemi_ellipsoid_mesh(radii_mm, spacing_mm) if smooth else hemi_ellipsoid_mesh(radii_mm, spacing_mm)
     material = material or Material(E=10e3, nu=0.49)
     chest = np.flatnonzero(mesh.point_data["chest_wall"])
     anchor = chest[np.argmin(np.linalg.norm(mesh.nodes[chest][:, [0, 2]], axis=1))]

@@ -1,0 +1,131 @@
+"""Simulation case files (``CASE.json``): a ``.vtu`` mesh plus materials, loading and solver
+settings, the input of ``breastbiomech simulate``. Format reference: docs/solver.md.
+
+Geometry in the mesh's frame (LPS mm), moduli in Pa, density kg/m^3, time s, gravity m/s^2.
+Node sets are named point arrays of the mesh (nodes where the array is non-zero) or lists of
+node ids; materials are keyed by tissue name or label value of :mod:`BreastBiomechLib.labels`
+(``"default"`` for a mesh without a ``tissue`` cell array).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib.labels import tissue as lookup_tissue
+from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.solver.materials import ElementMaterials, Material
+from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
+from BreastBiomechLib.solver.tled import DynamicRelaxation
+
+SOLVER_METHODS = ("relaxation", "physical")
+
+
+@dataclass
+class SolverSettings:
+    """How to solve a case: ``method`` "relaxation" (static solution, fast) or "physical"
+    (explicit dynamics in physical time), the device ("cuda", "cpu", or None for warp's default)
+    and the dynamic-relaxation settings."""
+
+    method: str = "relaxation"
+    device: str | None = None
+    relaxation: DynamicRelaxation = field(default_factory=DynamicRelaxation)
+
+    def __post_init__(self) -> None:
+        if self.method not in SOLVER_METHODS:
+            raise ValueError(f"solver method must be one of {SOLVER_METHODS}, not {self.method!r}")
+
+
+def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
+    if isinstance(spec, str):
+        if spec not in mesh.point_data:
+            raise ValueError(f"{path}: {what} names the node set {spec!r}, but the mesh has the point arrays "
+                             f"{sorted(mesh.point_data)}")
+        return np.flatnonzero(np.asarray(mesh.point_data[spec]).reshape(len(mesh.nodes), -1).any(axis=1))
+    nodes = np.asarray(spec, dtype=np.int64).ravel()
+    if len(nodes) and (nodes.min() < 0 or nodes.max() >= len(mesh.nodes)):
+        raise ValueError(f"{path}: {what} lists nodes outside 0..{len(mesh.nodes) - 1}")
+    return nodes
+
+
+def _components(spec, path: Path) -> tuple[bool, bool, bool]:
+    if isinstance(spec, str):
+        if not spec or set(spec) - set("xyz"):
+            raise ValueError(f"{path}: constraint components {spec!r} must be letters of 'xyz'")
+        return tuple(axis in spec for axis in "xyz")
+    if len(spec) != 3:
+        raise ValueError(f"{path}: constraint components need three booleans (x, y, z)")
+    return tuple(bool(c) for c in spec)
+
+
+def _material(values: dict, key: str, path: Path) -> Material:
+    known = {"E", "nu", "eta", "fibre", "density", "prony"}
+    unknown = set(values) - known
+    if unknown:
+        raise ValueError(f"{path}: material {key!r} has unknown fields {sorted(unknown)}; use {sorted(known)}")
+    try:
+        return Material(E=float(values["E"]), nu=float(values["nu"]), eta=float(values.get("eta", 0.0)),
+                        fibre=tuple(values.get("fibre", (0.0, 0.0, 1.0))),
+                        density=float(values.get("density", 1000.0)),
+                        prony=tuple(tuple(term) for term in values.get("prony", ())))
+    except KeyError as missing:
+        raise ValueError(f"{path}: material {key!r} needs {missing} (E in Pa, nu)") from None
+    except ValueError as error:
+        raise ValueError(f"{path}: material {key!r}: {error}") from None
+
+
+def _element_materials(mesh: TetMesh, spec: dict, path: Path) -> ElementMaterials:
+    if not spec:
+        raise ValueError(f"{path}: the case gives no materials")
+    if "tissue" not in mesh.cell_data:
+        if set(spec) != {"default"}:
+            raise ValueError(f"{path}: the mesh has no 'tissue' cell array, so give one material named 'default'")
+        return ElementMaterials.uniform(len(mesh.tets), _material(spec["default"], "default", path))
+    table = {}
+    for key, values in spec.items():
+        label = lookup_tissue(int(key) if key.isdigit() else key).label
+        table[label] = _material(values, key, path)
+    return ElementMaterials.from_tissues(np.asarray(mesh.cell_data["tissue"]).astype(int), table)
+
+
+def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tuple[Model, SolverSettings]:
+    """Build the model and solver settings of a case dictionary (the JSON content) on ``mesh``."""
+    constraints = []
+    for i, c in enumerate(data.get("constraints", [])):
+        nodes = _node_set(mesh, c["nodes"], f"constraint {i}", path)
+        mask = np.array(_components(c.get("components", "xyz"), path))
+        values = np.zeros(3) if c.get("displacement") is None else np.asarray(c["displacement"], float)
+        constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1))))
+    plates = [Plate(p["point"], p["normal"], p.get("displacement", (0.0, 0.0, 0.0)),
+                    _node_set(mesh, p.get("slaves", "surface"), f"plate {p.get('name', i)}", path),
+                    p.get("name", f"plate{i}"))
+              for i, p in enumerate(data.get("plates", []))]
+    loading = Loading(constraints, plates, gravity=data.get("gravity", (0.0, 0.0, 0.0)),
+                      total_time=float(data.get("total_time", 1.0)), load_shape=data.get("load_shape", "POLY345"),
+                      settle_time=float(data.get("settle_time", 0.0)))
+    model = Model(mesh, _element_materials(mesh, data.get("materials", {}), path), loading,
+                  formulation=data.get("formulation", "T4ANP"), damping=float(data.get("damping", 50.0)),
+                  time_step=data.get("time_step"), safety=float(data.get("safety", 0.8)))
+    solver = dict(data.get("solver", {}))
+    method = solver.pop("method", "relaxation")
+    device = solver.pop("device", None)
+    return model, SolverSettings(method, device, DynamicRelaxation(**solver))
+
+
+def read_case(path: str | Path) -> tuple[Model, SolverSettings]:
+    """Read ``CASE.json`` and the mesh it names (a path relative to the JSON file)."""
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such case file")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: not valid JSON ({error})") from None
+    if "mesh" not in data:
+        raise ValueError(f"{path}: the case must name its mesh file (\"mesh\": \"breast.vtu\")")
+    return case_from_dict(data, read_vtu(path.parent / data["mesh"]), path)

@@ -1,0 +1,88 @@
+"""Case files (CASE.json + .vtu) and ``breastbiomech simulate``: the file route gives the same
+answer as building the model in Python, and bad cases are refused with the reason."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from BreastBiomechLib.cli import main
+from BreastBiomechLib.io.cases import read_case
+from BreastBiomechLib.io.meshes import read_vtu, write_vtu
+from BreastBiomechLib.labels import FAT, GLANDULAR
+from BreastBiomechLib.mesh.primitives import box_mesh
+from BreastBiomechLib.solver import Constraint, ElementMaterials, Loading, Material, Model, Plate, solve
+
+SIDE = 10.0
+
+
+def _case(tmp_path, **changes):
+    mesh = box_mesh((SIDE, SIDE, SIDE), (3, 3, 3))
+    tissue = np.where(mesh.nodes[mesh.tets].mean(axis=1)[:, 2] < SIDE / 2, FAT.label, GLANDULAR.label)
+    mesh.cell_data["tissue"] = tissue.astype(np.int32)
+    write_vtu(tmp_path / "block.vtu", mesh)
+    case = {
+        "mesh": "block.vtu",
+        "materials": {"fat": {"E": 10e3, "nu": 0.45}, "glandular": {"E": 20e3, "nu": 0.45, "eta": 2e3,
+                                                                  "fibre": [1, 0, 0]}},
+        "constraints": [{"nodes": "face_xlo", "components": "x"}, {"nodes": "face_ylo", "components": [0, 1, 0]}],
+        "plates": [{"name": "base", "point": [0, 0, 0], "normal": [0, 0, 1], "slaves": "face_zlo"},
+                   {"name": "top", "point": [0, 0, SIDE], "normal": [0, 0, -1], "displacement": [0, 0, -2.0],
+                    "slaves": "face_zhi"}],
+        "total_time": 0.2, "settle_time": 0.1, "damping": 200.0,
+        "solver": {"method": "physical", "device": "cpu"},
+    }
+    case.update(changes)
+    path = tmp_path / "case.json"
+    path.write_text(json.dumps(case))
+    return path, mesh, tissue
+
+
+def test_simulate_writes_the_same_solution_as_the_library(tmp_path):
+    path, mesh, tissue = _case(tmp_path)
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    result = read_vtu(tmp_path / "out" / "deformed.vtu")
+    summary = json.loads((tmp_path / "out" / "solution.json").read_text())
+    assert summary["status"] == "completed"
+    np.testing.assert_array_equal(result.cell_data["tissue"], tissue)
+
+    materials = ElementMaterials.from_tissues(tissue, {FAT.label: Material(10e3, 0.45),
+                                                       GLANDULAR.label: Material(20e3, 0.45, 2e3, (1, 0, 0))})
+    pd = mesh.point_data
+    loading = Loading([Constraint.fixed(np.flatnonzero(pd["face_xlo"]), (True, False, False)),
+                       Constraint.fixed(np.flatnonzero(pd["face_ylo"]), (False, True, False))],
+                      [Plate([0, 0, 0], [0, 0, 1], [0, 0, 0], np.flatnonzero(pd["face_zlo"])),
+                       Plate([0, 0, SIDE], [0, 0, -1], [0, 0, -2.0], np.flatnonzero(pd["face_zhi"]))],
+                      total_time=0.2, settle_time=0.1)
+    direct = solve(Model(mesh, materials, loading, damping=200.0), device="cpu")
+    np.testing.assert_allclose(result.point_data["displacement"], direct.displacement, atol=1e-6)
+    np.testing.assert_allclose(summary["plates"]["top"], direct.plate_forces[1], rtol=1e-5)
+    # the stiffer upper half compresses less than the fat below it
+    top_z = result.point_data["displacement"][pd["face_zhi"].astype(bool), 2].mean()
+    assert -2.0 == pytest.approx(top_z, abs=1e-3)
+
+
+def test_relaxation_is_the_default_method(tmp_path):
+    path, _, _ = _case(tmp_path, solver={"device": "cpu", "tolerance_mm": 0.005})
+    model, settings = read_case(path)
+    assert settings.method == "relaxation" and settings.relaxation.tolerance_mm == 0.005
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert json.loads((tmp_path / "out" / "solution.json").read_text())["estimated_error_mm"] < 0.005
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"materials": {"fat": {"E": 10e3, "nu": 0.45}}}, r"no material given for tissue labels \[2\]"),
+    ({"materials": {"fat": {"nu": 0.45}, "glandular": {"E": 1, "nu": 0.4}}}, "needs 'E'"),
+    ({"materials": {"fat": {"E": 1e4, "nu": 0.45, "mu": 3}, "glandular": {"E": 1, "nu": 0.4}}}, "unknown fields"),
+    ({"constraints": [{"nodes": "chest", "components": "y"}]}, "node set 'chest'"),
+    ({"constraints": [{"nodes": [0, 99999]}]}, "outside"),
+    ({"constraints": [{"nodes": [0], "components": "xq"}]}, "letters of 'xyz'"),
+    ({"solver": {"method": "implicit"}}, "solver method"),
+])
+def test_bad_cases_are_refused_with_the_reason(tmp_path, change, message):
+    path, _, _ = _case(tmp_path, **change)
+    with pytest.raises(ValueError, match=message):
+        read_case(path)
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 2
