@@ -458,3 +458,23 @@ def test_breast_compression_converges_under_mesh_refinement():
     print(f"point displacement {u} mm (order {order_u:.2f}); plate force {force} N (order {order_force:.2f})")
     assert abs(u[2] - u[1]) < abs(u[1] - u[0]) < 0.1 * abs(u[0])
     assert order_force > 0.8
+
+
+def test_batched_dynamic_relaxation_stops_each_model_when_it_converges():
+    """Each model of a relaxation batch stops once its own criterion holds, so a batch gives the
+    answers of separate relaxation solves (within their tolerance) with per-model status."""
+    from BreastBiomechLib.solver import DynamicRelaxation
+
+    mesh = _block(3)
+    model = _compression_model(mesh, Material(E, 0.49), strain=0.2)
+    variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu, eta=eta, fibre=(1, 0, 0)))
+                for e, nu, eta in [(8e3, 0.49, 0.0), (12e3, 0.45, 2e3), (10e3, 0.3, 0.0)]]
+    relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.005)
+    batch = solve_batch(model, variants, device="cpu", relaxation=relaxation)
+    for mat, b in zip(variants, batch):
+        one = solve(Model(mesh, mat, model.loading, formulation=model.formulation), device="cpu",
+                    relaxation=relaxation)
+        assert b.ok and one.ok, (b.message, one.message)
+        assert "converged in" in b.message
+        np.testing.assert_allclose(b.displacement, one.displacement, atol=0.02)
+        np.testing.assert_allclose(b.plate_forces, one.plate_forces, rtol=0.01, atol=1e-6)

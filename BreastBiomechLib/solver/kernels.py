@@ -140,13 +140,17 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
 @wp.kernel
 def central_difference(u_curr: wp.array(dtype=wp.vec3), u_prev_to_next: wp.array(dtype=wp.vec3),
                        forces: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), gravity: wp.vec3,
-                       damping: wp.array(dtype=float), n_nodes: int, dt: float, step: wp.array(dtype=int),
-                       t_total: float, load_shape: int, inverted: wp.array(dtype=int)):
+                       damping: wp.array(dtype=float), active: wp.array(dtype=int), n_nodes: int, dt: float,
+                       step: wp.array(dtype=int), t_total: float, load_shape: int, inverted: wp.array(dtype=int)):
     """u_next = (R - F + 2m/dt^2 u - (m/dt^2 - a m/(2dt)) u_prev) / (m/dt^2 + a m/(2dt)), seed eq. (15).
     Overwrites the previous displacement with the next one (it is not needed afterwards).
-    ``damping[b]`` is model b's coefficient (1/s), adapted between steps by dynamic relaxation."""
+    ``damping[b]`` is model b's coefficient (1/s), adapted between steps by dynamic relaxation;
+    a model with ``active[b]`` = 0 (converged) stands still."""
     i = wp.tid()
     if inverted[0] != 0:
+        return
+    if active[i // n_nodes] == 0:
+        u_prev_to_next[i] = u_curr[i]
         return
     m = mass[i]
     t = float(step[0] + 1) * dt

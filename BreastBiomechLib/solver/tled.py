@@ -288,6 +288,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         # dynamic relaxation starts critically damped for a mode of period ~ the loading time
         damping = np.full(B, model.damping if relaxation is None else 4.0 * np.pi / total)
         d_damping = arr(damping, float)
+        active = np.ones(B, np.int32)  # dynamic relaxation stops each model once it has converged
+        d_active = arr(active, int)
 
         c_nodes, c_mask, c_vals = merged_constraints(model)
         c_vals = c_vals * MM
@@ -319,7 +321,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         def one_step(curr, prev):
             plate_force.zero_()
             internal_force(curr, forces, pressure, inverted, update_state=1)
-            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, d_damping, N,
+            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, d_damping, d_active, N,
                                                      float(dt), step, float(total), load_shape, inverted])
             if n_con:
                 wp.launch(k.apply_constraints, B * n_con, [prev, d_cnodes, d_cmask, d_cvals, N, n_con,
@@ -358,7 +360,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         done = 0
         estimated_error = np.full(B, np.nan)
         previous_increment = None
-        updates = checks_below = 0
+        updates = 0
+        checks_below = np.zeros(B, int)
+        converged_at = np.zeros(B, int)
+        converged_forces = np.zeros((B, P, 3))
         pressure_tmp = wp.zeros(B * N, dtype=float)
         no_flags = wp.zeros(4, dtype=int)
 
@@ -454,33 +459,47 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                     d_damping.assign(damping.astype(f32))
                     if previous_increment is not None:
                         rate = (du / np.maximum(previous_increment, 1e-300)) ** (1.0 / (2 * pairs))
-                        estimated_error = np.where(rate < 1.0, du * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
+                        running = active == 1
+                        estimated_error[running] = np.where(
+                            rate < 1.0, du * rate / np.maximum(1.0 - rate, 1e-12), np.inf)[running]
                         # trust the estimate only once the damping has adapted (three updates after
-                        # the load) and it has held for two checks in a row
-                        checks_below = checks_below + 1 if np.all(estimated_error < relaxation.tolerance_mm) else 0
+                        # the load) and it has held for two checks in a row; each model of the
+                        # batch stops (stands still) as soon as it has converged
+                        checks_below = np.where(estimated_error < relaxation.tolerance_mm, checks_below + 1, 0)
                         updates += 1
-                        if updates > 3 and checks_below >= 2:
-                            break
+                        if updates > 3:
+                            done_now = running & (checks_below >= 2)
+                            active[done_now] = 0
+                            converged_at[done_now] = done
+                            converged_forces[done_now] = history["plate_forces"][-1][done_now]
+                            d_active.assign(active)
+                            if not active.any():
+                                break
                     previous_increment = du
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
         displacement = latest.numpy().reshape(B, N, 3).astype(np.float64) / MM
 
+    statuses, messages, steps = [status] * B, [message] * B, [done] * B
     if relaxation is not None:
         ke_ie_end_of_loading = float("nan")  # fictitious masses: the energy criterion does not apply
-        if status == "completed" and not np.all(estimated_error < relaxation.tolerance_mm):
-            status = "not converged"
-            message = (f"dynamic relaxation stopped after {done} iterations with an estimated error of "
-                       f"{np.nanmax(estimated_error):.3g} mm (tolerance {relaxation.tolerance_mm} mm); raise "
-                       "max_iterations or the tolerance")
-        elif status == "completed":
-            message = (f"converged in {done} iterations, estimated error {np.nanmax(estimated_error):.3g} mm"
-                       + (f"; fictitious masses raised {mass_rescales} time(s) as elements stiffened"
-                          if mass_rescales else ""))
+        rescaled = f"; fictitious masses raised {mass_rescales} time(s) as elements stiffened" if mass_rescales else ""
+        for b in range(B):
+            if status != "completed":
+                continue
+            if active[b]:
+                statuses[b] = "not converged"
+                messages[b] = (f"dynamic relaxation stopped after {done} iterations with an estimated error of "
+                               f"{estimated_error[b]:.3g} mm (tolerance {relaxation.tolerance_mm} mm); raise "
+                               "max_iterations or the tolerance")
+            else:
+                steps[b] = int(converged_at[b])
+                messages[b] = (f"converged in {steps[b]} iterations, estimated error {estimated_error[b]:.3g} mm"
+                               + rescaled)
     elif status == "completed" and ke_ie_end_of_loading > ke_ie_limit:
-        status = "energy criterion exceeded"
-        message = (f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
-                   f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")
+        statuses = ["energy criterion exceeded"] * B
+        messages = [(f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
+                   f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")] * B
     solutions = []
     for b in range(B):
         hist = {"time": np.array(history["time"]),
@@ -488,9 +507,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 "internal": np.array([h[b] for h in history["internal"]]),
                 "stable_time_step": np.array([h[b] for h in history["stable_time_step"]]),
                 "plate_forces": np.array([h[b] for h in history["plate_forces"]])}
+        plate_forces = hist["plate_forces"][-1] if len(hist["time"]) else np.zeros((P, 3))
+        if relaxation is not None and not active[b]:
+            plate_forces = converged_forces[b]  # at rest on the plates the contact kernel sees no force
         solutions.append(Solution(
-            displacement=displacement[b], plate_forces=hist["plate_forces"][-1] if len(hist["time"]) else np.zeros((P, 3)),
-            status=status, message=message, steps=done, time_step=dt, wall_time=wall,
+            displacement=displacement[b], plate_forces=plate_forces,
+            status=statuses[b], message=messages[b], steps=steps[b], time_step=dt, wall_time=wall,
             ke_ie_at_end_of_loading=ke_ie_end_of_loading, history=hist,
             estimated_error_mm=float(estimated_error[b]), stable_time_step=float(stable_step[b])))
     return solutions
