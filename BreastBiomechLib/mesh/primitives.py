@@ -8,7 +8,7 @@ from itertools import permutations
 
 import numpy as np
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
 
 
 def box_mesh(size_mm, divisions, origin_mm=(0.0, 0.0, 0.0)) -> TetMesh:
@@ -63,10 +63,7 @@ def hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), spacing_mm: float = 5.0) ->
     used, new_tets = np.unique(tets, return_inverse=True)
     nodes = box.nodes[used]
     tets = new_tets.reshape(-1, 4)
-    faces = np.sort(np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]]), axis=1)
-    unique_faces, counts = np.unique(faces, axis=0, return_counts=True)
-    boundary = np.zeros(len(nodes), bool)
-    boundary[unique_faces[counts == 1].ravel()] = True
+    boundary = boundary_nodes(tets, len(nodes))
     chest = np.isclose(nodes[:, 1], 0.0)
     return TetMesh(nodes, tets, point_data={"chest_wall": chest.astype(np.uint8),
                                             "surface": (boundary & ~chest).astype(np.uint8)})
@@ -158,8 +155,6 @@ def refined_hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), edge_mm: float = 16
 def _with_breast_node_sets(mesh: TetMesh, radii: np.ndarray) -> TetMesh:
     """Positively oriented tets and point data ``chest_wall`` (y = 0) and ``surface`` (the other
     boundary nodes)."""
-    from BreastBiomechLib.mesh.refine import boundary_nodes
-
     tets = mesh.tets.copy()
     negative = mesh.volumes < 0
     tets[negative] = tets[negative][:, [0, 2, 1, 3]]

@@ -8,23 +8,13 @@ from typing import Callable
 
 import numpy as np
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
 
 _EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 # the eight children of a tet in terms of its corners 0-3 and edge midpoints 4-9 (order of _EDGES):
 # four corner tets and the inner octahedron cut along its 02-13 diagonal
 _CHILDREN = np.array([(0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3),
                       (4, 5, 6, 8), (4, 5, 7, 8), (5, 6, 8, 9), (5, 7, 8, 9)])
-
-
-def boundary_nodes(tets: np.ndarray, n_nodes: int) -> np.ndarray:
-    """Boolean (N,): nodes on faces that belong to one tet only."""
-    faces = np.sort(np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]]),
-                    axis=1)
-    unique, counts = np.unique(faces, axis=0, return_counts=True)
-    mask = np.zeros(n_nodes, bool)
-    mask[unique[counts == 1].ravel()] = True
-    return mask
 
 
 def refine_uniform(mesh: TetMesh, project: Callable[[np.ndarray], np.ndarray] | None = None) -> TetMesh:

@@ -17,6 +17,16 @@ def _signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
 
 
+def boundary_nodes(tets: np.ndarray, n_nodes: int) -> np.ndarray:
+    """Boolean (N,): nodes on faces that belong to one tet only (the mesh boundary)."""
+    faces = np.sort(np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]]),
+                    axis=1)
+    unique, counts = np.unique(faces, axis=0, return_counts=True)
+    mask = np.zeros(n_nodes, bool)
+    mask[unique[counts == 1].ravel()] = True
+    return mask
+
+
 @dataclass
 class TetMesh:
     """Nodes (N, 3) LPS mm, tets (M, 4) int64, and named point/cell arrays (first axis N or M)."""
