@@ -48,17 +48,20 @@ class StableStepMonitor:
         if n_con:
             wp.launch(k.zero_constrained, self._B * n_con, [self._v, self._cnodes, self._cmask, self._N, n_con])
 
-    def iterate(self, state: wp.array, iterations: int = 1) -> np.ndarray:
+    def iterate(self, state: wp.array, iterations: int = 1, base_force: wp.array | None = None) -> np.ndarray:
         """Advance the power iteration at displacement ``state`` (m); returns the stable step
-        estimate 2 / omega (s) per model (inf where no stiffness was seen)."""
-        self._force(state, self._f_base)
+        estimate 2 / omega (s) per model (inf where no stiffness was seen). ``base_force``: the
+        internal forces of ``state`` when the caller has them already."""
+        if base_force is None:
+            self._force(state, self._f_base)
+        f_base = self._f_base if base_force is None else base_force
         for _ in range(iterations):
             wp.launch(k.perturbed, self._B * self._N, [state, self._v, self._eps, self._probe])
             self._force(self._probe, self._f_probe)
             for a in (self._vkv, self._vmv, self._largest):
                 a.zero_()
             wp.launch(k.power_iteration_terms, self._B * self._N,
-                      [self._v, self._f_probe, self._f_base, self._mass, self._eps, self._N, self._vkv, self._vmv,
+                      [self._v, self._f_probe, f_base, self._mass, self._eps, self._N, self._vkv, self._vmv,
                        self._w, self._largest])
             wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
             self._zero_constrained()

@@ -106,12 +106,13 @@ def characteristic_lengths(nodes_m: np.ndarray, tets: np.ndarray, vol: np.ndarra
     return 3.0 * vol / areas.max(axis=1)
 
 
-def critical_time_step(model: Model, materials: list[ElementMaterials]) -> float:
-    """min over elements and batch of L_e / c_d, c_d = sqrt((kappa + 4 mu / 3) / rho) (s)."""
-    nodes = model.mesh.nodes * MM
-    _, vol = shape_derivatives(nodes, model.mesh.tets)
-    length = characteristic_lengths(nodes, model.mesh.tets, vol)
-    return float(min(np.min(length / np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.density)) for m in materials))
+def critical_time_step(model: Model, materials: list[ElementMaterials], length_m: np.ndarray | None = None) -> float:
+    """min over elements and batch of L_e / c_d, c_d = sqrt((kappa + 4 mu / 3) / rho) (s);
+    ``length_m`` the element altitudes if already computed."""
+    if length_m is None:
+        nodes = model.mesh.nodes * MM
+        length_m = characteristic_lengths(nodes, model.mesh.tets, shape_derivatives(nodes, model.mesh.tets)[1])
+    return float(min(np.min(length_m / np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.density)) for m in materials))
 
 
 def merged_constraints(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -232,7 +233,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     length = characteristic_lengths(nodes, model.mesh.tets, vol)
     if relaxation is None:
         densities = [mat.density for mat in materials]
-        dt = model.time_step or model.safety * critical_time_step(model, materials)
+        dt = model.time_step or model.safety * critical_time_step(model, materials, length)
         total = model.loading.total_time
         n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
     else:  # mass scaling: every element's stable step becomes dt / safety (fictitious time)
@@ -432,7 +433,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 status, message = "unstable", (f"the solution diverged by step {done}; reduce the time step "
                                                f"(now {dt:.3g} s) or the safety factor")
                 break
-            stable_step = monitor.iterate(u[1])
+            if relaxation is not None:  # the relaxation update below needs the same forces
+                probe_force(u[1], f_curr)
+            stable_step = monitor.iterate(u[1], base_force=f_curr if relaxation is not None else None)
             history["stable_time_step"].append(stable_step)
             if relaxation is not None:
                 stable_step = keep_step_stable(stable_step)
@@ -445,7 +448,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
             if relaxation is not None:
-                probe_force(u[1], f_curr)
                 probe_force(u[0], f_prev)
                 for a in (stiffness, inertia, increment):
                     a.zero_()
