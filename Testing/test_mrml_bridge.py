@@ -190,3 +190,61 @@ def test_parameter_node_typed_values_and_references(scene, oblique_geometry):
         again["nope"]
     with pytest.raises(ValueError):
         again["seed"] = "seven"
+    planes = [scene.AddNewNodeByClass("vtkMRMLMarkupsPlaneNode", f"plate{i}") for i in range(3)]
+    multi = mrml.ParameterNode(scene, "Multi", {}, roles=("plates",))
+    multi.set_references("plates", planes)
+    assert multi.references("plates") == planes
+    multi.set_references("plates", planes[1:])
+    assert multi.references("plates") == planes[1:]
+
+
+def test_materials_table_round_trip_in_ras(scene):
+    from BreastBiomechLib.solver.materials import Material, fibre_direction
+
+    fibre = tuple(float(c) for c in fibre_direction(np.radians(60.0), np.radians(30.0)))
+    materials = {lt.FAT.label: Material(10e3, 0.49),
+                 lt.TUMOUR.label: Material(120e3, 0.495, eta=4e3, fibre=fibre, density=1050.0, prony=((0.4, 0.2),))}
+    node = mrml.materials_to_table_node(materials, scene)
+    assert node.GetCellText(1, 0) == "tumour"
+    ras = [node.GetTable().GetColumnByName(c).GetValue(1) for c in ("fibre R", "fibre A", "fibre S")]
+    np.testing.assert_allclose(ras, np.array(fibre) * [-1, -1, 1])
+    assert mrml.materials_from_table_node(node) == materials
+    # a table read from a CSV file holds text columns
+    text = vtk.vtkStringArray()
+    text.SetName("E (Pa)")
+    for value in ("12e3", "abc"):
+        text.InsertNextValue(value)
+    node.GetTable().RemoveColumnByName("E (Pa)")
+    node.GetTable().AddColumn(text)
+    with pytest.raises(ValueError, match="tumour: E \\(Pa\\) is 'abc', not a number"):
+        mrml.materials_from_table_node(node)
+    text.SetValue(1, "120000")
+    assert mrml.materials_from_table_node(node)[lt.FAT.label].E == 12e3
+    node.GetTable().GetColumnByName("fibre S").SetValue(0, 0.0)
+    node.GetTable().GetColumnByName("fibre R").SetValue(0, 0.0)
+    with pytest.raises(ValueError, match="fat: the fibre direction must not be zero"):
+        mrml.materials_from_table_node(node)
+    with pytest.raises(ValueError, match="Prony term"):
+        mrml.materials_to_table_node({1: Material(1e3, 0.4, prony=((0.1, 1.0), (0.1, 2.0)))}, scene)
+
+
+def test_plate_plane_node_round_trip(scene):
+    from BreastBiomechLib.solver.model import Plate
+
+    plate = Plate([10.0, -20.0, 5.0], [0.6, 0.8, 0.0], [3.0, 4.0, 0.0], [1, 2, 3], "paddle")
+    node = mrml.plate_to_plane_node(plate, scene)
+    origin = [0.0, 0.0, 0.0]
+    node.GetOriginWorld(origin)
+    np.testing.assert_allclose(origin, [-10.0, 20.0, 5.0])
+    back = mrml.plate_from_plane_node(node, plate.slave_nodes)
+    np.testing.assert_allclose(back.point, plate.point, atol=1e-9)
+    np.testing.assert_allclose(back.normal, plate.normal, atol=1e-9)
+    np.testing.assert_allclose(back.displacement, plate.displacement, atol=1e-9)
+    flipped = mrml.plate_from_plane_node(node, plate.slave_nodes, towards=plate.point - 50.0 * plate.normal)
+    np.testing.assert_allclose(flipped.normal, -plate.normal, atol=1e-9)
+    np.testing.assert_allclose(flipped.displacement, -plate.displacement, atol=1e-9)
+    node.SetAttribute("BreastBiomech.PlateTravelMm", "five")
+    with pytest.raises(ValueError, match="'paddle': its travel 'five' is not a number"):
+        mrml.plate_from_plane_node(node, plate.slave_nodes)
+    with pytest.raises(ValueError, match="markups plane"):
+        mrml.plate_from_plane_node(scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode"), [])

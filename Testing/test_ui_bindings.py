@@ -63,3 +63,7 @@ def test_ui_loads_and_holds_every_widget_the_code_uses(module, qt_app):
     for element in tree.iter("widget"):
         cls = element.get("class")
         assert cls in custom or cls.startswith("Q"), f"{path.name}: unknown widget class {cls}"
+    names = {w.get("name") for w in tree.iter("widget")}
+    for connection in tree.iter("connection"):
+        for end in ("sender", "receiver"):
+            assert connection.findtext(end) in names, f"{path.name}: a connection's {end} is not a widget"

@@ -6,13 +6,24 @@ never flip an axis themselves. Each converter takes the scene explicitly (inside
 ``slicer.mrmlScene``).
 """
 
-from BreastBiomechLib.mrml.markups import landmarks_from_markups_node, landmarks_to_markups_node
+from BreastBiomechLib.mrml.markups import (
+    landmarks_from_markups_node,
+    landmarks_to_markups_node,
+    plate_from_plane_node,
+    plate_to_plane_node,
+)
 from BreastBiomechLib.mrml.models import tetmesh_from_model_node, tetmesh_to_model_node
 from BreastBiomechLib.mrml.parameters import ParameterNode
 from BreastBiomechLib.mrml.segmentations import (
     labels_from_segmentation_node,
     labels_to_segmentation_node,
     register_segmentation_converters,
+)
+from BreastBiomechLib.mrml.tables import (
+    columns_to_table_node,
+    materials_from_table_node,
+    materials_to_table_node,
+    plot_chart_node,
 )
 from BreastBiomechLib.mrml.transforms import (
     displacement_field_from_grid_transform_node,
@@ -22,6 +33,7 @@ from BreastBiomechLib.mrml.volumes import image_from_volume_node, image_to_volum
 
 __all__ = [
     "ParameterNode",
+    "columns_to_table_node",
     "displacement_field_from_grid_transform_node",
     "displacement_field_to_grid_transform_node",
     "image_from_volume_node",
@@ -30,6 +42,11 @@ __all__ = [
     "labels_to_segmentation_node",
     "landmarks_from_markups_node",
     "landmarks_to_markups_node",
+    "materials_from_table_node",
+    "materials_to_table_node",
+    "plate_from_plane_node",
+    "plate_to_plane_node",
+    "plot_chart_node",
     "register_segmentation_converters",
     "tetmesh_from_model_node",
     "tetmesh_to_model_node",

@@ -64,6 +64,17 @@ class ParameterNode:
         self._check_role(role)
         self.node.SetNodeReferenceID(role, node.GetID() if node is not None else None)
 
+    def references(self, role: str) -> list:
+        """All nodes chosen for a role that takes several (e.g. the plates), in order."""
+        self._check_role(role)
+        return [self.node.GetNthNodeReference(role, i) for i in range(self.node.GetNumberOfNodeReferences(role))]
+
+    def set_references(self, role: str, nodes) -> None:
+        self._check_role(role)
+        self.node.RemoveNodeReferenceIDs(role)
+        for node in nodes:
+            self.node.AddNodeReferenceID(role, node.GetID())
+
     def _check_role(self, role: str) -> None:
         if role not in self.roles:
             raise KeyError(f"unknown node role {role!r}; known: {list(self.roles)}")

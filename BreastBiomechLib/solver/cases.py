@@ -8,7 +8,8 @@ import numpy as np
 
 from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh, smooth_hemi_ellipsoid_mesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material
-from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
+from BreastBiomechLib.solver.model import Constraint, Loading, Model
+from BreastBiomechLib.solver.placement import compression_plates
 
 
 def hemi_ellipsoid_compression(spacing_mm: float = 5.0, compression: float = 0.25,
@@ -29,10 +30,7 @@ def hemi_ellipsoid_compression(spacing_mm: float = 5.0, compression: float = 0.2
     chest = np.flatnonzero(mesh.point_data["chest_wall"])
     anchor = chest[np.argmin(np.linalg.norm(mesh.nodes[chest][:, [0, 2]], axis=1))]
     surface = np.flatnonzero(mesh.point_data["surface"])
-    lo, hi = mesh.nodes[:, 0].min(), mesh.nodes[:, 0].max()
-    travel = 0.5 * compression * (hi - lo)
-    plates = [Plate([lo, 0, 0], [1, 0, 0], [travel, 0, 0], surface, "medial"),
-              Plate([hi, 0, 0], [-1, 0, 0], [-travel, 0, 0], surface, "lateral")]
+    plates = compression_plates(mesh, "LR", compression, surface, names=("medial", "lateral"))
     if chest_wall == "fixed":
         constraints = [Constraint.fixed(chest)]
     else:

@@ -154,3 +154,14 @@ class ElementMaterials:
     @classmethod
     def uniform(cls, n_elements: int, material: Material) -> "ElementMaterials":
         return cls.from_tissues(np.zeros(n_elements, int), {0: material})
+
+
+def default_tissue_materials() -> dict[int, Material]:
+    """Starting materials per tissue label (:mod:`BreastBiomechLib.labels`): isotropic NH,
+    nu = 0.49, 1000 kg/m^3. Fat is the seed's reference (E_f = 10 kPa); the other tissues are
+    round multiples in the order reported ex vivo (glandular 2x, skin 5x, muscle and tumour 10x
+    fat). They are initial values for the optimiser (seed section 2.4, step 1), not measurements."""
+    from BreastBiomechLib import labels
+
+    multiples = {labels.FAT: 1.0, labels.GLANDULAR: 2.0, labels.MUSCLE: 10.0, labels.TUMOUR: 10.0, labels.SKIN: 5.0}
+    return {tissue.label: Material(E=10e3 * factor, nu=0.49) for tissue, factor in multiples.items()}

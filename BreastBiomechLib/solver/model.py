@@ -15,6 +15,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials
 
 FORMULATIONS = ("T4ANP", "T4")
 LOAD_SHAPES = ("POLY345", "RAMP")
+PENETRATION_TOLERANCE_MM = 1e-3  # slave nodes may start this far behind a plate (round-off)
 
 
 @dataclass
@@ -114,6 +115,13 @@ class Model:
         for p in self.loading.plates:
             if len(p.slave_nodes) and (p.slave_nodes.min() < 0 or p.slave_nodes.max() >= n):
                 raise ValueError(f"plate {p.name!r} refers to nodes outside the mesh")
+            gap = (self.mesh.nodes[p.slave_nodes] - p.point) @ p.normal
+            if len(gap) and gap.min() < -PENETRATION_TOLERANCE_MM:
+                raise ValueError(
+                    f"plate {p.name!r} cuts into the tissue at the start: {int(np.sum(gap < -PENETRATION_TOLERANCE_MM))} "
+                    f"of its contact nodes lie behind it, up to {-gap.min():.2f} mm; move it {-gap.min():.2f} mm "
+                    "along its normal so that it just touches the skin, and check that the normal points "
+                    "towards the tissue")
         if self.damping < 0:
             raise ValueError("damping must be >= 0 (1/s)")
         if not 0 < self.safety <= 1:

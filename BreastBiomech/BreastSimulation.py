@@ -1,0 +1,614 @@
+"""BreastSimulation: plate compression of a tetrahedral breast mesh with the GPU TLED solver.
+
+Choose the mesh (a model node holding a tetrahedral unstructured grid, e.g. from BreastMesh or a
+loaded .vtu), the per-tissue materials (a table), the compression plates (markups planes the user
+can move) and the fixed node set; run on the GPU when there is one and on warp's CPU device
+otherwise; get the deformed mesh, plate-force and energy curves and the solver's verdict.
+
+Module, Widget, Logic and Test classes follow Slicer's scripted-module template. The Logic holds
+no Qt and runs headless on the ``slicer-core`` wheel (see docs/developing.md).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import slicer
+import vtk
+from BreastBiomechCommon import (
+    IN_SLICER_APPLICATION,
+    ScriptedLoadableModule,
+    ScriptedLoadableModuleTest,
+    ScriptedLoadableModuleWidget,
+    ensure_dependencies,
+    ensure_library_importable,
+    resource_path,
+)
+from slicer.util import VTKObservationMixin
+
+ensure_library_importable()
+
+CATEGORY = "Breast Biomechanics"
+DEPENDENCIES = ["scipy", "warp"]
+
+#
+# Module
+#
+
+
+class BreastSimulation(ScriptedLoadableModule):
+    def __init__(self, parent):
+        ScriptedLoadableModule.__init__(self, parent)
+        self.parent.title = "Breast Simulation"
+        self.parent.categories = [CATEGORY]
+        self.parent.dependencies = []
+        self.parent.contributors = ["BreastBiomech contributors"]
+        self.parent.helpText = (
+            "Nonlinear finite-element simulation of breast compression between rigid plates (TLED: "
+            "explicit dynamics on the GPU with NVIDIA warp, or dynamic relaxation to the static "
+            "solution). Choose the tetrahedral mesh, the tissue materials, the plates and the fixed "
+            "chest-wall nodes, then Run. See docs/solver.md of the "
+            "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
+        )
+        self.parent.acknowledgementText = (
+            "Solver after NiftySim (Taylor et al. 2008) and Han et al. 2012, Phys. Med. Biol. 57:455; "
+            "dynamic relaxation after Joldes, Wittek and Miller."
+        )
+
+
+#
+# Widget
+#
+
+
+class BreastSimulationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
+
+    def __init__(self, parent=None):
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        VTKObservationMixin.__init__(self)
+        self.logic = None
+        self._parameterNode = None
+        self._updatingGUI = False
+        self._cancelRequested = False
+
+    def setup(self):
+        ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(resource_path("UI/BreastSimulation.ui"))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+        self.logic = BreastSimulationLogic()
+
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+
+        for selector in (self.ui.inputMeshSelector, self.ui.materialsSelector, self.ui.outputMeshSelector):
+            selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
+        for comboBox in (self.ui.compressionAxisComboBox, self.ui.movingPlatesComboBox, self.ui.methodComboBox,
+                         self.ui.formulationComboBox, self.ui.deviceComboBox, self.ui.fixedNodeSetComboBox,
+                         self.ui.contactNodeSetComboBox):
+            comboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
+        for checkBox in (self.ui.fixLRCheckBox, self.ui.fixAPCheckBox, self.ui.fixSICheckBox, self.ui.anchorCheckBox):
+            checkBox.toggled.connect(self.updateParameterNodeFromGUI)
+        for spinBox in (self.ui.compressionSliderWidget, self.ui.dampingSpinBox, self.ui.totalTimeSpinBox,
+                        self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox):
+            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.inputMeshSelector.currentNodeChanged.connect(self.onInputMeshChanged)
+        self.ui.defaultMaterialsButton.clicked.connect(self.onDefaultMaterialsButton)
+        self.ui.placePlatesButton.clicked.connect(self.onPlacePlatesButton)
+        self.ui.runButton.clicked.connect(self.onRunButton)
+        self.ui.cancelButton.clicked.connect(self.onCancelButton)
+        self.ui.cancelButton.enabled = False
+        self.ui.deviceLabel.text = self.logic.deviceDescription() if ensure_dependencies(["warp"]) else "warp missing"
+        self.initializeParameterNode()
+
+    def cleanup(self):
+        self.removeObservers()
+
+    def enter(self):
+        self.initializeParameterNode()
+
+    def exit(self):
+        self._setParameterNode(None)
+
+    def onSceneStartClose(self, caller, event):
+        self._setParameterNode(None)
+
+    def onSceneEndClose(self, caller, event):
+        if self.parent.isEntered:
+            self.initializeParameterNode()
+
+    def initializeParameterNode(self):
+        self._setParameterNode(self.logic.getParameterNode())
+
+    def _setParameterNode(self, parameterNode):
+        if self._parameterNode is not None:
+            self.removeObserver(self._parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
+        self._parameterNode = parameterNode
+        if parameterNode is not None:
+            self.addObserver(parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
+        self.updateGUIFromParameterNode()
+
+    @staticmethod
+    def _setComboText(comboBox, text):
+        index = comboBox.findText(text)
+        if index < 0 and text:
+            comboBox.addItem(text)
+            index = comboBox.findText(text)
+        comboBox.currentIndex = max(index, 0)
+
+    def updateGUIFromParameterNode(self, caller=None, event=None):
+        if self._parameterNode is None or self._updatingGUI:
+            return
+        self._updatingGUI = True
+        try:
+            p = self._parameterNode
+            self.ui.inputMeshSelector.setCurrentNode(p.reference("inputMesh"))
+            self.ui.materialsSelector.setCurrentNode(p.reference("materials"))
+            self.ui.materialsTableView.setMRMLTableNode(p.reference("materials"))
+            self.ui.outputMeshSelector.setCurrentNode(p.reference("outputMesh"))
+            self._fillNodeSetComboBoxes()
+            for comboBox, name in ((self.ui.compressionAxisComboBox, "compressionAxis"),
+                                   (self.ui.movingPlatesComboBox, "movingPlates"),
+                                   (self.ui.methodComboBox, "method"), (self.ui.formulationComboBox, "formulation"),
+                                   (self.ui.deviceComboBox, "device"), (self.ui.fixedNodeSetComboBox, "fixedNodeSet"),
+                                   (self.ui.contactNodeSetComboBox, "contactNodeSet")):
+                self._setComboText(comboBox, p[name])
+            self.ui.compressionSliderWidget.value = p["compressionPercent"]
+            self.ui.fixLRCheckBox.checked = p["fixLR"]
+            self.ui.fixAPCheckBox.checked = p["fixAP"]
+            self.ui.fixSICheckBox.checked = p["fixSI"]
+            self.ui.anchorCheckBox.checked = p["anchor"]
+            self.ui.dampingSpinBox.value = p["damping"]
+            self.ui.totalTimeSpinBox.value = p["totalTime"]
+            self.ui.settleTimeSpinBox.value = p["settleTime"]
+            self.ui.toleranceSpinBox.value = p["tolerance"]
+            physical = p["method"] == "physical"
+            for widget in (self.ui.dampingSpinBox, self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox):
+                widget.enabled = physical
+            self.ui.toleranceSpinBox.enabled = not physical
+            plates = p.references("plates")
+            self.ui.platesLabel.text = (", ".join(f"{n.GetName()} ({self.logic.plateTravel(n):.1f} mm)" for n in plates)
+                                        if plates else "none: press Place plates")
+            self.ui.runButton.enabled = p.reference("inputMesh") is not None
+        finally:
+            self._updatingGUI = False
+
+    def _fillNodeSetComboBoxes(self):
+        names = self.logic.nodeSetNames(self._parameterNode.reference("inputMesh"))
+        for comboBox, first in ((self.ui.fixedNodeSetComboBox, []), (self.ui.contactNodeSetComboBox, ["boundary"])):
+            comboBox.clear()
+            for name in first + names:
+                comboBox.addItem(name)
+
+    def updateParameterNodeFromGUI(self, *args):
+        if self._parameterNode is None or self._updatingGUI:
+            return
+        p = self._parameterNode
+        wasModifying = p.node.StartModify()
+        p.set_reference("inputMesh", self.ui.inputMeshSelector.currentNode())
+        p.set_reference("materials", self.ui.materialsSelector.currentNode())
+        p.set_reference("outputMesh", self.ui.outputMeshSelector.currentNode())
+        p["compressionAxis"] = self.ui.compressionAxisComboBox.currentText
+        p["movingPlates"] = self.ui.movingPlatesComboBox.currentText
+        p["method"] = self.ui.methodComboBox.currentText
+        p["formulation"] = self.ui.formulationComboBox.currentText
+        p["device"] = self.ui.deviceComboBox.currentText
+        p["fixedNodeSet"] = self.ui.fixedNodeSetComboBox.currentText
+        p["contactNodeSet"] = self.ui.contactNodeSetComboBox.currentText
+        p["compressionPercent"] = self.ui.compressionSliderWidget.value
+        p["fixLR"] = self.ui.fixLRCheckBox.checked
+        p["fixAP"] = self.ui.fixAPCheckBox.checked
+        p["fixSI"] = self.ui.fixSICheckBox.checked
+        p["anchor"] = self.ui.anchorCheckBox.checked
+        p["damping"] = self.ui.dampingSpinBox.value
+        p["totalTime"] = self.ui.totalTimeSpinBox.value
+        p["settleTime"] = self.ui.settleTimeSpinBox.value
+        p["tolerance"] = self.ui.toleranceSpinBox.value
+        p.node.EndModify(wasModifying)
+
+    def onInputMeshChanged(self, node):
+        if self._parameterNode is not None and not self._updatingGUI:
+            self.logic.chooseDefaultNodeSets(self._parameterNode)
+
+    def onDefaultMaterialsButton(self):
+        with slicer.util.tryWithErrorDisplay("Failed to make the materials table.", waitCursor=True):
+            self.logic.createDefaultMaterials(self._parameterNode)
+
+    def onPlacePlatesButton(self):
+        with slicer.util.tryWithErrorDisplay("Failed to place the plates.", waitCursor=True):
+            self.logic.createCompressionPlates(self._parameterNode)
+
+    def onCancelButton(self):
+        self._cancelRequested = True
+
+    def onRunButton(self):
+        if not ensure_dependencies(DEPENDENCIES):
+            return
+        self._cancelRequested = False
+        self.ui.runButton.enabled = False
+        self.ui.cancelButton.enabled = True
+        self.ui.progressBar.value = 0
+
+        def report(fraction, message):
+            self.ui.progressBar.value = int(100 * fraction)
+            self.ui.progressBar.setFormat(message)
+            slicer.app.processEvents()
+            return not self._cancelRequested
+
+        try:
+            with slicer.util.tryWithErrorDisplay("Simulation failed.", waitCursor=True):
+                result = self.logic.run(self._parameterNode, progress=report)
+                self.ui.statusLabel.text = result["summary"]
+                self.logic.showResults(self._parameterNode)
+        finally:
+            self.ui.runButton.enabled = True
+            self.ui.cancelButton.enabled = False
+
+
+#
+# Logic
+#
+
+
+class BreastSimulationLogic:
+    """Mesh, materials, plates and constraints from MRML nodes into a solver model; results back as
+    nodes. No Qt: runs in Slicer and headless (slicer-core wheel).
+
+    Node sets are point arrays of the mesh (nodes where the array is non-zero), e.g. ``chest_wall``.
+    Directions LR, AP, SI are the patient axes (LPS x, y, z in the library, RAS in the scene).
+    ``scene`` defaults to ``slicer.mrmlScene`` inside the application."""
+
+    MODULE_NAME = "BreastSimulation"
+    DEFAULTS = {"method": "relaxation", "formulation": "T4ANP", "device": "auto",
+                "compressionAxis": "LR", "compressionPercent": 25.0, "movingPlates": "both",
+                "fixedNodeSet": "", "fixLR": False, "fixAP": True, "fixSI": False, "anchor": True,
+                "contactNodeSet": "boundary", "damping": 50.0, "totalTime": 1.0, "settleTime": 0.25,
+                "tolerance": 0.01}
+    ROLES = ("inputMesh", "materials", "plates", "outputMesh", "history", "forceChart", "energyChart")
+    PLATE_NAMES = {"LR": ("Right plate", "Left plate"), "AP": ("Anterior plate", "Posterior plate"),
+                   "SI": ("Inferior plate", "Superior plate")}  # first: the lower coordinate in LPS
+    KE_IE_LIMIT = 0.05  # the seed's quasi-static criterion
+
+    def __init__(self, scene=None):
+        self.scene = scene if scene is not None else slicer.mrmlScene
+
+    def getParameterNode(self):
+        from BreastBiomechLib.mrml import ParameterNode
+
+        return ParameterNode(self.scene, self.MODULE_NAME, self.DEFAULTS, self.ROLES)
+
+    # -- inputs ----------------------------------------------------------------------------------
+
+    @staticmethod
+    def inputMesh(parameterNode):
+        """The chosen mesh as a TetMesh (LPS mm)."""
+        from BreastBiomechLib.mrml import tetmesh_from_model_node
+
+        node = parameterNode.reference("inputMesh")
+        if node is None:
+            raise ValueError("choose the input mesh: a model node holding a tetrahedral mesh")
+        return tetmesh_from_model_node(node)
+
+    @staticmethod
+    def nodeSetNames(meshNode) -> list[str]:
+        """Names of the mesh's point arrays that can serve as node sets (one component)."""
+        if meshNode is None or meshNode.GetUnstructuredGrid() is None:
+            return []
+        data = meshNode.GetUnstructuredGrid().GetPointData()
+        return sorted(data.GetArrayName(i) for i in range(data.GetNumberOfArrays())
+                      if data.GetArray(i) is not None and data.GetArray(i).GetNumberOfComponents() == 1)
+
+    def chooseDefaultNodeSets(self, parameterNode) -> None:
+        """Pick the fixed node set (``chest_wall`` or ``pectoral``) and contact set (``skin``) of a
+        newly chosen mesh where it has them."""
+        names = self.nodeSetNames(parameterNode.reference("inputMesh"))
+        wasModifying = parameterNode.node.StartModify()
+        parameterNode["fixedNodeSet"] = next((n for n in ("chest_wall", "pectoral") if n in names), "")
+        parameterNode["contactNodeSet"] = "skin" if "skin" in names else "boundary"
+        parameterNode.node.EndModify(wasModifying)
+
+    @staticmethod
+    def _nodeSet(mesh, name: str, what: str) -> np.ndarray:
+        if name not in mesh.point_data:
+            raise ValueError(f"the {what} node set {name!r} is not a point array of the mesh; it has "
+                             f"{sorted(mesh.point_data) or 'none'}")
+        nodes = np.flatnonzero(np.asarray(mesh.point_data[name]).reshape(len(mesh.nodes), -1).any(axis=1))
+        if len(nodes) == 0:
+            raise ValueError(f"the {what} node set {name!r} is empty")
+        return nodes
+
+    def contactNodes(self, parameterNode, mesh) -> np.ndarray:
+        """Node ids that may touch the plates: the ``contactNodeSet`` array, or every boundary node."""
+        from BreastBiomechLib.mesh.tetmesh import boundary_nodes
+
+        name = parameterNode["contactNodeSet"]
+        if name in ("", "boundary"):
+            return np.flatnonzero(boundary_nodes(mesh.tets, len(mesh.nodes)))
+        return self._nodeSet(mesh, name, "contact")
+
+    @staticmethod
+    def _elementTissues(mesh) -> np.ndarray:
+        from BreastBiomechLib import labels
+
+        if "tissue" in mesh.cell_data:
+            return np.asarray(mesh.cell_data["tissue"]).astype(int).ravel()
+        return np.full(len(mesh.tets), labels.FAT.label)  # a mesh without tissues is all one tissue
+
+    def createDefaultMaterials(self, parameterNode):
+        """A materials table with the starting values (BreastBiomechLib.solver.materials) of every
+        tissue in the input mesh (all tissues if no mesh is chosen); chosen as the materials."""
+        from BreastBiomechLib.mrml import materials_to_table_node
+        from BreastBiomechLib.solver.materials import default_tissue_materials
+
+        defaults = default_tissue_materials()
+        meshNode = parameterNode.reference("inputMesh")
+        present = set(self._elementTissues(self.inputMesh(parameterNode)).tolist()) if meshNode else set(defaults)
+        unknown = sorted(present - set(defaults))
+        if unknown:
+            raise ValueError(f"the mesh's tissue array holds labels {unknown} that the label table does not know")
+        node = materials_to_table_node({label: defaults[label] for label in sorted(present)}, self.scene,
+                                       self.scene.GenerateUniqueName("Materials"))
+        parameterNode.set_reference("materials", node)
+        return node
+
+    def materials(self, parameterNode, mesh):
+        """Per-element materials from the table (one row per tissue label in the mesh)."""
+        from BreastBiomechLib import labels
+        from BreastBiomechLib.mrml import materials_from_table_node
+        from BreastBiomechLib.solver.materials import ElementMaterials
+
+        table = materials_from_table_node(parameterNode.reference("materials"))
+        tissues = self._elementTissues(mesh)
+        missing = sorted(set(tissues.tolist()) - set(table))
+        if missing:
+            names = ", ".join(labels.tissue(t).name if t in labels.BY_LABEL else str(t) for t in missing)
+            raise ValueError(f"the materials table has no row for {names}, which the mesh contains; add the rows "
+                             "or press 'Default materials'")
+        return ElementMaterials.from_tissues(tissues, table)
+
+    def createCompressionPlates(self, parameterNode) -> list:
+        """Two plates tangent to the mesh on both sides of ``compressionAxis``, closing by
+        ``compressionPercent`` of the thickness between them (``movingPlates``: both, first or
+        second), as markups planes the user can move; the existing two are updated in place."""
+        from BreastBiomechLib.mrml import plate_to_plane_node
+        from BreastBiomechLib.solver.placement import axis_vector, compression_plates
+
+        mesh = self.inputMesh(parameterNode)
+        axis = parameterNode["compressionAxis"]
+        plates = compression_plates(mesh, axis, parameterNode["compressionPercent"] / 100.0,
+                                    self.contactNodes(parameterNode, mesh), names=self.PLATE_NAMES[axis],
+                                    moving=parameterNode["movingPlates"])
+        direction = axis_vector(axis)
+        across = mesh.nodes - np.outer(mesh.nodes @ direction, direction)
+        size = 1.3 * float(np.max(np.ptp(across, axis=0)))
+        existing = parameterNode.references("plates")
+        nodes = []
+        for i, plate in enumerate(plates):
+            node = plate_to_plane_node(plate, self.scene, existing[i] if len(existing) == len(plates) else None,
+                                       (size, size))
+            node.SetName(plate.name)
+            nodes.append(node)
+        parameterNode.set_references("plates", nodes)
+        return nodes
+
+    @staticmethod
+    def plateTravel(planeNode) -> float:
+        """A plate's travel along its normal (mm, > 0 into the tissue)."""
+        from BreastBiomechLib.mrml.markups import TRAVEL_ATTRIBUTE
+
+        try:
+            return float(planeNode.GetAttribute(TRAVEL_ATTRIBUTE) or 0.0)
+        except ValueError:
+            return float("nan")
+
+    def constraints(self, parameterNode, mesh) -> list:
+        """The fixed node set in the chosen directions, and (``anchor``) its node nearest its
+        centre fixed in every direction against rigid motion (the seed's chest-wall conditions)."""
+        from BreastBiomechLib.solver.model import Constraint
+
+        name = parameterNode["fixedNodeSet"]
+        if not name:
+            raise ValueError("choose the fixed node set (e.g. chest_wall): without fixed nodes the breast "
+                             "can move as a rigid body and there is no solution")
+        components = (parameterNode["fixLR"], parameterNode["fixAP"], parameterNode["fixSI"])
+        if not any(components):
+            raise ValueError(f"choose at least one direction in which the {name!r} nodes are fixed")
+        nodes = self._nodeSet(mesh, name, "fixed")
+        constraints = [Constraint.fixed(nodes, components)]
+        if parameterNode["anchor"] and not all(components):
+            anchor = nodes[np.argmin(np.linalg.norm(mesh.nodes[nodes] - mesh.nodes[nodes].mean(axis=0), axis=1))]
+            constraints.append(Constraint.fixed([anchor]))
+        return constraints
+
+    def buildModel(self, parameterNode):
+        """The solver Model of the current choices (LPS mm, Pa, s)."""
+        from BreastBiomechLib.mrml import plate_from_plane_node
+        from BreastBiomechLib.solver.model import Loading, Model
+
+        mesh = self.inputMesh(parameterNode)
+        planes = parameterNode.references("plates")
+        if not planes:
+            raise ValueError("no plates: press 'Place plates' (or add markups planes as plates)")
+        slaves = self.contactNodes(parameterNode, mesh)
+        centre = mesh.nodes.mean(axis=0)
+        plates = [plate_from_plane_node(node, slaves, towards=centre) for node in planes]
+        loading = Loading(self.constraints(parameterNode, mesh), plates, total_time=parameterNode["totalTime"],
+                          settle_time=parameterNode["settleTime"])
+        return Model(mesh, self.materials(parameterNode, mesh), loading,
+                     formulation=parameterNode["formulation"], damping=parameterNode["damping"])
+
+    # -- device ----------------------------------------------------------------------------------
+
+    @staticmethod
+    def cudaAvailable() -> bool:
+        import warp as wp
+
+        wp.init()
+        return wp.get_cuda_device_count() > 0
+
+    def resolveDevice(self, choice: str) -> str:
+        """"cuda" or "cpu" for the choice "auto" (the GPU when present), "cuda" or "cpu"."""
+        if choice not in ("auto", "cuda", "cpu"):
+            raise ValueError(f"device must be auto, cuda or cpu, not {choice!r}")
+        if choice == "auto":
+            return "cuda" if self.cudaAvailable() else "cpu"
+        if choice == "cuda" and not self.cudaAvailable():
+            raise ValueError("no CUDA GPU was found; choose the device 'auto' or 'cpu'")
+        return choice
+
+    def deviceDescription(self, choice: str = "auto") -> str:
+        """What the solver will run on, for the panel, e.g. "GPU: NVIDIA H100 80GB HBM3"."""
+        import warp as wp
+
+        device = self.resolveDevice(choice)
+        if device == "cuda":
+            return f"GPU: {wp.get_device('cuda').name}"
+        return "CPU (warp's CPU device)" + ("" if self.cudaAvailable() else "; no CUDA GPU found")
+
+    # -- run -------------------------------------------------------------------------------------
+
+    def run(self, parameterNode, progress=None) -> dict:
+        """Solve the model and put the results into the scene: the deformed mesh (output mesh node,
+        created if none is chosen; point arrays ``displacement`` (mm, RAS) and
+        ``displacement_magnitude``), the history table and the plate-force and energy charts.
+
+        ``progress(fraction, message)`` is called as the solve advances; returning False cancels
+        it, and a cancelled run leaves the earlier results untouched. Returns a dict with the
+        ``solution`` (library Solution, LPS), the ``model``, the ``device`` and a ``summary``."""
+        from BreastBiomechLib.solver import DynamicRelaxation, solve
+
+        if parameterNode["method"] not in ("relaxation", "physical"):
+            raise ValueError(f"method must be relaxation or physical, not {parameterNode['method']!r}")
+        device = self.resolveDevice(parameterNode["device"])
+        model = self.buildModel(parameterNode)
+        relaxation = (DynamicRelaxation(tolerance_mm=parameterNode["tolerance"])
+                      if parameterNode["method"] == "relaxation" else None)
+        what = "dynamic relaxation" if relaxation else "explicit dynamics"
+        report = None
+        if progress is not None:
+            def report(fraction):
+                return progress(fraction, f"{what} on {device}: {fraction:.0%} of the step budget")
+
+            progress(0.0, f"{what} on {device}: starting")
+        solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT, progress=report)
+        summary = self.summaryText(solution, model, device, relaxation is not None)
+        logging.info("BreastSimulation: %s", summary)
+        if solution.status != "cancelled":
+            self._writeResults(parameterNode, model, solution, relaxation is not None)
+        if progress is not None:
+            progress(1.0, solution.status)
+        return {"solution": solution, "model": model, "device": device, "summary": summary}
+
+    def _writeResults(self, parameterNode, model, solution, relaxation: bool) -> None:
+        from BreastBiomechLib.mesh.tetmesh import TetMesh
+        from BreastBiomechLib.mrml import columns_to_table_node, plot_chart_node, tetmesh_to_model_node
+
+        mesh, u = model.mesh, solution.displacement
+        deformed = TetMesh(mesh.nodes + u, mesh.tets,
+                           point_data={**mesh.point_data, "displacement": u,
+                                       "displacement_magnitude": np.linalg.norm(u, axis=1)},
+                           cell_data=dict(mesh.cell_data))
+        output = parameterNode.reference("outputMesh")
+        if output is None:
+            name = self.scene.GenerateUniqueName(f"{parameterNode.reference('inputMesh').GetName()}_deformed")
+            output = tetmesh_to_model_node(deformed, self.scene, name)
+            parameterNode.set_reference("outputMesh", output)
+        else:
+            tetmesh_to_model_node(deformed, self.scene, node=output)
+        display = output.GetDisplayNode()
+        if display is not None:
+            display.SetActiveScalar("displacement_magnitude", vtk.vtkAssignAttribute.POINT_DATA)
+            display.SetAndObserveColorNodeID("vtkMRMLColorTableNodeRainbow")
+            display.SetScalarRangeFlag(display.UseDataScalarRange)
+            display.SetScalarVisibility(True)
+
+        columns = self.historyColumns(model, solution, relaxation)
+        history = columns_to_table_node(columns, self.scene, self.scene.GenerateUniqueName("SimulationHistory"),
+                                        node=parameterNode.reference("history"))
+        parameterNode.set_reference("history", history)
+        x = next(iter(columns))
+        forces = [c for c in columns if c.endswith("force (N)")]
+        energies = ["kinetic energy (J)", "internal energy (J)"]
+        parameterNode.set_reference("forceChart", plot_chart_node(
+            history, x, forces, self.scene, "Plate forces", "force (N)", node=parameterNode.reference("forceChart")))
+        parameterNode.set_reference("energyChart", plot_chart_node(
+            history, x, energies, self.scene, "Energies", "energy (J)", node=parameterNode.reference("energyChart")))
+
+    @staticmethod
+    def historyColumns(model, solution, relaxation: bool) -> dict:
+        """The sampled history as table columns: time (s; iterations for dynamic relaxation, whose
+        time is fictitious), kinetic and internal energy (J), and each plate's normal force on the
+        tissue (N, > 0 when it presses)."""
+        h = solution.history
+        x = ("iteration", np.rint(h["time"] / solution.time_step)) if relaxation else ("time (s)", h["time"])
+        columns = {x[0]: x[1], "kinetic energy (J)": h["kinetic"], "internal energy (J)": h["internal"]}
+        forces = np.asarray(h["plate_forces"]).reshape(len(h["time"]), len(model.loading.plates), 3)
+        for i, plate in enumerate(model.loading.plates):
+            columns[f"{plate.name} force (N)"] = forces[:, i] @ plate.normal
+        return columns
+
+    def summaryText(self, solution, model, device: str, relaxation: bool) -> str:
+        forces = ", ".join(f"{p.name} {solution.plate_forces[i] @ p.normal:.3g} N"
+                           for i, p in enumerate(model.loading.plates))
+        largest = float(np.linalg.norm(solution.displacement, axis=1).max())
+        return (f"{solution.status}: {solution.message}\n{solution.steps} steps in {solution.wall_time:.2f} s on "
+                f"{device}; largest displacement {largest:.2f} mm; plate forces {forces}\n"
+                + self.energyVerdict(solution, relaxation))
+
+    def energyVerdict(self, solution, relaxation: bool) -> str:
+        """The seed's quasi-static check: kinetic / internal energy at the end of loading < 5 %."""
+        if relaxation:
+            return (f"Static equilibrium by dynamic relaxation (estimated error {solution.estimated_error_mm:.3g} mm); "
+                    "the KE/IE criterion does not apply to its fictitious dynamics.")
+        ratio = solution.ke_ie_at_end_of_loading
+        if not np.isfinite(ratio):
+            return "KE/IE: the end of loading was not reached."
+        if ratio < self.KE_IE_LIMIT:
+            return f"KE/IE at the end of loading {ratio:.2%} < {self.KE_IE_LIMIT:.0%}: quasi-static."
+        return (f"KE/IE at the end of loading {ratio:.1%} >= {self.KE_IE_LIMIT:.0%}: inertia is not negligible; "
+                "lengthen the loading time or raise the damping.")
+
+    def showResults(self, parameterNode) -> None:
+        """Show the deformed mesh and the plate-force chart (application only)."""
+        if not IN_SLICER_APPLICATION:
+            return
+        input_node = parameterNode.reference("inputMesh")
+        if input_node is not None and input_node.GetDisplayNode() is not None:
+            input_node.GetDisplayNode().SetOpacity(0.2)
+        slicer.modules.plots.logic().ShowChartInLayout(parameterNode.reference("forceChart"))
+
+
+#
+# Test (runs inside Slicer: Reload and Test; the thorough checks run headless in Testing/)
+#
+
+
+class BreastSimulationTest(ScriptedLoadableModuleTest):
+    def setUp(self):
+        slicer.mrmlScene.Clear()
+
+    def runTest(self):
+        self.setUp()
+        self.test_compress_hemi_ellipsoid()
+
+    def test_compress_hemi_ellipsoid(self):
+        from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+        from BreastBiomechLib.mrml import tetmesh_to_model_node
+
+        self.delayDisplay("Compressing a coarse hemi-ellipsoid by 20 %")
+        logic = BreastSimulationLogic()
+        p = logic.getParameterNode()
+        p.set_reference("inputMesh", tetmesh_to_model_node(hemi_ellipsoid_mesh((50, 40, 45), 10.0),
+                                                           slicer.mrmlScene, "Breast"))
+        logic.chooseDefaultNodeSets(p)
+        p["compressionPercent"] = 20.0
+        logic.createDefaultMaterials(p)
+        logic.createCompressionPlates(p)
+        result = logic.run(p)
+        self.assertEqual(result["solution"].status, "completed")
+        self.assertGreater(result["solution"].plate_forces[0] @ result["model"].loading.plates[0].normal, 0.0)
+        logic.showResults(p)
+        self.delayDisplay("Test passed")

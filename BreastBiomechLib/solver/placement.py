@@ -1,0 +1,54 @@
+"""Placing compression plates on a mesh: two rigid plates tangent to the breast on opposite sides
+along an axis, closing by a given fraction of the breast's thickness between them (the seed's
+medio-lateral compression). Positions in the mesh's frame (LPS mm)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
+from BreastBiomechLib.solver.model import Plate
+
+AXES = {"LR": (1.0, 0.0, 0.0), "AP": (0.0, 1.0, 0.0), "SI": (0.0, 0.0, 1.0)}  # LPS x, y, z
+MOVING = ("both", "first", "second")
+
+
+def axis_vector(axis) -> np.ndarray:
+    """Unit vector (LPS) of an axis name ("LR", "AP", "SI") or of a given 3-vector."""
+    if isinstance(axis, str):
+        try:
+            return np.array(AXES[axis.upper()])
+        except KeyError:
+            raise ValueError(f"unknown compression axis {axis!r}; use one of {list(AXES)} or a 3-vector") from None
+    vector = np.asarray(axis, float).reshape(3)
+    norm = np.linalg.norm(vector)
+    if norm == 0:
+        raise ValueError("the compression axis must not be the zero vector")
+    return vector / norm
+
+
+def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slave_nodes=None,
+                       names: tuple[str, str] = ("plate1", "plate2"), moving: str = "both") -> list[Plate]:
+    """Two plates normal to ``axis`` touching the mesh at its lowest and highest extent along it
+    (the first plate's normal is +axis, the second's -axis, both towards the tissue), which close
+    the gap between them by ``compression`` (a fraction in (0, 1)) of the thickness: half each
+    (``moving="both"``), or all by the first or second plate with the other held (the seed's fixed
+    and movable plates). ``slave_nodes`` default to every boundary node of the mesh. Each plate's
+    ``point`` is the mesh centre projected onto it, so a drawn plate is centred on the breast."""
+    if not 0.0 < compression < 1.0:
+        raise ValueError(f"compression must be a fraction of the thickness in (0, 1), not {compression}")
+    if moving not in MOVING:
+        raise ValueError(f"moving must be one of {MOVING}, not {moving!r}")
+    if len(mesh.nodes) == 0:
+        raise ValueError("the mesh has no nodes")
+    direction = axis_vector(axis)
+    if slave_nodes is None:
+        slave_nodes = np.flatnonzero(boundary_nodes(mesh.tets, len(mesh.nodes)))
+    along = mesh.nodes @ direction
+    lo, hi = float(along.min()), float(along.max())
+    centre = mesh.nodes.mean(axis=0)
+    centre = centre - (centre @ direction) * direction
+    travel = compression * (hi - lo)
+    share = {"both": (0.5, 0.5), "first": (1.0, 0.0), "second": (0.0, 1.0)}[moving]
+    return [Plate(centre + lo * direction, direction, share[0] * travel * direction, slave_nodes, names[0]),
+            Plate(centre + hi * direction, -direction, -share[1] * travel * direction, slave_nodes, names[1])]

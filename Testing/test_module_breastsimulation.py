@@ -1,0 +1,215 @@
+"""The BreastSimulation module's Logic against a real MRML scene (slicer-core, headless, CPU).
+
+The checks go through the nodes a user edits (mesh model, materials table, plane markups) and
+compare with the library solving the same model directly, so a wrong RAS/LPS conversion, a lost
+table edit or a mis-oriented plate shows up as a different answer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("slicer")
+import BreastSimulation  # noqa: E402  (BreastBiomech/ is on the test path)
+from BreastBiomechLib import labels  # noqa: E402
+from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh  # noqa: E402
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes  # noqa: E402
+from BreastBiomechLib.mrml import frames, tetmesh_to_model_node  # noqa: E402
+from BreastBiomechLib.solver import DynamicRelaxation, ElementMaterials, Loading, Material, Model, solve  # noqa: E402
+from BreastBiomechLib.solver.model import Constraint  # noqa: E402
+from BreastBiomechLib.solver.placement import compression_plates  # noqa: E402
+
+pytestmark = pytest.mark.mrml
+
+
+@pytest.fixture(scope="module")
+def breast() -> TetMesh:
+    """A coarse half ellipsoid (LPS mm) with a glandular core: two tissues."""
+    mesh = hemi_ellipsoid_mesh((50.0, 40.0, 45.0), 10.0)
+    centroids = mesh.nodes[mesh.tets].mean(axis=1)
+    tissue = np.where(np.linalg.norm(centroids / [25.0, 20.0, 22.0], axis=1) < 1.0, labels.GLANDULAR.label,
+                      labels.FAT.label)
+    return TetMesh(mesh.nodes, mesh.tets, mesh.point_data, {"tissue": tissue.astype(np.int32)})
+
+
+def _set_up(scene, mesh, compression=20.0):
+    logic = BreastSimulation.BreastSimulationLogic(scene)
+    p = logic.getParameterNode()
+    p.set_reference("inputMesh", tetmesh_to_model_node(mesh, scene, "Breast"))
+    logic.chooseDefaultNodeSets(p)
+    p["compressionPercent"] = compression
+    p["device"] = "cpu"
+    logic.createDefaultMaterials(p)
+    logic.createCompressionPlates(p)
+    return logic, p
+
+
+def test_defaults_follow_the_mesh(scene, breast):
+    logic, p = _set_up(scene, breast)
+    assert p["fixedNodeSet"] == "chest_wall" and p["contactNodeSet"] == "boundary"
+    assert logic.nodeSetNames(p.reference("inputMesh")) == ["chest_wall", "surface"]
+    table = p.reference("materials")
+    assert [table.GetCellText(r, 0) for r in range(table.GetNumberOfRows())] == ["fat", "glandular"]
+    plates = p.references("plates")
+    assert [n.GetName() for n in plates] == ["Right plate", "Left plate"]
+    width = np.ptp(breast.nodes[:, 0])
+    assert [logic.plateTravel(n) for n in plates] == pytest.approx([0.1 * width, 0.1 * width])
+    # placing again updates the same plane nodes
+    p["compressionPercent"] = 30.0
+    assert logic.createCompressionPlates(p) == plates
+    assert logic.plateTravel(plates[0]) == pytest.approx(0.15 * width)
+
+
+def test_run_matches_the_library_and_writes_results(scene, breast):
+    logic, p = _set_up(scene, breast)
+    table = p.reference("materials")
+    table.GetTable().GetColumnByName("E (Pa)").SetValue(1, 35e3)  # the user stiffens the glandular tissue
+    messages = []
+    result = logic.run(p, progress=lambda f, m: messages.append((f, m)))
+    solution = result["solution"]
+    assert solution.status == "completed", solution.message
+    assert messages[0][0] == 0.0 and messages[-1] == (1.0, "completed")
+
+    # the same model built with the library alone (LPS): plates, chest wall, anchor, materials
+    chest = np.flatnonzero(breast.point_data["chest_wall"])
+    anchor = chest[np.argmin(np.linalg.norm(breast.nodes[chest] - breast.nodes[chest].mean(axis=0), axis=1))]
+    boundary = np.flatnonzero(boundary_nodes(breast.tets, len(breast.nodes)))
+    plates = compression_plates(breast, "LR", 0.2, boundary, names=("Right plate", "Left plate"))
+    materials = ElementMaterials.from_tissues(breast.cell_data["tissue"], {
+        labels.FAT.label: Material(10e3, 0.49), labels.GLANDULAR.label: Material(35e3, 0.49)})
+    loading = Loading([Constraint.fixed(chest, (False, True, False)), Constraint.fixed([anchor])], plates)
+    direct = solve(Model(breast, materials, loading), device="cpu", relaxation=DynamicRelaxation())
+    np.testing.assert_allclose(solution.displacement, direct.displacement, atol=1e-4)
+
+    # deformed mesh node: RAS positions of the deformed nodes, displacement in RAS
+    output = p.reference("outputMesh")
+    grid = output.GetUnstructuredGrid()
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    np.testing.assert_allclose(vtk_to_numpy(grid.GetPoints().GetData()),
+                               frames.flip(breast.nodes + direct.displacement), atol=1e-3)
+    np.testing.assert_allclose(vtk_to_numpy(grid.GetPointData().GetArray("displacement")),
+                               frames.flip(direct.displacement), atol=1e-3)
+    assert output.GetDisplayNode().GetActiveScalarName() == "displacement_magnitude"
+
+    # no node behind a plate at the end; both plates press on the tissue
+    final = breast.nodes + solution.displacement
+    for plate in result["model"].loading.plates:
+        moved = plate.point + plate.displacement
+        assert ((final[plate.slave_nodes] - moved) @ plate.normal).min() > -1e-3
+    forces = [solution.plate_forces[i] @ plate.normal for i, plate in enumerate(result["model"].loading.plates)]
+    assert min(forces) > 0.5
+
+    # history table and charts
+    history = p.reference("history")
+    columns = [history.GetColumnName(i) for i in range(history.GetNumberOfColumns())]
+    assert columns == ["iteration", "kinetic energy (J)", "internal energy (J)", "Right plate force (N)",
+                       "Left plate force (N)"]
+    assert history.GetNumberOfRows() == len(solution.history["time"])
+    last = history.GetNumberOfRows() - 1
+    assert history.GetTable().GetValue(last, 3).ToDouble() == pytest.approx(
+        solution.history["plate_forces"][-1][0] @ [1, 0, 0], rel=1e-9)
+    chart = p.reference("forceChart")
+    assert chart.GetNumberOfPlotSeriesNodes() == 2
+    assert chart.GetNthPlotSeriesNode(0).GetTableNode() is history
+    assert p.reference("energyChart").GetNumberOfPlotSeriesNodes() == 2
+    assert "dynamic relaxation" in result["summary"] and "on cpu" in result["summary"]
+
+    # a second run reuses the output, table and chart nodes
+    counts = {c: scene.GetNumberOfNodesByClass(c) for c in ("vtkMRMLModelNode", "vtkMRMLTableNode",
+                                                             "vtkMRMLPlotChartNode", "vtkMRMLPlotSeriesNode")}
+    p["tolerance"] = 0.05
+    logic.run(p)
+    assert counts == {c: scene.GetNumberOfNodesByClass(c) for c in counts}
+
+
+def test_plates_drawn_by_the_user(scene, breast):
+    """A plane moved in the views moves the plate; a plane drawn with its normal pointing away
+    from the breast still presses on it; a plane cutting into the breast is refused."""
+    logic, p = _set_up(scene, breast)
+    right, left = p.references("plates")
+    model = logic.buildModel(p)
+    assert model.loading.plates[0].normal == pytest.approx([1.0, 0.0, 0.0])  # LPS +x: towards the left
+
+    origin = [0.0, 0.0, 0.0]
+    right.GetOriginWorld(origin)
+    right.SetOriginWorld(origin[0] + 3.0, origin[1], origin[2])  # 3 mm further right (RAS +x)
+    right.SetNormalWorld(1.0, 0.0, 0.0)  # pointing away from the breast
+    plate = logic.buildModel(p).loading.plates[0]
+    assert plate.normal == pytest.approx([1.0, 0.0, 0.0])
+    assert plate.point[0] == pytest.approx(breast.nodes[:, 0].min() - 3.0)
+    assert plate.displacement == pytest.approx([logic.plateTravel(right), 0.0, 0.0])
+
+    left.GetOriginWorld(origin)
+    left.SetOriginWorld(origin[0] + 5.0, origin[1], origin[2])  # 5 mm into the breast (RAS +x is LPS -x)
+    with pytest.raises(ValueError, match="'Left plate' cuts into the tissue.*5.00 mm"):
+        logic.buildModel(p)
+
+
+def test_bad_choices_are_refused_with_the_reason(scene, breast):
+    logic = BreastSimulation.BreastSimulationLogic(scene)
+    p = logic.getParameterNode()
+    with pytest.raises(ValueError, match="choose the input mesh"):
+        logic.run(p)
+    surface = scene.AddNewNodeByClass("vtkMRMLModelNode", "SurfaceOnly")
+    p.set_reference("inputMesh", surface)
+    with pytest.raises(ValueError, match="no volumetric"):
+        logic.buildModel(p)
+
+    logic, p = _set_up(scene, breast)
+    table = p.reference("materials")
+    table.GetTable().RemoveRow(1)
+    with pytest.raises(ValueError, match="no row for glandular"):
+        logic.buildModel(p)
+    logic.createDefaultMaterials(p)
+    p.reference("materials").GetTable().GetColumnByName("nu").SetValue(0, 0.5)
+    with pytest.raises(ValueError, match="materials table, fat: Poisson's ratio"):
+        logic.buildModel(p)
+    logic.createDefaultMaterials(p)
+
+    p["fixAP"] = False
+    with pytest.raises(ValueError, match="at least one direction"):
+        logic.buildModel(p)
+    p["fixAP"] = True
+    p["fixedNodeSet"] = ""
+    with pytest.raises(ValueError, match="rigid body"):
+        logic.buildModel(p)
+    p["fixedNodeSet"] = "pectoral"
+    with pytest.raises(ValueError, match="'pectoral' is not a point array.*chest_wall"):
+        logic.buildModel(p)
+    p["fixedNodeSet"] = "chest_wall"
+    p["method"] = "implicit"
+    with pytest.raises(ValueError, match="relaxation or physical"):
+        logic.run(p)
+    p["method"] = "relaxation"
+    if not logic.cudaAvailable():
+        p["device"] = "cuda"
+        with pytest.raises(ValueError, match="no CUDA GPU"):
+            logic.run(p)
+        assert "no CUDA GPU" in logic.deviceDescription()
+    p.set_references("plates", [])
+    with pytest.raises(ValueError, match="no plates"):
+        logic.buildModel(p)
+
+
+def test_cancel_keeps_earlier_results(scene, breast):
+    logic, p = _set_up(scene, breast)
+    result = logic.run(p, progress=lambda fraction, message: fraction < 0.005)
+    assert result["solution"].status == "cancelled"
+    assert p.reference("outputMesh") is None and p.reference("history") is None
+
+
+def test_physical_time_run_reports_the_energy_verdict(scene, breast):
+    """Explicit dynamics in physical time: a slow load passes the seed's KE/IE < 5 % check, a
+    fast one fails it and the verdict says what to change."""
+    logic, p = _set_up(scene, breast, compression=10.0)
+    p["method"] = "physical"
+    p["totalTime"], p["settleTime"] = 0.02, 0.0
+    fast = logic.run(p)
+    assert fast["solution"].status == "energy criterion exceeded"
+    assert "lengthen the loading time" in fast["summary"]
+    assert [p.reference("history").GetColumnName(0)] == ["time (s)"]
+    p["totalTime"], p["damping"] = 0.3, 100.0
+    slow = logic.run(p)
+    assert slow["solution"].status == "completed", slow["solution"].message
+    assert "quasi-static" in slow["summary"]
