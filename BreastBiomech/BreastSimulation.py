@@ -90,7 +90,8 @@ class BreastSimulationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                          self.ui.formulationComboBox, self.ui.deviceComboBox, self.ui.fixedNodeSetComboBox,
                          self.ui.contactNodeSetComboBox):
             comboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
-        for checkBox in (self.ui.fixLRCheckBox, self.ui.fixAPCheckBox, self.ui.fixSICheckBox, self.ui.anchorCheckBox):
+        for checkBox in (self.ui.fixLRCheckBox, self.ui.fixAPCheckBox, self.ui.fixSICheckBox, self.ui.anchorCheckBox,
+                         self.ui.stopWhenSettledCheckBox):
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
         for spinBox in (self.ui.compressionSliderWidget, self.ui.dampingSpinBox, self.ui.totalTimeSpinBox,
                         self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox):
@@ -165,10 +166,12 @@ class BreastSimulationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.ui.totalTimeSpinBox.value = p["totalTime"]
             self.ui.settleTimeSpinBox.value = p["settleTime"]
             self.ui.toleranceSpinBox.value = p["tolerance"]
+            self.ui.stopWhenSettledCheckBox.checked = p["stopWhenSettled"]
             physical = p["method"] == "physical"
-            for widget in (self.ui.dampingSpinBox, self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox):
+            for widget in (self.ui.dampingSpinBox, self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox,
+                           self.ui.stopWhenSettledCheckBox):
                 widget.enabled = physical
-            self.ui.toleranceSpinBox.enabled = not physical
+            self.ui.toleranceSpinBox.enabled = not physical or p["stopWhenSettled"]
             plates = p.references("plates")
             self.ui.platesLabel.text = (", ".join(f"{n.GetName()} ({self.logic.plateTravel(n):.1f} mm)" for n in plates)
                                         if plates else "none: press Place plates")
@@ -207,6 +210,7 @@ class BreastSimulationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         p["totalTime"] = self.ui.totalTimeSpinBox.value
         p["settleTime"] = self.ui.settleTimeSpinBox.value
         p["tolerance"] = self.ui.toleranceSpinBox.value
+        p["stopWhenSettled"] = self.ui.stopWhenSettledCheckBox.checked
         p.node.EndModify(wasModifying)
 
     def onInputMeshChanged(self, node):
@@ -266,7 +270,7 @@ class BreastSimulationLogic:
                 "compressionAxis": "LR", "compressionPercent": 25.0, "movingPlates": "both",
                 "fixedNodeSet": "", "fixLR": False, "fixAP": True, "fixSI": False, "anchor": True,
                 "contactNodeSet": "boundary", "damping": 50.0, "totalTime": 1.0, "settleTime": 0.25,
-                "tolerance": 0.01}
+                "tolerance": 0.01, "stopWhenSettled": True}
     ROLES = ("inputMesh", "materials", "plates", "outputMesh", "history", "forceChart", "energyChart")
     PLATE_NAMES = {"LR": ("Right plate", "Left plate"), "AP": ("Anterior plate", "Posterior plate"),
                    "SI": ("Inferior plate", "Superior plate")}  # first: the lower coordinate in LPS
@@ -471,7 +475,8 @@ class BreastSimulationLogic:
     # -- run -------------------------------------------------------------------------------------
 
     def run(self, parameterNode, progress=None) -> dict:
-        """Solve the model and put the results into the scene: the deformed mesh (output mesh node,
+        """Solve the model (a physical-time run stops early once settled to ``tolerance`` mm when
+        ``stopWhenSettled``) and put the results into the scene: the deformed mesh (output mesh node,
         created if none is chosen; point arrays ``displacement`` (mm, RAS) and
         ``displacement_magnitude``), the history table and the plate-force and energy charts.
 
@@ -486,6 +491,7 @@ class BreastSimulationLogic:
         model = self.buildModel(parameterNode)
         relaxation = (DynamicRelaxation(tolerance_mm=parameterNode["tolerance"])
                       if parameterNode["method"] == "relaxation" else None)
+        steady = parameterNode["tolerance"] if relaxation is None and parameterNode["stopWhenSettled"] else None
         what = "dynamic relaxation" if relaxation else "explicit dynamics"
         report = None
         if progress is not None:
@@ -493,7 +499,8 @@ class BreastSimulationLogic:
                 return progress(fraction, f"{what} on {device}: {fraction:.0%} of the step budget")
 
             progress(0.0, f"{what} on {device}: starting")
-        solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT, progress=report)
+        solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT, progress=report,
+                         steady_state_mm=steady)
         summary = self.summaryText(solution, model, device, relaxation is not None)
         logging.info("BreastSimulation: %s", summary)
         if solution.status != "cancelled":

@@ -94,7 +94,8 @@ def cmd_simulate(args) -> int:
     def report(fraction):
         print(f"\r  {fraction:6.1%} of the step budget", end="", file=sys.stderr, flush=True)
 
-    solution = solve(model, device=device, relaxation=relaxation, progress=None if args.quiet else report)
+    solution = solve(model, device=device, relaxation=relaxation, progress=None if args.quiet else report,
+                     steady_state_mm=settings.steady_state_mm)
     if not args.quiet:
         print(file=sys.stderr)
     out = Path(args.out)

@@ -200,8 +200,8 @@ def test_cancel_keeps_earlier_results(scene, breast):
 
 
 def test_physical_time_run_reports_the_energy_verdict(scene, breast):
-    """Explicit dynamics in physical time: a slow load passes the seed's KE/IE < 5 % check, a
-    fast one fails it and the verdict says what to change."""
+    """Explicit dynamics in physical time: a slow load passes the seed's KE/IE < 5 % check (and
+    stops once settled), a fast one fails it and the verdict says what to change."""
     logic, p = _set_up(scene, breast, compression=10.0)
     p["method"] = "physical"
     p["totalTime"], p["settleTime"] = 0.02, 0.0
@@ -209,7 +209,8 @@ def test_physical_time_run_reports_the_energy_verdict(scene, breast):
     assert fast["solution"].status == "energy criterion exceeded"
     assert "lengthen the loading time" in fast["summary"]
     assert [p.reference("history").GetColumnName(0)] == ["time (s)"]
-    p["totalTime"], p["damping"] = 0.3, 100.0
+    p["totalTime"], p["settleTime"], p["damping"], p["tolerance"] = 0.3, 1.0, 30.0, 0.05
     slow = logic.run(p)
     assert slow["solution"].status == "completed", slow["solution"].message
     assert "quasi-static" in slow["summary"]
+    assert "settled at" in slow["summary"]  # stopWhenSettled (default): the settling phase ends early

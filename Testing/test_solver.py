@@ -281,7 +281,8 @@ def test_element_materials_from_a_tissue_table():
 
 def test_dynamic_relaxation_reaches_the_physical_time_solution():
     """Mass scaling + adaptive damping + convergence criterion end within 0.1 mm of the settled
-    physical-time solve of the breast compression; an iteration cap is reported, not hidden."""
+    physical-time solve of the breast compression; so does a physical-time solve stopped early
+    at steady state; an iteration cap is reported, not hidden."""
     from BreastBiomechLib.solver import DynamicRelaxation
     from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
 
@@ -292,6 +293,13 @@ def test_dynamic_relaxation_reaches_the_physical_time_solution():
     assert relaxed.estimated_error_mm < 0.01
     assert np.abs(relaxed.displacement - physical.displacement).max() < 0.1
     np.testing.assert_allclose(relaxed.plate_forces, physical.plate_forces, rtol=0.01)
+    # physical time with steady-state detection: stops once settled, within its tolerance of the full run
+    early = solve(hemi_ellipsoid_compression(10.0, total_time=1.0, settle_time=2.0), device="cpu",
+                  steady_state_mm=0.02)
+    assert early.ok and "settled at" in early.message and early.steps < 0.8 * physical.steps
+    assert np.abs(early.displacement - physical.displacement).max() < 0.02
+    with pytest.raises(ValueError, match="steady_state_mm"):
+        solve(hemi_ellipsoid_compression(10.0), device="cpu", relaxation=DynamicRelaxation(), steady_state_mm=0.1)
     capped = solve(hemi_ellipsoid_compression(10.0), device="cpu",
                    relaxation=DynamicRelaxation(load_iterations=300, max_iterations=600, tolerance_mm=1e-6))
     assert capped.status == "not converged" and "estimated error" in capped.message

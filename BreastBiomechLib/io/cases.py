@@ -27,16 +27,19 @@ SOLVER_METHODS = ("relaxation", "physical")
 @dataclass
 class SolverSettings:
     """How to solve a case: ``method`` "relaxation" (static solution, fast) or "physical"
-    (explicit dynamics in physical time), the device ("cuda", "cpu", or None for warp's default)
-    and the dynamic-relaxation settings."""
+    (explicit dynamics in physical time), the device ("cuda", "cpu", or None for warp's default),
+    the dynamic-relaxation settings, and for physical time the optional early stop at steady state."""
 
     method: str = "relaxation"
     device: str | None = None
     relaxation: DynamicRelaxation = field(default_factory=DynamicRelaxation)
+    steady_state_mm: float | None = None  # physical time: stop settling once this close to rest
 
     def __post_init__(self) -> None:
         if self.method not in SOLVER_METHODS:
             raise ValueError(f"solver method must be one of {SOLVER_METHODS}, not {self.method!r}")
+        if self.steady_state_mm is not None and self.method != "physical":
+            raise ValueError("steady_state_mm applies to the physical method; relaxation has tolerance_mm")
 
 
 def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
@@ -112,7 +115,13 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
     solver = dict(data.get("solver", {}))
     method = solver.pop("method", "relaxation")
     device = solver.pop("device", None)
-    return model, SolverSettings(method, device, DynamicRelaxation(**solver))
+    steady = solver.pop("steady_state_mm", None)
+    try:
+        relaxation = DynamicRelaxation(**solver)
+    except TypeError:
+        raise ValueError(f"{path}: unknown solver settings {sorted(solver)}; use method, device, steady_state_mm, "
+                         "load_iterations, tolerance_mm, max_iterations, update_every") from None
+    return model, SolverSettings(method, device, relaxation, None if steady is None else float(steady))
 
 
 def read_case(path: str | Path) -> tuple[Model, SolverSettings]:

@@ -187,20 +187,21 @@ def _step_too_large(t: float, stable: float, dt: float) -> str:
 
 def solve(model: Model, device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
           initial_displacement: np.ndarray | None = None, relaxation: DynamicRelaxation | None = None,
-          progress: Callable[[float], bool | None] | None = None) -> Solution:
+          progress: Callable[[float], bool | None] | None = None, steady_state_mm: float | None = None) -> Solution:
     """Solve one model; ``device`` "cpu", "cuda" or None (warp's default: CUDA when present).
     With ``relaxation`` the static solution is found by dynamic relaxation (fast path).
     See :func:`solve_batch` for the other arguments."""
     return solve_batch(model, [model.materials], device=device, sample_every=sample_every,
                        ke_ie_limit=ke_ie_limit, initial_displacement=initial_displacement,
-                       relaxation=relaxation, progress=progress)[0]
+                       relaxation=relaxation, progress=progress, steady_state_mm=steady_state_mm)[0]
 
 
 def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
                 device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
                 initial_displacement: np.ndarray | None = None,
                 relaxation: DynamicRelaxation | None = None,
-                progress: Callable[[float], bool | None] | None = None) -> list[Solution]:
+                progress: Callable[[float], bool | None] | None = None,
+                steady_state_mm: float | None = None) -> list[Solution]:
     """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
     ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm. All variants
     use the smallest critical step of the batch, so results equal separate solves at that step.
@@ -208,9 +209,19 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     Every ``sample_every`` steps the energies, plate forces and the stable step are sampled and
     ``progress(fraction done)`` is called; returning False cancels the solve (status "cancelled",
     the displacement returned is the last configuration). Dynamic relaxation finds the
-    equilibrium, so visco materials enter it fully relaxed."""
+    equilibrium, so visco materials enter it fully relaxed.
+
+    ``steady_state_mm`` (physical time only) stops the settling phase early once every model is
+    at rest: after the end of loading, when the estimated distance still to travel, max|du| r /
+    (1 - r) from the displacement change du between samples and its contraction r, is below
+    ``steady_state_mm`` at two samples in a row and KE/IE is below 1e-3. (KE/IE alone would stop
+    too early: slow overdamped modes such as sliding on the chest wall carry almost no kinetic
+    energy.)"""
     wp.init()
     device = _device(device)
+    if steady_state_mm is not None and (relaxation is not None or steady_state_mm <= 0):
+        raise ValueError("steady_state_mm is a positive distance (mm) for physical-time solves; dynamic "
+                         "relaxation has its own tolerance")
     B, N, M = len(materials), len(model.mesh.nodes), len(model.mesh.tets)
     if B == 0:
         raise ValueError("solve_batch needs at least one material set")
@@ -365,6 +376,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         checks_below = np.zeros(B, int)
         converged_at = np.zeros(B, int)
         converged_forces = np.zeros((B, P, 3))
+        settled_checks, sampled_u, previous_change = 0, None, None
         pressure_tmp = wp.zeros(B * N, dtype=float)
         no_flags = wp.zeros(4, dtype=int)
 
@@ -447,6 +459,22 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 break
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
+            if steady_state_mm is not None and done * dt >= total - 0.5 * dt:
+                now = u[1].numpy().reshape(B, N, 3).astype(np.float64)  # a copy: on the CPU numpy() is a view
+                if sampled_u is not None:
+                    change = np.abs(now - sampled_u).max(axis=(1, 2)) / MM
+                    if previous_change is not None:
+                        rate = change / np.maximum(previous_change, 1e-300)
+                        remaining = np.where(rate < 1.0, change * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
+                        at_rest = np.all(remaining < steady_state_mm) and np.all(ke < 1e-3 * np.maximum(ie, 1e-30))
+                        settled_checks = settled_checks + 1 if at_rest else 0
+                        if settled_checks >= 2:
+                            message = (f"settled at t = {done * dt:.4g} s (estimated distance to rest "
+                                       f"{remaining.max():.2g} mm < {steady_state_mm} mm); stopped "
+                                       f"{n_steps - done} of {n_steps} steps early")
+                            break
+                    previous_change = change
+                sampled_u = now
             if relaxation is not None:
                 probe_force(u[0], f_prev)
                 for a in (stiffness, inertia, increment):
