@@ -80,6 +80,8 @@ def test_relaxation_is_the_default_method(tmp_path):
     ({"constraints": [{"nodes": [0, 99999]}]}, "outside"),
     ({"constraints": [{"nodes": [0], "components": "xq"}]}, "letters of 'xyz'"),
     ({"solver": {"method": "implicit"}}, "solver method"),
+    ({"solver": {"steady_state_mm": 0.01}}, "steady_state_mm applies to the physical method"),
+    ({"solver": {"tolerance": 0.01}}, r"unknown solver settings \['tolerance'\]"),
 ])
 def test_bad_cases_are_refused_with_the_reason(tmp_path, change, message):
     path, _, _ = _case(tmp_path, **change)
