@@ -132,8 +132,8 @@ def _bench_solver(args) -> dict:
 
     radii = (80.0, 70.0, 75.0)
     spacing = (np.pi * 4 * radii[0] * radii[1] * radii[2] / args.tets) ** (1 / 3)
-    model = hemi_ellipsoid_compression(spacing, compression=0.25, total_time=args.total_time,
-                                       settle_time=0.25 * args.total_time)
+    settle = 0.25 * args.total_time if args.settle_time is None else args.settle_time
+    model = hemi_ellipsoid_compression(spacing, compression=0.25, total_time=args.total_time, settle_time=settle)
     wp.init()
     device = wp.get_device(args.device)
     rng = np.random.default_rng(0)
@@ -144,7 +144,8 @@ def _bench_solver(args) -> dict:
     solve_batch(warm, [warm.materials], device=device)  # compile the kernels once, outside the timing
     started = time.perf_counter()
     relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.01) if args.relaxation else None
-    solutions = solve_batch(model, variants, device=device, relaxation=relaxation)
+    solutions = solve_batch(model, variants, device=device, relaxation=relaxation,
+                            steady_state_mm=args.steady_state_mm)
     wall = time.perf_counter() - started
     s = solutions[0]
     memory_mb = None
@@ -163,7 +164,7 @@ def _bench_solver(args) -> dict:
         "us_per_step_per_model": round(1e6 * s.wall_time / s.steps / args.batch, 3),
         "bytes_per_step": bytes_per_step,
         "floor_us_per_step_at_3350GBs": round(bytes_per_step / 3.35e9 * 1e6 / 1e3, 3),
-        "status": s.status, "ke_ie_end_of_loading": s.ke_ie_at_end_of_loading,
+        "status": s.status, "message": s.message, "ke_ie_end_of_loading": s.ke_ie_at_end_of_loading,
         "plate_force_N": float(np.linalg.norm(s.plate_forces[0])),
         "max_displacement_mm": float(np.abs(s.displacement).max()),
         "device_memory_in_use_mb": memory_mb,
@@ -229,6 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
     p.add_argument("--device", default=None, help="solver: cuda, cpu or a warp device name (default: warp's)")
     p.add_argument("--total-time", type=float, default=1.0, help="solver: loading time in s (+25%% settling)")
+    p.add_argument("--settle-time", type=float, default=None, help="solver: settling time in s (default 25%% of loading)")
+    p.add_argument("--steady-state-mm", type=float, default=None,
+                   help="solver, physical time: stop settling once this close to rest (mm)")
     p.add_argument("--relaxation", action="store_true", help="solver: dynamic relaxation (tolerance 0.01 mm)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
