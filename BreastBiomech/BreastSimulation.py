@@ -316,12 +316,12 @@ class BreastSimulationLogic:
 
     @staticmethod
     def _nodeSet(mesh, name: str, what: str) -> np.ndarray:
-        if name not in mesh.point_data:
-            raise ValueError(f"the {what} node set {name!r} is not a point array of the mesh; it has "
-                             f"{sorted(mesh.point_data) or 'none'}")
-        nodes = np.flatnonzero(np.asarray(mesh.point_data[name]).reshape(len(mesh.nodes), -1).any(axis=1))
+        try:
+            nodes = mesh.node_set(name)
+        except ValueError as error:
+            raise ValueError(f"{what} nodes: {error}") from None
         if len(nodes) == 0:
-            raise ValueError(f"the {what} node set {name!r} is empty")
+            raise ValueError(f"{what} nodes: the node set {name!r} is empty")
         return nodes
 
     def contactNodes(self, parameterNode, mesh) -> np.ndarray:
@@ -409,9 +409,10 @@ class BreastSimulationLogic:
             return float("nan")
 
     def constraints(self, parameterNode, mesh) -> list:
-        """The fixed node set in the chosen directions, and (``anchor``) its node nearest its
-        centre fixed in every direction against rigid motion (the seed's chest-wall conditions)."""
-        from BreastBiomechLib.solver.model import Constraint
+        """The fixed node set in the chosen directions and (``anchor``) the nodes that stop rigid
+        motion in the others (BreastBiomechLib.solver.supports: the seed's chest-wall conditions,
+        plus a node against turning about the fixed axis)."""
+        from BreastBiomechLib.solver.supports import support_constraints
 
         name = parameterNode["fixedNodeSet"]
         if not name:
@@ -420,12 +421,8 @@ class BreastSimulationLogic:
         components = (parameterNode["fixLR"], parameterNode["fixAP"], parameterNode["fixSI"])
         if not any(components):
             raise ValueError(f"choose at least one direction in which the {name!r} nodes are fixed")
-        nodes = self._nodeSet(mesh, name, "fixed")
-        constraints = [Constraint.fixed(nodes, components)]
-        if parameterNode["anchor"] and not all(components):
-            anchor = nodes[np.argmin(np.linalg.norm(mesh.nodes[nodes] - mesh.nodes[nodes].mean(axis=0), axis=1))]
-            constraints.append(Constraint.fixed([anchor]))
-        return constraints
+        return support_constraints(mesh.nodes, self._nodeSet(mesh, name, "fixed"), components,
+                                   anchor=parameterNode["anchor"])
 
     def buildModel(self, parameterNode):
         """The solver Model of the current choices (LPS mm, Pa, s)."""

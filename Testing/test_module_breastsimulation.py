@@ -70,14 +70,21 @@ def test_run_matches_the_library_and_writes_results(scene, breast):
     assert solution.status == "completed", solution.message
     assert messages[0][0] == 0.0 and messages[-1] == (1.0, "completed")
 
-    # the same model built with the library alone (LPS): plates, chest wall, anchor, materials
+    # the same model built with the library alone (LPS): plates, chest wall sliding (AP fixed) with a
+    # 10 mm patch anchored and one at the SI extreme held LR, materials
     chest = np.flatnonzero(breast.point_data["chest_wall"])
-    anchor = chest[np.argmin(np.linalg.norm(breast.nodes[chest] - breast.nodes[chest].mean(axis=0), axis=1))]
+    centre = chest[np.argmin(np.linalg.norm(breast.nodes[chest] - breast.nodes[chest].mean(axis=0), axis=1))]
+    far = chest[np.argmax(np.abs(breast.nodes[chest, 2] - breast.nodes[centre, 2]))]  # SI extreme
+
+    def patch(node):
+        return chest[np.linalg.norm(breast.nodes[chest] - breast.nodes[node], axis=1) <= 10.0]
+
     boundary = np.flatnonzero(boundary_nodes(breast.tets, len(breast.nodes)))
     plates = compression_plates(breast, "LR", 0.2, boundary, names=("Right plate", "Left plate"))
     materials = ElementMaterials.from_tissues(breast.cell_data["tissue"], {
         labels.FAT.label: Material(10e3, 0.49), labels.GLANDULAR.label: Material(35e3, 0.49)})
-    loading = Loading([Constraint.fixed(chest, (False, True, False)), Constraint.fixed([anchor])], plates)
+    loading = Loading([Constraint.fixed(chest, (False, True, False)), Constraint.fixed(patch(centre)),
+                       Constraint.fixed(patch(far), (True, False, False))], plates)
     direct = solve(Model(breast, materials, loading), device="cpu", relaxation=DynamicRelaxation())
     np.testing.assert_allclose(solution.displacement, direct.displacement, atol=1e-4)
 

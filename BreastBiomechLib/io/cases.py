@@ -44,10 +44,10 @@ class SolverSettings:
 
 def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
     if isinstance(spec, str):
-        if spec not in mesh.point_data:
-            raise ValueError(f"{path}: {what} names the node set {spec!r}, but the mesh has the point arrays "
-                             f"{sorted(mesh.point_data)}")
-        return np.flatnonzero(np.asarray(mesh.point_data[spec]).reshape(len(mesh.nodes), -1).any(axis=1))
+        try:
+            return mesh.node_set(spec)
+        except ValueError as error:
+            raise ValueError(f"{path}: {what}: {error}") from None
     nodes = np.asarray(spec, dtype=np.int64).ravel()
     if len(nodes) and (nodes.min() < 0 or nodes.max() >= len(mesh.nodes)):
         raise ValueError(f"{path}: {what} lists nodes outside 0..{len(mesh.nodes) - 1}")

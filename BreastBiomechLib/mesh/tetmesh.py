@@ -53,6 +53,13 @@ class TetMesh:
         """Signed element volumes (mm^3); positive for a valid mesh."""
         return _signed_volumes(self.nodes, self.tets)
 
+    def node_set(self, name: str) -> np.ndarray:
+        """Ids of the nodes where point array ``name`` is non-zero (a node set, e.g. chest_wall)."""
+        if name not in self.point_data:
+            raise ValueError(f"the node set {name!r} is not a point array of the mesh; it has "
+                             f"{sorted(self.point_data) or 'none'}")
+        return np.flatnonzero(np.asarray(self.point_data[name]).reshape(len(self.nodes), -1).any(axis=1))
+
     def to_vtk(self):
         """The mesh as a vtkUnstructuredGrid (points in LPS mm), arrays copied."""
         import vtk  # imported here: the solver uses meshes on machines without VTK

@@ -246,16 +246,14 @@ def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhd
 @wp.kernel
 def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3),
                      f_curr: wp.array(dtype=wp.vec3), f_prev: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
-                     n_nodes: int, stiffness: wp.array(dtype=float), inertia: wp.array(dtype=float),
-                     max_increment: wp.array(dtype=float)):
-    """Per model: du.K du ~ du.(F(u_n) - F(u_n-1)), du.M du and max |du| for dynamic relaxation
-    (Rayleigh quotient of the last increment: the lowest eigenvalue once transients have died)."""
+                     n_nodes: int, stiffness: wp.array(dtype=float), inertia: wp.array(dtype=float)):
+    """Per model: du.K du ~ du.(F(u_n) - F(u_n-1)) and du.M du for dynamic relaxation (Rayleigh
+    quotient of the last increment: the lowest eigenvalue once transients have died)."""
     i = wp.tid()
     b = i // n_nodes
     du = u_curr[i] - u_prev[i]
     wp.atomic_add(stiffness, b, wp.dot(du, f_curr[i] - f_prev[i]))
     wp.atomic_add(inertia, b, mass[i] * wp.dot(du, du))
-    wp.atomic_max(max_increment, b, wp.length(du))
 
 
 @wp.kernel

@@ -26,15 +26,40 @@ from BreastBiomechLib.solver.stability import StableStepMonitor
 MM = 1e-3  # metres per millimetre
 
 
+class DistanceToRest:
+    """Estimated distance (mm) each model still has to travel, from samples of its displacement:
+    with c_k = max |u_k - u_(k-1)| between samples and r = c_k / c_(k-1) the observed contraction,
+    the remaining travel of a geometric approach is c_k r / (1 - r) (inf while not contracting).
+    Changes over a whole sampling interval, not single steps, so that float32 round-off of the
+    displacement (about 1e-6 mm) does not drown the estimate near convergence."""
+
+    def __init__(self) -> None:
+        self._sample = None
+        self._change = None
+
+    def update(self, displacement_mm: np.ndarray) -> np.ndarray | None:
+        """``displacement_mm`` (B, N, 3); returns (B,) estimates from the third sample on."""
+        now = np.array(displacement_mm, dtype=np.float64)  # a copy: on the CPU wp.array.numpy() is a view
+        remaining = None
+        if self._sample is not None:
+            change = np.abs(now - self._sample).max(axis=(1, 2))
+            if self._change is not None:
+                rate = change / np.maximum(self._change, 1e-300)
+                remaining = np.where(rate < 1.0, change * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
+            self._change = change
+        self._sample = now
+        return remaining
+
+
 @dataclass
 class DynamicRelaxation:
     """Fast path to the static solution (Joldes, Wittek & Miller): element densities scaled so
     every element has the same stable step (mass scaling), the load applied over
     ``load_iterations`` steps, then damping set every ``update_every`` steps to twice the square
     root of the lowest eigenvalue, estimated by the Rayleigh quotient of the last displacement
-    increment; stop when the estimated distance to the static solution,
-    max|du| rho / (1 - rho) with rho the observed contraction per step, is below ``tolerance_mm``
-    for every model of the batch. Time in a relaxation run is fictitious.
+    increment; stop when the estimated distance to the static solution (:class:`DistanceToRest`,
+    from the displacement change between updates) is below ``tolerance_mm`` for every model of
+    the batch. Time in a relaxation run is fictitious.
 
     ``load_iterations`` is a minimum: the load is applied slowly enough that prescribed boundaries
     (plates, displacements) move at under a third of the shear wave speed of the scaled model,
@@ -371,12 +396,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         chunk = max(2, sample_every - sample_every % 2)
         done = 0
         estimated_error = np.full(B, np.nan)
-        previous_increment = None
         updates = 0
         checks_below = np.zeros(B, int)
         converged_at = np.zeros(B, int)
         converged_forces = np.zeros((B, P, 3))
-        settled_checks, sampled_u, previous_change = 0, None, None
+        settled_checks = 0
+        distance_to_rest = DistanceToRest()
         pressure_tmp = wp.zeros(B * N, dtype=float)
         no_flags = wp.zeros(4, dtype=int)
 
@@ -386,7 +411,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
 
         if relaxation is not None:
             f_curr, f_prev = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
-            stiffness, inertia, increment = (wp.zeros(B, dtype=float) for _ in range(3))
+            stiffness, inertia = wp.zeros(B, dtype=float), wp.zeros(B, dtype=float)
         latest = u[1]  # after an even number of steps u[1] holds u_n and u[0] u_{n-1}
         wp.synchronize_device(device)
         started = time.perf_counter()
@@ -460,38 +485,29 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
             if steady_state_mm is not None and done * dt >= total - 0.5 * dt:
-                now = u[1].numpy().reshape(B, N, 3).astype(np.float64)  # a copy: on the CPU numpy() is a view
-                if sampled_u is not None:
-                    change = np.abs(now - sampled_u).max(axis=(1, 2)) / MM
-                    if previous_change is not None:
-                        rate = change / np.maximum(previous_change, 1e-300)
-                        remaining = np.where(rate < 1.0, change * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
-                        at_rest = np.all(remaining < steady_state_mm) and np.all(ke < 1e-3 * np.maximum(ie, 1e-30))
-                        settled_checks = settled_checks + 1 if at_rest else 0
-                        if settled_checks >= 2:
-                            message = (f"settled at t = {done * dt:.4g} s (estimated distance to rest "
-                                       f"{remaining.max():.2g} mm < {steady_state_mm} mm); stopped "
-                                       f"{n_steps - done} of {n_steps} steps early")
-                            break
-                    previous_change = change
-                sampled_u = now
+                remaining = distance_to_rest.update(u[1].numpy().reshape(B, N, 3) / MM)
+                if remaining is not None:
+                    at_rest = np.all(remaining < steady_state_mm) and np.all(ke < 1e-3 * np.maximum(ie, 1e-30))
+                    settled_checks = settled_checks + 1 if at_rest else 0
+                    if settled_checks >= 2:
+                        message = (f"settled at t = {done * dt:.4g} s (estimated distance to rest "
+                                   f"{remaining.max():.2g} mm < {steady_state_mm} mm); stopped "
+                                   f"{n_steps - done} of {n_steps} steps early")
+                        break
             if relaxation is not None:
                 probe_force(u[0], f_prev)
-                for a in (stiffness, inertia, increment):
+                for a in (stiffness, inertia):
                     a.zero_()
-                wp.launch(k.relaxation_terms, B * N, [u[1], u[0], f_curr, f_prev, d_mass, N, stiffness, inertia,
-                                                       increment])
+                wp.launch(k.relaxation_terms, B * N, [u[1], u[0], f_curr, f_prev, d_mass, N, stiffness, inertia])
                 lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
-                du = increment.numpy().astype(float) / MM  # mm per step
                 if done * dt >= total:
                     ok = lam > 0
                     damping[ok] = np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt)
                     d_damping.assign(damping.astype(f32))
-                    if previous_increment is not None:
-                        rate = (du / np.maximum(previous_increment, 1e-300)) ** (1.0 / (2 * pairs))
+                    remaining = distance_to_rest.update(u[1].numpy().reshape(B, N, 3) / MM)
+                    if remaining is not None:
                         running = active == 1
-                        estimated_error[running] = np.where(
-                            rate < 1.0, du * rate / np.maximum(1.0 - rate, 1e-12), np.inf)[running]
+                        estimated_error[running] = remaining[running]
                         # trust the estimate only once the damping has adapted (three updates after
                         # the load) and it has held for two checks in a row; each model of the
                         # batch stops (stands still) as soon as it has converged
@@ -505,7 +521,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                             d_active.assign(active)
                             if not active.any():
                                 break
-                    previous_increment = du
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
         displacement = latest.numpy().reshape(B, N, 3).astype(np.float64) / MM
