@@ -143,7 +143,8 @@ def _bench_solver(args) -> dict:
     warm = hemi_ellipsoid_compression(20.0, total_time=0.05, settle_time=0.0)
     solve_batch(warm, [warm.materials], device=device)  # compile the kernels once, outside the timing
     started = time.perf_counter()
-    relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.01) if args.relaxation else None
+    load = {} if args.load_iterations is None else {"load_iterations": args.load_iterations}
+    relaxation = DynamicRelaxation(tolerance_mm=0.01, **load) if args.relaxation else None
     solutions = solve_batch(model, variants, device=device, relaxation=relaxation,
                             steady_state_mm=args.steady_state_mm)
     wall = time.perf_counter() - started
@@ -157,6 +158,7 @@ def _bench_solver(args) -> dict:
         "benchmark": "solver", "device": str(device), "device_name": getattr(device, "name", ""),
         "nodes": n, "tets": m, "batch": args.batch, "formulation": model.formulation,
         "method": "dynamic relaxation" if args.relaxation else "physical time",
+        "load_iterations": relaxation.load_iterations if relaxation else None,
         "estimated_error_mm": s.estimated_error_mm,
         "steps": s.steps, "time_step_s": s.time_step, "simulated_s": s.steps * s.time_step,
         "wall_s": round(wall, 4), "solve_wall_s": round(s.wall_time, 4),
@@ -234,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steady-state-mm", type=float, default=None,
                    help="solver, physical time: stop settling once this close to rest (mm)")
     p.add_argument("--relaxation", action="store_true", help="solver: dynamic relaxation (tolerance 0.01 mm)")
+    p.add_argument("--load-iterations", type=int, default=None,
+                   help="solver, dynamic relaxation: iterations over which the load is applied, at least "
+                        "(default: DynamicRelaxation's)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser
