@@ -14,9 +14,9 @@ import logging
 import os
 
 import slicer
-import vtk
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
@@ -91,7 +91,7 @@ def _loadSamplePhantom(source=None):
 #
 
 
-class BreastBiomechWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
     def __init__(self, parent=None):
@@ -125,33 +125,6 @@ class BreastBiomechWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def _sliders(self):
         return (self.ui.volumeSliderWidget, self.ui.densitySliderWidget, self.ui.tumourSliderWidget,
                 self.ui.snrSliderWidget, self.ui.biasSliderWidget)
-
-    def cleanup(self):
-        self.removeObservers()
-
-    def enter(self):
-        self.initializeParameterNode()
-
-    def exit(self):
-        self._setParameterNode(None)
-
-    def onSceneStartClose(self, caller, event):
-        self._setParameterNode(None)
-
-    def onSceneEndClose(self, caller, event):
-        if self.parent.isEntered:
-            self.initializeParameterNode()
-
-    def initializeParameterNode(self):
-        self._setParameterNode(self.logic.getParameterNode())
-
-    def _setParameterNode(self, parameterNode):
-        if self._parameterNode is not None:
-            self.removeObserver(self._parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
-        self._parameterNode = parameterNode
-        if parameterNode is not None:
-            self.addObserver(parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
-        self.updateGUIFromParameterNode()
 
     def updateGUIFromParameterNode(self, caller=None, event=None):
         if self._parameterNode is None or self._updatingGUI:

@@ -18,6 +18,7 @@ import slicer
 import vtk
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
@@ -62,7 +63,7 @@ class BreastSimulation(ScriptedLoadableModule):
 #
 
 
-class BreastSimulationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
     def __init__(self, parent=None):
@@ -104,33 +105,6 @@ class BreastSimulationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.cancelButton.enabled = False
         self.ui.deviceLabel.text = self.logic.deviceDescription() if ensure_dependencies(["warp"]) else "warp missing"
         self.initializeParameterNode()
-
-    def cleanup(self):
-        self.removeObservers()
-
-    def enter(self):
-        self.initializeParameterNode()
-
-    def exit(self):
-        self._setParameterNode(None)
-
-    def onSceneStartClose(self, caller, event):
-        self._setParameterNode(None)
-
-    def onSceneEndClose(self, caller, event):
-        if self.parent.isEntered:
-            self.initializeParameterNode()
-
-    def initializeParameterNode(self):
-        self._setParameterNode(self.logic.getParameterNode())
-
-    def _setParameterNode(self, parameterNode):
-        if self._parameterNode is not None:
-            self.removeObserver(self._parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
-        self._parameterNode = parameterNode
-        if parameterNode is not None:
-            self.addObserver(parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
-        self.updateGUIFromParameterNode()
 
     @staticmethod
     def _setComboText(comboBox, text):

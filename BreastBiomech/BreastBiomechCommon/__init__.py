@@ -5,7 +5,8 @@ the ``*.py`` files directly in this folder as modules).
   (headless: Logic classes work; Module, Widget and Test classes refuse to be instantiated);
 - finding ``BreastBiomechLib`` and the shared ``Resources/`` both in a built extension (copied
   beside the module scripts) and in a source checkout (one folder up);
-- installing missing Python dependencies on first use, after asking the user.
+- installing missing Python dependencies on first use, after asking the user;
+- the parameter-node lifecycle shared by the module Widgets.
 """
 
 from __future__ import annotations
@@ -36,6 +37,42 @@ except ImportError:  # the slicer-core wheel: MRML and module logic only, no app
 
     ScriptedLoadableModule = ScriptedLoadableModuleWidget = ScriptedLoadableModuleTest = _ApplicationOnly
     IN_SLICER_APPLICATION = False
+
+class ParameterNodeWidgetMixin:
+    """The parameter-node lifecycle every module Widget shares (Slicer's scripted-module template):
+    observe the Logic's parameter node while the module is shown, drop it on scene close, and
+    refresh the panel through ``updateGUIFromParameterNode``. Mix in before
+    ``VTKObservationMixin``; the Widget sets ``self.logic`` and ``self._parameterNode = None``."""
+
+    def cleanup(self):
+        self.removeObservers()
+
+    def enter(self):
+        self.initializeParameterNode()
+
+    def exit(self):
+        self._setParameterNode(None)
+
+    def onSceneStartClose(self, caller, event):
+        self._setParameterNode(None)
+
+    def onSceneEndClose(self, caller, event):
+        if self.parent.isEntered:
+            self.initializeParameterNode()
+
+    def initializeParameterNode(self):
+        self._setParameterNode(self.logic.getParameterNode())
+
+    def _setParameterNode(self, parameterNode):
+        import vtk
+
+        if self._parameterNode is not None:
+            self.removeObserver(self._parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
+        self._parameterNode = parameterNode
+        if parameterNode is not None:
+            self.addObserver(parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
+        self.updateGUIFromParameterNode()
+
 
 # Python packages the library needs that a Slicer installation may lack: import name -> pip name
 DEPENDENCIES = {"scipy": "scipy", "SimpleITK": "SimpleITK", "matplotlib": "matplotlib",
