@@ -147,11 +147,17 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
                 widget.enabled = physical
             self.ui.toleranceSpinBox.enabled = not physical or p["stopWhenSettled"]
             plates = p.references("plates")
-            self.ui.platesLabel.text = (", ".join(f"{n.GetName()} ({self.logic.plateTravel(n):.1f} mm)" for n in plates)
+            self.ui.platesLabel.text = (", ".join(self._plateText(n) for n in plates)
                                         if plates else "none: press Place plates")
             self.ui.runButton.enabled = p.reference("inputMesh") is not None
         finally:
             self._updatingGUI = False
+
+    def _plateText(self, planeNode):
+        try:
+            return f"{planeNode.GetName()} ({self.logic.plateTravel(planeNode):.1f} mm)"
+        except ValueError:
+            return f"{planeNode.GetName()} (travel not a number)"
 
     def _fillNodeSetComboBoxes(self):
         names = self.logic.nodeSetNames(self._parameterNode.reference("inputMesh"))
@@ -375,12 +381,9 @@ class BreastSimulationLogic:
     @staticmethod
     def plateTravel(planeNode) -> float:
         """A plate's travel along its normal (mm, > 0 into the tissue)."""
-        from BreastBiomechLib.mrml.markups import TRAVEL_ATTRIBUTE
+        from BreastBiomechLib.mrml.markups import plate_travel
 
-        try:
-            return float(planeNode.GetAttribute(TRAVEL_ATTRIBUTE) or 0.0)
-        except ValueError:
-            return float("nan")
+        return plate_travel(planeNode)
 
     def constraints(self, parameterNode, mesh) -> list:
         """The fixed node set in the chosen directions and (``anchor``) the nodes that stop rigid
@@ -489,13 +492,9 @@ class BreastSimulationLogic:
                            point_data={**mesh.point_data, "displacement": u,
                                        "displacement_magnitude": np.linalg.norm(u, axis=1)},
                            cell_data=dict(mesh.cell_data))
-        output = parameterNode.reference("outputMesh")
-        if output is None:
-            name = self.scene.GenerateUniqueName(f"{parameterNode.reference('inputMesh').GetName()}_deformed")
-            output = tetmesh_to_model_node(deformed, self.scene, name)
-            parameterNode.set_reference("outputMesh", output)
-        else:
-            tetmesh_to_model_node(deformed, self.scene, node=output)
+        name = self.scene.GenerateUniqueName(f"{parameterNode.reference('inputMesh').GetName()}_deformed")
+        output = tetmesh_to_model_node(deformed, self.scene, name, node=parameterNode.reference("outputMesh"))
+        parameterNode.set_reference("outputMesh", output)
         display = output.GetDisplayNode()
         if display is not None:
             display.SetActiveScalar("displacement_magnitude", vtk.vtkAssignAttribute.POINT_DATA)

@@ -83,9 +83,13 @@ def plate_from_plane_node(node, slave_nodes, towards=None) -> Plate:
     point, normal = frames.flip(origin), frames.flip(normal)
     if towards is not None and (np.asarray(towards, float) - point) @ normal < 0:
         normal = -normal
+    return Plate(point, normal, plate_travel(node) * normal / np.linalg.norm(normal), slave_nodes, node.GetName())
+
+
+def plate_travel(node) -> float:
+    """A plate plane node's travel along its normal (mm, > 0 into the tissue; 0 when not set)."""
     text = node.GetAttribute(TRAVEL_ATTRIBUTE) or "0"
     try:
-        travel = float(text)
+        return float(text)
     except ValueError:
         raise ValueError(f"plate {node.GetName()!r}: its travel {text!r} is not a number of millimetres") from None
-    return Plate(point, normal, travel * normal / np.linalg.norm(normal), slave_nodes, node.GetName())
