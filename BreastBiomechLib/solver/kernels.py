@@ -139,11 +139,14 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
 
 @wp.kernel
 def central_difference(u_curr: wp.array(dtype=wp.vec3), u_prev_to_next: wp.array(dtype=wp.vec3),
-                       forces: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), gravity: wp.vec3,
+                       forces: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                       body_force: wp.array(dtype=wp.vec3),
                        damping: wp.array(dtype=float), active: wp.array(dtype=int), n_nodes: int, dt: float,
                        step: wp.array(dtype=int), t_total: float, load_shape: int, inverted: wp.array(dtype=int)):
     """u_next = (R - F + 2m/dt^2 u - (m/dt^2 - a m/(2dt)) u_prev) / (m/dt^2 + a m/(2dt)), seed eq. (15).
     Overwrites the previous displacement with the next one (it is not needed afterwards).
+    ``body_force`` is the full-load external force per node (N, gravity on the physical mass;
+    ``mass`` may be fictitious under mass scaling).
     ``damping[b]`` is model b's coefficient (1/s), adapted between steps by dynamic relaxation;
     a model with ``active[b]`` = 0 (converged) stands still."""
     i = wp.tid()
@@ -154,7 +157,7 @@ def central_difference(u_curr: wp.array(dtype=wp.vec3), u_prev_to_next: wp.array
         return
     m = mass[i]
     t = float(step[0] + 1) * dt
-    external = m * load_factor(t, t_total, load_shape) * gravity
+    external = load_factor(t, t_total, load_shape) * body_force[i]
     inv_dt2 = 1.0 / (dt * dt)
     c = 0.5 * damping[i // n_nodes] / dt
     a = 1.0 / (m * inv_dt2 + m * c)
@@ -247,8 +250,9 @@ def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhd
 def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3),
                      f_curr: wp.array(dtype=wp.vec3), f_prev: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                      n_nodes: int, stiffness: wp.array(dtype=float), inertia: wp.array(dtype=float)):
-    """Per model: du.K du ~ du.(F(u_n) - F(u_n-1)) and du.M du for dynamic relaxation (Rayleigh
-    quotient of the last increment: the lowest eigenvalue once transients have died)."""
+    """Per model: du.K du ~ du.(F(u_curr) - F(u_prev)) and du.M du, du = u_curr - u_prev, for
+    dynamic relaxation (Rayleigh quotient of the change since the last update: the lowest
+    eigenvalue once transients have died)."""
     i = wp.tid()
     b = i // n_nodes
     du = u_curr[i] - u_prev[i]

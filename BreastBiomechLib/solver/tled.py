@@ -321,7 +321,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         step = wp.zeros(1, dtype=int)
         inverted = wp.zeros(4, dtype=int)
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
-        gravity = wp.vec3(*model.loading.gravity.astype(f32))
+        # gravity acts on the physical masses, also where dynamic relaxation scales them
+        weight = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(m.density * vol / 4.0, 4), minlength=N)
+                                 for m in materials])
+        d_body_force = arr(weight[:, None] * model.loading.gravity, wp.vec3)
         # dynamic relaxation starts critically damped for a mode of period ~ the loading time
         damping = np.full(B, model.damping if relaxation is None else 4.0 * np.pi / total)
         d_damping = arr(damping, float)
@@ -358,7 +361,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         def one_step(curr, prev):
             plate_force.zero_()
             internal_force(curr, forces, pressure, inverted, update_state=1)
-            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, gravity, d_damping, d_active, N,
+            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, d_body_force, d_damping, d_active, N,
                                                      float(dt), step, float(total), load_shape, inverted])
             if n_con:
                 wp.launch(k.apply_constraints, B * n_con, [prev, d_cnodes, d_cmask, d_cvals, N, n_con,
@@ -410,7 +413,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             internal_force(state, out, pressure_tmp, no_flags)
 
         if relaxation is not None:
-            f_curr, f_prev = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
+            # the state and forces at the previous update: the Rayleigh quotient of the change over
+            # a whole update interval (single-step changes near rest are float32 noise, whose
+            # quotient grows towards the highest modes and overdamps the slow ones)
+            f_curr, f_last = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
+            u_last = wp.clone(u[1])
+            probe_force(u_last, f_last)
             stiffness, inertia = wp.zeros(B, dtype=float), wp.zeros(B, dtype=float)
         latest = u[1]  # after an even number of steps u[1] holds u_n and u[0] u_{n-1}
         wp.synchronize_device(device)
@@ -495,10 +503,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                    f"{n_steps - done} of {n_steps} steps early")
                         break
             if relaxation is not None:
-                probe_force(u[0], f_prev)
                 for a in (stiffness, inertia):
                     a.zero_()
-                wp.launch(k.relaxation_terms, B * N, [u[1], u[0], f_curr, f_prev, d_mass, N, stiffness, inertia])
+                wp.launch(k.relaxation_terms, B * N, [u[1], u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
+                wp.copy(u_last, u[1])
+                wp.copy(f_last, f_curr)
                 lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
                 if done * dt >= total:
                     ok = lam > 0
