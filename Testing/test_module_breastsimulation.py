@@ -64,6 +64,9 @@ def test_run_matches_the_library_and_writes_results(scene, breast):
     logic, p = _set_up(scene, breast)
     table = p.reference("materials")
     table.GetTable().GetColumnByName("E (Pa)").SetValue(1, 35e3)  # the user stiffens the glandular tissue
+    # tight enough that both solves below end within float32 noise of the same static solution (the
+    # scene keeps the mesh points in float32, so the two relaxation paths are not bit-identical)
+    p["tolerance"] = 1e-4
     messages = []
     result = logic.run(p, progress=lambda f, m: messages.append((f, m)))
     solution = result["solution"]
@@ -85,8 +88,8 @@ def test_run_matches_the_library_and_writes_results(scene, breast):
         labels.FAT.label: Material(10e3, 0.49), labels.GLANDULAR.label: Material(35e3, 0.49)})
     loading = Loading([Constraint.fixed(chest, (False, True, False)), Constraint.fixed(patch(centre)),
                        Constraint.fixed(patch(far), (True, False, False))], plates)
-    direct = solve(Model(breast, materials, loading), device="cpu", relaxation=DynamicRelaxation())
-    np.testing.assert_allclose(solution.displacement, direct.displacement, atol=1e-4)
+    direct = solve(Model(breast, materials, loading), device="cpu", relaxation=DynamicRelaxation(tolerance_mm=1e-4))
+    np.testing.assert_allclose(solution.displacement, direct.displacement, atol=1e-3)
 
     # deformed mesh node: RAS positions of the deformed nodes, displacement in RAS
     output = p.reference("outputMesh")

@@ -137,65 +137,86 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     wp.atomic_add(forces, base + n3, P * d3)
 
 
+@wp.func
+def compensated_add(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), i: int, du: wp.vec3):
+    """u[i] += du with the float32 rounding error carried in ``low`` (Kahan summation): the
+    displacement is u + low to about 1e-14 m. Plain float32 loses increments below half an ulp of
+    u (1e-9 m at 20 mm), so slow motion at small time steps stalls short of equilibrium."""
+    y = du + low[i]
+    t = u[i] + y
+    low[i] = y - (t - u[i])
+    u[i] = t
+
+
 @wp.kernel
-def central_difference(u_curr: wp.array(dtype=wp.vec3), u_prev_to_next: wp.array(dtype=wp.vec3),
+def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                        forces: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                        body_force: wp.array(dtype=wp.vec3),
                        damping: wp.array(dtype=float), active: wp.array(dtype=int), n_nodes: int, dt: float,
                        step: wp.array(dtype=int), t_total: float, load_shape: int, inverted: wp.array(dtype=int)):
-    """u_next = (R - F + 2m/dt^2 u - (m/dt^2 - a m/(2dt)) u_prev) / (m/dt^2 + a m/(2dt)), seed eq. (15).
-    Overwrites the previous displacement with the next one (it is not needed afterwards).
-    ``body_force`` is the full-load external force per node (N, gravity on the physical mass;
-    ``mass`` may be fictitious under mass scaling).
-    ``damping[b]`` is model b's coefficient (1/s), adapted between steps by dynamic relaxation;
-    a model with ``active[b]`` = 0 (converged) stands still."""
+    """Seed eq. (15) in increment form: du_(n+1) = ((R - F) dt^2 / m + (1 - a dt/2) du_n) / (1 + a dt/2),
+    u_(n+1) = u_n + du_(n+1), the same scheme as (m/dt^2 + a m/(2 dt)) u_(n+1) = R - F + 2m/dt^2 u_n
+    - (m/dt^2 - a m/(2 dt)) u_(n-1) without its float32 cancellation, and u accumulated with
+    compensation (:func:`compensated_add`). ``du`` holds the last increment (velocity x dt),
+    updated in place with ``u``. ``body_force`` is the full-load external force per node (N,
+    gravity on the physical mass; ``mass`` may be fictitious under mass scaling). ``damping[b]``
+    is model b's coefficient a (1/s), adapted between steps by dynamic relaxation; a model with
+    ``active[b]`` = 0 (converged) stands still."""
     i = wp.tid()
     if inverted[0] != 0:
         return
     if active[i // n_nodes] == 0:
-        u_prev_to_next[i] = u_curr[i]
+        du[i] = wp.vec3(0.0)
         return
-    m = mass[i]
     t = float(step[0] + 1) * dt
-    external = load_factor(t, t_total, load_shape) * body_force[i]
-    inv_dt2 = 1.0 / (dt * dt)
-    c = 0.5 * damping[i // n_nodes] / dt
-    a = 1.0 / (m * inv_dt2 + m * c)
-    u_prev_to_next[i] = a * (external - forces[i] + 2.0 * m * inv_dt2 * u_curr[i]
-                             - (m * inv_dt2 - m * c) * u_prev_to_next[i])
+    half = 0.5 * damping[i // n_nodes] * dt
+    accel = (load_factor(t, t_total, load_shape) * body_force[i] - forces[i]) / mass[i]
+    increment = (accel * (dt * dt) + (1.0 - half) * du[i]) / (1.0 + half)
+    du[i] = increment
+    compensated_add(u, low, i, increment)
+
+
+@wp.func
+def set_component(x: wp.vec3, mask: wp.vec3, value: wp.vec3) -> wp.vec3:
+    """x with the components where mask > 0 replaced by value's."""
+    return wp.vec3(wp.where(mask[0] > 0.0, value[0], x[0]), wp.where(mask[1] > 0.0, value[1], x[1]),
+                   wp.where(mask[2] > 0.0, value[2], x[2]))
 
 
 @wp.kernel
-def apply_constraints(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), mask: wp.array(dtype=wp.vec3),
+def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
+                      nodes: wp.array(dtype=int), mask: wp.array(dtype=wp.vec3),
                       value: wp.array(dtype=wp.vec3), n_nodes: int, n_constrained: int,
                       dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
                       inverted: wp.array(dtype=int)):
-    """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m)."""
+    """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m); their
+    increment becomes the change from the previous step and their compensation zero."""
     tid = wp.tid()
     if inverted[0] != 0:
         return
     b = tid // n_constrained
     k = tid - b * n_constrained
     i = b * n_nodes + nodes[k]
-    s = load_factor(float(step[0] + 1) * dt, t_total, load_shape)
     m = mask[k]
-    target = s * value[tid]
-    x = u[i]
-    u[i] = wp.vec3(wp.where(m[0] > 0.0, target[0], x[0]), wp.where(m[1] > 0.0, target[1], x[1]),
-                   wp.where(m[2] > 0.0, target[2], x[2]))
+    target = load_factor(float(step[0] + 1) * dt, t_total, load_shape) * value[tid]
+    previous = u[i] - du[i]
+    u[i] = set_component(u[i], m, target)
+    du[i] = set_component(du[i], m, target - previous)
+    low[i] = set_component(low[i], m, wp.vec3(0.0))
 
 
 @wp.kernel
-def plate_contact(u: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3), slaves: wp.array(dtype=int),
+def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
+                  x0: wp.array(dtype=wp.vec3), slaves: wp.array(dtype=int),
                   p: int, plate_point: wp.array(dtype=wp.vec3),
                   plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
                   forces: wp.array(dtype=wp.vec3), n_nodes: int, n_slaves: int, n_plates: int,
                   dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
     """Kinematic frictionless contact with rigid planes: a slave node behind its plate is moved
-    back onto it along the normal (free to slide). The plate force is the sum of the internal
-    forces of the nodes in contact: the force the plate applies to the tissue (N). One launch per
-    plate ``p``."""
+    back onto it along the normal (free to slide; its increment loses the same normal part). The
+    plate force is the sum of the internal forces of the nodes in contact: the force the plate
+    applies to the tissue (N). One launch per plate ``p``."""
     tid = wp.tid()
     if inverted[0] != 0:
         return
@@ -209,6 +230,8 @@ def plate_contact(u: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3), slave
     gap = wp.dot(x0[node] + u[i] - point, n)
     if gap < 0.0:
         u[i] = u[i] - gap * n
+        du[i] = du[i] - gap * n
+        low[i] = low[i] - wp.dot(low[i], n) * n
         wp.atomic_add(plate_force, b * n_plates + p, wp.dot(forces[i], n) * n)
 
 
@@ -222,11 +245,11 @@ def advance_step(step: wp.array(dtype=int), inverted: wp.array(dtype=int)):
 
 
 @wp.kernel
-def energies(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
-             dt: float, n_nodes: int, kinetic: wp.array(dtype=float)):
-    """Kinetic energy per model, velocity (u_curr - u_prev) / dt (J)."""
+def energies(du: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float, n_nodes: int,
+             kinetic: wp.array(dtype=float)):
+    """Kinetic energy per model at the last half step, velocity du / dt (J)."""
     i = wp.tid()
-    v = (u_curr[i] - u_prev[i]) / dt
+    v = du[i] / dt
     wp.atomic_add(kinetic, i // n_nodes, 0.5 * mass[i] * wp.dot(v, v))
 
 
@@ -258,6 +281,15 @@ def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.
     du = u_curr[i] - u_prev[i]
     wp.atomic_add(stiffness, b, wp.dot(du, f_curr[i] - f_prev[i]))
     wp.atomic_add(inertia, b, mass[i] * wp.dot(du, du))
+
+
+@wp.kernel
+def largest_change(u: wp.array(dtype=wp.vec3), reference: wp.array(dtype=wp.vec3), n_nodes: int,
+                   largest: wp.array(dtype=float)):
+    """Per model the largest component of |u - reference| (m)."""
+    i = wp.tid()
+    d = wp.abs(u[i] - reference[i])
+    wp.atomic_max(largest, i // n_nodes, wp.max(d))
 
 
 @wp.kernel

@@ -2,9 +2,10 @@
 
 Precomputed once: reference shape-function derivatives and volumes of the four-node tets, lumped
 nodal masses, the critical time step. Each step: (ANP nodal pressures), element forces, central
-difference update with mass-proportional damping (seed eq. (15)), prescribed components, plate
-contact. The step loop has no host synchronisation: on CUDA it replays a captured graph of two
-steps (the displacement buffers swap roles each step). Energies, plate forces and the
+difference update with mass-proportional damping (seed eq. (15)) in increment form, with the
+displacement accumulated in float32 plus a compensation term (Kahan summation, see
+``kernels.central_difference``), prescribed components, plate contact. The step loop has no host
+synchronisation: on CUDA it replays a captured graph of two steps. Energies, plate forces and the
 inverted-element flag are read every ``sample_every`` steps.
 """
 
@@ -27,27 +28,34 @@ MM = 1e-3  # metres per millimetre
 
 
 class DistanceToRest:
-    """Estimated distance (mm) each model still has to travel, from samples of its displacement:
-    with c_k = max |u_k - u_(k-1)| between samples and r = c_k / c_(k-1) the observed contraction,
-    the remaining travel of a geometric approach is c_k r / (1 - r) (inf while not contracting).
-    Changes over a whole sampling interval, not single steps, so that float32 round-off of the
-    displacement (about 1e-6 mm) does not drown the estimate near convergence."""
+    """Estimated distance (mm) each of B models still has to travel, from its displacement
+    sampled on the device: with c_k = max |u_k - u_(k-1)| between samples and r = c_k / c_(k-1)
+    the observed contraction, the remaining travel of a geometric approach is c_k r / (1 - r)
+    (inf while not contracting). Changes over a whole sampling interval, not single steps, so
+    that float32 round-off of the displacement (about 1e-6 mm) does not drown the estimate near
+    convergence. Only B numbers per sample come back to the host."""
 
-    def __init__(self) -> None:
-        self._sample = None
+    def __init__(self, like: wp.array, n_models: int) -> None:
+        self._sample = wp.zeros_like(like)
+        self._largest = wp.zeros(n_models, dtype=float)
+        self._n_nodes = like.shape[0] // n_models
+        self._samples = 0
         self._change = None
 
-    def update(self, displacement_mm: np.ndarray) -> np.ndarray | None:
-        """``displacement_mm`` (B, N, 3); returns (B,) estimates from the third sample on."""
-        now = np.array(displacement_mm, dtype=np.float64)  # a copy: on the CPU wp.array.numpy() is a view
+    def update(self, u: wp.array) -> np.ndarray | None:
+        """``u`` the displacement (m) of the B models; returns (B,) estimates (mm) from the third
+        sample on."""
         remaining = None
-        if self._sample is not None:
-            change = np.abs(now - self._sample).max(axis=(1, 2))
+        if self._samples:
+            self._largest.zero_()
+            wp.launch(k.largest_change, u.shape[0], [u, self._sample, self._n_nodes, self._largest])
+            change = self._largest.numpy().astype(np.float64) / MM
             if self._change is not None:
                 rate = change / np.maximum(self._change, 1e-300)
                 remaining = np.where(rate < 1.0, change * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
             self._change = change
-        self._sample = now
+        wp.copy(self._sample, u)
+        self._samples += 1
         return remaining
 
 
@@ -315,7 +323,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_x0 = arr(nodes, wp.vec3)
         u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.tile(
             np.asarray(initial_displacement, float).reshape(N, 3) * MM, (B, 1))
-        u = [arr(u0, wp.vec3), arr(u0, wp.vec3)]
+        # the state: displacement u (m), its float32 rounding remainder and the last increment
+        u, low, du = arr(u0, wp.vec3), wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
+        scratch = wp.zeros(B * N, dtype=wp.vec3)
         forces = wp.zeros(B * N, dtype=wp.vec3)
         pressure = wp.zeros(B * N, dtype=float)
         step = wp.zeros(1, dtype=int)
@@ -358,33 +368,34 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                                  use_anp, pressure_buffer, d_nodevol, K, d_prony_g, d_prony_decay,
                                                  visco_state, update_state, N, M, step, out, flags])
 
-        def one_step(curr, prev):
+        def one_step():
             plate_force.zero_()
-            internal_force(curr, forces, pressure, inverted, update_state=1)
-            wp.launch(k.central_difference, B * N, [curr, prev, forces, d_mass, d_body_force, d_damping, d_active, N,
-                                                     float(dt), step, float(total), load_shape, inverted])
+            internal_force(u, forces, pressure, inverted, update_state=1)
+            wp.launch(k.central_difference, B * N, [u, low, du, forces, d_mass, d_body_force, d_damping, d_active,
+                                                     N, float(dt), step, float(total), load_shape, inverted])
             if n_con:
-                wp.launch(k.apply_constraints, B * n_con, [prev, d_cnodes, d_cmask, d_cvals, N, n_con,
+                wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, N, n_con,
                                                             float(dt), step, float(total), load_shape,
                                                             inverted])
             for p, d_sl in enumerate(d_slaves):
                 if d_sl.shape[0]:
-                    wp.launch(k.plate_contact, B * d_sl.shape[0], [prev, d_x0, d_sl, p, d_ppoint, d_pnormal,
+                    wp.launch(k.plate_contact, B * d_sl.shape[0], [u, low, du, d_x0, d_sl, p, d_ppoint, d_pnormal,
                                                                     d_pmotion, forces, N, d_sl.shape[0], P,
                                                                     float(dt), step, float(total), load_shape,
                                                                     plate_force, inverted])
             wp.launch(k.advance_step, 1, [step, inverted])
 
         def two_steps():
-            one_step(u[1], u[0])  # u[0] becomes u_{n+1}
-            one_step(u[0], u[1])
+            one_step()
+            one_step()
 
         graph = None
         if device.is_cuda:
             two_steps()  # compile and warm up outside the capture
             step.zero_()
-            u[0].assign(u0.astype(f32))
-            u[1].assign(u0.astype(f32))
+            u.assign(u0.astype(f32))
+            low.zero_()
+            du.zero_()
             inverted.zero_()
             visco_state.zero_()
             with wp.ScopedCapture() as capture:
@@ -404,7 +415,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         converged_at = np.zeros(B, int)
         converged_forces = np.zeros((B, P, 3))
         settled_checks = 0
-        distance_to_rest = DistanceToRest()
+        distance_to_rest = DistanceToRest(u, B)
         pressure_tmp = wp.zeros(B * N, dtype=float)
         no_flags = wp.zeros(4, dtype=int)
 
@@ -417,14 +428,13 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             # a whole update interval (single-step changes near rest are float32 noise, whose
             # quotient grows towards the highest modes and overdamps the slow ones)
             f_curr, f_last = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
-            u_last = wp.clone(u[1])
+            u_last = wp.clone(u)
             probe_force(u_last, f_last)
             stiffness, inertia = wp.zeros(B, dtype=float), wp.zeros(B, dtype=float)
-        latest = u[1]  # after an even number of steps u[1] holds u_n and u[0] u_{n-1}
         wp.synchronize_device(device)
         started = time.perf_counter()
         monitor = StableStepMonitor(probe_force, d_mass, B, N, 1e-3 * float(np.median(length)), d_cnodes, d_cmask)
-        stable_step = monitor.iterate(u[1], iterations=20)
+        stable_step = monitor.iterate(u, iterations=20)
         mass_rescales = 0
 
         def keep_step_stable(stable):
@@ -457,8 +467,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             internal.zero_()
             # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
             # u_{n-1}: the pair the central-difference scheme conserves to second order
-            wp.launch(k.energies, B * N, [u[1], u[0], d_mass, float(dt), N, kinetic])
-            for state in u:
+            wp.launch(k.energies, B * N, [du, d_mass, float(dt), N, kinetic])
+            wp.launch(k.perturbed, B * N, [u, du, -1.0, scratch])  # u_(n-1)
+            for state in (u, scratch):
                 wp.launch(k.internal_energy, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta,
                                                       d_fibre, N, M, internal])
             ke, ie = kinetic.numpy().astype(float), 0.5 * internal.numpy().astype(float)
@@ -472,15 +483,14 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 message = (f"{flags[0]} element(s) inverted (J <= 0) at step {flags[2]} (t = {flags[2] * dt:.4g} s), "
                            f"first element {flags[1]}; the displacement returned is that configuration. Reduce "
                            "the load, refine the mesh there or check the constraints")
-                latest = u[1] if flags[2] % 2 == 0 else u[0]
                 break
             if not np.all(np.isfinite(ke)) or not np.all(np.isfinite(ie)):
                 status, message = "unstable", (f"the solution diverged by step {done}; reduce the time step "
                                                f"(now {dt:.3g} s) or the safety factor")
                 break
             if relaxation is not None:  # the relaxation update below needs the same forces
-                probe_force(u[1], f_curr)
-            stable_step = monitor.iterate(u[1], base_force=f_curr if relaxation is not None else None)
+                probe_force(u, f_curr)
+            stable_step = monitor.iterate(u, base_force=f_curr if relaxation is not None else None)
             history["stable_time_step"].append(stable_step)
             if relaxation is not None:
                 stable_step = keep_step_stable(stable_step)
@@ -493,7 +503,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
             if steady_state_mm is not None and done * dt >= total - 0.5 * dt:
-                remaining = distance_to_rest.update(u[1].numpy().reshape(B, N, 3) / MM)
+                remaining = distance_to_rest.update(u)
                 if remaining is not None:
                     at_rest = np.all(remaining < steady_state_mm) and np.all(ke < 1e-3 * np.maximum(ie, 1e-30))
                     settled_checks = settled_checks + 1 if at_rest else 0
@@ -505,15 +515,15 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if relaxation is not None:
                 for a in (stiffness, inertia):
                     a.zero_()
-                wp.launch(k.relaxation_terms, B * N, [u[1], u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
-                wp.copy(u_last, u[1])
+                wp.launch(k.relaxation_terms, B * N, [u, u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
+                wp.copy(u_last, u)
                 wp.copy(f_last, f_curr)
                 lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
                 if done * dt >= total:
                     ok = lam > 0
                     damping[ok] = np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt)
                     d_damping.assign(damping.astype(f32))
-                    remaining = distance_to_rest.update(u[1].numpy().reshape(B, N, 3) / MM)
+                    remaining = distance_to_rest.update(u)
                     if remaining is not None:
                         running = active == 1
                         estimated_error[running] = remaining[running]
@@ -532,7 +542,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                 break
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
-        displacement = latest.numpy().reshape(B, N, 3).astype(np.float64) / MM
+        displacement = u.numpy().reshape(B, N, 3).astype(np.float64) / MM
 
     statuses, messages, steps = [status] * B, [message] * B, [done] * B
     if relaxation is not None:
