@@ -64,8 +64,8 @@ class DynamicRelaxation:
     """Fast path to the static solution (Joldes, Wittek & Miller): element densities scaled so
     every element has the same stable step (mass scaling), the load applied over
     ``load_iterations`` steps, then damping set every ``update_every`` steps to twice the square
-    root of the lowest eigenvalue, estimated by the Rayleigh quotient of the last displacement
-    increment; stop when the estimated distance to the static solution (:class:`DistanceToRest`,
+    root of the lowest eigenvalue, estimated by the Rayleigh quotient of the displacement change
+    since the previous update; stop when the estimated distance to the static solution (:class:`DistanceToRest`,
     from the displacement change between updates) is below ``tolerance_mm`` for every model of
     the batch. Time in a relaxation run is fictitious.
 
@@ -77,7 +77,7 @@ class DynamicRelaxation:
     load_iterations: int = 1000
     tolerance_mm: float = 0.01
     max_iterations: int = 50_000
-    update_every: int = 100
+    update_every: int = 200
 
     def load_iterations_for(self, travel_mm: float, wave_speed_ratio: float, length_m: float, safety: float) -> int:
         """Iterations to apply a load whose prescribed boundaries move up to ``travel_mm``: at
