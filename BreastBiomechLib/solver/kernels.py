@@ -150,7 +150,8 @@ def compensated_add(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), i:
 
 @wp.kernel
 def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                       forces: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                       forces: wp.array(dtype=wp.vec3), pressure_volume: wp.array(dtype=float),
+                       plate_force: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                        body_force: wp.array(dtype=wp.vec3),
                        damping: wp.array(dtype=float), active: wp.array(dtype=int), n_nodes: int, dt: float,
                        step: wp.array(dtype=int), t_total: float, load_shape: int, inverted: wp.array(dtype=int)):
@@ -161,8 +162,13 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
     updated in place with ``u``. ``body_force`` is the full-load external force per node (N,
     gravity on the physical mass; ``mass`` may be fictitious under mass scaling). ``damping[b]``
     is model b's coefficient a (1/s), adapted between steps by dynamic relaxation; a model with
-    ``active[b]`` = 0 (converged) stands still."""
+    ``active[b]`` = 0 (converged) stands still. Also clears what the next kernels of the step
+    accumulate into (fewer graph nodes than separate memsets): the ANP pressures, already used,
+    and the plate forces, which the contact kernels sum next."""
     i = wp.tid()
+    pressure_volume[i] = 0.0
+    if i < plate_force.shape[0]:
+        plate_force[i] = wp.vec3(0.0)
     if inverted[0] != 0:
         return
     if active[i // n_nodes] == 0:
@@ -236,12 +242,16 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
 
 
 @wp.kernel
-def advance_step(step: wp.array(dtype=int), inverted: wp.array(dtype=int)):
-    """Next step, or freeze the loop once an inverted element was found."""
-    if inverted[0] != 0:
-        inverted[3] = 1
-    else:
-        step[0] = step[0] + 1
+def finish_step(forces: wp.array(dtype=wp.vec3), step: wp.array(dtype=int), inverted: wp.array(dtype=int)):
+    """End of a step: clear the internal forces for the next one, and advance the step counter
+    (or freeze the loop once an inverted element was found)."""
+    i = wp.tid()
+    forces[i] = wp.vec3(0.0)
+    if i == 0:
+        if inverted[0] != 0:
+            inverted[3] = 1
+        else:
+            step[0] = step[0] + 1
 
 
 @wp.kernel

@@ -357,21 +357,22 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                         wp.vec3)
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
-        def internal_force(state, out, pressure_buffer, flags, update_state=0):
+        def internal_force(state, out, pressure_buffer, flags, update_state=0, cleared=False):
             """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``);
-            ``update_state`` advances the visco state variables by one step."""
-            out.zero_()
-            if use_anp:
+            ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
+            and ``pressure_buffer`` are zero already (the step kernels clear them)."""
+            if not cleared:
+                out.zero_()
                 pressure_buffer.zero_()
+            if use_anp:
                 wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure_buffer])
             wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
                                                  use_anp, pressure_buffer, d_nodevol, K, d_prony_g, d_prony_decay,
                                                  visco_state, update_state, N, M, step, out, flags])
 
         def one_step():
-            plate_force.zero_()
-            internal_force(u, forces, pressure, inverted, update_state=1)
-            wp.launch(k.central_difference, B * N, [u, low, du, forces, d_mass, d_body_force, d_damping, d_active,
+            internal_force(u, forces, pressure, inverted, update_state=1, cleared=True)
+            wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_force, d_damping, d_active,
                                                      N, float(dt), step, float(total), load_shape, inverted])
             if n_con:
                 wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, N, n_con,
@@ -383,7 +384,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                                                     d_pmotion, forces, N, d_sl.shape[0], P,
                                                                     float(dt), step, float(total), load_shape,
                                                                     plate_force, inverted])
-            wp.launch(k.advance_step, 1, [step, inverted])
+            wp.launch(k.finish_step, B * N, [forces, step, inverted])
 
         def two_steps():
             one_step()
@@ -396,6 +397,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             u.assign(u0.astype(f32))
             low.zero_()
             du.zero_()
+            forces.zero_()
+            pressure.zero_()
             inverted.zero_()
             visco_state.zero_()
             with wp.ScopedCapture() as capture:
