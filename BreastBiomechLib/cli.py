@@ -83,6 +83,7 @@ def cmd_simulate(args) -> int:
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.tetmesh import TetMesh
     from BreastBiomechLib.solver import solve
+    from BreastBiomechLib.solver.static import solve_static
 
     model, settings = read_case(args.case)
     device = args.device or settings.device
@@ -94,8 +95,11 @@ def cmd_simulate(args) -> int:
     def report(fraction):
         print(f"\r  {fraction:6.1%} of the step budget", end="", file=sys.stderr, flush=True)
 
-    solution = solve(model, device=device, relaxation=relaxation, progress=None if args.quiet else report,
-                     steady_state_mm=settings.steady_state_mm)
+    if settings.method == "static":
+        solution = solve_static(model, increments=settings.increments)
+    else:
+        solution = solve(model, device=device, relaxation=relaxation, progress=None if args.quiet else report,
+                         steady_state_mm=settings.steady_state_mm)
     if not args.quiet:
         print(file=sys.stderr)
     out = Path(args.out)

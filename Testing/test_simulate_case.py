@@ -72,6 +72,20 @@ def test_relaxation_is_the_default_method(tmp_path):
     assert json.loads((tmp_path / "out" / "solution.json").read_text())["estimated_error_mm"] < 0.005
 
 
+def test_static_method_gives_the_settled_physical_solution(tmp_path):
+    physical_path, _, _ = _case(tmp_path)
+    (tmp_path / "static").mkdir()
+    static_path, _, _ = _case(tmp_path / "static", solver={"method": "static", "increments": 2})
+    assert main(["simulate", str(physical_path), "--out", str(tmp_path / "physical"), "--quiet"]) == 0
+    assert main(["simulate", str(static_path), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    physical = read_vtu(tmp_path / "physical" / "deformed.vtu").point_data["displacement"]
+    static = read_vtu(tmp_path / "out" / "deformed.vtu").point_data["displacement"]
+    summary = json.loads((tmp_path / "out" / "solution.json").read_text())
+    assert summary["status"] == "completed" and "Newton" in summary["message"]
+    assert np.abs(static - physical).max() < 0.01
+    assert summary["history"]["load_fraction"] == [0.5, 1.0]
+
+
 @pytest.mark.parametrize("change, message", [
     ({"materials": {"fat": {"E": 10e3, "nu": 0.45}}}, r"no material given for tissue labels \[2\]"),
     ({"materials": {"fat": {"nu": 0.45}, "glandular": {"E": 1, "nu": 0.4}}}, "needs 'E'"),
@@ -81,6 +95,7 @@ def test_relaxation_is_the_default_method(tmp_path):
     ({"constraints": [{"nodes": [0], "components": "xq"}]}, "letters of 'xyz'"),
     ({"solver": {"method": "implicit"}}, "solver method"),
     ({"solver": {"steady_state_mm": 0.01}}, "steady_state_mm applies to the physical method"),
+    ({"solver": {"increments": 3}}, "increments apply to the static method"),
     ({"solver": {"tolerance": 0.01}}, r"unknown solver settings \['tolerance'\]"),
 ])
 def test_bad_cases_are_refused_with_the_reason(tmp_path, change, message):

@@ -21,25 +21,30 @@ from BreastBiomechLib.solver.materials import ElementMaterials, Material
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
 from BreastBiomechLib.solver.tled import DynamicRelaxation
 
-SOLVER_METHODS = ("relaxation", "physical")
+SOLVER_METHODS = ("relaxation", "physical", "static")
 
 
 @dataclass
 class SolverSettings:
-    """How to solve a case: ``method`` "relaxation" (static solution, fast) or "physical"
-    (explicit dynamics in physical time), the device ("cuda", "cpu", or None for warp's default),
-    the dynamic-relaxation settings, and for physical time the optional early stop at steady state."""
+    """How to solve a case: ``method`` "relaxation" (static solution, fast), "physical"
+    (explicit dynamics in physical time) or "static" (the Newton reference of
+    :mod:`BreastBiomechLib.solver.static`: CPU, float64, small models), the device ("cuda",
+    "cpu", or None for warp's default), the dynamic-relaxation settings, for physical time the
+    optional early stop at steady state, and for static the number of load increments."""
 
     method: str = "relaxation"
     device: str | None = None
     relaxation: DynamicRelaxation = field(default_factory=DynamicRelaxation)
     steady_state_mm: float | None = None  # physical time: stop settling once this close to rest
+    increments: int | None = None  # static: load steps (None: the solver's default)
 
     def __post_init__(self) -> None:
         if self.method not in SOLVER_METHODS:
             raise ValueError(f"solver method must be one of {SOLVER_METHODS}, not {self.method!r}")
         if self.steady_state_mm is not None and self.method != "physical":
             raise ValueError("steady_state_mm applies to the physical method; relaxation has tolerance_mm")
+        if self.increments is not None and self.method != "static":
+            raise ValueError("increments apply to the static method")
 
 
 def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
@@ -116,12 +121,14 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
     method = solver.pop("method", "relaxation")
     device = solver.pop("device", None)
     steady = solver.pop("steady_state_mm", None)
+    increments = solver.pop("increments", None)
     try:
         relaxation = DynamicRelaxation(**solver)
     except TypeError:
         raise ValueError(f"{path}: unknown solver settings {sorted(solver)}; use method, device, steady_state_mm, "
-                         "load_iterations, tolerance_mm, max_iterations, update_every") from None
-    return model, SolverSettings(method, device, relaxation, None if steady is None else float(steady))
+                         "increments, load_iterations, tolerance_mm, max_iterations, update_every") from None
+    return model, SolverSettings(method, device, relaxation, None if steady is None else float(steady),
+                                 None if increments is None else int(increments))
 
 
 def read_case(path: str | Path) -> tuple[Model, SolverSettings]:
