@@ -99,7 +99,7 @@ def cmd_simulate(args) -> int:
         solution = solve_static(model, increments=settings.increments)
     else:
         solution = solve(model, device=device, relaxation=relaxation, progress=None if args.quiet else report,
-                         steady_state_mm=settings.steady_state_mm)
+                         steady_state_mm=settings.steady_state_mm, mass_scaling=settings.mass_scaling)
     if not args.quiet:
         print(file=sys.stderr)
     out = Path(args.out)

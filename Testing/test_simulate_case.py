@@ -72,7 +72,7 @@ def test_relaxation_is_the_default_method(tmp_path):
     assert json.loads((tmp_path / "out" / "solution.json").read_text())["estimated_error_mm"] < 0.005
 
 
-def test_static_method_gives_the_settled_physical_solution(tmp_path):
+def test_static_method_gives_the_settled_physical_solution_with_and_without_mass_scaling(tmp_path):
     physical_path, _, _ = _case(tmp_path)
     (tmp_path / "static").mkdir()
     static_path, _, _ = _case(tmp_path / "static", solver={"method": "static", "increments": 2})
@@ -84,6 +84,12 @@ def test_static_method_gives_the_settled_physical_solution(tmp_path):
     assert summary["status"] == "completed" and "Newton" in summary["message"]
     assert np.abs(static - physical).max() < 0.01
     assert summary["history"]["load_fraction"] == [0.5, 1.0]
+    (tmp_path / "scaled").mkdir()
+    scaled_path, _, _ = _case(tmp_path / "scaled", solver={"method": "physical", "device": "cpu", "mass_scaling": True})
+    assert main(["simulate", str(scaled_path), "--out", str(tmp_path / "scaled_out"), "--quiet"]) == 0
+    scaled = read_vtu(tmp_path / "scaled_out" / "deformed.vtu").point_data["displacement"]
+    assert "mass scaling" in json.loads((tmp_path / "scaled_out" / "solution.json").read_text())["message"]
+    assert np.abs(scaled - static).max() < 0.01
 
 
 @pytest.mark.parametrize("change, message", [
@@ -96,6 +102,8 @@ def test_static_method_gives_the_settled_physical_solution(tmp_path):
     ({"solver": {"method": "implicit"}}, "solver method"),
     ({"solver": {"steady_state_mm": 0.01}}, "steady_state_mm applies to the physical method"),
     ({"solver": {"increments": 3}}, "increments apply to the static method"),
+    ({"solver": {"mass_scaling": True}}, "mass_scaling applies to the physical method"),
+    ({"solver": {"method": "physical", "mass_scaling": "yes"}}, "true or false"),
     ({"solver": {"tolerance": 0.01}}, r"unknown solver settings \['tolerance'\]"),
 ])
 def test_bad_cases_are_refused_with_the_reason(tmp_path, change, message):

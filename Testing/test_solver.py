@@ -300,6 +300,8 @@ def test_dynamic_relaxation_reaches_the_physical_time_solution():
     assert np.abs(early.displacement - physical.displacement).max() < 0.02
     with pytest.raises(ValueError, match="steady_state_mm"):
         solve(hemi_ellipsoid_compression(10.0), device="cpu", relaxation=DynamicRelaxation(), steady_state_mm=0.1)
+    with pytest.raises(ValueError, match="mass_scaling"):
+        solve(hemi_ellipsoid_compression(10.0), device="cpu", relaxation=DynamicRelaxation(), mass_scaling=True)
     capped = solve(hemi_ellipsoid_compression(10.0), device="cpu",
                    relaxation=DynamicRelaxation(load_iterations=300, max_iterations=600, tolerance_mm=1e-6))
     assert capped.status == "not converged" and "estimated error" in capped.message

@@ -30,13 +30,15 @@ class SolverSettings:
     (explicit dynamics in physical time) or "static" (the Newton reference of
     :mod:`BreastBiomechLib.solver.static`: CPU, float64, small models), the device ("cuda",
     "cpu", or None for warp's default), the dynamic-relaxation settings, for physical time the
-    optional early stop at steady state, and for static the number of load increments."""
+    optional early stop at steady state and mass scaling, and for static the number of load
+    increments."""
 
     method: str = "relaxation"
     device: str | None = None
     relaxation: DynamicRelaxation = field(default_factory=DynamicRelaxation)
     steady_state_mm: float | None = None  # physical time: stop settling once this close to rest
     increments: int | None = None  # static: load steps (None: the solver's default)
+    mass_scaling: bool = False  # physical time: scale element masses up to a common stable step
 
     def __post_init__(self) -> None:
         if self.method not in SOLVER_METHODS:
@@ -45,6 +47,8 @@ class SolverSettings:
             raise ValueError("steady_state_mm applies to the physical method; relaxation has tolerance_mm")
         if self.increments is not None and self.method != "static":
             raise ValueError("increments apply to the static method")
+        if self.mass_scaling and self.method != "physical":
+            raise ValueError("mass_scaling applies to the physical method (relaxation always scales masses)")
 
 
 def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
@@ -122,13 +126,16 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
     device = solver.pop("device", None)
     steady = solver.pop("steady_state_mm", None)
     increments = solver.pop("increments", None)
+    mass_scaling = solver.pop("mass_scaling", False)
+    if not isinstance(mass_scaling, bool):
+        raise ValueError(f"{path}: solver mass_scaling must be true or false")
     try:
         relaxation = DynamicRelaxation(**solver)
     except TypeError:
         raise ValueError(f"{path}: unknown solver settings {sorted(solver)}; use method, device, steady_state_mm, "
-                         "increments, load_iterations, tolerance_mm, max_iterations, update_every") from None
+                         "increments, mass_scaling, load_iterations, tolerance_mm, max_iterations, update_every") from None
     return model, SolverSettings(method, device, relaxation, None if steady is None else float(steady),
-                                 None if increments is None else int(increments))
+                                 None if increments is None else int(increments), mass_scaling)
 
 
 def read_case(path: str | Path) -> tuple[Model, SolverSettings]:

@@ -220,13 +220,15 @@ def _step_too_large(t: float, stable: float, dt: float) -> str:
 
 def solve(model: Model, device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
           initial_displacement: np.ndarray | None = None, relaxation: DynamicRelaxation | None = None,
-          progress: Callable[[float], bool | None] | None = None, steady_state_mm: float | None = None) -> Solution:
+          progress: Callable[[float], bool | None] | None = None, steady_state_mm: float | None = None,
+          mass_scaling: bool = False) -> Solution:
     """Solve one model; ``device`` "cpu", "cuda" or None (warp's default: CUDA when present).
     With ``relaxation`` the static solution is found by dynamic relaxation (fast path).
     See :func:`solve_batch` for the other arguments."""
     return solve_batch(model, [model.materials], device=device, sample_every=sample_every,
                        ke_ie_limit=ke_ie_limit, initial_displacement=initial_displacement,
-                       relaxation=relaxation, progress=progress, steady_state_mm=steady_state_mm)[0]
+                       relaxation=relaxation, progress=progress, steady_state_mm=steady_state_mm,
+                       mass_scaling=mass_scaling)[0]
 
 
 def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
@@ -234,7 +236,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 initial_displacement: np.ndarray | None = None,
                 relaxation: DynamicRelaxation | None = None,
                 progress: Callable[[float], bool | None] | None = None,
-                steady_state_mm: float | None = None) -> list[Solution]:
+                steady_state_mm: float | None = None, mass_scaling: bool = False) -> list[Solution]:
     """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
     ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm. All variants
     use the smallest critical step of the batch, so results equal separate solves at that step.
@@ -249,12 +251,22 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     (1 - r) from the displacement change du between samples and its contraction r, is below
     ``steady_state_mm`` at two samples in a row and KE/IE is below 1e-3. (KE/IE alone would stop
     too early: slow overdamped modes such as sliding on the chest wall carry almost no kinetic
-    energy.)"""
+    energy.)
+
+    ``mass_scaling`` (physical time): scale each element's density so that every element has
+    the stable step of the median element (and raise the masses further where the stable-step
+    check finds the model stiffer), as dynamic relaxation does, but keep the physical load
+    history and damping. For quasi-static loading only: inertia is no longer physical (KE/IE
+    then measures the fictitious masses), gravity still acts on the physical masses. It pays on
+    meshes with slivers or very stiff small elements, whose critical step sets the pace."""
     wp.init()
     device = _device(device)
     if steady_state_mm is not None and (relaxation is not None or steady_state_mm <= 0):
         raise ValueError("steady_state_mm is a positive distance (mm) for physical-time solves; dynamic "
                          "relaxation has its own tolerance")
+    if mass_scaling and relaxation is not None:
+        raise ValueError("mass_scaling is an option of physical-time solves; dynamic relaxation always scales masses")
+    scaled = mass_scaling or relaxation is not None
     B, N, M = len(materials), len(model.mesh.nodes), len(model.mesh.tets)
     if B == 0:
         raise ValueError("solve_batch needs at least one material set")
@@ -275,15 +287,19 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
     node_volume = np.bincount(tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
     length = characteristic_lengths(nodes, model.mesh.tets, vol)
-    if relaxation is None:
-        densities = [mat.density for mat in materials]
-        dt = model.time_step or model.safety * critical_time_step(model, materials, length)
-        total = model.loading.total_time
-        n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
-    else:  # mass scaling: every element's stable step becomes dt / safety (fictitious time)
+    if scaled:  # mass scaling: every element's stable step becomes dt / safety
         dt = model.safety * float(np.median(length / np.sqrt((materials[0].kappa + 4 * materials[0].mu / 3)
                                                               / materials[0].density)))
         densities = [(mat.kappa + 4.0 * mat.mu / 3.0) * (dt / (model.safety * length)) ** 2 for mat in materials]
+        if relaxation is None:  # physical time: only add mass, where elements are below the step
+            densities = [np.maximum(rho, mat.density) for rho, mat in zip(densities, materials)]
+    else:
+        densities = [mat.density for mat in materials]
+        dt = model.time_step or model.safety * critical_time_step(model, materials, length)
+    if relaxation is None:
+        total = model.loading.total_time
+        n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
+    else:  # fictitious time
         travel = max([np.abs(np.asarray(d, float)).max(initial=0.0) for d in plate_displacements]
                      + [np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
         ratio = max(float(np.max(np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.mu))) for m in materials)
@@ -441,7 +457,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         mass_rescales = 0
 
         def keep_step_stable(stable):
-            """Dynamic relaxation: where the model is stiffer than the element estimate (or got
+            """Mass scaling: where the model is stiffer than the element estimate (or got
             stiffer as it deformed) make its fictitious masses heavier so that the step stays at
             80 % of the stable one; the static solution does not depend on them."""
             nonlocal mass_rescales
@@ -454,7 +470,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             mass_rescales += 1
             return stable * np.sqrt(grow)
 
-        if relaxation is not None:
+        if scaled:
             stable_step = keep_step_stable(stable_step)
         elif dt > stable_step.min():
             status, message = "unstable", _step_too_large(0.0, stable_step.min(), dt)
@@ -495,7 +511,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 probe_force(u, f_curr)
             stable_step = monitor.iterate(u, base_force=f_curr if relaxation is not None else None)
             history["stable_time_step"].append(stable_step)
-            if relaxation is not None:
+            if scaled:
                 stable_step = keep_step_stable(stable_step)
             elif dt > stable_step.min():
                 status, message = "unstable", _step_too_large(done * dt, stable_step.min(), dt)
@@ -567,6 +583,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         statuses = ["energy criterion exceeded"] * B
         messages = [(f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
                    f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")] * B
+    if mass_scaling:
+        physical = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(m.density * vol / 4.0, 4),
+                                               minlength=N) for m in materials]).reshape(B, N).sum(axis=1)
+        ratio = mass.reshape(B, N).sum(axis=1) / physical
+        messages = [f"{m}; mass scaling: total mass x{r:.3g}, time step {dt:.3g} s" for m, r in zip(messages, ratio)]
     solutions = []
     for b in range(B):
         hist = {"time": np.array(history["time"]),
