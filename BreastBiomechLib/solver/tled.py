@@ -307,8 +307,13 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         total = load_iterations * dt
         n_steps = max(relaxation.max_iterations, 2 * load_iterations)
         sample_every = relaxation.update_every
-    mass = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=N)
-                           for rho in densities])
+    def lumped(element_density):
+        """Nodal masses (kg) of the B models: a quarter of each element's mass at its nodes."""
+        return np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=N)
+                               for rho in element_density])
+
+    mass = lumped(densities)
+    weight = lumped([m.density for m in materials])  # physical masses: gravity acts on these
     if np.any(mass <= 0):
         raise ValueError("some nodes belong to no element (zero mass); remove unused nodes")
     load_shape = {"POLY345": k.LOAD_POLY345, "RAMP": k.LOAD_RAMP}[model.loading.load_shape]
@@ -348,8 +353,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         inverted = wp.zeros(4, dtype=int)
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
         # gravity acts on the physical masses, also where dynamic relaxation scales them
-        weight = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(m.density * vol / 4.0, 4), minlength=N)
-                                 for m in materials])
         d_body_force = arr(weight[:, None] * model.loading.gravity, wp.vec3)
         # dynamic relaxation starts critically damped for a mode of period ~ the loading time
         damping = np.full(B, model.damping if relaxation is None else 4.0 * np.pi / total)
@@ -584,9 +587,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         messages = [(f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
                    f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")] * B
     if mass_scaling:
-        physical = np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(m.density * vol / 4.0, 4),
-                                               minlength=N) for m in materials]).reshape(B, N).sum(axis=1)
-        ratio = mass.reshape(B, N).sum(axis=1) / physical
+        ratio = mass.reshape(B, N).sum(axis=1) / weight.reshape(B, N).sum(axis=1)
         messages = [f"{m}; mass scaling: total mass x{r:.3g}, time step {dt:.3g} s" for m, r in zip(messages, ratio)]
     solutions = []
     for b in range(B):
