@@ -135,7 +135,8 @@ class Discretisation:
                           shape=(n, self.n_nodes))
         FinvT_dN = np.einsum("mlk,mal->mak", np.linalg.inv(F), self.dhdx)  # (F^-T dN_a)_k
         d = (self.kappa * self.vol * np.linalg.det(F))[:, None, None] * FinvT_dN
-        H = sp.csr_matrix(((np.repeat(d.reshape(M, 1, 12), 4, axis=1) / self.node_volume[self.tets][:, :, None]).ravel(),
+        per_node = np.repeat(d.reshape(M, 1, 12), 4, axis=1) / self.node_volume[self.tets][:, :, None]
+        H = sp.csr_matrix((per_node.ravel(),
                            (np.repeat(self.tets, 12, axis=1).ravel(), np.tile(self.dofs, (1, 4)).ravel())),
                           shape=(self.n_nodes, n))
         return K, G, H
@@ -170,9 +171,9 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
     """Static equilibrium of ``model`` at full load (plates at their final positions, prescribed
     components at their final values, full gravity), by incremental Newton iterations.
 
-    Each of ``increments`` (10 by default) equal load steps is solved by Newton's method on the free components
-    with the plates' active contact nodes held on them (Lagrange multipliers), until the largest
-    correction is below ``tolerance_mm``; then nodes behind a plate join its active set and
+    Each of ``increments`` (10 by default) equal load steps is solved by Newton's method on the
+    free components with the plates' active contact nodes held on them (Lagrange multipliers),
+    until the largest correction is below ``tolerance_mm``; then nodes behind a plate join its active set and
     nodes the plate would pull leave it, and the step is solved again until the set no longer
     changes. A step that inverts elements or does not converge is halved, down to
     1/2^``max_cuts`` of the initial increment, and grows back after each step that converges.

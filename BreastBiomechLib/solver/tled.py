@@ -391,8 +391,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
 
         def one_step():
             internal_force(u, forces, pressure, inverted, update_state=1, cleared=True)
-            wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_force, d_damping, d_active,
-                                                     N, float(dt), step, float(total), load_shape, inverted])
+            wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_force,
+                                                     d_damping, d_active, N, float(dt), step, float(total),
+                                                     load_shape, inverted])
             if n_con:
                 wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, N, n_con,
                                                             float(dt), step, float(total), load_shape,
