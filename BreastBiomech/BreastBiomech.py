@@ -16,6 +16,7 @@ import os
 import slicer
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    ParameterNodeLogic,
     ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
@@ -197,7 +198,7 @@ class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget
 #
 
 
-class BreastBiomechLogic:
+class BreastBiomechLogic(ParameterNodeLogic):
     """Phantom cases into MRML nodes. No Qt: runs in Slicer and headless (slicer-core wheel).
 
     ``scene`` defaults to ``slicer.mrmlScene`` inside the application."""
@@ -206,14 +207,6 @@ class BreastBiomechLogic:
     DEFAULTS = {"case": 0, "seed": 1, "volumeCm3": 800.0, "density": 0.25, "tumourMm": 0.0,
                 "snr": 30.0, "bias": 0.2, "skinSeparate": False}
     ROLES = ("mrVolume", "segmentation", "landmarks")
-
-    def __init__(self, scene=None):
-        self.scene = scene if scene is not None else slicer.mrmlScene
-
-    def getParameterNode(self):
-        from BreastBiomechLib.mrml import ParameterNode
-
-        return ParameterNode(self.scene, self.MODULE_NAME, self.DEFAULTS, self.ROLES)
 
     def applyCasePreset(self, parameterNode, case: int) -> None:
         """Set ``case`` (0 = custom, 1-5 = the seed's Table 1) and copy that preset's values."""

@@ -18,6 +18,7 @@ import slicer
 import vtk
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    ParameterNodeLogic,
     ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
@@ -237,7 +238,7 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
 #
 
 
-class BreastSimulationLogic:
+class BreastSimulationLogic(ParameterNodeLogic):
     """Mesh, materials, plates and constraints from MRML nodes into a solver model; results back as
     nodes. No Qt: runs in Slicer and headless (slicer-core wheel).
 
@@ -255,14 +256,6 @@ class BreastSimulationLogic:
     PLATE_NAMES = {"LR": ("Right plate", "Left plate"), "AP": ("Anterior plate", "Posterior plate"),
                    "SI": ("Inferior plate", "Superior plate")}  # first: the lower coordinate in LPS
     KE_IE_LIMIT = 0.05  # the seed's quasi-static criterion
-
-    def __init__(self, scene=None):
-        self.scene = scene if scene is not None else slicer.mrmlScene
-
-    def getParameterNode(self):
-        from BreastBiomechLib.mrml import ParameterNode
-
-        return ParameterNode(self.scene, self.MODULE_NAME, self.DEFAULTS, self.ROLES)
 
     # -- inputs ----------------------------------------------------------------------------------
 

@@ -6,7 +6,8 @@ the ``*.py`` files directly in this folder as modules).
 - finding ``BreastBiomechLib`` and the shared ``Resources/`` both in a built extension (copied
   beside the module scripts) and in a source checkout (one folder up);
 - installing missing Python dependencies on first use, after asking the user;
-- the parameter-node lifecycle shared by the module Widgets.
+- the parameter-node lifecycle shared by the module Widgets, and the Logic base that owns the
+  scene and the module's parameter node.
 """
 
 from __future__ import annotations
@@ -72,6 +73,28 @@ class ParameterNodeWidgetMixin:
         if parameterNode is not None:
             self.addObserver(parameterNode.node, vtk.vtkCommand.ModifiedEvent, self.updateGUIFromParameterNode)
         self.updateGUIFromParameterNode()
+
+
+class ParameterNodeLogic:
+    """Base of the module Logics: holds the scene (``slicer.mrmlScene`` by default) and gives the
+    module's parameter node. Subclasses set ``MODULE_NAME``, ``DEFAULTS`` (names -> default
+    values, whose types the values keep) and ``ROLES`` (node-reference names)."""
+
+    MODULE_NAME = ""
+    DEFAULTS: dict = {}
+    ROLES: tuple = ()
+
+    def __init__(self, scene=None):
+        if scene is None:
+            import slicer
+
+            scene = slicer.mrmlScene
+        self.scene = scene
+
+    def getParameterNode(self):
+        from BreastBiomechLib.mrml import ParameterNode
+
+        return ParameterNode(self.scene, self.MODULE_NAME, self.DEFAULTS, self.ROLES)
 
 
 # Python packages the library needs that a Slicer installation may lack: import name -> pip name
