@@ -142,12 +142,17 @@ class Discretisation:
         return K, G, H
 
 
+def _plate_point(plate, fraction: float) -> np.ndarray:
+    """A point on the plate at ``fraction`` of its travel (m)."""
+    return (plate.point + fraction * plate.displacement) * MM
+
+
 def _contact_rows(model: Model, positions_m: np.ndarray, fraction: float, active: list[set[int]]
                   ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
     """Active contact constraints as (plate, node) pairs, their gaps (m) and normals."""
     pairs, gaps, normals = [], [], []
     for p, plate in enumerate(model.loading.plates):
-        point = (plate.point + fraction * plate.displacement) * MM
+        point = _plate_point(plate, fraction)
         for node in sorted(active[p]):
             pairs.append((p, node))
             gaps.append(float((positions_m[node] - point) @ plate.normal))
@@ -159,8 +164,7 @@ def _penetrating(model: Model, positions_m: np.ndarray, fraction: float, toleran
     """Per plate, the slave nodes lying behind it by more than ``tolerance_m``."""
     out = []
     for plate in model.loading.plates:
-        point = (plate.point + fraction * plate.displacement) * MM
-        gap = (positions_m[plate.slave_nodes] - point) @ plate.normal
+        gap = (positions_m[plate.slave_nodes] - _plate_point(plate, fraction)) @ plate.normal
         out.append(set(plate.slave_nodes[gap < -tolerance_m].tolist()))
     return out
 
@@ -218,7 +222,7 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
     done, step = 0.0, 1.0 / increments
     smallest = step / 2.0**max_cuts
 
-    def fail(status: str, message: str) -> Solution:
+    def result(status: str, message: str) -> Solution:
         return Solution(u / MM, forces_on_tissue, status, message, iterations, float("nan"),
                         time.perf_counter() - started, float("nan"),
                         {key: np.array(v) for key, v in history.items()}, last_correction / MM)
@@ -232,14 +236,14 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
                                    max_active_set_rounds)
         if isinstance(outcome, str):
             if outcome == "singular":
-                return fail("singular", "the tangent stiffness is singular: the supports leave rigid motion "
+                return result("singular", "the tangent stiffness is singular: the supports leave rigid motion "
                                         "free; fix more components (see solver.supports.support_constraints)")
             if step / 2.0 < smallest * (1.0 - 1e-9):
                 status = "inverted elements" if outcome == "inverted" else "not converged"
                 if initial_displacement is not None:
-                    return fail(status, f"Newton's method from the given displacement failed ({outcome}); "
+                    return result(status, f"Newton's method from the given displacement failed ({outcome}); "
                                         "solve from rest instead")
-                return fail(status, f"the load step from {done:.4g} of the full load failed ({outcome}) even "
+                return result(status, f"the load step from {done:.4g} of the full load failed ({outcome}) even "
                                     f"at 1/{2**max_cuts} of the initial increment; use more increments or check "
                                     "the loading")
             step /= 2.0
@@ -250,11 +254,8 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
         history["load_fraction"].append(done)
         history["newton_iterations"].append(n_iter)
         history["plate_forces"].append(forces_on_tissue.copy())
-    message = (f"static equilibrium in {len(history['load_fraction'])} load steps, {iterations} Newton "
-               f"iterations, last correction {last_correction / MM:.2g} mm")
-    return Solution(u / MM, forces_on_tissue, "completed", message, iterations, float("nan"),
-                    time.perf_counter() - started, float("nan"),
-                    {key: np.array(v) for key, v in history.items()}, last_correction / MM)
+    return result("completed", f"static equilibrium in {len(history['load_fraction'])} load steps, {iterations} "
+                               f"Newton iterations, last correction {last_correction / MM:.2g} mm")
 
 
 def _solve_increment(model, disc, u, active, free, fraction, weight, tol_m, max_newton, max_rounds):
