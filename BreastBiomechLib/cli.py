@@ -1,4 +1,4 @@
-"""Command line: ``breastbiomech phantom|simulate|demo|bench``.
+"""Command line: ``breastbiomech phantom|mesh|simulate|demo|bench``.
 
 Each sub-command is a thin layer over library functions; results go to files and a short report
 on standard output (``--json`` where a machine reads it).
@@ -72,6 +72,60 @@ def cmd_demo(args) -> int:
     print(f"    tissue volumes (cm3): {volumes}; density {s['glandular_density']:.1%}; {s['seconds']:.1f} s")
     print(f"    overview picture: {paths['overview']}")
     print(f"demo finished: open {paths['mr']} with {paths['labels']} and {paths['landmarks']} in Slicer")
+    return 0
+
+
+def cmd_mesh(args) -> int:
+    """Mesh a label map; write the mesh, its surfaces, a report, a compression case and its
+    NiftySim model."""
+    from BreastBiomechLib.io.cases import case_from_dict, compression_case
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.markups import read_markups
+    from BreastBiomechLib.io.meshes import write_surface, write_vtu
+    from BreastBiomechLib.io.niftysim import write_niftysim
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+
+    labels = read_image(args.labels)
+    nipple = None
+    if args.landmarks:
+        marks = read_markups(args.landmarks)
+        if "nipple" not in marks.labels:
+            raise ValueError(f"{args.landmarks}: no landmark labelled 'nipple'")
+        nipple = marks.positions[marks.labels.index("nipple")]
+    settings = MeshSettings(edge_mm=args.edge_mm, interface_edge_mm=args.interface_edge_mm,
+                            refine_interfaces=not args.no_refine)
+
+    def report(fraction, message):
+        if not args.quiet:
+            print(f"\r  {fraction:4.0%} {message:40s}", end="", file=sys.stderr, flush=True)
+
+    result = mesh_labels(labels, settings, nipple_mm=nipple, progress=report)
+    if not args.quiet:
+        print(file=sys.stderr)
+    out = Path(args.out)
+    paths = {"mesh": write_vtu(out / "mesh.vtu", result.mesh)}
+    for name, surface in result.surfaces.items():
+        paths[f"surface_{name}"] = write_surface(out / "surfaces" / f"{name}.vtp", surface)
+    summary = result.summary()
+    case = compression_case(result.mesh, "mesh.vtu", args.axis, args.compression)
+    paths["case"] = out / "case.json"
+    paths["case"].write_text(json.dumps(case, indent=1) + "\n")
+    model, _ = case_from_dict(case, result.mesh, paths["case"])
+    paths["niftysim"] = write_niftysim(out / "model.xml", model, drop_settling=True)
+    paths["report"] = out / "mesh_report.json"
+    paths["report"].write_text(json.dumps(summary, indent=1) + "\n")
+    failing = summary["quality"]["failing"]["any"]
+    print(f"mesh written to {out}: {summary['nodes']} nodes, {summary['elements']} tets, "
+          f"{summary['volume_cm3']:.0f} cm3, {summary['seconds']['total']:.1f} s")
+    print("  elements per tissue: " + ", ".join(f"{k} {v}" for k, v in summary["elements_per_tissue"].items()))
+    print(f"  quality: {failing['count']} elements ({failing['percent']:.3f} %) fail the seed's criteria; "
+          f"smallest dihedral angle {summary['quality']['dihedral_min_deg']:.1f} deg")
+    print("  tissue Dice vs the label map: " + ", ".join(
+        f"{k} {v['dice']:.3f}" for k, v in summary["tissue_representation"].items()))
+    for note in summary["notes"]:
+        print(f"  note: {note}")
+    for role, path in paths.items():
+        print(f"  {role:20s} {path}")
     return 0
 
 
@@ -217,6 +271,19 @@ def build_parser() -> argparse.ArgumentParser:
     _add_phantom_options(p)
     p.add_argument("--no-overview", action="store_true", help="skip the PNG overview")
     p.set_defaults(func=cmd_phantom)
+
+    p = sub.add_parser("mesh", help="tetrahedral FE mesh of a tissue label map (TetGen), with a compression case")
+    p.add_argument("labels", help="label map (.nrrd/.nii.gz) with the label table's values")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--edge-mm", type=float, default=3.0, help="element edge length in mm (default 3)")
+    p.add_argument("--interface-edge-mm", type=float, default=None,
+                   help="spacing of the points inserted on tissue interfaces (default: --edge-mm)")
+    p.add_argument("--no-refine", action="store_true", help="do not insert tissue-interface points")
+    p.add_argument("--landmarks", help="a .mrk.json with a point labelled 'nipple' (the nipple node)")
+    p.add_argument("--axis", default="LR", choices=["LR", "AP", "SI"], help="compression axis of case.json")
+    p.add_argument("--compression", type=float, default=0.25, help="compression of case.json, fraction of thickness")
+    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+    p.set_defaults(func=cmd_mesh)
 
     p = sub.add_parser("simulate", help="solve a case file (mesh + materials + loading, see docs/solver.md)")
     p.add_argument("case", help="CASE.json")

@@ -152,3 +152,45 @@ def read_case(path: str | Path) -> tuple[Model, SolverSettings]:
     if "mesh" not in data:
         raise ValueError(f"{path}: the case must name its mesh file (\"mesh\": \"breast.vtu\")")
     return case_from_dict(data, read_vtu(path.parent / data["mesh"]), path)
+
+
+def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compression: float = 0.25,
+                     moving: str = "both", total_time: float = 1.0, settle_time: float = 0.25) -> dict:
+    """The case-file dictionary of a plate compression of a breast mesh made by
+    :func:`BreastBiomechLib.mesh.from_labels.mesh_labels` (node sets ``chest_wall``,
+    ``breast_skin``, ``fov_cut``): plates tangent to the breast skin on both sides of ``axis``
+    closing by ``compression`` of the thickness between them, contact with the breast skin; the
+    chest wall fixed anterior-posteriorly as in the seed; the field-of-view cut faces, where the
+    body continues, fixed (without them, the anchor patches of
+    :func:`~BreastBiomechLib.solver.supports.support_constraints` stop rigid motion); the
+    default tissue materials; dynamic relaxation. ``mesh_file`` is written as the case's mesh."""
+    from BreastBiomechLib.labels import BY_LABEL
+    from BreastBiomechLib.solver.materials import default_tissue_materials
+    from BreastBiomechLib.solver.placement import compression_plates
+    from BreastBiomechLib.solver.supports import support_constraints
+
+    for name in ("chest_wall", "breast_skin", "fov_cut"):
+        if name not in mesh.point_data:
+            raise ValueError(f"the mesh has no {name!r} node set; make it with `breastbiomech mesh`")
+    breast = mesh.node_set("breast_skin")
+    names = {"LR": ("right", "left"), "AP": ("anterior", "posterior"), "SI": ("inferior", "superior")}
+    plates = compression_plates(mesh, axis, compression, breast, names=names.get(str(axis).upper(), ("plate1", "plate2")),
+                                moving=moving, extent_nodes=breast)
+    cut = mesh.node_set("fov_cut")
+    if len(cut):
+        constraints = [{"nodes": "chest_wall", "components": "y"}, {"nodes": "fov_cut", "components": "xyz"}]
+    else:
+        constraints = [{"nodes": c.nodes.tolist(), "components": [bool(v) for v in c.mask[0]]}
+                       for c in support_constraints(mesh.nodes, mesh.node_set("chest_wall"), (False, True, False))]
+    tissues = np.unique(np.asarray(mesh.cell_data.get("tissue", [1]), dtype=int))
+    defaults = default_tissue_materials()
+    materials = {BY_LABEL[int(t)].name: {"E": defaults[int(t)].E, "nu": defaults[int(t)].nu} for t in tissues}
+    return {
+        "mesh": mesh_file,
+        "materials": materials,
+        "constraints": constraints,
+        "plates": [{"name": p.name, "point": p.point.tolist(), "normal": p.normal.tolist(),
+                    "displacement": p.displacement.tolist(), "slaves": "breast_skin"} for p in plates],
+        "total_time": total_time, "settle_time": settle_time,
+        "solver": {"method": "relaxation"},
+    }

@@ -36,3 +36,19 @@ def read_vtu(path: str | Path) -> TetMesh:
     if grid is None or grid.GetNumberOfPoints() == 0:
         raise ValueError(f"{path}: not a readable .vtu mesh, or it has no points")
     return TetMesh.from_vtk(grid)
+
+
+def write_surface(path: str | Path, surface) -> Path:
+    """Write a :class:`~BreastBiomechLib.surface.TriSurface` as a ``.vtp`` polydata file (LPS mm,
+    which Slicer assumes for model files); returns the path."""
+    path = Path(path)
+    if path.suffix != ".vtp":
+        raise ValueError(f"{path}: surfaces are written as .vtp files")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    writer = vtk.vtkXMLPolyDataWriter()
+    writer.SetFileName(str(path))
+    writer.SetInputData(surface.to_vtk())
+    writer.SetDataModeToBinary()
+    if not writer.Write():
+        raise OSError(f"{path}: VTK could not write the surface")
+    return path

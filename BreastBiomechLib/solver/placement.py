@@ -28,8 +28,10 @@ def axis_vector(axis) -> np.ndarray:
 
 
 def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slave_nodes=None,
-                       names: tuple[str, str] = ("plate1", "plate2"), moving: str = "both") -> list[Plate]:
-    """Two plates normal to ``axis`` touching the mesh at its lowest and highest extent along it
+                       names: tuple[str, str] = ("plate1", "plate2"), moving: str = "both",
+                       extent_nodes=None) -> list[Plate]:
+    """Two plates normal to ``axis`` touching the mesh (or the ``extent_nodes``, e.g. the breast
+    skin of a mesh that also holds the chest) at its lowest and highest extent along it
     (the first plate's normal is +axis, the second's -axis, both towards the tissue), which close
     the gap between them by ``compression`` (a fraction in (0, 1)) of the thickness: half each
     (``moving="both"``), or all by the first or second plate with the other held (the seed's fixed
@@ -44,9 +46,12 @@ def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slav
     direction = axis_vector(axis)
     if slave_nodes is None:
         slave_nodes = np.flatnonzero(boundary_nodes(mesh.tets, len(mesh.nodes)))
-    along = mesh.nodes @ direction
+    reference = mesh.nodes if extent_nodes is None else mesh.nodes[np.asarray(extent_nodes, dtype=np.int64)]
+    if len(reference) == 0:
+        raise ValueError("the node set the plates are placed against is empty")
+    along = reference @ direction
     lo, hi = float(along.min()), float(along.max())
-    centre = mesh.nodes.mean(axis=0)
+    centre = reference.mean(axis=0)
     centre = centre - (centre @ direction) * direction
     travel = compression * (hi - lo)
     share = {"both": (0.5, 0.5), "first": (1.0, 0.0), "second": (0.0, 1.0)}[moving]

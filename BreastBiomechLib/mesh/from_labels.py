@@ -1,0 +1,171 @@
+"""From a tissue label map to a tetrahedral breast mesh (the seed's sections 2.2.2-2.2.4): body
+surface, interface points of each internal tissue, TetGen, repair of the few poor boundary
+elements, tissue per element by voxel majority, quality report and loading node sets.
+
+Input: a SimpleITK label image with the values of :mod:`BreastBiomechLib.labels` (0
+background); output geometry in LPS mm."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import SimpleITK as sitk
+
+from BreastBiomechLib import labels as lt
+from BreastBiomechLib.mesh.improve import improve_quality
+from BreastBiomechLib.mesh.node_sets import breast_node_sets
+from BreastBiomechLib.mesh.quality import QualityReport, mesh_quality
+from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.mesh.tissues import TissueAssignment, assign_tissues
+from BreastBiomechLib.mesh.volume import TetGenSettings, interface_points, tetrahedralize
+from BreastBiomechLib.surface.extract import SurfaceSettings, body_surface, label_array, tissue_surface
+from BreastBiomechLib.surface.trisurface import TriSurface
+
+_RETRIES = 2  # finer body surfaces tried when TetGen finds the surface intersecting itself
+
+
+@dataclass
+class MeshSettings:
+    """Everything that shapes the mesh. ``edge_mm`` sets the element size in the interior and on
+    the outer surface; ``interface_edge_mm`` the spacing of the points inserted on tissue
+    interfaces (None: ``edge_mm``); ``refine_interfaces`` False meshes the body alone (tissues
+    then follow the voxel majority only); ``blur_mm``, quality bounds as in
+    :class:`~BreastBiomechLib.surface.SurfaceSettings` and
+    :class:`~BreastBiomechLib.mesh.volume.TetGenSettings`."""
+
+    edge_mm: float = 3.0
+    interface_edge_mm: float | None = None
+    refine_interfaces: bool = True
+    blur_mm: float = 0.8
+    min_radius_edge: float = 1.5
+    min_dihedral_deg: float = 12.0
+    min_component_mm3: float = 20.0
+
+    def surface(self) -> SurfaceSettings:
+        return SurfaceSettings(edge_mm=self.edge_mm, blur_mm=self.blur_mm, min_component_mm3=self.min_component_mm3)
+
+    def tetgen(self) -> TetGenSettings:
+        return TetGenSettings(edge_mm=self.edge_mm, interface_edge_mm=self.interface_edge_mm,
+                              min_radius_edge=self.min_radius_edge, min_dihedral_deg=self.min_dihedral_deg)
+
+
+@dataclass
+class BreastMesh:
+    """The mesh (cell data: ``tissue``, ``fraction_<tissue>``, ``quality_*``; point data: the
+    node sets) and how it was made: surfaces, quality, tissue assignment, timings (s) and notes
+    on repairs."""
+
+    mesh: TetMesh
+    surfaces: dict[str, TriSurface]
+    quality: QualityReport
+    assignment: TissueAssignment
+    representation: dict[str, dict[str, float]]
+    seconds: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """A JSON-ready summary: sizes, element counts per tissue, quality, representation."""
+        return {
+            "nodes": len(self.mesh.nodes), "elements": len(self.mesh.tets),
+            "volume_cm3": float(self.mesh.volumes.sum() / 1000.0),
+            "elements_per_tissue": self.assignment.counts(),
+            "node_sets": {name: int(np.count_nonzero(v)) for name, v in self.mesh.point_data.items()},
+            "quality": self.quality.summary(),
+            "tissue_representation": self.representation,
+            "surfaces": {name: {"triangles": len(s.triangles), "volume_cm3": s.volume_mm3 / 1000.0}
+                         for name, s in self.surfaces.items()},
+            "seconds": self.seconds, "notes": self.notes,
+        }
+
+
+def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple_mm=None,
+                progress: Callable[[float, str], None] | None = None) -> BreastMesh:
+    """Mesh the labelled region of ``labels`` (see the module notes). ``nipple_mm`` (3,) LPS
+    places the nipple node (default: the most anterior skin node). ``progress(fraction,
+    message)`` is called between stages."""
+    settings = settings or MeshSettings()
+    report = progress or (lambda fraction, message: None)
+    seconds, notes = {}, []
+    clock = time.perf_counter()
+
+    def lap(name):
+        nonlocal clock
+        now = time.perf_counter()
+        seconds[name] = round(now - clock, 3)
+        clock = now
+
+    array = label_array(labels)
+    present = [int(v) for v in np.unique(array) if v > 0]
+    if not present:
+        raise ValueError("the label map has no labelled voxels (all background); segment the breast first")
+    unknown = [v for v in present if v not in lt.BY_LABEL]
+    if unknown:
+        raise ValueError(f"the label map holds values {unknown} outside the label table "
+                         f"({', '.join(f'{t.label}={t.name}' for t in lt.TISSUES)})")
+    report(0.0, "body surface")
+    surface_settings = settings.surface()
+    body, islands = body_surface(labels, surface_settings)
+    if islands:
+        notes.append(f"{islands} labelled voxels outside the largest connected region were left out")
+    surfaces = {"body": body}
+    lap("body_surface")
+
+    report(0.15, "tissue surfaces")
+    tetgen_settings = settings.tetgen()
+    spacing = tetgen_settings.interface_spacing_mm
+    voxel_mm3 = float(np.prod(labels.GetSpacing()))
+    for value in present:
+        if value == lt.FAT.label or not settings.refine_interfaces:
+            continue
+        name = lt.BY_LABEL[value].name
+        surface = tissue_surface(labels, value, spacing, surface_settings)
+        if surface is None:
+            count = int(np.count_nonzero(array == value))
+            notes.append(f"{name}: {count} voxels ({count * voxel_mm3:.0f} mm3), no piece of "
+                         f"{settings.min_component_mm3:g} mm3 or more; not used to refine the mesh")
+            continue
+        surfaces[name] = surface
+    lap("tissue_surfaces")
+
+    report(0.3, "TetGen")
+    interfaces = [s for n, s in surfaces.items() if n != "body"]
+    points = interface_points(body, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
+    for attempt in range(_RETRIES + 1):
+        try:
+            mesh = tetrahedralize(body, points, tetgen_settings)
+            break
+        except RuntimeError as error:
+            # a surface coarser than a thin part of the body (a chest layer at the edge of the
+            # field of view) can touch itself there: retry with finer triangles
+            if attempt == _RETRIES or "self-intersect" not in str(error):
+                raise
+            edge = body.mean_edge_mm * 0.7
+            notes.append(f"the body surface intersected itself at a {body.mean_edge_mm:.1f} mm edge; "
+                         f"remade it at {edge:.1f} mm")
+            body, _ = body_surface(labels, replace(surface_settings, edge_mm=edge))
+            surfaces["body"] = body
+            points = interface_points(body, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
+    lap("tetgen")
+    report(0.6, "repairing poor boundary elements")
+    mesh, repairs = improve_quality(mesh)
+    if repairs["poor_before"]:
+        notes.append(f"{repairs['poor_before']} poor elements after TetGen: {repairs['caps_removed']} boundary "
+                     f"caps removed, {repairs['nodes_moved']} nodes moved")
+    lap("repair")
+
+    report(0.7, "tissue per element")
+    assignment = assign_tissues(mesh, labels)
+    representation = assignment.representation(labels)
+    lap("tissues")
+    report(0.85, "quality and node sets")
+    quality = mesh_quality(mesh)
+    node_sets = breast_node_sets(mesh, assignment.tissue, labels, nipple_mm)
+    lap("quality_and_node_sets")
+    mesh = TetMesh(mesh.nodes, mesh.tets, point_data=node_sets,
+                   cell_data={**assignment.cell_data(), **quality.cell_data()})
+    seconds["total"] = round(sum(seconds.values()), 3)
+    report(1.0, "done")
+    return BreastMesh(mesh, surfaces, quality, assignment, representation, seconds, notes)

@@ -1,0 +1,94 @@
+"""Repair of the few poor elements TetGen leaves at a curved boundary: flat caps (elements with
+two or three faces on the surface, which lie almost in it) are removed, and interior nodes of the
+remaining poor elements are moved towards their neighbours where that improves every element
+around them (smart Laplacian smoothing). Nodes in LPS mm."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from BreastBiomechLib.mesh.quality import mesh_quality
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
+
+_FACES = np.array([(1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)])
+
+
+def boundary_face_counts(tets: np.ndarray) -> np.ndarray:
+    """Number of faces (0-4) of each element that lie on the mesh boundary."""
+    faces = np.sort(tets[:, _FACES].reshape(-1, 3), axis=1)
+    _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
+    return (counts[inverse.ravel()] == 1).reshape(-1, 4).sum(axis=1)
+
+
+def _poor(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> np.ndarray:
+    """Elements failing a criterion of the quality report or with a dihedral angle below
+    ``min_dihedral_deg`` (slivers, which pass the seed's criteria but shrink the stable step)."""
+    report = mesh_quality(TetMesh(nodes, tets))
+    return report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
+
+
+def _score(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> float:
+    """The worst element of ``tets`` (the smoothing's acceptance test): its shape factor, halved
+    if it is poor, -1 if an element is inverted."""
+    p = nodes[tets]
+    volume = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    if (volume <= 0).any():
+        return -1.0
+    report = mesh_quality(TetMesh(nodes, tets))
+    poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
+    return float((report.shape_factor * np.where(poor, 0.5, 1.0)).min())
+
+
+def _ideal_apex(nodes: np.ndarray, tet: np.ndarray, node: int) -> np.ndarray:
+    """Where ``node`` would make ``tet`` regular-like: above the centroid of the opposite face, on
+    the side it is now, at the height of a regular tet on that face's mean edge."""
+    base = nodes[[n for n in tet if n != node]]
+    centre = base.mean(axis=0)
+    normal = np.cross(base[1] - base[0], base[2] - base[0])
+    normal /= np.linalg.norm(normal)
+    if (nodes[node] - centre) @ normal < 0:
+        normal = -normal
+    edge = np.mean([np.linalg.norm(base[i] - base[j]) for i, j in ((0, 1), (0, 2), (1, 2))])
+    return centre + normal * edge * np.sqrt(2.0 / 3.0)
+
+
+def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0) -> tuple[TetMesh, dict]:
+    """``mesh`` with its poor elements (failing the seed's criteria, or slivers with a dihedral
+    angle below ``min_dihedral_deg``) repaired: those with two or more faces on the boundary
+    removed, the interior nodes of the others moved where that improves every element around
+    them. Returns the mesh (unused nodes dropped, so node ids change) and what was done:
+    ``caps_removed``, ``nodes_moved``, ``poor_before``."""
+    from scipy.sparse import csr_matrix
+
+    nodes = mesh.nodes.copy()
+    poor = _poor(nodes, mesh.tets, min_dihedral_deg)
+    poor_before = int(poor.sum())
+    caps = poor & (boundary_face_counts(mesh.tets) >= 2)
+    tets = mesh.tets[~caps]
+    poor = poor[~caps]
+    incidence = csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),
+                           shape=(len(nodes), len(tets)))
+    on_boundary = boundary_nodes(tets, len(nodes))
+    poor_tets = {tuple(tet) for tet in tets[poor]}
+    moved = 0
+    for node in np.unique(tets[poor]):
+        if on_boundary[node]:
+            continue
+        around = tets[incidence.indices[incidence.indptr[node]:incidence.indptr[node + 1]]]
+        targets = [nodes[np.setdiff1d(np.unique(around), [node])].mean(axis=0)]
+        targets += [_ideal_apex(nodes, tet, node) for tet in around if tuple(tet) in poor_tets]
+        old = nodes[node].copy()
+        best, best_score = old, _score(nodes, around, min_dihedral_deg)
+        for target in targets:
+            for weight in (0.25, 0.5, 0.75, 1.0):
+                nodes[node] = old + weight * (target - old)
+                score = _score(nodes, around, min_dihedral_deg)
+                if score > best_score:
+                    best, best_score = nodes[node].copy(), score
+        nodes[node] = best
+        moved += int(best is not old)
+    used = np.zeros(len(nodes), bool)
+    used[tets.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return TetMesh(nodes[used], remap[tets]), {"caps_removed": int(caps.sum()), "nodes_moved": moved,
+                                               "poor_before": poor_before}

@@ -1,0 +1,76 @@
+"""A triangulated surface as plain arrays, with its VTK conversion.
+
+Points in millimetres, ITK physical space (LPS); triangles 0-based, counter-clockwise seen from
+outside for a closed surface (outward normals)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class TriSurface:
+    """Points (K, 3) LPS mm and triangles (T, 3) int64; ``name`` says what it bounds."""
+
+    points: np.ndarray
+    triangles: np.ndarray
+    name: str = "surface"
+
+    def __post_init__(self) -> None:
+        self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
+        self.triangles = np.ascontiguousarray(self.triangles, dtype=np.int64).reshape(-1, 3)
+        if len(self.triangles) and (self.triangles.min() < 0 or self.triangles.max() >= len(self.points)):
+            raise ValueError(f"surface {self.name!r}: triangles refer to points outside 0..{len(self.points) - 1}")
+
+    @property
+    def area_mm2(self) -> float:
+        p = self.points[self.triangles]
+        return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+
+    @property
+    def volume_mm3(self) -> float:
+        """Signed enclosed volume (divergence theorem); positive when the normals point outwards."""
+        p = self.points[self.triangles]
+        return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+
+    @property
+    def mean_edge_mm(self) -> float:
+        p = self.points[self.triangles]
+        return float(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2).mean()) if len(p) else 0.0
+
+    def flipped(self) -> "TriSurface":
+        """The same surface with every triangle's orientation reversed."""
+        return TriSurface(self.points, self.triangles[:, ::-1], self.name)
+
+    def to_vtk(self):
+        """The surface as vtkPolyData (points in LPS mm)."""
+        import vtk
+        from vtk.util import numpy_support as nps
+
+        poly = vtk.vtkPolyData()
+        points = vtk.vtkPoints()
+        points.SetData(nps.numpy_to_vtk(self.points, deep=True))
+        poly.SetPoints(points)
+        cells = vtk.vtkCellArray()
+        offsets = nps.numpy_to_vtk(np.arange(0, 3 * len(self.triangles) + 1, 3, dtype=np.int64), deep=True)
+        conn = nps.numpy_to_vtk(self.triangles.ravel(), deep=True, array_type=vtk.VTK_ID_TYPE)
+        cells.SetData(offsets, conn)
+        poly.SetPolys(cells)
+        return poly
+
+    @classmethod
+    def from_vtk(cls, poly, name: str = "surface") -> "TriSurface":
+        """Read the triangles of a vtkPolyData (other cells are refused)."""
+        from vtk.util import numpy_support as nps
+
+        if poly.GetNumberOfPoints() == 0 or poly.GetNumberOfPolys() == 0:
+            return cls(np.zeros((0, 3)), np.zeros((0, 3), np.int64), name)
+        polys = poly.GetPolys()
+        offsets = nps.vtk_to_numpy(polys.GetOffsetsArray())
+        if np.any(np.diff(offsets) != 3):
+            raise ValueError(f"surface {name!r}: only triangles are supported")
+        triangles = nps.vtk_to_numpy(polys.GetConnectivityArray()).reshape(-1, 3)
+        points = nps.vtk_to_numpy(poly.GetPoints().GetData())
+        return cls(points.astype(np.float64), triangles.astype(np.int64), name)
