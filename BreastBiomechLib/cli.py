@@ -231,6 +231,29 @@ def _bench_solver(args) -> dict:
     }
 
 
+def _bench_mesh(args) -> dict:
+    """Mesh a phantom of ``--volume-cm3`` breast tissue (seed 1 preset otherwise) at
+    ``--edge-mm``; figures as a dict (the phantom's generation is not timed)."""
+    import os
+
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
+
+    case = generate_phantom(PhantomParameters(volume_cm3=args.volume_cm3))
+    started = time.perf_counter()
+    result = mesh_labels(case.labels, MeshSettings(edge_mm=args.edge_mm))
+    wall = time.perf_counter() - started
+    summary = result.summary()
+    return {"benchmark": "mesh", "version": __version__, "machine": platform.machine(), "cores": os.cpu_count(),
+            "breast_volume_cm3": round(case.summary["breast_volume_cm3"], 1), "voxels": int(case.labels.GetNumberOfPixels()),
+            "edge_mm": args.edge_mm, "nodes": summary["nodes"], "tets": summary["elements"],
+            "wall_s": round(wall, 2), "stages_s": summary["seconds"],
+            "failing_elements": summary["quality"]["failing"]["any"]["count"],
+            "dihedral_min_deg": round(summary["quality"]["dihedral_min_deg"], 2),
+            "elements_per_tissue": summary["elements_per_tissue"],
+            "dice": {k: round(v["dice"], 4) for k, v in summary["tissue_representation"].items()}}
+
+
 def cmd_bench(args) -> int:
     if args.what == "solver":
         figures = _bench_solver(args)
@@ -239,6 +262,10 @@ def cmd_bench(args) -> int:
         else:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
+        return 0
+    if args.what == "mesh":
+        figures = _bench_mesh(args)
+        print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
         from BreastBiomechLib.phantom import generate_phantom, table1_case
@@ -297,7 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom", "solver"], help="what to time")
+    p.add_argument("what", choices=["phantom", "mesh", "solver"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
     p.add_argument("--tets", type=int, default=160_000, help="solver: about this many tets (hemi-ellipsoid)")
     p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
@@ -310,6 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--load-iterations", type=int, default=None,
                    help="solver, dynamic relaxation: iterations over which the load is applied, at least "
                         "(default: DynamicRelaxation's)")
+    p.add_argument("--volume-cm3", type=float, default=1000.0, help="mesh: phantom breast volume (cm^3)")
+    p.add_argument("--edge-mm", type=float, default=3.0, help="mesh: element edge (mm)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser
