@@ -9,19 +9,23 @@ import vtk
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 
 
-def write_vtu(path: str | Path, mesh: TetMesh) -> Path:
-    """Write ``mesh`` with its point and cell arrays (binary, compressed); returns the path."""
+def _write_xml(path: str | Path, data, writer, what: str, suffix: str) -> Path:
+    """Write VTK ``data`` with an XML ``writer`` (binary, compressed) to a ``suffix`` file."""
     path = Path(path)
-    if path.suffix != ".vtu":
-        raise ValueError(f"{path}: meshes are written as .vtu files")
+    if path.suffix != suffix:
+        raise ValueError(f"{path}: {what} are written as {suffix} files")
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer = vtk.vtkXMLUnstructuredGridWriter()
     writer.SetFileName(str(path))
-    writer.SetInputData(mesh.to_vtk())
+    writer.SetInputData(data)
     writer.SetDataModeToBinary()
     if not writer.Write():
-        raise OSError(f"{path}: VTK could not write the mesh")
+        raise OSError(f"{path}: VTK could not write the {what}")
     return path
+
+
+def write_vtu(path: str | Path, mesh: TetMesh) -> Path:
+    """Write ``mesh`` with its point and cell arrays; returns the path."""
+    return _write_xml(path, mesh.to_vtk(), vtk.vtkXMLUnstructuredGridWriter(), "meshes", ".vtu")
 
 
 def read_vtu(path: str | Path) -> TetMesh:
@@ -41,14 +45,4 @@ def read_vtu(path: str | Path) -> TetMesh:
 def write_surface(path: str | Path, surface) -> Path:
     """Write a :class:`~BreastBiomechLib.surface.TriSurface` as a ``.vtp`` polydata file (LPS mm,
     which Slicer assumes for model files); returns the path."""
-    path = Path(path)
-    if path.suffix != ".vtp":
-        raise ValueError(f"{path}: surfaces are written as .vtp files")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    writer = vtk.vtkXMLPolyDataWriter()
-    writer.SetFileName(str(path))
-    writer.SetInputData(surface.to_vtk())
-    writer.SetDataModeToBinary()
-    if not writer.Write():
-        raise OSError(f"{path}: VTK could not write the surface")
-    return path
+    return _write_xml(path, surface.to_vtk(), vtk.vtkXMLPolyDataWriter(), "surfaces", ".vtp")

@@ -10,21 +10,10 @@ import numpy as np
 import SimpleITK as sitk
 
 from BreastBiomechLib import labels as lt
-from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
 from BreastBiomechLib.surface.extract import index_to_physical
 
-_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])  # outward for positive tets
 POSTERIOR = np.array([0.0, 1.0, 0.0])
-
-
-def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boundary faces (F, 3) of a positively oriented mesh, ordered with outward normals, and the
-    element each belongs to (F,)."""
-    faces = tets[:, _FACES].reshape(-1, 3)
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    single = counts[inverse.ravel()] == 1
-    return faces[single], np.repeat(np.arange(len(tets)), 4)[single]
 
 
 def breast_node_sets(mesh: TetMesh, tissue: np.ndarray, labels: sitk.Image,

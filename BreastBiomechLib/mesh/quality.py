@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.mesh.tetmesh import OUTWARD_FACES, TetMesh
 
 CRITERIA = {  # the failure criteria of QualityReport.failing, in words
     "shape_factor": "shape factor < 0.001",
@@ -21,7 +21,6 @@ CRITERIA = {  # the failure criteria of QualityReport.failing, in words
     "aspect_ratio": "aspect ratio (longest / shortest edge) > 10",
     "any": "any of the three",
 }
-_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])  # face k is opposite vertex k
 _EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 DIHEDRAL_BINS = np.arange(0.0, 181.0, 5.0)
 
@@ -105,7 +104,7 @@ def mesh_quality(mesh: TetMesh) -> QualityReport:
         shape = np.where(np.isfinite(optimal) & (optimal > 0), np.abs(volume) / optimal, 0.0)
 
     corners = []
-    for face in _FACES:
+    for face in OUTWARD_FACES:
         q = p[:, face]
         for k in range(3):
             corners.append(_angle(q[:, (k + 1) % 3] - q[:, k], q[:, (k + 2) % 3] - q[:, k]))
@@ -115,7 +114,7 @@ def mesh_quality(mesh: TetMesh) -> QualityReport:
     with np.errstate(divide="ignore"):
         aspect = edges.max(axis=1) / edges.min(axis=1)
 
-    normals = np.stack([np.cross(p[:, f[1]] - p[:, f[0]], p[:, f[2]] - p[:, f[0]]) for f in _FACES], axis=1)
+    normals = np.stack([np.cross(p[:, f[1]] - p[:, f[0]], p[:, f[2]] - p[:, f[0]]) for f in OUTWARD_FACES], axis=1)
     orientation = np.sign(volume)[:, None, None]  # outward for positively oriented tets
     normals = normals * orientation
     dihedral = []

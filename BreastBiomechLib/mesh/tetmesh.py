@@ -17,6 +17,32 @@ def _signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
 
 
+OUTWARD_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])  # face k opposite vertex k, outward
+
+
+def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary faces (F, 3) of a positively oriented mesh, ordered with outward normals, and the
+    element each belongs to (F,)."""
+    faces = tets[:, OUTWARD_FACES].reshape(-1, 3)
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    single = counts[inverse.ravel()] == 1
+    return faces[single], np.repeat(np.arange(len(tets)), 4)[single]
+
+
+def vtk_cells(connectivity: np.ndarray):
+    """A vtkCellArray of cells with the same number of points, from (K, n) point ids."""
+    import vtk
+    from vtk.util import numpy_support as nps
+
+    per_cell = connectivity.shape[1]
+    cells = vtk.vtkCellArray()
+    offsets = nps.numpy_to_vtk(np.arange(0, per_cell * len(connectivity) + 1, per_cell, dtype=np.int64), deep=True)
+    ids = nps.numpy_to_vtk(np.ascontiguousarray(connectivity, dtype=np.int64).ravel(), deep=True,
+                           array_type=vtk.VTK_ID_TYPE)
+    cells.SetData(offsets, ids)
+    return cells
+
+
 def boundary_nodes(tets: np.ndarray, n_nodes: int) -> np.ndarray:
     """Boolean (N,): nodes on faces that belong to one tet only (the mesh boundary)."""
     faces = np.sort(np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]]),
@@ -69,11 +95,7 @@ class TetMesh:
         points = vtk.vtkPoints()
         points.SetData(nps.numpy_to_vtk(self.nodes, deep=True))
         grid.SetPoints(points)
-        cells = vtk.vtkCellArray()
-        offsets = nps.numpy_to_vtk(np.arange(0, 4 * len(self.tets) + 1, 4, dtype=np.int64), deep=True)
-        conn = nps.numpy_to_vtk(self.tets.ravel(), deep=True, array_type=vtk.VTK_ID_TYPE)
-        cells.SetData(offsets, conn)
-        grid.SetCells(vtk.VTK_TETRA, cells)
+        grid.SetCells(vtk.VTK_TETRA, vtk_cells(self.tets))
         for data, target in ((self.point_data, grid.GetPointData()), (self.cell_data, grid.GetCellData())):
             for name, values in data.items():
                 array = nps.numpy_to_vtk(np.ascontiguousarray(values), deep=True)

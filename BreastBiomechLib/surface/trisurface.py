@@ -49,15 +49,13 @@ class TriSurface:
         import vtk
         from vtk.util import numpy_support as nps
 
+        from BreastBiomechLib.mesh.tetmesh import vtk_cells
+
         poly = vtk.vtkPolyData()
         points = vtk.vtkPoints()
         points.SetData(nps.numpy_to_vtk(self.points, deep=True))
         poly.SetPoints(points)
-        cells = vtk.vtkCellArray()
-        offsets = nps.numpy_to_vtk(np.arange(0, 3 * len(self.triangles) + 1, 3, dtype=np.int64), deep=True)
-        conn = nps.numpy_to_vtk(self.triangles.ravel(), deep=True, array_type=vtk.VTK_ID_TYPE)
-        cells.SetData(offsets, conn)
-        poly.SetPolys(cells)
+        poly.SetPolys(vtk_cells(self.triangles))
         return poly
 
     @classmethod
