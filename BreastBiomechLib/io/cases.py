@@ -166,15 +166,16 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
     default tissue materials; dynamic relaxation. ``mesh_file`` is written as the case's mesh."""
     from BreastBiomechLib.labels import BY_LABEL
     from BreastBiomechLib.solver.materials import default_tissue_materials
-    from BreastBiomechLib.solver.placement import compression_plates
+    from BreastBiomechLib.solver.placement import PLATE_SIDES, compression_plates
     from BreastBiomechLib.solver.supports import support_constraints
 
     for name in ("chest_wall", "breast_skin", "fov_cut"):
         if name not in mesh.point_data:
             raise ValueError(f"the mesh has no {name!r} node set; make it with `breastbiomech mesh`")
+    if "tissue" not in mesh.cell_data:
+        raise ValueError("the mesh has no 'tissue' cell array; make it with `breastbiomech mesh`")
     breast = mesh.node_set("breast_skin")
-    names = {"LR": ("right", "left"), "AP": ("anterior", "posterior"), "SI": ("inferior", "superior")}
-    plates = compression_plates(mesh, axis, compression, breast, names=names.get(str(axis).upper(), ("plate1", "plate2")),
+    plates = compression_plates(mesh, axis, compression, breast, names=PLATE_SIDES.get(str(axis).upper(), ("plate1", "plate2")),
                                 moving=moving, extent_nodes=breast)
     cut = mesh.node_set("fov_cut")
     if len(cut):
@@ -182,7 +183,7 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
     else:
         constraints = [{"nodes": c.nodes.tolist(), "components": [bool(v) for v in c.mask[0]]}
                        for c in support_constraints(mesh.nodes, mesh.node_set("chest_wall"), (False, True, False))]
-    tissues = np.unique(np.asarray(mesh.cell_data.get("tissue", [1]), dtype=int))
+    tissues = np.unique(np.asarray(mesh.cell_data["tissue"], dtype=int))
     defaults = default_tissue_materials()
     materials = {BY_LABEL[int(t)].name: {"E": defaults[int(t)].E, "nu": defaults[int(t)].nu} for t in tissues}
     return {

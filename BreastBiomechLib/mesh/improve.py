@@ -8,15 +8,13 @@ from __future__ import annotations
 import numpy as np
 
 from BreastBiomechLib.mesh.quality import mesh_quality
-from BreastBiomechLib.mesh.tetmesh import OUTWARD_FACES, TetMesh, boundary_nodes
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes
 
 
 
 def boundary_face_counts(tets: np.ndarray) -> np.ndarray:
     """Number of faces (0-4) of each element that lie on the mesh boundary."""
-    faces = np.sort(tets[:, OUTWARD_FACES].reshape(-1, 3), axis=1)
-    _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
-    return (counts[inverse.ravel()] == 1).reshape(-1, 4).sum(axis=1)
+    return np.bincount(boundary_faces(tets)[1], minlength=len(tets))
 
 
 def _poor(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> np.ndarray:

@@ -60,6 +60,7 @@ class QualityReport:
         """Counts and percentages of failing elements per criterion, and the extremes."""
         n = max(self.elements, 1)
         failing = self.failing()
+        smallest, largest = self.dihedral_histogram()
         rows = {name: {"criterion": CRITERIA[name],
                        "count": int(mask.sum()), "percent": round(100.0 * mask.sum() / n, 4)}
                 for name, mask in failing.items()}
@@ -73,6 +74,8 @@ class QualityReport:
             "dihedral_min_deg": float(self.min_dihedral_deg.min()),
             "dihedral_max_deg": float(self.max_dihedral_deg.max()),
             "dihedral_min_percentiles_deg": {p: float(np.percentile(self.min_dihedral_deg, p)) for p in (0.1, 1, 50)},
+            "dihedral_histogram": {"bins_deg": DIHEDRAL_BINS.tolist(), "smallest_per_element": smallest.tolist(),
+                                   "largest_per_element": largest.tolist()},
         }
 
     def cell_data(self) -> dict[str, np.ndarray]:

@@ -21,8 +21,8 @@ OUTWARD_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])  # face k
 
 
 def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boundary faces (F, 3) of a positively oriented mesh, ordered with outward normals, and the
-    element each belongs to (F,)."""
+    """Boundary faces (F, 3) (faces of one element only) and the element each belongs to (F,);
+    for a positively oriented mesh the faces are ordered with outward normals."""
     faces = tets[:, OUTWARD_FACES].reshape(-1, 3)
     _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
     single = counts[inverse.ravel()] == 1
@@ -45,11 +45,8 @@ def vtk_cells(connectivity: np.ndarray):
 
 def boundary_nodes(tets: np.ndarray, n_nodes: int) -> np.ndarray:
     """Boolean (N,): nodes on faces that belong to one tet only (the mesh boundary)."""
-    faces = np.sort(np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]]),
-                    axis=1)
-    unique, counts = np.unique(faces, axis=0, return_counts=True)
     mask = np.zeros(n_nodes, bool)
-    mask[unique[counts == 1].ravel()] = True
+    mask[boundary_faces(tets)[0].ravel()] = True
     return mask
 
 

@@ -93,13 +93,9 @@ def assign_tissues(mesh: TetMesh, labels: sitk.Image) -> TissueAssignment:
 
     element_of_voxel = np.full(array.size, -1, dtype=np.int64)
     flat_labels = array.ravel()
-    bounds = np.searchsorted(np.cumsum(per_tet), np.arange(_CHUNK, per_tet.sum() + _CHUNK, _CHUNK))
-    start = 0
-    for stop in np.unique(np.append(bounds + 1, len(per_tet))):
-        stop = min(int(stop), len(per_tet))
-        if stop <= start:
-            continue
-        tets = np.arange(start, stop)
+    cumulative = np.cumsum(per_tet)
+    splits = np.searchsorted(cumulative, np.arange(_CHUNK, cumulative[-1], _CHUNK), side="right")
+    for tets in np.split(np.arange(len(per_tet)), splits):  # about _CHUNK candidates each
         counts = per_tet[tets]
         owner = np.repeat(tets, counts)
         local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
@@ -112,7 +108,6 @@ def assign_tissues(mesh: TetMesh, labels: sitk.Image) -> TissueAssignment:
         inside = (lam >= -1e-9).all(axis=1) & (lam.sum(axis=1) <= 1 + 1e-9)
         linear = (k * size[1] + j) * size[0] + i
         element_of_voxel[linear[inside]] = owner[inside]  # a centre on a shared face: the last tet wins
-        start = stop
 
     hit = np.flatnonzero(element_of_voxel >= 0)
     tissue_index = lookup[flat_labels[hit]]

@@ -11,6 +11,9 @@ from BreastBiomechLib.solver.model import Plate
 
 AXES = {"LR": (1.0, 0.0, 0.0), "AP": (0.0, 1.0, 0.0), "SI": (0.0, 0.0, 1.0)}  # LPS x, y, z
 MOVING = ("both", "first", "second")
+PLATE_SIDES = {"LR": ("right", "left"), "AP": ("anterior", "posterior"), "SI": ("inferior", "superior")}
+# the sides of the first and second plate of each axis: the first is at the lower LPS coordinate
+# (BreastSimulation's plate names say the same; that module file does not import the solver)
 
 
 def axis_vector(axis) -> np.ndarray:
