@@ -279,12 +279,14 @@ class BreastSimulationLogic(ParameterNodeLogic):
                       if data.GetArray(i) is not None and data.GetArray(i).GetNumberOfComponents() == 1)
 
     def chooseDefaultNodeSets(self, parameterNode) -> None:
-        """Pick the fixed node set (``chest_wall`` or ``pectoral``) and contact set (``skin``) of a
-        newly chosen mesh where it has them."""
+        """Pick the fixed node set (``chest_wall`` or ``pectoral``) and the contact set of a newly
+        chosen mesh where it has them: ``breast_skin`` (the skin in front of the chest wall, as
+        BreastMesh makes it: the plates never reach behind it), else ``skin``, else every
+        boundary node."""
         names = self.nodeSetNames(parameterNode.reference("inputMesh"))
         wasModifying = parameterNode.node.StartModify()
         parameterNode["fixedNodeSet"] = next((n for n in ("chest_wall", "pectoral") if n in names), "")
-        parameterNode["contactNodeSet"] = "skin" if "skin" in names else "boundary"
+        parameterNode["contactNodeSet"] = next((n for n in ("breast_skin", "skin") if n in names), "boundary")
         parameterNode.node.EndModify(wasModifying)
 
     @staticmethod

@@ -6,6 +6,7 @@ never flip an axis themselves. Each converter takes the scene explicitly (inside
 ``slicer.mrmlScene``).
 """
 
+from BreastBiomechLib.mrml.colors import tissue_color_table_node
 from BreastBiomechLib.mrml.markups import (
     landmarks_from_markups_node,
     landmarks_to_markups_node,
@@ -50,4 +51,5 @@ __all__ = [
     "register_segmentation_converters",
     "tetmesh_from_model_node",
     "tetmesh_to_model_node",
+    "tissue_color_table_node",
 ]

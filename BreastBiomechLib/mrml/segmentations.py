@@ -76,6 +76,8 @@ def labels_from_segmentation_node(node, scene, reference: sitk.Image | None = No
     if unknown:
         raise ValueError(f"segments {unknown} are not tissues of the label table; rename them to one of "
                          f"{[t.name for t in lt.TISSUES]}")
+    colours_before = {scene.GetNthNodeByClass(i, "vtkMRMLColorTableNode").GetID()
+                      for i in range(scene.GetNumberOfNodesByClass("vtkMRMLColorTableNode"))}
     labelmap = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "export")
     reference_node = None
     try:
@@ -93,7 +95,11 @@ def labels_from_segmentation_node(node, scene, reference: sitk.Image | None = No
             raise RuntimeError("Slicer could not export the segmentation to a label map")
         exported = image_from_volume_node(labelmap)
     finally:
+        display = labelmap.GetDisplayNode()
+        colours = display.GetColorNode() if display is not None else None
         scene.RemoveNode(labelmap)
+        if colours is not None and colours.GetID() not in colours_before:  # made by the export: not the user's
+            scene.RemoveNode(colours)
         if reference_node is not None:
             scene.RemoveNode(reference_node)
     # exported values are 1..n in the order of ``ids``; map them to the table's values

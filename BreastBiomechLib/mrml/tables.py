@@ -98,7 +98,8 @@ def materials_from_table_node(node) -> dict[int, Material]:
 
 
 def columns_to_table_node(columns: dict[str, np.ndarray], scene, name: str, node=None):
-    """A table node with one double column per entry (all of the same length), e.g. a history."""
+    """A table node with one column per entry (all of the same length): numbers become double
+    columns, text (str values) string columns, e.g. a history or a report."""
     lengths = {len(np.ravel(values)) for values in columns.values()}
     if len(lengths) > 1:
         raise ValueError(f"table columns differ in length: {sorted(lengths)}")
@@ -106,18 +107,22 @@ def columns_to_table_node(columns: dict[str, np.ndarray], scene, name: str, node
         node = scene.AddNewNodeByClass("vtkMRMLTableNode", name)
     table = vtk.vtkTable()
     for column, values in columns.items():
-        array = vtk.vtkDoubleArray()
+        values = np.ravel(values)
+        text = values.dtype.kind in "USO"
+        array = vtk.vtkStringArray() if text else vtk.vtkDoubleArray()
         array.SetName(column)
-        for value in np.ravel(values).astype(float):
-            array.InsertNextValue(value)
+        for value in values if text else values.astype(float):
+            array.InsertNextValue(str(value) if text else value)
         table.AddColumn(array)
     node.SetAndObserveTable(table)
+    node.SetUseColumnTitleAsColumnHeader(True)
     return node
 
 
 def plot_chart_node(table_node, x_column: str, y_columns: list[str], scene, title: str, y_title: str,
-                    node=None):
-    """A line chart of ``y_columns`` against ``x_column`` of a table node (series reused by name)."""
+                    node=None, bars: bool = False):
+    """A line chart (``bars``: a bar chart, e.g. a histogram) of ``y_columns`` against
+    ``x_column`` of a table node (series reused by name)."""
     if node is None:
         node = scene.AddNewNodeByClass("vtkMRMLPlotChartNode", title)
     node.SetTitle(title)
@@ -134,7 +139,7 @@ def plot_chart_node(table_node, x_column: str, y_columns: list[str], scene, titl
         series.SetAndObserveTableNodeID(table_node.GetID())
         series.SetXColumnName(x_column)
         series.SetYColumnName(column)
-        series.SetPlotType(series.PlotTypeScatter)
+        series.SetPlotType(series.PlotTypeBar if bars else series.PlotTypeScatter)
         series.SetMarkerStyle(series.MarkerStyleNone)
         series.SetColor(*_SERIES_COLOURS[index % len(_SERIES_COLOURS)])
         node.AddAndObservePlotSeriesNodeID(series.GetID())
