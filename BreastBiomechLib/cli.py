@@ -107,7 +107,8 @@ def cmd_mesh(args) -> int:
     for name, surface in result.surfaces.items():
         paths[f"surface_{name}"] = write_surface(out / "surfaces" / f"{name}.vtp", surface)
     summary = result.summary()
-    case = compression_case(result.mesh, "mesh.vtu", args.axis, args.compression)
+    case = compression_case(result.mesh, "mesh.vtu", args.axis, args.compression,
+                            chest_clearance_mm=args.chest_clearance_mm)
     paths["case"] = out / "case.json"
     paths["case"].write_text(json.dumps(case, indent=1) + "\n")
     model, _ = case_from_dict(case, result.mesh, paths["case"])
@@ -309,6 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--landmarks", help="a .mrk.json with a point labelled 'nipple' (the nipple node)")
     p.add_argument("--axis", default="LR", choices=["LR", "AP", "SI"], help="compression axis of case.json")
     p.add_argument("--compression", type=float, default=0.25, help="compression of case.json, fraction of thickness")
+    p.add_argument("--chest-clearance-mm", type=float, default=None,
+                   help="band anterior to the chest wall the plates do not touch (default: the plate travel, >= 5 mm)")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")
     p.set_defaults(func=cmd_mesh)
 

@@ -262,6 +262,29 @@ def test_cli_mesh_writes_mesh_case_and_niftysim(tmp_path, labels):
     assert gap == pytest.approx(2 * BREAST_RADII[0], abs=1.5)  # tangent to the breast, not the chest
     travel = np.linalg.norm(left.displacement) + np.linalg.norm(right.displacement)
     assert travel == pytest.approx(0.3 * gap)
+    # the plates touch the skin between them that lies more than the plate travel (12 mm)
+    # anterior to the chest: all of it there, none behind
+    skin, breast_skin = mesh.node_set("skin"), mesh.node_set("breast_skin")
+    front = mesh.nodes[np.unique(mesh.tets[mesh.cell_data["tissue"] == lt.MUSCLE.label]), 1].min()
+    contact = left.slave_nodes
+    assert set(contact) <= set(breast_skin)
+    assert mesh.nodes[contact, 1].max() < front - 0.15 * gap
+    band = breast_skin[mesh.nodes[breast_skin, 1] < front - 0.15 * gap]
+    assert set(contact) == set(band[(mesh.nodes[band, 0] >= left.point[0]) & (mesh.nodes[band, 0] <= right.point[0])])
+
+    # and the case solves with its heterogeneous default materials (muscle and tumour 10x fat):
+    # plates reaching to the chest wall shear the breast base against the stiff muscle until
+    # elements invert
+    from BreastBiomechLib.solver import solve
+
+    assert np.ptp(model.materials.mu) > 0
+    solution = solve(model, device="cpu", relaxation=settings.relaxation)
+    assert solution.status == "completed", solution.message
+    final = mesh.nodes + solution.displacement
+    for i, plate in enumerate(model.loading.plates):
+        assert plate.gaps(final[plate.slave_nodes] - plate.displacement).min() > -1e-2
+        assert solution.plate_forces[i] @ plate.normal > 1.0
+
     nifty = read_niftysim(out / "model.xml")
     assert len(nifty.mesh.tets) == len(mesh.tets) and len(nifty.loading.plates) == 2
     for name in ("body", "glandular", "muscle", "tumour"):

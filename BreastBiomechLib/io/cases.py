@@ -155,28 +155,52 @@ def read_case(path: str | Path) -> tuple[Model, SolverSettings]:
 
 
 def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compression: float = 0.25,
-                     moving: str = "both", total_time: float = 1.0, settle_time: float = 0.25) -> dict:
+                     moving: str = "both", total_time: float = 1.0, settle_time: float = 0.25,
+                     chest_clearance_mm: float | None = None) -> dict:
     """The case-file dictionary of a plate compression of a breast mesh made by
-    :func:`BreastBiomechLib.mesh.from_labels.mesh_labels` (node sets ``chest_wall``,
+    :func:`BreastBiomechLib.mesh.from_labels.mesh_labels` (node sets ``chest_wall``, ``skin``,
     ``breast_skin``, ``fov_cut``): plates tangent to the breast skin on both sides of ``axis``
-    closing by ``compression`` of the thickness between them, contact with the breast skin; the
-    chest wall fixed anterior-posteriorly as in the seed; the field-of-view cut faces, where the
-    body continues, fixed (without them, the anchor patches of
+    closing by ``compression`` of the thickness between them; the chest wall fixed
+    anterior-posteriorly as in the seed; the field-of-view cut faces, where the body continues,
+    fixed (without them, the anchor patches of
     :func:`~BreastBiomechLib.solver.supports.support_constraints` stop rigid motion); the
-    default tissue materials; dynamic relaxation. ``mesh_file`` is written as the case's mesh."""
+    default tissue materials; dynamic relaxation. ``mesh_file`` is written as the case's mesh.
+
+    The plates touch the skin nodes that start between them and lie more than
+    ``chest_clearance_mm`` anterior to the chest (the most anterior muscle node), listed in the
+    case. The band they leave free stands for the rig's support between the chest and the
+    plates' posterior edge, and keeps a rigid plate edge from shearing the breast base against
+    the stiffer chest wall: plates reaching to within ~2 mm of the muscle invert elements there
+    at 25 % compression with the default materials. Default: the plate travel per side, at
+    least 5 mm (the band then shears by at most about 1)."""
     from BreastBiomechLib.labels import BY_LABEL
     from BreastBiomechLib.solver.materials import default_tissue_materials
-    from BreastBiomechLib.solver.placement import PLATE_SIDES, compression_plates
+    from BreastBiomechLib.mesh.node_sets import chest_front_y
+    from BreastBiomechLib.solver.placement import PLATE_SIDES, axis_vector, compression_plates
     from BreastBiomechLib.solver.supports import support_constraints
 
-    for name in ("chest_wall", "breast_skin", "fov_cut"):
+    for name in ("chest_wall", "skin", "breast_skin", "fov_cut"):
         if name not in mesh.point_data:
             raise ValueError(f"the mesh has no {name!r} node set; make it with `breastbiomech mesh`")
     if "tissue" not in mesh.cell_data:
         raise ValueError("the mesh has no 'tissue' cell array; make it with `breastbiomech mesh`")
     breast = mesh.node_set("breast_skin")
-    plates = compression_plates(mesh, axis, compression, breast, names=PLATE_SIDES.get(str(axis).upper(), ("plate1", "plate2")),
-                                moving=moving, extent_nodes=breast)
+    direction = axis_vector(axis)
+    if chest_clearance_mm is None:
+        travel = compression * float(np.ptp(mesh.nodes[breast] @ direction))
+        chest_clearance_mm = max(5.0, travel * (0.5 if moving == "both" else 1.0))
+    if chest_clearance_mm < 0:
+        raise ValueError(f"the chest clearance is a distance (mm >= 0), not {chest_clearance_mm}")
+    skin = mesh.node_set("skin")
+    front = chest_front_y(mesh, np.asarray(mesh.cell_data["tissue"]).astype(int), mesh.point_data["chest_wall"] > 0)
+    if front is not None:
+        skin = skin[mesh.nodes[skin, 1] < front - chest_clearance_mm]
+    if len(skin) == 0:
+        raise ValueError(f"no skin lies more than {chest_clearance_mm:g} mm anterior to the chest wall; "
+                         "lower the chest clearance")
+    plates = compression_plates(mesh, axis, compression, skin,
+                                names=PLATE_SIDES.get(str(axis).upper(), ("plate1", "plate2")), moving=moving,
+                                extent_nodes=breast)
     cut = mesh.node_set("fov_cut")
     if len(cut):
         constraints = [{"nodes": "chest_wall", "components": "y"}, {"nodes": "fov_cut", "components": "xyz"}]
@@ -191,7 +215,7 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
         "materials": materials,
         "constraints": constraints,
         "plates": [{"name": p.name, "point": p.point.tolist(), "normal": p.normal.tolist(),
-                    "displacement": p.displacement.tolist(), "slaves": "breast_skin"} for p in plates],
+                    "displacement": p.displacement.tolist(), "slaves": p.slave_nodes.tolist()} for p in plates],
         "total_time": total_time, "settle_time": settle_time,
         "solver": {"method": "relaxation"},
     }

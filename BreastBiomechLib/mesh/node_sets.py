@@ -16,6 +16,15 @@ from BreastBiomechLib.surface.extract import index_to_physical
 POSTERIOR = np.array([0.0, 1.0, 0.0])
 
 
+def chest_front_y(mesh: TetMesh, tissue: np.ndarray, chest_wall: np.ndarray) -> float | None:
+    """The LPS y (mm) of the most anterior muscle node (without muscle elements, of the most
+    anterior ``chest_wall`` node, a boolean (N,) mask): where the breast starts. None when the
+    mesh has neither."""
+    muscle = np.unique(mesh.tets[np.asarray(tissue) == lt.MUSCLE.label])
+    base = muscle if len(muscle) else np.flatnonzero(chest_wall)
+    return float(mesh.nodes[base, 1].min()) if len(base) else None
+
+
 def breast_node_sets(mesh: TetMesh, tissue: np.ndarray, labels: sitk.Image,
                      nipple_mm: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Node sets as uint8 point arrays (1 = in the set):
@@ -69,10 +78,9 @@ def breast_node_sets(mesh: TetMesh, tissue: np.ndarray, labels: sitk.Image,
     nipple_flag = np.zeros(n, bool)
     nipple_flag[nipple] = True
     breast = skin.copy()
-    muscle = np.unique(mesh.tets[tissue == lt.MUSCLE.label])
-    base = muscle if len(muscle) else np.flatnonzero(chest_wall)
-    if len(base):
-        breast &= mesh.nodes[:, 1] < mesh.nodes[base, 1].min()
+    front = chest_front_y(mesh, tissue, chest_wall)
+    if front is not None:
+        breast &= mesh.nodes[:, 1] < front
     if not breast.any():
         raise ValueError("no skin lies anterior to the chest wall: is the label map's anterior direction -y (LPS)?")
     return {name: flags.astype(np.uint8) for name, flags in

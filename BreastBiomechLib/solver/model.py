@@ -43,6 +43,21 @@ class Plate:
         self.displacement = np.asarray(self.displacement, float).reshape(3)
         self.slave_nodes = np.unique(np.asarray(self.slave_nodes, dtype=np.int64).ravel())
 
+    def gaps(self, positions_mm: np.ndarray) -> np.ndarray:
+        """Signed distances (mm) of points from the plate at the start, > 0 on the tissue side."""
+        return (np.asarray(positions_mm, float).reshape(-1, 3) - self.point) @ self.normal
+
+    def check_clear_of(self, positions_mm: np.ndarray) -> None:
+        """Raise a ValueError naming the fix when any of the points (mm) starts behind the plate
+        by more than the round-off tolerance, i.e. the plate cuts into the tissue."""
+        gap = self.gaps(positions_mm)
+        if len(gap) and gap.min() < -PENETRATION_TOLERANCE_MM:
+            raise ValueError(
+                f"plate {self.name!r} cuts into the tissue at the start: {int(np.sum(gap < -PENETRATION_TOLERANCE_MM))} "
+                f"of its contact nodes lie behind it, up to {-gap.min():.2f} mm; move it {-gap.min():.2f} mm "
+                "along its normal so that it just touches the skin, and check that the normal points "
+                "towards the tissue")
+
 
 @dataclass
 class Constraint:
@@ -115,13 +130,7 @@ class Model:
         for p in self.loading.plates:
             if len(p.slave_nodes) and (p.slave_nodes.min() < 0 or p.slave_nodes.max() >= n):
                 raise ValueError(f"plate {p.name!r} refers to nodes outside the mesh")
-            gap = (self.mesh.nodes[p.slave_nodes] - p.point) @ p.normal
-            if len(gap) and gap.min() < -PENETRATION_TOLERANCE_MM:
-                raise ValueError(
-                    f"plate {p.name!r} cuts into the tissue at the start: {int(np.sum(gap < -PENETRATION_TOLERANCE_MM))} "
-                    f"of its contact nodes lie behind it, up to {-gap.min():.2f} mm; move it {-gap.min():.2f} mm "
-                    "along its normal so that it just touches the skin, and check that the normal points "
-                    "towards the tissue")
+            p.check_clear_of(self.mesh.nodes[p.slave_nodes])
         if self.damping < 0:
             raise ValueError("damping must be >= 0 (1/s)")
         if not 0 < self.safety <= 1:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
-from BreastBiomechLib.solver.model import Plate
+from BreastBiomechLib.solver.model import PENETRATION_TOLERANCE_MM, Plate
 
 AXES = {"LR": (1.0, 0.0, 0.0), "AP": (0.0, 1.0, 0.0), "SI": (0.0, 0.0, 1.0)}  # LPS x, y, z
 MOVING = ("both", "first", "second")
@@ -30,6 +30,18 @@ def axis_vector(axis) -> np.ndarray:
     return vector / norm
 
 
+def nodes_in_front(nodes_mm: np.ndarray, candidates, plates: list[Plate]) -> np.ndarray:
+    """The ``candidates`` (node ids) that start on the tissue side of every plate (within the
+    round-off tolerance): the nodes the plates can touch. A plate is a plane, so skin that
+    starts behind it - the chest's skin beside the breast when the plates are placed against the
+    breast - is not its contact: it is where the real, finite plate does not reach."""
+    candidates = np.asarray(candidates, dtype=np.int64).ravel()
+    keep = np.ones(len(candidates), bool)
+    for plate in plates:
+        keep &= plate.gaps(nodes_mm[candidates]) >= -PENETRATION_TOLERANCE_MM
+    return candidates[keep]
+
+
 def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slave_nodes=None,
                        names: tuple[str, str] = ("plate1", "plate2"), moving: str = "both",
                        extent_nodes=None) -> list[Plate]:
@@ -38,8 +50,9 @@ def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slav
     (the first plate's normal is +axis, the second's -axis, both towards the tissue), which close
     the gap between them by ``compression`` (a fraction in (0, 1)) of the thickness: half each
     (``moving="both"``), or all by the first or second plate with the other held (the seed's fixed
-    and movable plates). ``slave_nodes`` default to every boundary node of the mesh. Each plate's
-    ``point`` is the mesh centre projected onto it, so a drawn plate is centred on the breast."""
+    and movable plates). The contact nodes are the ``slave_nodes`` (default: every boundary node
+    of the mesh) that start between the plates (:func:`nodes_in_front`). Each plate's ``point``
+    is the mesh centre projected onto it, so a drawn plate is centred on the breast."""
     if not 0.0 < compression < 1.0:
         raise ValueError(f"compression must be a fraction of the thickness in (0, 1), not {compression}")
     if moving not in MOVING:
@@ -58,5 +71,11 @@ def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slav
     centre = centre - (centre @ direction) * direction
     travel = compression * (hi - lo)
     share = {"both": (0.5, 0.5), "first": (1.0, 0.0), "second": (0.0, 1.0)}[moving]
-    return [Plate(centre + lo * direction, direction, share[0] * travel * direction, slave_nodes, names[0]),
-            Plate(centre + hi * direction, -direction, -share[1] * travel * direction, slave_nodes, names[1])]
+    plates = [Plate(centre + lo * direction, direction, share[0] * travel * direction, slave_nodes, names[0]),
+              Plate(centre + hi * direction, -direction, -share[1] * travel * direction, slave_nodes, names[1])]
+    between = nodes_in_front(mesh.nodes, slave_nodes, plates)
+    if len(between) == 0:
+        raise ValueError("no contact node lies between the plates; check the contact node set")
+    for plate in plates:
+        plate.slave_nodes = between
+    return plates

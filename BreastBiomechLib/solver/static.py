@@ -28,10 +28,12 @@ from BreastBiomechLib.solver.tled import MM, Solution, merged_constraints, shape
 
 _FD_STEP = 1e-6  # central-difference step on the deformation gradient (dimensionless)
 _MAX_BACKTRACKS = 10  # halvings of a Newton step that would invert elements
+_DEGENERATE_J = 1e-6  # volume ratios at or below this count as inverted: their stress overflows
 
 
 class InvertedElements(ValueError):
-    """A displacement field turns elements inside out (J <= 0, or a mean nodal J <= 0 with ANP)."""
+    """A displacement field turns elements inside out or flat (J, or the mean nodal J with ANP,
+    at most ``_DEGENERATE_J``)."""
 
     def __init__(self, elements: np.ndarray):
         self.elements = elements
@@ -87,7 +89,7 @@ class Discretisation:
         F = self.deformation_gradient(u_m)
         J = np.linalg.det(F)
         Jm = self.mean_nodal_jacobian(J) if self.anp else J
-        bad = np.flatnonzero((J <= 0) | (Jm <= 0))
+        bad = np.flatnonzero((J <= _DEGENERATE_J) | (Jm <= _DEGENERATE_J))
         if len(bad):
             raise InvertedElements(bad)
         return F, Jm
