@@ -95,8 +95,8 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         for checkBox in (self.ui.fixLRCheckBox, self.ui.fixAPCheckBox, self.ui.fixSICheckBox, self.ui.anchorCheckBox,
                          self.ui.stopWhenSettledCheckBox):
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
-        for spinBox in (self.ui.compressionSliderWidget, self.ui.dampingSpinBox, self.ui.totalTimeSpinBox,
-                        self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox):
+        for spinBox in (self.ui.compressionSliderWidget, self.ui.chestClearanceSpinBox, self.ui.dampingSpinBox,
+                        self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.inputMeshSelector.currentNodeChanged.connect(self.onInputMeshChanged)
         self.ui.defaultMaterialsButton.clicked.connect(self.onDefaultMaterialsButton)
@@ -133,6 +133,7 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
                                    (self.ui.contactNodeSetComboBox, "contactNodeSet")):
                 self._setComboText(comboBox, p[name])
             self.ui.compressionSliderWidget.value = p["compressionPercent"]
+            self.ui.chestClearanceSpinBox.value = p["chestClearanceMm"]
             self.ui.fixLRCheckBox.checked = p["fixLR"]
             self.ui.fixAPCheckBox.checked = p["fixAP"]
             self.ui.fixSICheckBox.checked = p["fixSI"]
@@ -183,6 +184,7 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         p["fixedNodeSet"] = self.ui.fixedNodeSetComboBox.currentText
         p["contactNodeSet"] = self.ui.contactNodeSetComboBox.currentText
         p["compressionPercent"] = self.ui.compressionSliderWidget.value
+        p["chestClearanceMm"] = self.ui.chestClearanceSpinBox.value
         p["fixLR"] = self.ui.fixLRCheckBox.checked
         p["fixAP"] = self.ui.fixAPCheckBox.checked
         p["fixSI"] = self.ui.fixSICheckBox.checked
@@ -250,7 +252,7 @@ class BreastSimulationLogic(ParameterNodeLogic):
     DEFAULTS = {"method": "relaxation", "formulation": "T4ANP", "device": "auto",
                 "compressionAxis": "LR", "compressionPercent": 25.0, "movingPlates": "both",
                 "fixedNodeSet": "", "fixLR": False, "fixAP": True, "fixSI": False, "anchor": True,
-                "contactNodeSet": "boundary", "damping": 50.0, "totalTime": 1.0, "settleTime": 0.25,
+                "contactNodeSet": "boundary", "chestClearanceMm": -1.0, "damping": 50.0, "totalTime": 1.0, "settleTime": 0.25,
                 "tolerance": 0.01, "stopWhenSettled": True}
     ROLES = ("inputMesh", "materials", "plates", "outputMesh", "history", "forceChart", "energyChart")
     PLATE_NAMES = {"LR": ("Right plate", "Left plate"), "AP": ("Anterior plate", "Posterior plate"),
@@ -280,13 +282,12 @@ class BreastSimulationLogic(ParameterNodeLogic):
 
     def chooseDefaultNodeSets(self, parameterNode) -> None:
         """Pick the fixed node set (``chest_wall`` or ``pectoral``) and the contact set of a newly
-        chosen mesh where it has them: ``breast_skin`` (the skin in front of the chest wall, as
-        BreastMesh makes it: the plates never reach behind it), else ``skin``, else every
-        boundary node."""
+        chosen mesh where it has them: ``skin`` (the plates touch the part between them and in
+        front of the chest clearance), else every boundary node."""
         names = self.nodeSetNames(parameterNode.reference("inputMesh"))
         wasModifying = parameterNode.node.StartModify()
         parameterNode["fixedNodeSet"] = next((n for n in ("chest_wall", "pectoral") if n in names), "")
-        parameterNode["contactNodeSet"] = next((n for n in ("breast_skin", "skin") if n in names), "boundary")
+        parameterNode["contactNodeSet"] = "skin" if "skin" in names else "boundary"
         parameterNode.node.EndModify(wasModifying)
 
     @staticmethod
@@ -307,6 +308,42 @@ class BreastSimulationLogic(ParameterNodeLogic):
         if name in ("", "boundary"):
             return np.flatnonzero(boundary_nodes(mesh.tets, len(mesh.nodes)))
         return self._nodeSet(mesh, name, "contact")
+
+    def placementNodes(self, parameterNode, mesh) -> np.ndarray:
+        """The nodes the plates are placed against and must not start behind: ``breast_skin``
+        where the mesh has it (BreastMesh meshes, whose skin also covers the chest), else the
+        contact nodes."""
+        if "breast_skin" in mesh.point_data:
+            return self._nodeSet(mesh, "breast_skin", "breast skin")
+        return self.contactNodes(parameterNode, mesh)
+
+    def plateContacts(self, parameterNode, mesh, plates) -> np.ndarray:
+        """The contact nodes the plates touch: those that start between the plates and, on a
+        mesh with a chest wall (muscle elements or a ``chest_wall`` set), lie more than
+        ``chestClearanceMm`` anterior to it (< 0: auto, the larger plate travel, at least 5 mm;
+        see io.cases.compression_case for why a plate edge must stop short of the chest)."""
+        from BreastBiomechLib import labels
+        from BreastBiomechLib.mesh.node_sets import chest_front_y
+        from BreastBiomechLib.solver.placement import nodes_in_front
+
+        for plate in plates:
+            plate.check_clear_of(mesh.nodes[self.placementNodes(parameterNode, mesh)])
+        contact = self.contactNodes(parameterNode, mesh)
+        tissues = self._elementTissues(mesh)
+        chest = mesh.point_data.get("chest_wall")
+        has_chest = (tissues == labels.MUSCLE.label).any() or (chest is not None and np.any(chest))
+        if has_chest:
+            clearance = parameterNode["chestClearanceMm"]
+            if clearance < 0:
+                clearance = max([5.0] + [float(np.linalg.norm(p.displacement)) for p in plates])
+            front = chest_front_y(mesh, tissues, np.asarray(chest) > 0 if chest is not None
+                                  else np.zeros(len(mesh.nodes), bool))
+            contact = contact[mesh.nodes[contact, 1] < front - clearance]
+        contact = nodes_in_front(mesh.nodes, contact, plates)
+        if len(contact) == 0:
+            raise ValueError("no contact node lies between the plates (and in front of the chest clearance); "
+                             "check the plates, the contact node set and the chest clearance")
+        return contact
 
     @staticmethod
     def _elementTissues(mesh) -> np.ndarray:
@@ -349,7 +386,8 @@ class BreastSimulationLogic(ParameterNodeLogic):
         return ElementMaterials.from_tissues(tissues, table)
 
     def createCompressionPlates(self, parameterNode) -> list:
-        """Two plates tangent to the mesh on both sides of ``compressionAxis``, closing by
+        """Two plates tangent to the mesh (its breast skin where it has one) on both sides of
+        ``compressionAxis``, closing by
         ``compressionPercent`` of the thickness between them (``movingPlates``: both, first or
         second), as markups planes the user can move; the existing two are updated in place."""
         from BreastBiomechLib.mrml import plate_to_plane_node
@@ -359,7 +397,8 @@ class BreastSimulationLogic(ParameterNodeLogic):
         axis = parameterNode["compressionAxis"]
         plates = compression_plates(mesh, axis, parameterNode["compressionPercent"] / 100.0,
                                     self.contactNodes(parameterNode, mesh), names=self.PLATE_NAMES[axis],
-                                    moving=parameterNode["movingPlates"])
+                                    moving=parameterNode["movingPlates"],
+                                    extent_nodes=self.placementNodes(parameterNode, mesh))
         direction = axis_vector(axis)
         across = mesh.nodes - np.outer(mesh.nodes @ direction, direction)
         size = 1.3 * float(np.max(np.ptp(across, axis=0)))
@@ -405,9 +444,11 @@ class BreastSimulationLogic(ParameterNodeLogic):
         planes = parameterNode.references("plates")
         if not planes:
             raise ValueError("no plates: press 'Place plates' (or add markups planes as plates)")
-        slaves = self.contactNodes(parameterNode, mesh)
         centre = mesh.nodes.mean(axis=0)
-        plates = [plate_from_plane_node(node, slaves, towards=centre) for node in planes]
+        plates = [plate_from_plane_node(node, [], towards=centre) for node in planes]
+        contacts = self.plateContacts(parameterNode, mesh, plates)
+        for plate in plates:
+            plate.slave_nodes = contacts
         loading = Loading(self.constraints(parameterNode, mesh), plates, total_time=parameterNode["totalTime"],
                           settle_time=parameterNode["settleTime"])
         return Model(mesh, self.materials(parameterNode, mesh), loading,

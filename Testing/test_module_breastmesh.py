@@ -120,12 +120,24 @@ def test_mesh_from_segmentation(scene, labels):
     clip = display.GetClipNode()
     assert display.GetClipping() and clip.GetClippingMethod() == clip.WholeCells
 
-    # the simulation module takes the mesh with its node sets: fixed chest wall, plates on the breast skin
+    # the simulation module takes the mesh with its node sets: fixed chest wall, plates placed
+    # against the breast skin and touching the skin between them beyond the chest clearance
     simulation = BreastSimulation.BreastSimulationLogic(scene)
     sp = simulation.getParameterNode()
     sp.set_reference("inputMesh", node)
     simulation.chooseDefaultNodeSets(sp)
-    assert (sp["fixedNodeSet"], sp["contactNodeSet"]) == ("chest_wall", "breast_skin")
+    assert (sp["fixedNodeSet"], sp["contactNodeSet"]) == ("chest_wall", "skin")
+    sp["compressionPercent"] = 30.0
+    simulation.createDefaultMaterials(sp)
+    simulation.createCompressionPlates(sp)
+    model = simulation.buildModel(sp)
+    breast_skin = back.node_set("breast_skin")
+    width = np.ptp(back.nodes[breast_skin, 0])
+    assert [p.point[0] for p in model.loading.plates] == pytest.approx(
+        [back.nodes[breast_skin, 0].min(), back.nodes[breast_skin, 0].max()], abs=1e-3)
+    front = back.nodes[np.unique(back.tets[back.cell_data["tissue"] == lt.MUSCLE.label]), 1].min()
+    contact = model.loading.plates[0].slave_nodes
+    assert back.nodes[contact, 1].max() < front - 0.15 * width and set(contact) <= set(breast_skin)
 
     # a second run with other settings refills the same nodes
     counts = {c: scene.GetNumberOfNodesByClass(c) for c in ("vtkMRMLModelNode", "vtkMRMLTableNode",

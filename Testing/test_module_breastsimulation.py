@@ -82,8 +82,14 @@ def test_run_matches_the_library_and_writes_results(scene, breast):
     def patch(node):
         return chest[np.linalg.norm(breast.nodes[chest] - breast.nodes[node], axis=1) <= 10.0]
 
+    # the plates touch the boundary nodes more than the plate travel (auto chest clearance)
+    # anterior to the chest wall (y = 0)
     boundary = np.flatnonzero(boundary_nodes(breast.tets, len(breast.nodes)))
-    plates = compression_plates(breast, "LR", 0.2, boundary, names=("Right plate", "Left plate"))
+    travel = 0.1 * np.ptp(breast.nodes[:, 0])
+    assert breast.nodes[chest, 1].min() == pytest.approx(0.0)
+    contact = boundary[breast.nodes[boundary, 1] < -max(travel, 5.0)]
+    plates = compression_plates(breast, "LR", 0.2, contact, names=("Right plate", "Left plate"),
+                                extent_nodes=boundary)
     materials = ElementMaterials.from_tissues(breast.cell_data["tissue"], {
         labels.FAT.label: Material(10e3, 0.49), labels.GLANDULAR.label: Material(35e3, 0.49)})
     loading = Loading([Constraint.fixed(chest, (False, True, False)), Constraint.fixed(patch(centre)),
@@ -108,7 +114,7 @@ def test_run_matches_the_library_and_writes_results(scene, breast):
         moved = plate.point + plate.displacement
         assert ((final[plate.slave_nodes] - moved) @ plate.normal).min() > -1e-3
     forces = [solution.plate_forces[i] @ plate.normal for i, plate in enumerate(result["model"].loading.plates)]
-    assert min(forces) > 0.5
+    assert min(forces) > 0.2
 
     # history table and charts
     history = p.reference("history")
