@@ -234,19 +234,29 @@ def _bench_solver(args) -> dict:
 
 def _bench_mesh(args) -> dict:
     """Mesh a phantom of ``--volume-cm3`` breast tissue (seed 1 preset otherwise) at
-    ``--edge-mm``; figures as a dict (the phantom's generation is not timed)."""
+    ``--edge-mm``, its label map padded (edge voxels repeated: the chest continues) or cropped
+    to ``--grid`` voxels when given; figures as a dict (the phantom's generation is not timed)."""
     import os
+
+    import SimpleITK as sitk
 
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
 
     case = generate_phantom(PhantomParameters(volume_cm3=args.volume_cm3))
+    labels = case.labels
+    if args.grid:
+        change = [g - s for g, s in zip(args.grid, labels.GetSize())]
+        grow = [max(c, 0) for c in change]
+        labels = sitk.ZeroFluxNeumannPad(labels, [g // 2 for g in grow], [g - g // 2 for g in grow])
+        shrink = [max(-c, 0) for c in change]
+        labels = sitk.Crop(labels, [s // 2 for s in shrink], [s - s // 2 for s in shrink])
     started = time.perf_counter()
-    result = mesh_labels(case.labels, MeshSettings(edge_mm=args.edge_mm))
+    result = mesh_labels(labels, MeshSettings(edge_mm=args.edge_mm))
     wall = time.perf_counter() - started
     summary = result.summary()
     return {"benchmark": "mesh", "version": __version__, "machine": platform.machine(), "cores": os.cpu_count(),
-            "breast_volume_cm3": round(case.summary["breast_volume_cm3"], 1), "voxels": int(case.labels.GetNumberOfPixels()),
+            "breast_volume_cm3": round(case.summary["breast_volume_cm3"], 1), "grid": list(labels.GetSize()), "voxels": int(labels.GetNumberOfPixels()),
             "edge_mm": args.edge_mm, "nodes": summary["nodes"], "tets": summary["elements"],
             "wall_s": round(wall, 2), "stages_s": summary["seconds"],
             "failing_elements": summary["quality"]["failing"]["any"]["count"],
@@ -342,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: DynamicRelaxation's)")
     p.add_argument("--volume-cm3", type=float, default=1000.0, help="mesh: phantom breast volume (cm^3)")
     p.add_argument("--edge-mm", type=float, default=3.0, help="mesh: element edge (mm)")
+    p.add_argument("--grid", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
+                   help="mesh: pad or crop the phantom's label map to this many voxels (e.g. 256 256 80)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser
