@@ -1,7 +1,7 @@
 """Repair of the few poor elements TetGen leaves at a curved boundary: flat caps (elements with
-two or three faces on the surface, which lie almost in it) are removed, and interior nodes of the
-remaining poor elements are moved towards their neighbours where that improves every element
-around them (smart Laplacian smoothing). Nodes in LPS mm."""
+two or three faces on the surface, which lie almost in it) are removed, and the nodes of the
+remaining poor elements are moved towards their neighbours (boundary nodes along the surface)
+where that improves every element around them (smart Laplacian smoothing). Nodes in LPS mm."""
 
 from __future__ import annotations
 
@@ -52,8 +52,8 @@ def _ideal_apex(nodes: np.ndarray, tet: np.ndarray, node: int) -> np.ndarray:
 def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0) -> tuple[TetMesh, dict]:
     """``mesh`` with its poor elements (failing the seed's criteria, or slivers with a dihedral
     angle below ``min_dihedral_deg``) repaired: those with two or more faces on the boundary
-    removed, the interior nodes of the others moved where that improves every element around
-    them. Returns the mesh (unused nodes dropped, so node ids change) and what was done:
+    removed, the nodes of the others moved where that improves every element around them
+    (boundary nodes only towards their surface neighbours, at most halfway). Returns the mesh (unused nodes dropped, so node ids change) and what was done:
     ``caps_removed``, ``nodes_moved``, ``poor_before``."""
     from scipy.sparse import csr_matrix
 
@@ -66,18 +66,24 @@ def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0) -> tuple[TetMe
     incidence = csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),
                            shape=(len(nodes), len(tets)))
     on_boundary = boundary_nodes(tets, len(nodes))
+    faces = boundary_faces(tets)[0]
     poor_tets = {tuple(tet) for tet in tets[poor]}
     moved = 0
     for node in np.unique(tets[poor]):
-        if on_boundary[node]:
-            continue
         around = tets[incidence.indices[incidence.indptr[node]:incidence.indptr[node + 1]]]
-        targets = [nodes[np.setdiff1d(np.unique(around), [node])].mean(axis=0)]
-        targets += [_ideal_apex(nodes, tet, node) for tet in around if tuple(tet) in poor_tets]
+        if on_boundary[node]:
+            # along the surface only: halfway at most to the mean of its surface neighbours, which
+            # spreads a short boundary edge and moves the skin by a fraction of a millimetre
+            ring = np.setdiff1d(np.unique(faces[(faces == node).any(axis=1)]), [node])
+            targets, weights = [nodes[ring].mean(axis=0)], (0.25, 0.5)
+        else:
+            targets = [nodes[np.setdiff1d(np.unique(around), [node])].mean(axis=0)]
+            targets += [_ideal_apex(nodes, tet, node) for tet in around if tuple(tet) in poor_tets]
+            weights = (0.25, 0.5, 0.75, 1.0)
         old = nodes[node].copy()
         best, best_score = old, _score(nodes, around, min_dihedral_deg)
         for target in targets:
-            for weight in (0.25, 0.5, 0.75, 1.0):
+            for weight in weights:
                 nodes[node] = old + weight * (target - old)
                 score = _score(nodes, around, min_dihedral_deg)
                 if score > best_score:
