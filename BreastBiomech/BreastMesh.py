@@ -334,9 +334,8 @@ class BreastMeshLogic(ParameterNodeLogic):
     def tissueColumns(result) -> dict:
         """Per tissue: elements, Dice of the element tissues against the label map, and the
         volumes (cm^3) of the label and of its elements."""
-        counts = result.assignment.counts()
-        names = sorted(counts, key=lambda n: list(result.representation).index(n)
-                       if n in result.representation else len(result.representation))
+        counts = result.assignment.counts()  # in label-table order
+        names = list(counts)
         rep = result.representation
         return {"tissue": np.array(names, dtype=object),
                 "elements": np.array([counts[n] for n in names]),
