@@ -318,32 +318,17 @@ class BreastSimulationLogic(ParameterNodeLogic):
         return self.contactNodes(parameterNode, mesh)
 
     def plateContacts(self, parameterNode, mesh, plates) -> np.ndarray:
-        """The contact nodes the plates touch: those that start between the plates and, on a
-        mesh with a chest wall (muscle elements or a ``chest_wall`` set), lie more than
-        ``chestClearanceMm`` anterior to it (< 0: auto, the larger plate travel, at least 5 mm;
-        see io.cases.compression_case for why a plate edge must stop short of the chest)."""
-        from BreastBiomechLib import labels
-        from BreastBiomechLib.mesh.node_sets import chest_front_y
-        from BreastBiomechLib.solver.placement import nodes_in_front
+        """The contact nodes the plates touch (BreastBiomechLib.solver.placement.plate_contacts):
+        those that start between the plates and, on a mesh with a chest wall, lie more than
+        ``chestClearanceMm`` anterior to it (< 0: auto, the larger plate travel, at least 5 mm);
+        a plate that starts behind a placement node is refused."""
+        from BreastBiomechLib.solver.placement import plate_contacts
 
         for plate in plates:
             plate.check_clear_of(mesh.nodes[self.placementNodes(parameterNode, mesh)])
-        contact = self.contactNodes(parameterNode, mesh)
-        tissues = self._elementTissues(mesh)
-        chest = mesh.point_data.get("chest_wall")
-        has_chest = (tissues == labels.MUSCLE.label).any() or (chest is not None and np.any(chest))
-        if has_chest:
-            clearance = parameterNode["chestClearanceMm"]
-            if clearance < 0:
-                clearance = max([5.0] + [float(np.linalg.norm(p.displacement)) for p in plates])
-            front = chest_front_y(mesh, tissues, np.asarray(chest) > 0 if chest is not None
-                                  else np.zeros(len(mesh.nodes), bool))
-            contact = contact[mesh.nodes[contact, 1] < front - clearance]
-        contact = nodes_in_front(mesh.nodes, contact, plates)
-        if len(contact) == 0:
-            raise ValueError("no contact node lies between the plates (and in front of the chest clearance); "
-                             "check the plates, the contact node set and the chest clearance")
-        return contact
+        clearance = parameterNode["chestClearanceMm"]
+        return plate_contacts(mesh, self.contactNodes(parameterNode, mesh), plates,
+                              clearance if clearance >= 0 else None)
 
     @staticmethod
     def _elementTissues(mesh) -> np.ndarray:

@@ -167,16 +167,11 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
     default tissue materials; dynamic relaxation. ``mesh_file`` is written as the case's mesh.
 
     The plates touch the skin nodes that start between them and lie more than
-    ``chest_clearance_mm`` anterior to the chest (the most anterior muscle node), listed in the
-    case. The band they leave free stands for the rig's support between the chest and the
-    plates' posterior edge, and keeps a rigid plate edge from shearing the breast base against
-    the stiffer chest wall: plates reaching to within ~2 mm of the muscle invert elements there
-    at 25 % compression with the default materials. Default: the plate travel per side, at
-    least 5 mm (the band then shears by at most about 1)."""
+    ``chest_clearance_mm`` anterior to the chest (None: the plate travel per side, at least
+    5 mm), listed in the case: see :func:`~BreastBiomechLib.solver.placement.plate_contacts`."""
     from BreastBiomechLib.labels import BY_LABEL
     from BreastBiomechLib.solver.materials import default_tissue_materials
-    from BreastBiomechLib.mesh.node_sets import chest_front_y
-    from BreastBiomechLib.solver.placement import PLATE_SIDES, axis_vector, compression_plates
+    from BreastBiomechLib.solver.placement import PLATE_SIDES, compression_plates, plate_contacts
     from BreastBiomechLib.solver.supports import support_constraints
 
     for name in ("chest_wall", "skin", "breast_skin", "fov_cut"):
@@ -184,23 +179,13 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
             raise ValueError(f"the mesh has no {name!r} node set; make it with `breastbiomech mesh`")
     if "tissue" not in mesh.cell_data:
         raise ValueError("the mesh has no 'tissue' cell array; make it with `breastbiomech mesh`")
-    breast = mesh.node_set("breast_skin")
-    direction = axis_vector(axis)
-    if chest_clearance_mm is None:
-        travel = compression * float(np.ptp(mesh.nodes[breast] @ direction))
-        chest_clearance_mm = max(5.0, travel * (0.5 if moving == "both" else 1.0))
-    if chest_clearance_mm < 0:
-        raise ValueError(f"the chest clearance is a distance (mm >= 0), not {chest_clearance_mm}")
     skin = mesh.node_set("skin")
-    front = chest_front_y(mesh, np.asarray(mesh.cell_data["tissue"]).astype(int), mesh.point_data["chest_wall"] > 0)
-    if front is not None:
-        skin = skin[mesh.nodes[skin, 1] < front - chest_clearance_mm]
-    if len(skin) == 0:
-        raise ValueError(f"no skin lies more than {chest_clearance_mm:g} mm anterior to the chest wall; "
-                         "lower the chest clearance")
     plates = compression_plates(mesh, axis, compression, skin,
                                 names=PLATE_SIDES.get(str(axis).upper(), ("plate1", "plate2")), moving=moving,
-                                extent_nodes=breast)
+                                extent_nodes=mesh.node_set("breast_skin"))
+    contacts = plate_contacts(mesh, skin, plates, chest_clearance_mm)
+    for plate in plates:
+        plate.slave_nodes = contacts
     cut = mesh.node_set("fov_cut")
     if len(cut):
         constraints = [{"nodes": "chest_wall", "components": "y"}, {"nodes": "fov_cut", "components": "xyz"}]

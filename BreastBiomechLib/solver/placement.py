@@ -42,6 +42,39 @@ def nodes_in_front(nodes_mm: np.ndarray, candidates, plates: list[Plate]) -> np.
     return candidates[keep]
 
 
+MIN_CHEST_CLEARANCE_MM = 5.0
+
+
+def plate_contacts(mesh: TetMesh, candidates, plates: list[Plate], chest_clearance_mm: float | None = None) -> np.ndarray:
+    """The ``candidates`` (node ids) the plates touch: those that start between them
+    (:func:`nodes_in_front`) and, on a mesh with a chest (muscle elements in the cell array
+    ``tissue``, or a ``chest_wall`` point array), lie more than ``chest_clearance_mm`` anterior
+    to its most anterior node (None: the larger plate travel, at least 5 mm).
+
+    The band left free stands for the rig's support between the chest and the plates'
+    posterior edge, and keeps a rigid plate edge from shearing the breast base against the
+    stiffer chest wall: plates reaching to within ~2 mm of the muscle invert elements there at
+    25 % compression with the default materials (docs/meshing.md, Known limits)."""
+    from BreastBiomechLib.mesh.node_sets import chest_front_y
+
+    if chest_clearance_mm is None:
+        chest_clearance_mm = max([MIN_CHEST_CLEARANCE_MM] + [float(np.linalg.norm(p.displacement)) for p in plates])
+    if chest_clearance_mm < 0:
+        raise ValueError(f"the chest clearance is a distance (mm >= 0), not {chest_clearance_mm}")
+    candidates = np.asarray(candidates, dtype=np.int64).ravel()
+    tissue = mesh.cell_data.get("tissue")
+    chest = mesh.point_data.get("chest_wall")
+    front = chest_front_y(mesh, np.zeros(len(mesh.tets), int) if tissue is None else np.asarray(tissue).astype(int),
+                          np.zeros(len(mesh.nodes), bool) if chest is None else np.asarray(chest) > 0)
+    if front is not None:
+        candidates = candidates[mesh.nodes[candidates, 1] < front - chest_clearance_mm]
+    contacts = nodes_in_front(mesh.nodes, candidates, plates)
+    if len(contacts) == 0:
+        raise ValueError(f"no contact node lies between the plates and more than {chest_clearance_mm:g} mm anterior "
+                         "to the chest wall; check the plates and the contact nodes, or lower the chest clearance")
+    return contacts
+
+
 def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slave_nodes=None,
                        names: tuple[str, str] = ("plate1", "plate2"), moving: str = "both",
                        extent_nodes=None) -> list[Plate]:
