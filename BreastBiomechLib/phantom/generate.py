@@ -20,14 +20,16 @@ from BreastBiomechLib import labels as lt
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.phantom.anatomy import BreastAnatomy, DuctTree, tumour_phi_factory
 from BreastBiomechLib.phantom.parameters import INTENSITY, PhantomParameters
+from BreastBiomechLib.phantom.seeds import farthest_points
 
 # Fine-grid material codes: the truth tissues plus structures imaged but not modelled.
-_LUNG, _RIB, _INTERCOSTAL = 6, 7, 8
-_MATERIAL_INTENSITY = np.zeros(9, dtype=np.float32)
+_LUNG, _RIB, _INTERCOSTAL, _SUBPECTORAL_FAT = 6, 7, 8, 9
+_MATERIAL_INTENSITY = np.zeros(10, dtype=np.float32)
 for _code, _name in [(1, "fat"), (2, "glandular"), (3, "muscle"), (4, "tumour"), (5, "skin"),
-                     (_LUNG, "lung"), (_RIB, "rib"), (_INTERCOSTAL, "muscle")]:
+                     (_LUNG, "lung"), (_RIB, "rib"), (_INTERCOSTAL, "muscle"), (_SUBPECTORAL_FAT, "fat")]:
     _MATERIAL_INTENSITY[_code] = INTENSITY[_name]
 _FINE_MM = 0.6  # target fine-grid spacing
+_SUBPECTORAL_FAT_MM = 2.0  # the thin fat plane between the pectoral muscle and the chest wall
 
 
 @dataclass
@@ -137,20 +139,6 @@ def _ray_to_surface(anatomy: BreastAnatomy, start, direction, reach=250.0) -> np
     return pts[k - 1] + t * (pts[k] - pts[k - 1])
 
 
-def _farthest_points(candidates: np.ndarray, count: int, seed_points: np.ndarray) -> np.ndarray:
-    """Greedy farthest-point choice of ``count`` rows of ``candidates`` (indices), spreading away
-    from ``seed_points`` and from each other."""
-    chosen = []
-    dist = np.full(len(candidates), np.inf)
-    for p in seed_points:
-        dist = np.minimum(dist, np.linalg.norm(candidates - p, axis=1))
-    for _ in range(min(count, len(candidates))):
-        k = int(np.argmax(dist))
-        chosen.append(k)
-        dist = np.minimum(dist, np.linalg.norm(candidates - candidates[k], axis=1))
-    return np.array(chosen, dtype=int)
-
-
 def generate_phantom(params: PhantomParameters | None = None,
                      progress: Callable[[float, str], None] | None = None) -> PhantomCase:
     """Generate the case described by ``params`` (deterministic in ``params.seed``).
@@ -189,12 +177,14 @@ def generate_phantom(params: PhantomParameters | None = None,
     material[breast] = 1
     material[body & (y >= front) & (y < back)] = 3
     thorax = body & (y >= back)
-    rib_centre_y = back + 7.0
+    wall = back + _SUBPECTORAL_FAT_MM  # front of the chest wall (ribs and intercostal muscle)
+    rib_centre_y = wall + 7.0
     rib_phase = np.mod(z - anatomy.b * 0.37, 24.0) - 12.0
     rib = thorax & ((y - rib_centre_y) ** 2 + rib_phase**2 < 5.5**2)
     material[thorax] = _LUNG
-    material[thorax & (y < back + 14.0)] = _INTERCOSTAL
+    material[thorax & (y < wall + 14.0)] = _INTERCOSTAL
     material[rib] = _RIB
+    material[thorax & (y < wall)] = _SUBPECTORAL_FAT
     skin = body & (depth < params.skin_thickness_mm) & (y < back)
     material[skin] = 5
     nip_base, nip_tip = anatomy.nipple_axis()
@@ -361,7 +351,7 @@ def _landmarks(anatomy: BreastAnatomy, tree: DuctTree, material, fine: _Grid, tu
     need = 12 - len(internal)
     if len(pool) < need:
         raise RuntimeError("phantom: too few glandular features for 12 internal landmarks; raise the density")
-    chosen = _farthest_points(tree.nodes[pool], need, np.array([p for p, _ in internal]))
+    chosen = farthest_points(tree.nodes[pool], need, np.array([p for p, _ in internal]))
     internal += [(tree.nodes[pool[k]], kinds[k]) for k in chosen]
     for i, (p, text) in enumerate(internal, start=1):
         add(p, f"L{i:02d}", text)

@@ -1,0 +1,212 @@
+"""The whole tissue classification of seed section 2.2.1: body, pectoral muscle from seeds,
+breast, tumour from seeds, fat / fibroglandular by EM with MRF and bias correction, merged into
+one label map of the label table with per-class probability images.
+
+Images in, images out (LPS mm geometry kept); seeds are LPS mm points.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import SimpleITK as sitk
+
+from BreastBiomechLib import labels as lt
+from BreastBiomechLib.segmentation.body import body_mask
+from BreastBiomechLib.segmentation.breast import breast_mask, skin_layer
+from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
+from BreastBiomechLib.segmentation.seeded import GrowSettings, SeededRegion, border_fractions, grow_from_seeds
+from BreastBiomechLib.segmentation.volume import VoxelGrid, check_volume, seed_voxels
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass
+class SegmentationSettings:
+    """``em``: the fat/glandular model; ``muscle`` and ``tumour``: region growing from seeds;
+    ``skin_mm``: the outer layer of the breast labelled skin (then folded into fat unless
+    ``keep_skin``), kept out of the EM fit because skin is neither fat nor glandular tissue;
+    ``body_surface_fraction``: see :func:`body_mask`."""
+
+    em: EMSettings = field(default_factory=EMSettings)
+    muscle: GrowSettings = field(default_factory=GrowSettings)
+    tumour: GrowSettings = field(default_factory=lambda: GrowSettings(multiplier=2.0))
+    skin_mm: float = 3.0
+    keep_skin: bool = False
+    body_surface_fraction: float = 0.3
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.skin_mm <= 10:
+            raise ValueError("the skin layer must be 0-10 mm thick")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class TissueSegmentation:
+    """``labels``: uint8 label map (label table values; 0 background, which includes the thorax
+    behind the pectoral muscle); ``probabilities``: tissue name -> float32 image of the tissue's
+    probability per voxel (fat and glandular: EM posteriors; muscle and tumour: partial-volume
+    fractions across their borders; at most 1 in sum, the rest is background);
+    ``bias_field``: the multiplicative bias estimated over the breast (1 elsewhere);
+    ``summary``: volumes, EM fit, timings."""
+
+    labels: sitk.Image
+    probabilities: dict[str, sitk.Image]
+    bias_field: sitk.Image
+    summary: dict
+
+
+def segment_tissues(image: sitk.Image, muscle_seeds, tumour_seeds=None,
+                    settings: SegmentationSettings | None = None,
+                    progress: Progress | None = None) -> TissueSegmentation:
+    """Segment an MR volume from seed points (LPS mm) on the pectoral muscle (3-5 spread over it
+    are enough) and, if there is a tumour, on the tumour (1-3). Deterministic."""
+    settings = settings or SegmentationSettings()
+    report = progress or (lambda fraction, message: None)
+    grid = check_volume(image)
+    array = sitk.GetArrayFromImage(image).astype(np.float32)
+    seconds = {}
+    started = time.perf_counter()
+    report(0.0, "body")
+    body = body_mask(array, grid, surface_fraction=settings.body_surface_fraction)
+    seconds["body"] = time.perf_counter() - started
+    report(0.1, "pectoral muscle from seeds")
+    started = time.perf_counter()
+    muscle = grow_from_seeds(array, seed_voxels(grid, muscle_seeds, body, "pectoral muscle", "inside the body"),
+                             body, grid, settings.muscle)
+    seconds["muscle"] = time.perf_counter() - started
+    tumour = None
+    if tumour_seeds is not None and len(tumour_seeds):
+        report(0.25, "tumour from seeds")
+        started = time.perf_counter()
+        breast = breast_mask(body, muscle.mask, grid)
+        tumour = grow_from_seeds(array, seed_voxels(grid, tumour_seeds, breast, "tumour",
+                                                    "inside the breast (anterior to the pectoral muscle)"),
+                                 breast, grid, settings.tumour)
+        seconds["tumour"] = time.perf_counter() - started
+    result = _classify(grid, array, body, muscle, tumour, settings,
+                       lambda f, m: report(0.3 + 0.7 * f, m))
+    result.summary["seconds"] = {**{k: round(v, 2) for k, v in seconds.items()}, **result.summary["seconds"]}
+    result.summary["seeds"] = {"muscle": int(len(muscle_seeds)),
+                               "tumour": 0 if tumour_seeds is None else int(len(tumour_seeds))}
+    return result
+
+
+def classify_tissues(image: sitk.Image, muscle: sitk.Image, tumour: sitk.Image | None = None,
+                     settings: SegmentationSettings | None = None,
+                     progress: Progress | None = None) -> TissueSegmentation:
+    """The fat / glandular classification and the merged label map, given masks of the pectoral
+    muscle and the tumour (non-zero voxels; e.g. edited in Slicer's Segment Editor) on the
+    image's grid."""
+    settings = settings or SegmentationSettings()
+    grid = check_volume(image)
+    array = sitk.GetArrayFromImage(image).astype(np.float32)
+    body = body_mask(array, grid, surface_fraction=settings.body_surface_fraction)
+    masks = {}
+    for name, mask in (("muscle", muscle), ("tumour", tumour)):
+        if mask is not None:
+            _check_same_grid(image, mask, name)
+            masks[name] = sitk.GetArrayFromImage(mask) != 0
+    if "muscle" not in masks or not masks["muscle"].any():
+        raise ValueError("the pectoral muscle mask is empty: the breast is delimited by it, so "
+                         "segment the muscle before the fat and glandular tissue")
+    body |= masks["muscle"]
+    muscle_region = border_fractions(array, masks["muscle"], body, grid, settings.muscle)
+    tumour_region = None
+    if masks.get("tumour") is not None and masks["tumour"].any():
+        tumour_region = border_fractions(array, masks["tumour"], breast_mask(body, masks["muscle"], grid),
+                                         grid, settings.tumour)
+    return _classify(grid, array, body, muscle_region, tumour_region, settings,
+                     progress or (lambda fraction, message: None))
+
+
+def _check_same_grid(image: sitk.Image, mask: sitk.Image, name: str) -> None:
+    same = (mask.GetSize() == image.GetSize()
+            and np.allclose(mask.GetOrigin(), image.GetOrigin(), atol=1e-3)
+            and np.allclose(mask.GetSpacing(), image.GetSpacing(), rtol=1e-5)
+            and np.allclose(mask.GetDirection(), image.GetDirection(), atol=1e-5))
+    if not same:
+        raise ValueError(f"the {name} mask is not on the MR volume's grid (size {mask.GetSize()} vs "
+                         f"{image.GetSize()}); resample it onto the volume first")
+
+
+def _classify(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: SeededRegion,
+              tumour: SeededRegion | None, settings: SegmentationSettings, report: Progress) -> TissueSegmentation:
+    started = time.perf_counter()
+    report(0.0, "breast region")
+    breast = breast_mask(body, muscle.mask, grid)
+    tumour_mask = tumour.mask & breast if tumour is not None else np.zeros_like(breast)
+    skin = skin_layer(body, breast, grid, settings.skin_mm) & ~tumour_mask
+    em_region = breast & ~skin & ~tumour_mask
+    if not em_region.any():
+        raise ValueError("the breast region is empty: check that the muscle seeds sit on the pectoral "
+                         "muscle and not on the breast tissue in front of it")
+    seconds = {"breast": time.perf_counter() - started}
+    started = time.perf_counter()
+    em = classify_fat_glandular(_unmixed(array, breast, muscle, tumour), em_region, grid.spacing_zyx, settings.em,
+                                lambda f, m: report(0.05 + 0.85 * f, m))
+    seconds["fat_glandular"] = time.perf_counter() - started
+
+    report(0.9, "merging the tissue map")
+    glandular = em_region & (em.probabilities[GLANDULAR] > 0.5)
+    labels = np.zeros(array.shape, dtype=np.uint8)
+    labels[breast] = lt.FAT.label
+    labels[glandular] = lt.GLANDULAR.label
+    labels[skin] = lt.SKIN.label if settings.keep_skin else lt.FAT.label
+    labels[tumour_mask] = lt.TUMOUR.label
+    labels[muscle.mask] = lt.MUSCLE.label
+
+    # probabilities: seeded structures as fractions, the rest of the breast shared by the EM
+    p_muscle = muscle.probability * body
+    p_tumour = (tumour.probability * breast) if tumour is not None else np.zeros_like(p_muscle)
+    free = np.clip(1.0 - p_muscle - p_tumour, 0.0, 1.0) * breast
+    p_skin = free * skin
+    probabilities = {
+        "fat": free * np.where(em_region, em.probabilities[FAT], 0.0) + (0.0 if settings.keep_skin else p_skin),
+        "glandular": free * np.where(em_region, em.probabilities[GLANDULAR], 0.0),
+        "muscle": p_muscle,
+        "tumour": p_tumour,
+    }
+    if settings.keep_skin:
+        probabilities["skin"] = p_skin
+    voxel_cm3 = float(np.prod(grid.spacing)) / 1000.0
+    volumes = {t.name: float(np.count_nonzero(labels == t.label) * voxel_cm3) for t in lt.TISSUES
+               if t.name in probabilities}
+    breast_cm3 = sum(v for name, v in volumes.items() if name != "muscle")
+    summary = {
+        "tissue_volumes_cm3": volumes,
+        "breast_volume_cm3": breast_cm3,
+        "glandular_density": volumes["glandular"] / breast_cm3 if breast_cm3 else 0.0,
+        "em": {"iterations": em.iterations, "converged": em.converged,
+               "class_means": {"fat": float(em.means[FAT]), "glandular": float(em.means[GLANDULAR])},
+               "class_log_sigmas": {"fat": float(em.sigmas[FAT]), "glandular": float(em.sigmas[GLANDULAR])},
+               "bias_range": [float(em.bias_field[em_region].min()), float(em.bias_field[em_region].max())]},
+        "settings": settings.to_dict(),
+        "seconds": {k: round(v, 2) for k, v in seconds.items()},
+    }
+    report(1.0, "done")
+    return TissueSegmentation(
+        labels=grid.to_image(labels),
+        probabilities={name: grid.to_image(p.astype(np.float32)) for name, p in probabilities.items()},
+        bias_field=grid.to_image(em.bias_field),
+        summary=summary,
+    )
+
+
+def _unmixed(array: np.ndarray, breast: np.ndarray, *regions: SeededRegion | None) -> np.ndarray:
+    """The intensities of the breast voxels along the muscle and tumour borders with the
+    structure's share removed (I - p L) / (1 - p), p its fraction and L its local intensity, so
+    that a voxel two-thirds fat and one-third muscle is classified as the fat it mostly is."""
+    out = array.copy()
+    for region in regions:
+        if region is None:
+            continue
+        band = breast & ~region.mask & (region.probability > 0) & (region.probability < 0.5)
+        p = region.probability[band]
+        out[band] = np.maximum((array[band] - p * region.inside_level[band]) / (1.0 - p), 0.0)
+    return out
