@@ -1,4 +1,4 @@
-"""Command line: ``breastbiomech phantom|mesh|simulate|demo|bench``.
+"""Command line: ``breastbiomech phantom|segment|mesh|simulate|demo|bench``.
 
 Each sub-command is a thin layer over library functions; results go to files and a short report
 on standard output (``--json`` where a machine reads it).
@@ -75,6 +75,66 @@ def cmd_demo(args) -> int:
     return 0
 
 
+_progress_line = {"open": False}  # a progress line waits for its newline on standard error
+
+
+def _progress(quiet: bool):
+    """A progress callback that redraws one line on standard error (silent when ``quiet``)."""
+    def report(fraction, message):
+        if not quiet:
+            print(f"\r  {fraction:4.0%} {message:40s}", end="", file=sys.stderr, flush=True)
+            _progress_line["open"] = True
+    return report
+
+
+def _end_progress() -> None:
+    if _progress_line["open"]:
+        print(file=sys.stderr)
+        _progress_line["open"] = False
+
+
+def _segmentation_settings(args):
+    from BreastBiomechLib.segmentation import EMSettings, SegmentationSettings
+
+    return SegmentationSettings(
+        em=EMSettings(mrf_strength=args.mrf, bias_order=args.bias_order, max_iterations=args.iterations,
+                      tolerance=args.tolerance, partial_volume=not args.no_partial_volume),
+        skin_mm=args.skin_mm, keep_skin=args.keep_skin)
+
+
+def cmd_segment(args) -> int:
+    """Segment an MR volume from seed point lists; write the label map, probabilities, bias field
+    and a JSON summary."""
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.markups import read_markups
+    from BreastBiomechLib.io.segmentation import write_segmentation
+    from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
+
+    image = read_image(args.volume)
+    muscle = read_markups(args.seeds_muscle).positions
+    tumour = read_markups(args.seeds_tumour).positions if args.seeds_tumour else None
+    result = segment_tissues(image, muscle, tumour, _segmentation_settings(args), progress=_progress(args.quiet))
+    _end_progress()
+    extra = {"inputs": {"volume": str(args.volume), "seeds_muscle": str(args.seeds_muscle),
+                        "seeds_tumour": str(args.seeds_tumour) if args.seeds_tumour else None}}
+    if args.reference:
+        extra["dice_vs_reference"] = dice_per_tissue(result.labels, read_image(args.reference))
+    paths = write_segmentation(result, args.out, extra)
+    s = result.summary
+    volumes = ", ".join(f"{k} {v:.0f}" for k, v in s["tissue_volumes_cm3"].items())
+    print(f"segmentation written to {args.out}: tissue volumes (cm3) {volumes}; "
+          f"density {s['glandular_density']:.1%}; {sum(s['seconds'].values()):.1f} s")
+    em = s["em"]
+    print(f"  EM: {em['iterations']} iterations ({'converged' if em['converged'] else 'NOT converged'}), "
+          f"fat {em['class_means']['fat']:.0f}, glandular {em['class_means']['glandular']:.0f}, "
+          f"bias field {em['bias_range'][0]:.2f}-{em['bias_range'][1]:.2f}")
+    if "dice_vs_reference" in extra:
+        print("  Dice vs the reference: " + ", ".join(f"{k} {v:.3f}" for k, v in extra["dice_vs_reference"].items()))
+    for role, path in paths.items():
+        print(f"  {role:22s} {path}")
+    return 0
+
+
 def cmd_mesh(args) -> int:
     """Mesh a label map; write the mesh, its surfaces, a report, a compression case and its
     NiftySim model."""
@@ -95,13 +155,8 @@ def cmd_mesh(args) -> int:
     settings = MeshSettings(edge_mm=args.edge_mm, interface_edge_mm=args.interface_edge_mm,
                             refine_interfaces=not args.no_refine)
 
-    def report(fraction, message):
-        if not args.quiet:
-            print(f"\r  {fraction:4.0%} {message:40s}", end="", file=sys.stderr, flush=True)
-
-    result = mesh_labels(labels, settings, nipple_mm=nipple, progress=report)
-    if not args.quiet:
-        print(file=sys.stderr)
+    result = mesh_labels(labels, settings, nipple_mm=nipple, progress=_progress(args.quiet))
+    _end_progress()
     out = Path(args.out)
     paths = {"mesh": write_vtu(out / "mesh.vtu", result.mesh)}
     for name, surface in result.surfaces.items():
@@ -232,25 +287,59 @@ def _bench_solver(args) -> dict:
     }
 
 
+def _fit_grid(image, grid):
+    """``image`` padded (edge voxels repeated: the chest and the air continue) or cropped
+    symmetrically to ``grid`` voxels."""
+    import SimpleITK as sitk
+
+    change = [g - s for g, s in zip(grid, image.GetSize())]
+    grow = [max(c, 0) for c in change]
+    image = sitk.ZeroFluxNeumannPad(image, [g // 2 for g in grow], [g - g // 2 for g in grow])
+    shrink = [max(-c, 0) for c in change]
+    return sitk.Crop(image, [s // 2 for s in shrink], [s - s // 2 for s in shrink])
+
+
+def _bench_segment(args) -> dict:
+    """Segment a phantom (``--volume-cm3``, ``--tumour-mm``, ``--snr``, ``--bias``, ``--seed``)
+    from its written seed points, its volume padded or cropped to ``--grid`` when given; Dice
+    against the ground truth and the wall time (the phantom's generation is not timed)."""
+    import os
+
+    from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
+    from BreastBiomechLib.phantom.files import SEED_COUNTS
+    from BreastBiomechLib.phantom.seeds import seed_points
+    from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
+
+    params = PhantomParameters(seed=args.seed, volume_cm3=args.volume_cm3, tumour_diameter_mm=args.tumour_mm,
+                               snr=args.snr, bias_strength=args.bias)
+    case = generate_phantom(params)
+    image, labels = case.image, case.labels
+    if args.grid:
+        image, labels = _fit_grid(image, args.grid), _fit_grid(labels, args.grid)
+    muscle = seed_points(labels, "muscle", SEED_COUNTS["muscle"]).positions
+    tumour = seed_points(labels, "tumour", SEED_COUNTS["tumour"]).positions if args.tumour_mm > 0 else None
+    started = time.perf_counter()
+    result = segment_tissues(image, muscle, tumour)
+    wall = time.perf_counter() - started
+    return {"benchmark": "segment", "version": __version__, "machine": platform.machine(), "cores": os.cpu_count(),
+            "grid": list(image.GetSize()), "voxels": int(image.GetNumberOfPixels()),
+            "snr": args.snr, "bias": args.bias, "seed": args.seed, "tumour_mm": args.tumour_mm,
+            "wall_s": round(wall, 2), "stages_s": result.summary["seconds"],
+            "em_iterations": result.summary["em"]["iterations"],
+            "dice": {k: round(v, 4) for k, v in dice_per_tissue(result.labels, labels).items()}}
+
+
 def _bench_mesh(args) -> dict:
     """Mesh a phantom of ``--volume-cm3`` breast tissue (seed 1 preset otherwise) at
     ``--edge-mm``, its label map padded (edge voxels repeated: the chest continues) or cropped
     to ``--grid`` voxels when given; figures as a dict (the phantom's generation is not timed)."""
     import os
 
-    import SimpleITK as sitk
-
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
 
     case = generate_phantom(PhantomParameters(volume_cm3=args.volume_cm3))
-    labels = case.labels
-    if args.grid:
-        change = [g - s for g, s in zip(args.grid, labels.GetSize())]
-        grow = [max(c, 0) for c in change]
-        labels = sitk.ZeroFluxNeumannPad(labels, [g // 2 for g in grow], [g - g // 2 for g in grow])
-        shrink = [max(-c, 0) for c in change]
-        labels = sitk.Crop(labels, [s // 2 for s in shrink], [s - s // 2 for s in shrink])
+    labels = _fit_grid(case.labels, args.grid) if args.grid else case.labels
     started = time.perf_counter()
     result = mesh_labels(labels, MeshSettings(edge_mm=args.edge_mm))
     wall = time.perf_counter() - started
@@ -274,8 +363,8 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
-    if args.what == "mesh":
-        figures = _bench_mesh(args)
+    if args.what in ("mesh", "segment"):
+        figures = _bench_mesh(args) if args.what == "mesh" else _bench_segment(args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -310,6 +399,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-overview", action="store_true", help="skip the PNG overview")
     p.set_defaults(func=cmd_phantom)
 
+    p = sub.add_parser("segment", help="tissue label map and probabilities of an MR volume (EM + MRF + bias, seeds)")
+    p.add_argument("volume", help="MR volume (.nrrd/.nii.gz), T1-weighted without fat suppression")
+    p.add_argument("--seeds-muscle", required=True, help="point list (.mrk.json) on the pectoral muscle, 3-5 spread over it")
+    p.add_argument("--seeds-tumour", help="point list (.mrk.json) inside the tumour, if there is one")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--mrf", type=float, default=0.4, help="MRF strength beta (0: no spatial prior; default 0.4)")
+    p.add_argument("--bias-order", type=int, default=3, help="bias-field polynomial order (0: none; default 3)")
+    p.add_argument("--iterations", type=int, default=40, help="EM iterations at most (default 40)")
+    p.add_argument("--tolerance", type=float, default=1e-5, help="EM stop: relative log-likelihood change (default 1e-5)")
+    p.add_argument("--no-partial-volume", action="store_true", help="two pure classes only (no mixed-voxel class)")
+    p.add_argument("--skin-mm", type=float, default=3.0, help="outer breast layer labelled skin (default 3 mm)")
+    p.add_argument("--keep-skin", action="store_true", help="label skin separately (default: folded into fat)")
+    p.add_argument("--reference", help="ground-truth label map: report Dice per tissue")
+    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+    p.set_defaults(func=cmd_segment)
+
     p = sub.add_parser("mesh", help="tetrahedral FE mesh of a tissue label map (TetGen), with a compression case")
     p.add_argument("labels", help="label map (.nrrd/.nii.gz) with the label table's values")
     p.add_argument("--out", required=True, help="output folder")
@@ -337,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom", "mesh", "solver"], help="what to time")
+    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
     p.add_argument("--tets", type=int, default=160_000, help="solver: about this many tets (hemi-ellipsoid)")
     p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
@@ -350,10 +455,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--load-iterations", type=int, default=None,
                    help="solver, dynamic relaxation: iterations over which the load is applied, at least "
                         "(default: DynamicRelaxation's)")
-    p.add_argument("--volume-cm3", type=float, default=1000.0, help="mesh: phantom breast volume (cm^3)")
+    p.add_argument("--volume-cm3", type=float, default=1000.0, help="mesh, segment: phantom breast volume (cm^3)")
+    p.add_argument("--tumour-mm", type=float, default=20.0, help="segment: phantom tumour diameter (0: none)")
+    p.add_argument("--snr", type=float, default=30.0, help="segment: phantom fat signal / noise sigma")
+    p.add_argument("--bias", type=float, default=0.2, help="segment: phantom bias field amplitude")
+    p.add_argument("--seed", type=int, default=1, help="segment: phantom random seed")
     p.add_argument("--edge-mm", type=float, default=3.0, help="mesh: element edge (mm)")
     p.add_argument("--grid", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
-                   help="mesh: pad or crop the phantom's label map to this many voxels (e.g. 256 256 80)")
+                   help="mesh, segment: pad or crop the phantom to this many voxels (e.g. 256 256 80)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser
@@ -365,6 +474,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        _end_progress()
         print(f"breastbiomech {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -7,6 +7,8 @@ Layout of a case folder::
     fraction_<tissue>.nrrd  partial-volume fraction per tissue (float32, 0-1)
     bias_field.nrrd         the multiplicative bias field applied to mr.nrrd
     landmarks.mrk.json      17 landmarks (LPS), loadable in Slicer
+    seeds_muscle.mrk.json   4 seed points on the pectoral muscle (for `breastbiomech segment`)
+    seeds_tumour.mrk.json   3 seed points in the tumour, when there is one
     parameters.json         every generating parameter, and the measured summary
     overview.png            three orthogonal slices with label contours and landmarks
 """
@@ -20,6 +22,9 @@ from BreastBiomechLib.io.images import read_image, write_image
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.phantom.generate import PhantomCase
 from BreastBiomechLib.phantom.parameters import PhantomParameters
+from BreastBiomechLib.phantom.seeds import seed_points
+
+SEED_COUNTS = {"muscle": 4, "tumour": 3}  # seed points written per seeded tissue
 
 
 def write_phantom(case: PhantomCase, out_dir: str | Path, overview: bool = True) -> dict[str, Path]:
@@ -34,6 +39,10 @@ def write_phantom(case: PhantomCase, out_dir: str | Path, overview: bool = True)
     }
     for name, image in case.fractions.items():
         paths[f"fraction_{name}"] = write_image(out / f"fraction_{name}.nrrd", image)
+    for tissue, count in SEED_COUNTS.items():
+        if case.summary["tissue_volumes_cm3"].get(tissue, 0.0) > 0:
+            seeds = seed_points(case.labels, tissue, count)
+            paths[f"seeds_{tissue}"] = write_markups(out / f"seeds_{tissue}.mrk.json", seeds, name=f"Seeds {tissue}")
     document = {"parameters": case.parameters.to_dict(), "summary": case.summary}
     paths["parameters"] = out / "parameters.json"
     paths["parameters"].write_text(json.dumps(document, indent=2) + "\n")

@@ -91,12 +91,13 @@ class _PolynomialBasis:
         return np.stack([u[0] ** a * u[1] ** b * u[2] ** c for a, b, c in self.powers], axis=1)
 
     def field(self, coefficients) -> np.ndarray:
-        """The polynomial on the whole box (separable evaluation)."""
-        out = np.zeros([len(a) for a in self.axes])
-        for coef, (a, b, c) in zip(coefficients, self.powers):
-            out += coef * (self.axes[0][:, None, None] ** a * self.axes[1][None, :, None] ** b
-                           * self.axes[2][None, None, :] ** c)
-        return out
+        """The polynomial on the whole box, contracted one axis at a time."""
+        order = max(sum(p) for p in self.powers)
+        tensor = np.zeros((order + 1,) * 3)
+        for coef, power in zip(coefficients, self.powers):
+            tensor[power] = coef
+        vander = [np.vander(ax, order + 1, increasing=True) for ax in self.axes]  # (n, order + 1)
+        return np.einsum("abc,za,yb,xc->zyx", tensor, *vander, optimize=True)
 
 
 def _neighbour_sum(q: np.ndarray, weights) -> np.ndarray:

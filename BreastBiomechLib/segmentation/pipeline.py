@@ -18,7 +18,8 @@ from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import body_mask
 from BreastBiomechLib.segmentation.breast import breast_mask, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
-from BreastBiomechLib.segmentation.seeded import GrowSettings, SeededRegion, border_fractions, grow_from_seeds
+from BreastBiomechLib.segmentation.seeded import (GrowSettings, SeededRegion, border_fractions, grow_from_seeds,
+                                                  grow_to_midpoint)
 from BreastBiomechLib.segmentation.volume import VoxelGrid, check_volume, seed_voxels
 
 Progress = Callable[[float, str], None]
@@ -82,19 +83,29 @@ def segment_tissues(image: sitk.Image, muscle_seeds, tumour_seeds=None,
     seconds["muscle"] = time.perf_counter() - started
     tumour = None
     if tumour_seeds is not None and len(tumour_seeds):
-        report(0.25, "tumour from seeds")
+        report(0.2, "tumour from seeds")
         started = time.perf_counter()
-        breast = breast_mask(body, muscle.mask, grid)
-        tumour = grow_from_seeds(array, seed_voxels(grid, tumour_seeds, breast, "tumour",
-                                                    "inside the breast (anterior to the pectoral muscle)"),
-                                 breast, grid, settings.tumour)
+        tumour = _grow_tumour(grid, array, body, muscle, tumour_seeds, settings)
         seconds["tumour"] = time.perf_counter() - started
     result = _classify(grid, array, body, muscle, tumour, settings,
-                       lambda f, m: report(0.3 + 0.7 * f, m))
+                       lambda f, m: report(0.4 + 0.6 * f, m))
     result.summary["seconds"] = {**{k: round(v, 2) for k, v in seconds.items()}, **result.summary["seconds"]}
     result.summary["seeds"] = {"muscle": int(len(muscle_seeds)),
                                "tumour": 0 if tumour_seeds is None else int(len(tumour_seeds))}
     return result
+
+
+def _grow_tumour(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: SeededRegion, seeds,
+                 settings: SegmentationSettings) -> SeededRegion:
+    """The tumour, delineated against the glandular tissue it sits in: a first fat/glandular fit
+    of the breast (tumour included, as glandular) gives the bias-corrected glandular level at
+    every voxel, and the tumour is what is connected to the seeds on the tumour's side of the
+    midpoint between its level and that one."""
+    breast = breast_mask(body, muscle.mask, grid)
+    seed_index = seed_voxels(grid, seeds, breast, "tumour", "inside the breast (anterior to the pectoral muscle)")
+    region = breast & ~skin_layer(body, breast, grid, settings.skin_mm)
+    em = classify_fat_glandular(_unmixed(array, breast, muscle), region, grid.spacing_zyx, settings.em)
+    return grow_to_midpoint(array, seed_index, breast, grid, em.means[GLANDULAR] * em.bias_field, settings.tumour)
 
 
 def classify_tissues(image: sitk.Image, muscle: sitk.Image, tumour: sitk.Image | None = None,

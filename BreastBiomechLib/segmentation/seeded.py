@@ -65,19 +65,65 @@ def grow_from_seeds(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, gr
     voxel-majority rule of the label maps)."""
     settings = settings or GrowSettings()
     values = array.astype(np.float32)
-    smooth = ndimage.gaussian_filter(values, settings.smoothing_mm / grid.spacing_zyx, mode="nearest") \
-        if settings.smoothing_mm > 0 else values
+    smooth = _smoothed(values, grid, settings)
     barrier = float(np.abs(smooth).max()) * 1e3 + 1e6  # far outside any intensity window
     image = sitk.GetImageFromArray(np.where(within, smooth, barrier).astype(np.float32))
     grown = sitk.ConfidenceConnected(image, seedList=[tuple(int(i) for i in s[::-1]) for s in seeds],
                                      numberOfIterations=settings.iterations, multiplier=settings.multiplier,
                                      initialNeighborhoodRadius=settings.seed_radius, replaceValue=1)
     mask = seeded_components(ndimage.binary_fill_holes(sitk.GetArrayFromImage(grown).astype(bool) & within), seeds)
-    estimate = border_fractions(values, mask, within, grid, settings)
+    return _refine(values, mask, within, seeds, grid, settings)
+
+
+def grow_to_midpoint(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, grid: VoxelGrid,
+                     surrounding_level, settings: GrowSettings | None = None) -> SeededRegion:
+    """The structure holding the seed voxels ``seeds`` ((N, 3) indices (z, y, x), inside
+    ``within``): the voxels connected to the seeds whose smoothed intensity lies on the
+    structure's side of the midpoint between its level (the median smoothed intensity at the
+    seeds) and ``surrounding_level`` (a number or an array on the grid, e.g. the bias-corrected
+    glandular level the tumour sits in); then the border refinement of :func:`grow_from_seeds`.
+
+    Suited to a small compact structure (a tumour) whose seed neighbourhoods are too few and
+    too mixed for confidence-connected statistics."""
+    settings = settings or GrowSettings()
+    values = array.astype(np.float32)
+    smooth = _smoothed(values, grid, settings)
+    around = np.broadcast_to(np.asarray(surrounding_level, dtype=np.float32), values.shape)
+    level = float(np.median(smooth[tuple(seeds.T)]))
+    seed_around = float(np.median(around[tuple(seeds.T)]))
+    if abs(level - seed_around) < 1e-3 * max(abs(seed_around), 1.0):
+        raise ValueError("the seeded structure has the intensity of its surroundings: there is no "
+                         "contrast to delineate it; move the seeds into the structure")
+    midpoint = 0.5 * (level + around)
+    side = (smooth < midpoint) if level < seed_around else (smooth > midpoint)
+    mask = seeded_components(ndimage.binary_fill_holes(side & within), seeds)
+    return _refine(values, mask, within, seeds, grid, settings)
+
+
+def _smoothed(values: np.ndarray, grid: VoxelGrid, settings: GrowSettings) -> np.ndarray:
+    if settings.smoothing_mm <= 0:
+        return values
+    return ndimage.gaussian_filter(values, settings.smoothing_mm / grid.spacing_zyx, mode="nearest")
+
+
+def _refine(values, mask, within, seeds, grid: VoxelGrid, settings: GrowSettings) -> SeededRegion:
+    """``border_passes`` partial-volume refinements of ``mask``'s border (see
+    :func:`border_fractions`), worked in its bounding box with room for the levels' blur."""
+    if not mask.any():
+        raise ValueError("the seeds did not grow into a region: they sit on voxels unlike the "
+                         "structure; place them well inside it")
+    margin = np.ceil(3 * settings.level_mm / grid.spacing_zyx).astype(int) + 3
+    hits = np.nonzero(mask)
+    box = tuple(slice(max(int(h.min()) - m, 0), int(h.max()) + m + 1) for h, m in zip(hits, margin))
+    local_seeds = seeds - np.array([b.start for b in box])
+    estimate = border_fractions(values[box], mask[box], within[box], grid, settings)
     for _ in range(settings.border_passes):
-        mask = seeded_components(ndimage.binary_fill_holes(estimate.probability >= 0.5) & within, seeds)
-        estimate = border_fractions(values, mask, within, grid, settings)
-    return estimate
+        mask_box = seeded_components(ndimage.binary_fill_holes(estimate.probability >= 0.5) & within[box], local_seeds)
+        estimate = border_fractions(values[box], mask_box, within[box], grid, settings)
+    out = SeededRegion(np.zeros(values.shape, bool), np.zeros(values.shape, np.float32),
+                       np.zeros(values.shape, np.float32))
+    out.mask[box], out.probability[box], out.inside_level[box] = estimate.mask, estimate.probability, estimate.inside_level
+    return out
 
 
 def border_fractions(values: np.ndarray, region: np.ndarray, within: np.ndarray, grid: VoxelGrid,
