@@ -131,7 +131,9 @@ def classify_fat_glandular(array: np.ndarray, mask: np.ndarray, spacing_zyx,
     inside = mask[box]
     index = np.nonzero(inside)
     intensity = array[box][index].astype(np.float64)
-    y = np.log(np.maximum(intensity, 1e-3 * max(float(intensity.max()), 1e-9)))
+    # noise can take a dark voxel's magnitude near zero, and its logarithm far below any tissue:
+    # a floor at a fifth of the median keeps such outliers from dragging a class away
+    y = np.log(np.maximum(intensity, max(0.2 * float(np.median(intensity)), 1e-9)))
     if np.ptp(y) < 1e-6:
         raise ValueError("the breast region has a single intensity: there is no fat/glandular contrast")
     weights = np.min(spacing_zyx) / np.asarray(spacing_zyx, float)

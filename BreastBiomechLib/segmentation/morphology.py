@@ -43,3 +43,45 @@ def local_mean(values: np.ndarray, weights: np.ndarray, sigma_vox) -> np.ndarray
     num = ndimage.gaussian_filter(values * weights, sigma_vox, mode="nearest")
     den = ndimage.gaussian_filter(weights.astype(np.float32), sigma_vox, mode="nearest")
     return np.where(den > 1e-3, num / np.maximum(den, 1e-3), 0.0).astype(np.float32)
+
+
+def smooth_trend(values: np.ndarray, weights: np.ndarray, sigma_mm: float, spacing_zyx) -> np.ndarray:
+    """:func:`local_mean` for long scales, computed on a grid coarsened to about a third of
+    ``sigma_mm`` and interpolated back (linear): a trend this smooth loses nothing, and the
+    filters run on a small fraction of the voxels. 0 where no weighted voxel is near."""
+    spacing = np.asarray(spacing_zyx, dtype=float)
+    factors = np.maximum(1, np.floor(sigma_mm / (3 * spacing))).astype(int)
+    if np.all(factors == 1):
+        return local_mean(values, weights, sigma_mm / spacing)
+    shape = np.asarray(values.shape)
+    padded = -(-shape // factors) * factors
+    pad = [(0, int(p - s)) for p, s in zip(padded, shape)]
+    w = np.pad(weights.astype(np.float32), pad)
+    v = np.pad(values.astype(np.float32), pad, mode="edge") * w
+    blocks = [(int(n // f), int(f)) for n, f in zip(padded, factors)]
+    shape6 = [d for pair in blocks for d in pair]
+    coarse_w = w.reshape(shape6).sum(axis=(1, 3, 5))
+    coarse_v = v.reshape(shape6).sum(axis=(1, 3, 5))
+    sigma = sigma_mm / (spacing * factors)
+    num = ndimage.gaussian_filter(coarse_v, sigma, mode="nearest")
+    den = ndimage.gaussian_filter(coarse_w, sigma, mode="nearest")
+    coarse = np.where(den > 1e-3 * factors.prod(), num / np.maximum(den, 1e-12), np.nan)
+    valid = ~np.isnan(coarse)
+    filled = _upsample_linear(np.where(valid, coarse, 0.0), factors, shape)
+    support = _upsample_linear(valid.astype(np.float64), factors, shape)
+    return np.where(support > 0.99, filled, 0.0).astype(np.float32)
+
+
+def _upsample_linear(coarse: np.ndarray, factors, shape) -> np.ndarray:
+    """Separable linear interpolation of block means (block centres at (f - 1) / 2 fine voxels)
+    onto the fine grid of ``shape``; constant beyond the outermost centres."""
+    out = coarse
+    for axis, (n, f) in enumerate(zip(shape, factors)):
+        position = np.clip((np.arange(n) - (f - 1) / 2) / f, 0, out.shape[axis] - 1)
+        i0 = np.floor(position).astype(int)
+        i1 = np.minimum(i0 + 1, out.shape[axis] - 1)
+        view = [None] * out.ndim
+        view[axis] = slice(None)
+        w = (position - i0)[tuple(view)]
+        out = out.take(i0, axis=axis) * (1 - w) + out.take(i1, axis=axis) * w
+    return out

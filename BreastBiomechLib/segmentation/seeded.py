@@ -10,10 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import SimpleITK as sitk
 from scipy import ndimage
 
-from BreastBiomechLib.segmentation.morphology import local_mean, seeded_components
+from BreastBiomechLib.segmentation.morphology import local_mean, seeded_components, smooth_trend
 from BreastBiomechLib.segmentation.volume import VoxelGrid
 
 _FACES = ndimage.generate_binary_structure(3, 1)
@@ -21,25 +20,28 @@ _FACES = ndimage.generate_binary_structure(3, 1)
 
 @dataclass
 class GrowSettings:
-    """``smoothing_mm``: Gaussian sigma of the smoothing before growing; ``multiplier``: the
-    intensity window is the region's mean +- this many standard deviations; ``iterations``: times
-    the window is re-estimated from the grown region; ``seed_radius``: voxels around each seed
-    that give the first estimate; ``level_mm``: the scale over which the intensities just inside
-    and just outside the border are averaged; ``border_passes``: refinements of the border."""
+    """``smoothing_mm``: Gaussian sigma of the smoothing before growing; ``multiplier``: a voxel
+    joins when its smoothed intensity lies within this many noise standard deviations of the
+    structure's local level; ``iterations``: re-estimates of that level from the grown region;
+    ``trend_mm``: the scale over which the structure's level may change (a bias field's);
+    ``seed_radius``: voxels around each seed that give the first estimate; ``level_mm``: the
+    scale over which the intensities just inside and just outside the border are averaged;
+    ``border_passes``: refinements of the border."""
 
     smoothing_mm: float = 1.0
-    multiplier: float = 2.5
-    iterations: int = 4
+    multiplier: float = 3.0
+    iterations: int = 5
+    trend_mm: float = 15.0
     seed_radius: int = 1
     level_mm: float = 2.0
     border_passes: int = 2
 
     def __post_init__(self) -> None:
-        if self.multiplier <= 0 or self.iterations < 0 or self.seed_radius < 0 or self.border_passes < 0:
-            raise ValueError("region growing needs a positive multiplier and non-negative iterations, "
-                             "seed radius and border passes")
-        if self.smoothing_mm < 0 or self.level_mm <= 0:
-            raise ValueError("smoothing and level widths must be positive lengths (mm)")
+        if self.multiplier <= 0 or self.iterations < 1 or self.seed_radius < 0 or self.border_passes < 0:
+            raise ValueError("region growing needs a positive multiplier, at least one iteration and "
+                             "non-negative seed radius and border passes")
+        if self.smoothing_mm < 0 or self.level_mm <= 0 or self.trend_mm <= 0:
+            raise ValueError("smoothing, trend and level widths must be positive lengths (mm)")
 
 
 @dataclass
@@ -56,22 +58,36 @@ class SeededRegion:
 def grow_from_seeds(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, grid: VoxelGrid,
                     settings: GrowSettings | None = None) -> SeededRegion:
     """The structure holding the seed voxels ``seeds`` ((N, 3) indices (z, y, x), inside
-    ``within``), grown inside ``within`` through voxels of similar intensity.
+    ``within``), grown inside ``within`` through voxels of similar intensity, under a bias field.
 
-    Growing: ITK's confidence-connected filter on the volume smoothed by ``smoothing_mm``, with
-    the voxels outside ``within`` made unreachable; cavities filled. Border: ``border_passes``
-    times, the voxels either side of the border get their fraction of the structure from
-    :func:`border_fractions` and belong to it when the fraction is at least one half (the
-    voxel-majority rule of the label maps)."""
+    Growing works on the volume smoothed by ``smoothing_mm``. The structure's level is a smooth
+    field: first the seeds' levels spread over the volume, then, ``iterations`` times, the local
+    mean (``trend_mm``) of the region grown so far. A voxel joins when it is connected to a seed
+    and within ``multiplier`` noise standard deviations of the level, the noise measured as the
+    spread about the level (seed neighbourhoods first, then the region). So a thin structure
+    whose intensity drifts by tens of percent across the field of view (a pectoral muscle under
+    a bias field) is followed, while a fixed intensity window would either stop short or leak.
+    Cavities are filled; then the border refinement (:func:`border_fractions`)."""
     settings = settings or GrowSettings()
     values = array.astype(np.float32)
     smooth = _smoothed(values, grid, settings)
-    barrier = float(np.abs(smooth).max()) * 1e3 + 1e6  # far outside any intensity window
-    image = sitk.GetImageFromArray(np.where(within, smooth, barrier).astype(np.float32))
-    grown = sitk.ConfidenceConnected(image, seedList=[tuple(int(i) for i in s[::-1]) for s in seeds],
-                                     numberOfIterations=settings.iterations, multiplier=settings.multiplier,
-                                     initialNeighborhoodRadius=settings.seed_radius, replaceValue=1)
-    mask = seeded_components(ndimage.binary_fill_holes(sitk.GetArrayFromImage(grown).astype(bool) & within), seeds)
+    near = np.zeros(values.shape, bool)
+    near[tuple(seeds.T)] = True
+    if settings.seed_radius > 0:
+        near = ndimage.binary_dilation(near, np.ones((2 * settings.seed_radius + 1,) * 3, bool))
+    region = near & within
+    level = smooth_trend(smooth, region, 4 * settings.trend_mm, grid.spacing_zyx)
+    level[level == 0] = float(np.median(smooth[region]))
+    labels, _ = ndimage.label(region)
+    noise = float(np.sqrt(np.mean([smooth[labels == k].var() for k in range(1, labels.max() + 1)])))
+    for _ in range(settings.iterations):
+        accept = within & (np.abs(smooth - level) <= settings.multiplier * max(noise, 1e-6)) | near & within
+        region = seeded_components(accept, seeds)
+        local = smooth_trend(smooth, region, settings.trend_mm, grid.spacing_zyx)
+        level = np.where(local > 0, local, level)
+        residual = (smooth - level)[region]
+        noise = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    mask = seeded_components(ndimage.binary_fill_holes(region), seeds)
     return _refine(values, mask, within, seeds, grid, settings)
 
 
