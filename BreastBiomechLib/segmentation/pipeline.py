@@ -18,8 +18,8 @@ from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import body_mask
 from BreastBiomechLib.segmentation.breast import breast_mask, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
-from BreastBiomechLib.segmentation.seeded import (GrowSettings, SeededRegion, border_fractions, grow_from_seeds,
-                                                  grow_to_midpoint)
+from BreastBiomechLib.segmentation.seeded import (GrowSettings, SeededRegion, agreeing_probability, border_fractions,
+                                                  grow_from_seeds, grow_to_midpoint)
 from BreastBiomechLib.segmentation.volume import VoxelGrid, check_volume, seed_voxels
 
 Progress = Callable[[float, str], None]
@@ -128,10 +128,12 @@ def classify_tissues(image: sitk.Image, muscle: sitk.Image, tumour: sitk.Image |
                          "segment the muscle before the fat and glandular tissue")
     body |= masks["muscle"]
     muscle_region = border_fractions(array, masks["muscle"], body, grid, settings.muscle)
+    muscle_region.probability = agreeing_probability(muscle_region.probability, muscle_region.mask)
     tumour_region = None
     if masks.get("tumour") is not None and masks["tumour"].any():
         tumour_region = border_fractions(array, masks["tumour"], breast_mask(body, masks["muscle"], grid),
                                          grid, settings.tumour)
+        tumour_region.probability = agreeing_probability(tumour_region.probability, tumour_region.mask)
     return _classify(grid, array, body, muscle_region, tumour_region, settings,
                      progress or (lambda fraction, message: None))
 

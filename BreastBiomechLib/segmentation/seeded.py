@@ -134,12 +134,22 @@ def _refine(values, mask, within, seeds, grid: VoxelGrid, settings: GrowSettings
     local_seeds = seeds - np.array([b.start for b in box])
     estimate = border_fractions(values[box], mask[box], within[box], grid, settings)
     for _ in range(settings.border_passes):
-        mask_box = seeded_components(ndimage.binary_fill_holes(estimate.probability >= 0.5) & within[box], local_seeds)
-        estimate = border_fractions(values[box], mask_box, within[box], grid, settings)
+        estimate.mask = seeded_components(ndimage.binary_fill_holes(estimate.probability >= 0.5) & within[box],
+                                          local_seeds)
+        estimate.probability = agreeing_probability(estimate.probability, estimate.mask)
+        if _ < settings.border_passes - 1:
+            estimate = border_fractions(values[box], estimate.mask, within[box], grid, settings)
     out = SeededRegion(np.zeros(values.shape, bool), np.zeros(values.shape, np.float32),
                        np.zeros(values.shape, np.float32))
     out.mask[box], out.probability[box], out.inside_level[box] = estimate.mask, estimate.probability, estimate.inside_level
     return out
+
+
+def agreeing_probability(probability: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``probability`` made to agree with ``mask``: at least one half inside it (a filled cavity,
+    an edited-in voxel), at most one half outside (a dropped fragment, an edited-out voxel), so
+    that the mask is always the probability's majority."""
+    return np.where(mask, np.maximum(probability, 0.5), np.minimum(probability, 0.5)).astype(np.float32)
 
 
 def border_fractions(values: np.ndarray, region: np.ndarray, within: np.ndarray, grid: VoxelGrid,
