@@ -382,8 +382,8 @@ class BreastMeshTest(ScriptedLoadableModuleTest):
         from BreastBiomechLib.mrml import labels_to_segmentation_node
         from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
 
-        self.delayDisplay("Meshing a 300 cm³ phantom at 5 mm")
-        case = generate_phantom(PhantomParameters(volume_cm3=300.0))
+        self.delayDisplay("Meshing a 400 cm³ phantom at 5 mm")
+        case = generate_phantom(PhantomParameters(volume_cm3=400.0))
         logic = BreastMeshLogic()
         p = logic.getParameterNode()
         p.set_reference("inputSegmentation", labels_to_segmentation_node(case.labels, slicer.mrmlScene))

@@ -217,3 +217,14 @@ def test_segment_command_writes_the_results(case, seeds, tmp_path, capsys):
     code = main(["segment", str(paths["mr"]), "--seeds-muscle", str(paths["landmarks"]), "--out", str(out), "--quiet"])
     assert code == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_step_by_step_matches_the_whole(case, seeds, result):
+    from BreastBiomechLib.segmentation import segment_muscle, segment_tumour
+
+    muscle = segment_muscle(case.image, seeds[0])
+    whole = _array(result.labels)
+    np.testing.assert_array_equal(_array(muscle.mask).astype(bool), whole == lt.MUSCLE.label)
+    tumour = segment_tumour(case.image, muscle.mask, seeds[1])
+    grown, truth = _array(tumour.mask).astype(bool), whole == lt.TUMOUR.label
+    assert 2 * np.count_nonzero(grown & truth) / (grown.sum() + truth.sum()) > 0.98

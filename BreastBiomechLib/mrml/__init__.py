@@ -18,6 +18,8 @@ from BreastBiomechLib.mrml.parameters import ParameterNode
 from BreastBiomechLib.mrml.segmentations import (
     labels_from_segmentation_node,
     labels_to_segmentation_node,
+    mask_from_segment,
+    mask_to_segment,
     register_segmentation_converters,
 )
 from BreastBiomechLib.mrml.tables import (
@@ -43,6 +45,8 @@ __all__ = [
     "labels_to_segmentation_node",
     "landmarks_from_markups_node",
     "landmarks_to_markups_node",
+    "mask_from_segment",
+    "mask_to_segment",
     "materials_from_table_node",
     "materials_to_table_node",
     "plate_from_plane_node",

@@ -67,8 +67,8 @@ def labels_from_segmentation_node(node, scene, reference: sitk.Image | None = No
     """The segmentation as a label image (uint8, label-table values from the segment names).
 
     With ``reference`` the label image has exactly its grid (LPS); otherwise the segmentation's
-    own reference geometry. Segment names must be tissue names of the label table."""
-    register_segmentation_converters()
+    own reference geometry. Segment names must be tissue names of the label table; where
+    segments overlap, the later segment wins."""
     segmentation = node.GetSegmentation()
     ids = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
     names = [segmentation.GetSegment(i).GetName() for i in ids]
@@ -76,6 +76,55 @@ def labels_from_segmentation_node(node, scene, reference: sitk.Image | None = No
     if unknown:
         raise ValueError(f"segments {unknown} are not tissues of the label table; rename them to one of "
                          f"{[t.name for t in lt.TISSUES]}")
+    exported = _export_segments(node, ids, scene, reference)
+    # exported values are 1..n in the order of ``ids``; map them to the table's values
+    lookup = np.zeros(len(ids) + 1, dtype=np.uint8)
+    for k, n in enumerate(names, start=1):
+        lookup[k] = lt.BY_NAME[n].label
+    out = sitk.GetImageFromArray(lookup[sitk.GetArrayViewFromImage(exported).astype(np.int64)])
+    out.CopyInformation(exported)
+    return out
+
+
+def mask_from_segment(node, tissue_name: str, scene, reference: sitk.Image) -> sitk.Image | None:
+    """The segment named ``tissue_name`` alone as a uint8 mask (1 inside) on ``reference``'s grid
+    (LPS), other segments ignored even where they overlap it; None if there is no such segment."""
+    segmentation = node.GetSegmentation()
+    ids = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
+    match = [i for i in ids if segmentation.GetSegment(i).GetName() == tissue_name]
+    if not match:
+        return None
+    exported = _export_segments(node, match[:1], scene, reference)
+    return sitk.Cast(exported != 0, sitk.sitkUInt8)
+
+
+def mask_to_segment(mask: sitk.Image, node, tissue_name: str, scene) -> str:
+    """Fill the segment of ``node`` named ``tissue_name`` (made if missing, with the label table's
+    colour) with the non-zero voxels of ``mask`` (LPS); other segments are left as they are.
+    Returns the segment's ID."""
+    tissue = lt.tissue(tissue_name)
+    register_segmentation_converters()
+    segmentation = node.GetSegmentation()
+    ids = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
+    match = [i for i in ids if segmentation.GetSegment(i).GetName() == tissue.name]
+    segment_id = match[0] if match else segmentation.AddEmptySegment(tissue.name, tissue.name, list(tissue.color))
+    labelmap = image_to_volume_node(sitk.Cast(mask != 0, sitk.sitkUInt8), scene, tissue.name + "_import",
+                                    labelmap=True, display=False)
+    try:
+        if not ids:
+            node.SetReferenceImageGeometryParameterFromVolumeNode(labelmap)
+        updated = vtk.vtkStringArray()
+        updated.InsertNextValue(segment_id)
+        if not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, node, updated):
+            raise RuntimeError(f"Slicer could not import the {tissue.name} mask into the segmentation node")
+    finally:
+        scene.RemoveNode(labelmap)
+    return segment_id
+
+
+def _export_segments(node, ids: list[str], scene, reference: sitk.Image | None) -> sitk.Image:
+    """The segments ``ids`` as one label image, values 1..n in the order of ``ids`` (LPS)."""
+    register_segmentation_converters()
     colours_before = {scene.GetNthNodeByClass(i, "vtkMRMLColorTableNode").GetID()
                       for i in range(scene.GetNumberOfNodesByClass("vtkMRMLColorTableNode"))}
     labelmap = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "export")
@@ -93,7 +142,7 @@ def labels_from_segmentation_node(node, scene, reference: sitk.Image | None = No
             node, id_array, labelmap, reference_node, extent_mode)
         if not ok:
             raise RuntimeError("Slicer could not export the segmentation to a label map")
-        exported = image_from_volume_node(labelmap)
+        return image_from_volume_node(labelmap)
     finally:
         display = labelmap.GetDisplayNode()
         colours = display.GetColorNode() if display is not None else None
@@ -102,11 +151,3 @@ def labels_from_segmentation_node(node, scene, reference: sitk.Image | None = No
             scene.RemoveNode(colours)
         if reference_node is not None:
             scene.RemoveNode(reference_node)
-    # exported values are 1..n in the order of ``ids``; map them to the table's values
-    lookup = np.zeros(len(ids) + 1, dtype=np.uint8)
-    for k, n in enumerate(names, start=1):
-        lookup[k] = lt.BY_NAME[n].label
-    out = sitk.GetImageFromArray(lookup[sitk.GetArrayViewFromImage(exported).astype(np.int64)])
-    out.CopyInformation(exported)
-    return out
-

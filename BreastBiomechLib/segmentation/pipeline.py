@@ -108,6 +108,39 @@ def _grow_tumour(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: S
     return grow_to_midpoint(array, seed_index, breast, grid, em.means[GLANDULAR] * em.bias_field, settings.tumour)
 
 
+@dataclass
+class StructureSegmentation:
+    """One seeded structure on the volume's grid: ``mask`` (uint8 image, 1 inside) and
+    ``probability`` (float32 image: its volume fraction per voxel, see :class:`SeededRegion`)."""
+
+    mask: sitk.Image
+    probability: sitk.Image
+
+
+def segment_muscle(image: sitk.Image, seeds, settings: SegmentationSettings | None = None) -> StructureSegmentation:
+    """The pectoral muscle alone, from seed points (LPS mm) on it: the first step of
+    :func:`segment_tissues`, for interactive use (inspect, edit, then go on)."""
+    settings = settings or SegmentationSettings()
+    grid = check_volume(image)
+    array = sitk.GetArrayFromImage(image).astype(np.float32)
+    body = body_mask(array, grid, surface_fraction=settings.body_surface_fraction)
+    muscle = grow_from_seeds(array, seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body"),
+                             body, grid, settings.muscle)
+    return StructureSegmentation(grid.to_image(muscle.mask.astype(np.uint8)), grid.to_image(muscle.probability))
+
+
+def segment_tumour(image: sitk.Image, muscle: sitk.Image, seeds,
+                   settings: SegmentationSettings | None = None) -> StructureSegmentation:
+    """The tumour alone, from seed points (LPS mm) in it, given the pectoral muscle mask (which
+    delimits the breast; e.g. the edited result of :func:`segment_muscle`)."""
+    settings = settings or SegmentationSettings()
+    grid = check_volume(image)
+    array = sitk.GetArrayFromImage(image).astype(np.float32)
+    body, muscle_region, _ = _regions_from_masks(grid, image, array, muscle, None, settings)
+    tumour = _grow_tumour(grid, array, body, muscle_region, seeds, settings)
+    return StructureSegmentation(grid.to_image(tumour.mask.astype(np.uint8)), grid.to_image(tumour.probability))
+
+
 def classify_tissues(image: sitk.Image, muscle: sitk.Image, tumour: sitk.Image | None = None,
                      settings: SegmentationSettings | None = None,
                      progress: Progress | None = None) -> TissueSegmentation:
@@ -117,7 +150,15 @@ def classify_tissues(image: sitk.Image, muscle: sitk.Image, tumour: sitk.Image |
     settings = settings or SegmentationSettings()
     grid = check_volume(image)
     array = sitk.GetArrayFromImage(image).astype(np.float32)
-    body = body_mask(array, grid, surface_fraction=settings.body_surface_fraction)
+    body, muscle_region, tumour_region = _regions_from_masks(grid, image, array, muscle, tumour, settings)
+    return _classify(grid, array, body, muscle_region, tumour_region, settings,
+                     progress or (lambda fraction, message: None))
+
+
+def _regions_from_masks(grid: VoxelGrid, image: sitk.Image, array: np.ndarray, muscle: sitk.Image,
+                        tumour: sitk.Image | None, settings: SegmentationSettings):
+    """The body, and the muscle and tumour masks as regions with partial-volume borders that
+    agree with the masks as given."""
     masks = {}
     for name, mask in (("muscle", muscle), ("tumour", tumour)):
         if mask is not None:
@@ -125,17 +166,19 @@ def classify_tissues(image: sitk.Image, muscle: sitk.Image, tumour: sitk.Image |
             masks[name] = sitk.GetArrayFromImage(mask) != 0
     if "muscle" not in masks or not masks["muscle"].any():
         raise ValueError("the pectoral muscle mask is empty: the breast is delimited by it, so "
-                         "segment the muscle before the fat and glandular tissue")
-    body |= masks["muscle"]
-    muscle_region = border_fractions(array, masks["muscle"], body, grid, settings.muscle)
-    muscle_region.probability = agreeing_probability(muscle_region.probability, muscle_region.mask)
-    tumour_region = None
-    if masks.get("tumour") is not None and masks["tumour"].any():
-        tumour_region = border_fractions(array, masks["tumour"], breast_mask(body, masks["muscle"], grid),
-                                         grid, settings.tumour)
-        tumour_region.probability = agreeing_probability(tumour_region.probability, tumour_region.mask)
-    return _classify(grid, array, body, muscle_region, tumour_region, settings,
-                     progress or (lambda fraction, message: None))
+                         "segment the muscle before the tumour and the fat and glandular tissue")
+    body = body_mask(array, grid, surface_fraction=settings.body_surface_fraction) | masks["muscle"]
+    regions = []
+    for name, within in (("muscle", body), ("tumour", None)):
+        if not masks.get(name, np.zeros(1, bool)).any():
+            regions.append(None)
+            continue
+        if within is None:
+            within = breast_mask(body, masks["muscle"], grid)
+        region = border_fractions(array, masks[name], within, grid, getattr(settings, name))
+        region.probability = agreeing_probability(region.probability, region.mask)
+        regions.append(region)
+    return body, regions[0], regions[1]
 
 
 def _check_same_grid(image: sitk.Image, mask: sitk.Image, name: str) -> None:
@@ -206,7 +249,7 @@ def _classify(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: Seed
     return TissueSegmentation(
         labels=grid.to_image(labels),
         probabilities={name: grid.to_image(p.astype(np.float32)) for name, p in probabilities.items()},
-        bias_field=grid.to_image(em.bias_field),
+        bias_field=grid.to_image(np.where(breast, em.bias_field, 1.0).astype(np.float32)),
         summary=summary,
     )
 
