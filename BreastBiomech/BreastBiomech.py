@@ -253,8 +253,12 @@ class BreastBiomechLogic(ParameterNodeLogic):
         return self.addCaseToScene(case, name or os.path.basename(os.path.normpath(folder)))
 
     def addCaseToScene(self, case, name: str) -> dict:
-        """MR volume, tissue segmentation, fraction volumes and landmarks of ``case`` as nodes."""
+        """MR volume, tissue segmentation, fraction volumes, landmarks and seed point lists (for
+        the Breast Segmentation module: on the muscle and, if any, in the tumour) of ``case`` as
+        nodes."""
         from BreastBiomechLib import mrml
+        from BreastBiomechLib.phantom.files import SEED_COUNTS
+        from BreastBiomechLib.phantom.seeds import seed_points
 
         volume = mrml.image_to_volume_node(case.image, self.scene, f"{name}_MR")
         segmentation = mrml.labels_to_segmentation_node(case.labels, self.scene, f"{name}_Tissues")
@@ -262,13 +266,16 @@ class BreastBiomechLogic(ParameterNodeLogic):
         fractions = {tissue: mrml.image_to_volume_node(image, self.scene, f"{name}_fraction_{tissue}")
                      for tissue, image in case.fractions.items()}
         landmarks = mrml.landmarks_to_markups_node(case.landmarks, self.scene, f"{name}_Landmarks")
+        seeds = {tissue: mrml.landmarks_to_markups_node(seed_points(case.labels, tissue, count), self.scene,
+                                                        f"{name}_Seeds_{tissue}", locked=False)
+                 for tissue, count in SEED_COUNTS.items() if case.summary["tissue_volumes_cm3"].get(tissue, 0.0) > 0}
         parameterNode = self.getParameterNode()
         parameterNode.set_reference("mrVolume", volume)
         parameterNode.set_reference("segmentation", segmentation)
         parameterNode.set_reference("landmarks", landmarks)
         logging.info("BreastBiomech: %s", self.summaryText(case.summary))
         return {"volume": volume, "segmentation": segmentation, "fractions": fractions,
-                "landmarks": landmarks, "summary": case.summary}
+                "landmarks": landmarks, "seeds": seeds, "summary": case.summary}
 
     def showPhantom(self, nodes: dict) -> None:
         """Show the MR in the slice views with the segmentation outlined (application only)."""

@@ -59,19 +59,43 @@ def cmd_phantom(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    """The main job on the built-in phantom (grows with the pipeline)."""
+    """The main job on the built-in phantom (grows with the pipeline): phantom, segmentation from
+    seed points, FE mesh of the segmentation."""
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.io.segmentation import write_segmentation
+    from BreastBiomechLib.mesh.from_labels import mesh_labels
     from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
+    from BreastBiomechLib.phantom.files import SEED_COUNTS
+    from BreastBiomechLib.phantom.seeds import seed_points
+    from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
 
     out = Path(args.out)
     print(f"BreastBiomech {__version__} demo -> {out}")
-    print("1/1 phantom: Table 1 case 1 (1364 cm3, tumour), 1 x 1 x 2.5 mm voxels")
+    print("1/3 phantom: Table 1 case 1 (1364 cm3, tumour), 1 x 1 x 2.5 mm voxels, SNR 30, +-20 % bias")
     case = generate_phantom(table1_case(1))
     paths = write_phantom(case, out / "phantom")
     s = case.summary
     volumes = ", ".join(f"{k} {v:.0f}" for k, v in s["tissue_volumes_cm3"].items())
     print(f"    tissue volumes (cm3): {volumes}; density {s['glandular_density']:.1%}; {s['seconds']:.1f} s")
-    print(f"    overview picture: {paths['overview']}")
-    print(f"demo finished: open {paths['mr']} with {paths['labels']} and {paths['landmarks']} in Slicer")
+
+    print(f"2/3 segmentation from {SEED_COUNTS['muscle']} muscle and {SEED_COUNTS['tumour']} tumour seed points "
+          "(EM + MRF + bias field)")
+    result = segment_tissues(case.image, seed_points(case.labels, "muscle", SEED_COUNTS["muscle"]).positions,
+                             seed_points(case.labels, "tumour", SEED_COUNTS["tumour"]).positions)
+    dice = dice_per_tissue(result.labels, case.labels)
+    seg_paths = write_segmentation(result, out / "segmentation", {"dice_vs_truth": dice})
+    print("    Dice vs the ground truth: " + ", ".join(f"{k} {v:.3f}" for k, v in dice.items())
+          + f"; {sum(result.summary['seconds'].values()):.1f} s")
+
+    print("3/3 tetrahedral mesh of the segmentation (3 mm)")
+    mesh = mesh_labels(result.labels, nipple_mm=case.landmarks.position("nipple"))
+    mesh_path = write_vtu(out / "mesh" / "mesh.vtu", mesh.mesh)
+    summary = mesh.summary()
+    print(f"    {summary['nodes']} nodes, {summary['elements']} tets, "
+          f"{summary['quality']['failing']['any']['count']} failing the seed's quality criteria; "
+          f"{summary['seconds']['total']:.1f} s")
+    print(f"demo finished: open {paths['mr']} with {seg_paths['labels']}, {mesh_path} and "
+          f"{paths['landmarks']} in Slicer; overview picture {paths['overview']}")
     return 0
 
 

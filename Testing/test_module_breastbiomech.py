@@ -61,6 +61,14 @@ def test_case_into_scene_keeps_geometry_labels_and_landmarks(scene, case):
     landmarks.GetNthControlPointPosition(index, ras)
     np.testing.assert_allclose(ras, case.landmarks.position("nipple") * [-1, -1, 1], atol=1e-9)
 
+    # seed point lists for the Breast Segmentation module sit inside their tissues
+    assert set(nodes["seeds"]) == {"muscle", "tumour"}
+    for tissue, node in nodes["seeds"].items():
+        points = mrml.landmarks_from_markups_node(node).positions
+        assert len(points) >= 3
+        index = [case.labels.TransformPhysicalPointToIndex(tuple(p)) for p in points]
+        assert all(case.labels[i] == lt.tissue(tissue).label for i in index)
+
     # the parameter node points at the results
     parameters = logic.getParameterNode()
     assert parameters.reference("mrVolume") is volume
