@@ -353,6 +353,62 @@ def _bench_segment(args) -> dict:
             "dice": {k: round(v, 4) for k, v in dice_per_tissue(result.labels, labels).items()}}
 
 
+def _bench_warp(args) -> dict:
+    """Warp a synthetic image through a 25 % compression of the hemi-ellipsoid mesh (``--tets``)
+    onto a ``--grid`` (default 256 x 256 x 100) covering it, and compare the result with the
+    image by NMI and NCC, ``--repeat`` times; median and best milliseconds per call after a
+    warm-up call (kernel compilation)."""
+    import numpy as np
+    import SimpleITK as sitk
+    import warp as wp
+
+    from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+    from BreastBiomechLib.similarity import Similarity
+    from BreastBiomechLib.warping import ImageWarper
+
+    radii = (80.0, 70.0, 75.0)
+    spacing = (np.pi * 4 * radii[0] * radii[1] * radii[2] / args.tets) ** (1 / 3)
+    mesh = hemi_ellipsoid_mesh(radii, spacing)
+    grid = args.grid or (256, 256, 100)
+    low, high = mesh.nodes.min(axis=0) - 5.0, mesh.nodes.max(axis=0) + 5.0
+    voxel = (high - low) / (np.array(grid) - 1)
+    k, j, i = np.meshgrid(*[np.arange(n) for n in grid[::-1]], indexing="ij")
+    values = (500 + 300 * np.sin(i / 9.0) * np.cos(j / 13.0) + 150 * np.sin(k / 5.0)).astype(np.float32)
+    image = sitk.GetImageFromArray(values)
+    image.SetOrigin(tuple(low))
+    image.SetSpacing(tuple(voxel))
+    centre = mesh.nodes.mean(axis=0)
+    squeeze = np.diag([0.75, 1.0, 1.0 / 0.75])  # 25 % compression along x, volume kept
+    displacement = (mesh.nodes - centre) @ (squeeze - np.eye(3)).T
+    wp.init()
+    device = wp.get_device(args.device)
+    warper = ImageWarper(mesh, image, image, device=device)
+    similarity = Similarity(image, bins=64, device=device)
+
+    def timed(call):
+        call()
+        wp.synchronize_device(device)
+        times = []
+        for _ in range(args.repeat):
+            started = time.perf_counter()
+            call()
+            wp.synchronize_device(device)
+            times.append(1000 * (time.perf_counter() - started))
+        return round(float(np.median(times)), 3), round(float(np.min(times)), 3)
+
+    warp_ms = timed(lambda: warper.warp(displacement))
+    predicted = warper.warp(displacement)
+    nmi_ms = timed(lambda: similarity.nmi(predicted))
+    ncc_ms = timed(lambda: similarity.ncc(predicted))
+    inside = int(warper._inside.numpy().sum())
+    return {"benchmark": "warp", "version": __version__, "device": str(device),
+            "device_name": getattr(device, "name", ""), "nodes": len(mesh.nodes), "tets": len(mesh.tets),
+            "grid": list(grid), "voxels": int(np.prod(grid)), "inside_voxels": inside,
+            "warp_ms_median": warp_ms[0], "warp_ms_best": warp_ms[1],
+            "nmi_ms_median": nmi_ms[0], "nmi_ms_best": nmi_ms[1], "ncc_ms_median": ncc_ms[0],
+            "ncc_ms_best": ncc_ms[1], "nmi": round(similarity.nmi(predicted), 6), "repeat": args.repeat}
+
+
 def _bench_mesh(args) -> dict:
     """Mesh a phantom of ``--volume-cm3`` breast tissue (seed 1 preset otherwise) at
     ``--edge-mm``, its label map padded (edge voxels repeated: the chest continues) or cropped
@@ -387,8 +443,8 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
-    if args.what in ("mesh", "segment"):
-        figures = _bench_mesh(args) if args.what == "mesh" else _bench_segment(args)
+    if args.what in ("mesh", "segment", "warp"):
+        figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp}[args.what](args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -466,11 +522,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver"], help="what to time")
+    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "warp"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
-    p.add_argument("--tets", type=int, default=160_000, help="solver: about this many tets (hemi-ellipsoid)")
+    p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
+    p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
     p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
-    p.add_argument("--device", default=None, help="solver: cuda, cpu or a warp device name (default: warp's)")
+    p.add_argument("--device", default=None, help="solver, warp: cuda, cpu or a warp device name (default: warp's)")
     p.add_argument("--total-time", type=float, default=1.0, help="solver: loading time in s (+25%% settling)")
     p.add_argument("--settle-time", type=float, default=None, help="solver: settling time in s (default 25%% of loading)")
     p.add_argument("--steady-state-mm", type=float, default=None,
@@ -486,7 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=1, help="segment: phantom random seed")
     p.add_argument("--edge-mm", type=float, default=3.0, help="mesh: element edge (mm)")
     p.add_argument("--grid", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
-                   help="mesh, segment: pad or crop the phantom to this many voxels (e.g. 256 256 80)")
+                   help="mesh, segment: pad or crop the phantom to this many voxels (e.g. 256 256 80); warp: the grid")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser
