@@ -84,3 +84,27 @@ def test_bad_displacements_are_refused(mesh, image):
     bad[0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         warper.predict(bad)
+
+
+@pytest.mark.gpu
+def test_cpu_and_cuda_agree(mesh, image):
+    import warp as wp
+
+    from BreastBiomechLib.similarity import Similarity
+
+    wp.init()
+    if not wp.is_cuda_available():
+        pytest.skip("no CUDA device")
+    displacement = _affine(mesh, np.diag([0.8, 1.0, 1.25]), (0.0, 1.0, 0.0))
+    results = {}
+    for device in ("cpu", "cuda"):
+        warper = ImageWarper(mesh, image, image, device=device)
+        predicted = warper.predict(displacement)
+        measure = Similarity(image, device=device)
+        results[device] = (sitk.GetArrayFromImage(predicted.image), sitk.GetArrayFromImage(predicted.inside),
+                           measure.nmi(warper.warp(displacement)), measure.ncc(warper.warp(displacement)))
+    cpu, gpu = results["cpu"], results["cuda"]
+    np.testing.assert_array_equal(gpu[1], cpu[1])
+    np.testing.assert_allclose(gpu[0], cpu[0], rtol=1e-5, atol=1e-3)
+    assert gpu[2] == pytest.approx(cpu[2], abs=1e-6)
+    assert gpu[3] == pytest.approx(cpu[3], abs=1e-6)
