@@ -1,0 +1,140 @@
+"""Landmarks through an FE displacement, and their errors (seed section 3.2, Table 2).
+
+A reference landmark is located in its reference tet (barycentric coordinates) and moves with
+the tet's nodes: exact for any displacement that is linear over each tet, affine maps included.
+Positions in LPS millimetres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from BreastBiomechLib.landmarks.points import Landmarks
+from BreastBiomechLib.mesh.tetmesh import TetMesh
+
+_CANDIDATES = 32  # tets searched for the nearest one to a point outside the mesh
+
+
+@dataclass
+class PointLocation:
+    """``tets`` (K,): the tet holding each point; ``weights`` (K, 4): its barycentric
+    coordinates there; ``outside_mm`` (K,): how far outside the mesh a point lies (0 inside;
+    such points follow their nearest tet's map, linearly extrapolated)."""
+
+    tets: np.ndarray
+    weights: np.ndarray
+    outside_mm: np.ndarray
+
+
+def locate_points(mesh: TetMesh, points: np.ndarray) -> PointLocation:
+    """The reference tet and barycentric coordinates of each point (K, 3) LPS mm; a point
+    outside the mesh takes the nearest tet (searched among those with the nearest centroids)."""
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    corners = mesh.nodes[mesh.tets]                                   # (M, 4, 3)
+    edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # columns p1-p0, p2-p0, p3-p0
+    to_barycentric = np.linalg.inv(edges)
+    centroids = corners.mean(axis=1)
+    tets = np.empty(len(points), dtype=np.int64)
+    weights = np.empty((len(points), 4))
+    outside = np.zeros(len(points))
+    for k, p in enumerate(points):
+        b = np.einsum("mij,mj->mi", to_barycentric, p - corners[:, 0])
+        full = np.column_stack([1.0 - b.sum(axis=1), b])
+        least = full.min(axis=1)
+        best = int(np.argmax(least))
+        if least[best] < -1e-9:  # outside: the nearest of the tets with the nearest centroids
+            candidates = np.argsort(np.linalg.norm(centroids - p, axis=1))[:_CANDIDATES]
+            distances = [_distance_to_tet(p, corners[c]) for c in candidates]
+            best = int(candidates[int(np.argmin(distances))])
+            outside[k] = float(min(distances))
+        tets[k], weights[k] = best, full[best]
+    return PointLocation(tets, weights, outside)
+
+
+def _distance_to_tet(p: np.ndarray, corners: np.ndarray) -> float:
+    """Distance from p to the closest point of the tet's faces (p outside it)."""
+    best = np.inf
+    for face in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
+        a, b, c = corners[list(face)]
+        best = min(best, _distance_to_triangle(p, a, b, c))
+    return best
+
+
+def _distance_to_triangle(p, a, b, c) -> float:
+    """Euclidean distance from p to triangle abc (Ericson's closest-point regions)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = ab @ ap, ac @ ap
+    if d1 <= 0 and d2 <= 0:
+        return float(np.linalg.norm(ap))
+    bp = p - b
+    d3, d4 = ab @ bp, ac @ bp
+    if d3 >= 0 and d4 <= d3:
+        return float(np.linalg.norm(bp))
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
+        return float(np.linalg.norm(p - (a + d1 / (d1 - d3) * ab)))
+    cp = p - c
+    d5, d6 = ab @ cp, ac @ cp
+    if d6 >= 0 and d5 <= d6:
+        return float(np.linalg.norm(cp))
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
+        return float(np.linalg.norm(p - (a + d2 / (d2 - d6) * ac)))
+    va = d3 * d6 - d5 * d4
+    if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
+        return float(np.linalg.norm(p - (b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b))))
+    denom = 1.0 / (va + vb + vc)
+    return float(np.linalg.norm(p - (a + ab * vb * denom + ac * vc * denom)))
+
+
+def map_landmarks(mesh: TetMesh, displacement_mm: np.ndarray, landmarks: Landmarks,
+                  max_outside_mm: float = 5.0) -> Landmarks:
+    """``landmarks`` (reference, LPS mm) moved by the nodal displacements (N, 3) mm of ``mesh``.
+
+    Landmarks more than ``max_outside_mm`` outside the mesh are refused: their motion would be a
+    guess (skin fiducials just outside a smoothed surface are within it)."""
+    displacement = np.asarray(displacement_mm, dtype=float)
+    if displacement.shape != mesh.nodes.shape:
+        raise ValueError(f"displacements must be one 3-vector per node, shape {mesh.nodes.shape}; "
+                         f"got {displacement.shape}")
+    where = locate_points(mesh, landmarks.positions)
+    far = where.outside_mm > max_outside_mm
+    if far.any():
+        names = [f"{landmarks.labels[i]} ({where.outside_mm[i]:.1f} mm)" for i in np.flatnonzero(far)]
+        raise ValueError(f"landmarks outside the mesh by more than {max_outside_mm:g} mm: {', '.join(names)}; "
+                         "are they in the mesh's frame (LPS mm)?")
+    moved = landmarks.positions + np.einsum("ki,kij->kj", where.weights, displacement[mesh.tets[where.tets]])
+    return Landmarks(moved, list(landmarks.labels), list(landmarks.descriptions))
+
+
+@dataclass
+class LandmarkErrors:
+    """Per landmark (matched by label): ``displacement_mm``, how far it moved in the measurement
+    (|measured - reference|), and ``error_mm``, how far the prediction misses it (|predicted -
+    measured|)."""
+
+    labels: list[str]
+    displacement_mm: np.ndarray
+    error_mm: np.ndarray
+
+    def summary(self) -> dict:
+        """mean, sd (population) and max of both, in mm, as the seed's Table 2 reports them."""
+        def stats(v):
+            return {"mean": float(v.mean()), "sd": float(v.std()), "max": float(v.max())}
+        return {"landmarks": len(self.labels), "displacement_mm": stats(self.displacement_mm),
+                "error_mm": stats(self.error_mm)}
+
+
+def landmark_errors(reference: Landmarks, predicted: Landmarks, measured: Landmarks) -> LandmarkErrors:
+    """Errors of ``predicted`` against ``measured`` landmarks, matched by label (those in all
+    three sets); a clear error when none match."""
+    common = [label for label in measured.labels if label in predicted.labels and label in reference.labels]
+    if not common:
+        raise ValueError("the reference, predicted and measured landmarks share no label; landmarks are "
+                         "matched by label (e.g. L01, F1, nipple)")
+    r = np.array([reference.position(label) for label in common])
+    p = np.array([predicted.position(label) for label in common])
+    m = np.array([measured.position(label) for label in common])
+    return LandmarkErrors(common, np.linalg.norm(m - r, axis=1), np.linalg.norm(p - m, axis=1))
