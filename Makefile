@@ -25,6 +25,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/breastbiomech bench phantom --json
+	$(BIN)/breastbiomech bench segment --grid 256 256 80 --json
+	$(BIN)/breastbiomech bench mesh --volume-cm3 1000 --edge-mm 3.0 --json
+	$(BIN)/breastbiomech bench warp --json
+	$(BIN)/breastbiomech bench solver --tets 20000 --relaxation --json
 
 clean:
 	rm -rf out .pytest_cache
