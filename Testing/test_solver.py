@@ -82,6 +82,24 @@ def test_patch_test_affine_field_gives_zero_interior_forces(formulation):
     np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-5 * np.abs(f).max())
 
 
+def test_anp_averages_within_each_material():
+    """Where every element has the same J, ANP is the plain T4 element, also across a material
+    interface: the pressure is averaged per material (node slots), never mixing a stiff tissue's
+    bulk modulus into a soft one (which scaled an interface element's pressure by their ratio)."""
+    from BreastBiomechLib.solver.tled import anp_slots, shape_derivatives
+
+    mesh = _block()
+    stiff = mesh.nodes[mesh.tets].mean(axis=1)[:, 0] > 0.5 * SIDE
+    materials = ElementMaterials.from_tissues(stiff.astype(int), {0: Material(E, NU), 1: Material(10 * E, NU)})
+    u = mesh.nodes @ (np.diag([0.9, 1.05, 0.97]) - np.eye(3))  # uniform J = 0.917
+    forces = {f: internal_forces(Model(mesh, materials, Loading(), formulation=f), u, device="cpu")
+              for f in ("T4", "T4ANP")}
+    np.testing.assert_allclose(forces["T4ANP"], forces["T4"], atol=1e-5 * np.abs(forces["T4"]).max())
+    slots, volume = anp_slots(mesh.tets, [materials], shape_derivatives(mesh.nodes, mesh.tets)[1])
+    interface = np.intersect1d(mesh.tets[stiff], mesh.tets[~stiff])
+    assert len(volume) == len(mesh.nodes) + len(interface)  # one more slot per interface node
+
+
 @pytest.mark.parametrize("formulation", ["T4", "T4ANP"])
 def test_patch_test_dynamic_reproduces_affine_field(formulation):
     mesh = _block(3)

@@ -63,10 +63,11 @@ def strain_energy_density(F: wp.mat33, mu: float, kappa: float, eta: float, a: w
 
 
 @wp.kernel
-def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
-                   vol0: wp.array(dtype=float), kappa: wp.array(dtype=float), n_nodes: int, n_elements: int,
-                   pressure_volume: wp.array(dtype=float)):
-    """ANP pass 1: accumulate kappa (J_e - 1) V_e at each node of each element."""
+def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
+                   dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), kappa: wp.array(dtype=float),
+                   n_nodes: int, n_slots: int, n_elements: int, pressure_volume: wp.array(dtype=float)):
+    """ANP pass 1: accumulate kappa (J_e - 1) V_e at each of the element's ANP slots: its nodes,
+    one slot per node and material (see :func:`BreastBiomechLib.solver.tled.anp_slots`)."""
     tid = wp.tid()
     b = tid // n_elements
     e = tid - b * n_elements
@@ -74,23 +75,25 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     F = deformation_gradient(u, base, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
     pv = kappa[tid] * (wp.determinant(F) - 1.0) * vol0[e]
-    wp.atomic_add(pressure_volume, base + n0, pv)
-    wp.atomic_add(pressure_volume, base + n1, pv)
-    wp.atomic_add(pressure_volume, base + n2, pv)
-    wp.atomic_add(pressure_volume, base + n3, pv)
+    slot_base = b * n_slots
+    wp.atomic_add(pressure_volume, slot_base + slots[e, 0], pv)
+    wp.atomic_add(pressure_volume, slot_base + slots[e, 1], pv)
+    wp.atomic_add(pressure_volume, slot_base + slots[e, 2], pv)
+    wp.atomic_add(pressure_volume, slot_base + slots[e, 3], pv)
 
 
 @wp.kernel
 def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                    vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
                    eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), use_anp: int,
-                   pressure_volume: wp.array(dtype=float), node_volume: wp.array(dtype=float),
+                   slots: wp.array2d(dtype=int), n_slots: int,
+                   pressure_volume: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
                    n_nodes: int, n_elements: int, step: wp.array(dtype=int),
                    forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
-    """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the averaged nodal pressure,
-    as NiftySim's T4ANP). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
+    """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
+    the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
     with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
     (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set.
     Elements with J <= 0 are counted and the first one and its step recorded in ``inverted`` =
@@ -112,8 +115,10 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
             inverted[2] = step[0]
         return
     if use_anp != 0:
-        pm = 0.25 * (pressure_volume[base + n0] / node_volume[n0] + pressure_volume[base + n1] / node_volume[n1]
-                     + pressure_volume[base + n2] / node_volume[n2] + pressure_volume[base + n3] / node_volume[n3])
+        s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
+        sb = b * n_slots
+        pm = 0.25 * (pressure_volume[sb + s0] / slot_volume[s0] + pressure_volume[sb + s1] / slot_volume[s1]
+                     + pressure_volume[sb + s2] / slot_volume[s2] + pressure_volume[sb + s3] / slot_volume[s3])
         Jm = pm / kappa[tid] + 1.0
         if Jm <= 0.0:
             if wp.atomic_add(inverted, 0, 1) == 0:
@@ -166,7 +171,8 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
     accumulate into (fewer graph nodes than separate memsets): the ANP pressures, already used,
     and the plate forces, which the contact kernels sum next."""
     i = wp.tid()
-    pressure_volume[i] = 0.0
+    for j in range(i, pressure_volume.shape[0], active.shape[0] * n_nodes):  # slots >= nodes
+        pressure_volume[j] = 0.0
     if i < plate_force.shape[0]:
         plate_force[i] = wp.vec3(0.0)
     if inverted[0] != 0:

@@ -24,7 +24,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from BreastBiomechLib.solver.model import Model
-from BreastBiomechLib.solver.tled import MM, Solution, merged_constraints, shape_derivatives
+from BreastBiomechLib.solver.tled import MM, Solution, anp_slots, merged_constraints, shape_derivatives
 
 _FD_STEP = 1e-6  # central-difference step on the deformation gradient (dimensionless)
 _MAX_BACKTRACKS = 10  # halvings of a Newton step that would invert elements
@@ -50,8 +50,8 @@ class Discretisation:
         self.n_nodes = len(model.mesh.nodes)
         self.anp = model.formulation == "T4ANP"
         self.dhdx, self.vol = shape_derivatives(model.mesh.nodes * MM, self.tets)
-        self.node_volume = np.bincount(self.tets.ravel(), weights=np.repeat(self.vol, 4), minlength=self.n_nodes)
         mat = model.materials.long_term()
+        self.slots, self.slot_volume = anp_slots(self.tets, [mat], self.vol)
         self.mu, self.kappa, self.eta, self.fibre = mat.mu, mat.kappa, mat.eta, mat.fibre
         self.mass = np.bincount(self.tets.ravel(), weights=np.repeat(mat.density * self.vol / 4.0, 4),
                                 minlength=self.n_nodes)
@@ -63,10 +63,11 @@ class Discretisation:
         return np.eye(3) + np.einsum("mai,maj->mij", u_m[self.tets], self.dhdx)
 
     def mean_nodal_jacobian(self, J: np.ndarray) -> np.ndarray:
-        """ANP: each element's mean of its nodes' volume-weighted kappa (J - 1), as a volume ratio."""
-        pv = np.bincount(self.tets.ravel(), weights=np.repeat(self.kappa * (J - 1.0) * self.vol, 4),
-                         minlength=self.n_nodes) / self.node_volume
-        return 0.25 * pv[self.tets].sum(axis=1) / self.kappa + 1.0
+        """ANP: each element's mean of its slots' (node and material) volume-weighted kappa (J - 1),
+        as a volume ratio."""
+        pv = np.bincount(self.slots.ravel(), weights=np.repeat(self.kappa * (J - 1.0) * self.vol, 4),
+                         minlength=len(self.slot_volume)) / self.slot_volume
+        return 0.25 * pv[self.slots].sum(axis=1) / self.kappa + 1.0
 
     def first_piola(self, F: np.ndarray, Jm: np.ndarray) -> np.ndarray:
         """P = Fbar S(Fbar), Fbar = (Jm / J)^(1/3) F (Pa), (M, 3, 3): the kernels' stress."""
@@ -103,10 +104,11 @@ class Discretisation:
 
     def tangent(self, u_m: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix | None, sp.csr_matrix | None]:
         """d forces / d u (N/m) in factored form (K, G, H): K (3N x 3N) the element part (at fixed
-        mean nodal J with ANP), and with ANP the pressure coupling G (3N x N) and H (N x 3N) so that
-        the full tangent is K + G H (None, None for T4). H du is the change of each node's
-        volume-weighted kappa (J - 1) divided by its volume, kappa_e' V_e' J_e' F_e'^-T : dF_e'
-        summed over the elements e' at the node; G the change of the forces per unit change of it,
+        mean nodal J with ANP), and with ANP the pressure coupling G (3N x S) and H (S x 3N), S the
+        ANP slots (node and material), so that the full tangent is K + G H (None, None for T4).
+        H du is the change of each slot's volume-weighted kappa (J - 1) divided by its volume,
+        kappa_e' V_e' J_e' F_e'^-T : dF_e' summed over the slot's elements e'; G the change of the
+        forces per unit change of it,
         through each element's mean over its nodes (1 / 4 kappa_e) and dP/dJm. Kept factored
         because the product couples nodes two element rings apart and fills a direct solver's
         factors. Exact up to the central differences of the element stress (relative ~1e-9)."""
@@ -133,14 +135,14 @@ class Discretisation:
         g = self.vol[:, None, None] * np.einsum("mij,maj->mai", dPdJ, self.dhdx) * (0.25 / self.kappa)[:, None, None]
         # G[(a,i), k] = sum over elements e containing a and k of g_e[a, i]
         G = sp.csr_matrix((np.repeat(g.reshape(M, 12), 4, axis=1).ravel(),
-                           (np.repeat(self.dofs, 4, axis=1).ravel(), np.tile(self.tets, (1, 12)).ravel())),
-                          shape=(n, self.n_nodes))
+                           (np.repeat(self.dofs, 4, axis=1).ravel(), np.tile(self.slots, (1, 12)).ravel())),
+                          shape=(n, len(self.slot_volume)))
         FinvT_dN = np.einsum("mlk,mal->mak", np.linalg.inv(F), self.dhdx)  # (F^-T dN_a)_k
         d = (self.kappa * self.vol * np.linalg.det(F))[:, None, None] * FinvT_dN
-        per_node = np.repeat(d.reshape(M, 1, 12), 4, axis=1) / self.node_volume[self.tets][:, :, None]
-        H = sp.csr_matrix((per_node.ravel(),
-                           (np.repeat(self.tets, 12, axis=1).ravel(), np.tile(self.dofs, (1, 4)).ravel())),
-                          shape=(self.n_nodes, n))
+        per_slot = np.repeat(d.reshape(M, 1, 12), 4, axis=1) / self.slot_volume[self.slots][:, :, None]
+        H = sp.csr_matrix((per_slot.ravel(),
+                           (np.repeat(self.slots, 12, axis=1).ravel(), np.tile(self.dofs, (1, 4)).ravel())),
+                          shape=(len(self.slot_volume), n))
         return K, G, H
 
 

@@ -174,6 +174,22 @@ def merged_constraints(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return unique, mask, merged
 
 
+def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ANP's averaging slots: one per node and material, so that the nodal pressure is averaged
+    over the elements of one material only (materials told apart by their bulk moduli, in every
+    parameter set of the batch). Averaging across materials would divide a stiff neighbour's
+    pressure by a soft element's bulk modulus, amplifying it by their ratio (10 from fat to
+    muscle), and collapse thin soft layers. Returns the slot of each element node (M, 4) and each
+    slot's volume (S,) (sum of its elements' volumes, the units of ``vol``)."""
+    kappas = np.stack([np.asarray(m.kappa, np.float64) for m in materials], axis=1)
+    _, group = np.unique(kappas, axis=0, return_inverse=True)
+    group = group.ravel().astype(np.int64)
+    pairs = tets.astype(np.int64) * (int(group.max()) + 1) + group[:, None]
+    unique_pairs, slots = np.unique(pairs.ravel(), return_inverse=True)
+    slots = slots.reshape(tets.shape).astype(np.int32)
+    return slots, np.bincount(slots.ravel(), weights=np.repeat(vol, 4), minlength=len(unique_pairs))
+
+
 def _device(device):
     return wp.get_device(device) if device is not None else wp.get_device()
 
@@ -186,8 +202,8 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
     nodes = model.mesh.nodes * MM
     N, M = len(nodes), len(model.mesh.tets)
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
-    node_volume = np.bincount(model.mesh.tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
     mat = model.materials.long_term()
+    slots, slot_volume = anp_slots(model.mesh.tets, [mat], vol)
     f32 = np.float32
     with wp.ScopedDevice(_device(device)):
         u = wp.array(np.asarray(displacement_mm, f32) * f32(MM), dtype=wp.vec3)
@@ -195,16 +211,18 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
         d_vol = wp.array(vol.astype(f32), dtype=float)
         kappa = wp.array(mat.kappa.astype(f32), dtype=float)
-        pressure = wp.zeros(N, dtype=float)
+        pressure = wp.zeros(len(slot_volume), dtype=float)
+        d_slots = wp.array(slots, dtype=int)
         forces = wp.zeros(N, dtype=wp.vec3)
         inverted = wp.zeros(4, dtype=int)
         anp = 1 if model.formulation == "T4ANP" else 0
         if anp:
-            wp.launch(k.nodal_pressure, M, [u, tets, d_dhdx, d_vol, kappa, N, M, pressure])
+            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, kappa, N, len(slot_volume), M, pressure])
         wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, wp.array(mat.mu.astype(f32), dtype=float), kappa,
                                          wp.array(mat.eta.astype(f32), dtype=float),
-                                         wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, pressure,
-                                         wp.array(node_volume.astype(f32), dtype=float), 0,
+                                         wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, d_slots,
+                                         len(slot_volume), pressure,
+                                         wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
                                          wp.zeros(1, dtype=wp.mat33), 0, N, M, wp.zeros(1, dtype=int), forces,
                                          inverted])
@@ -285,7 +303,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     nodes = model.mesh.nodes * MM
     tets = model.mesh.tets.astype(np.int32)
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
-    node_volume = np.bincount(tets.ravel(), weights=np.repeat(vol, 4), minlength=N)
+    slots, slot_volume = anp_slots(tets, materials, vol)
+    S = len(slot_volume)
     length = characteristic_lengths(nodes, model.mesh.tets, vol)
     if scaled:  # mass scaling: every element's stable step becomes dt / safety
         dt = model.safety * float(np.median(length / np.sqrt((materials[0].kappa + 4 * materials[0].mu / 3)
@@ -327,7 +346,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_tets = wp.array(tets, dtype=int)
         d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
         d_vol = arr(vol, float)
-        d_nodevol = arr(node_volume, float)
+        d_slots = wp.array(slots, dtype=int)
+        d_slotvol = arr(slot_volume, float)
         d_mass = arr(mass, float)
         d_mu = arr(np.concatenate([m.mu for m in materials]), float)
         d_kappa = arr(np.concatenate([m.kappa for m in materials]), float)
@@ -348,7 +368,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         u, low, du = arr(u0, wp.vec3), wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
         scratch = wp.zeros(B * N, dtype=wp.vec3)
         forces = wp.zeros(B * N, dtype=wp.vec3)
-        pressure = wp.zeros(B * N, dtype=float)
+        pressure = wp.zeros(B * S, dtype=float)
         step = wp.zeros(1, dtype=int)
         inverted = wp.zeros(4, dtype=int)
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
@@ -384,9 +404,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 out.zero_()
                 pressure_buffer.zero_()
             if use_anp:
-                wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_dhdx, d_vol, d_kappa, N, M, pressure_buffer])
+                wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_kappa, N, S, M,
+                                                     pressure_buffer])
             wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
-                                                 use_anp, pressure_buffer, d_nodevol, K, d_prony_g, d_prony_decay,
+                                                 use_anp, d_slots, S, pressure_buffer, d_slotvol, K, d_prony_g,
+                                                 d_prony_decay,
                                                  visco_state, update_state, N, M, step, out, flags])
 
         def one_step():
@@ -439,7 +461,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         converged_forces = np.zeros((B, P, 3))
         settled_checks = 0
         distance_to_rest = DistanceToRest(u, B)
-        pressure_tmp = wp.zeros(B * N, dtype=float)
+        pressure_tmp = wp.zeros(B * S, dtype=float)
         no_flags = wp.zeros(4, dtype=int)
 
         def probe_force(state, out):
