@@ -6,6 +6,7 @@ Layout of a case folder::
     labels.nrrd             tissue labels (uint8, the label table of BreastBiomechLib.labels)
     fraction_<tissue>.nrrd  partial-volume fraction per tissue (float32, 0-1)
     bias_field.nrrd         the multiplicative bias field applied to mr.nrrd
+    signal.nrrd             the MR before bias and noise (what deformed cases are warped from)
     landmarks.mrk.json      17 landmarks (LPS), loadable in Slicer
     seeds_muscle.mrk.json   4 seed points on the pectoral muscle (for `breastbiomech segment`)
     seeds_tumour.mrk.json   3 seed points in the tumour, when there is one
@@ -35,6 +36,7 @@ def write_phantom(case: PhantomCase, out_dir: str | Path, overview: bool = True)
         "mr": write_image(out / "mr.nrrd", case.image),
         "labels": write_image(out / "labels.nrrd", case.labels),
         "bias_field": write_image(out / "bias_field.nrrd", case.bias_field),
+        **({"signal": write_image(out / "signal.nrrd", case.signal)} if case.signal is not None else {}),
         "landmarks": write_markups(out / "landmarks.mrk.json", case.landmarks, name="Landmarks"),
     }
     for name, image in case.fractions.items():
@@ -75,4 +77,5 @@ def read_phantom(case_dir: str | Path) -> PhantomCase:
         bias_field=read_image(folder / "bias_field.nrrd"),
         landmarks=read_markups(folder / "landmarks.mrk.json"),
         summary=document["summary"],
+        signal=read_image(folder / "signal.nrrd") if (folder / "signal.nrrd").is_file() else None,
     )

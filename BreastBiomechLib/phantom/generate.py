@@ -43,6 +43,7 @@ class PhantomCase:
     bias_field: sitk.Image            # float32 multiplicative field applied to the image
     landmarks: Landmarks              # 17: 12 internal, 4 skin fiducials, nipple
     summary: dict                     # measured volumes, density, tumour size, timing
+    signal: sitk.Image | None = None  # the MR before bias and noise (float32), for deformed cases
 
 
 class _Grid:
@@ -309,6 +310,7 @@ def generate_phantom(params: PhantomParameters | None = None,
         bias_field=to_image(bias.astype(np.float32)),
         landmarks=landmarks,
         summary=summary,
+        signal=to_image(signal.astype(np.float32)),
     )
 
 
