@@ -237,8 +237,10 @@ class BreastSegmentationLogic(ParameterNodeLogic):
         node = parameterNode.reference("outputSegmentation")
         if node is None:
             return None
+        import SimpleITK as sitk
+
         mask = mask_from_segment(node, tissue, self.scene, image)
-        if mask is None or not np.any(_voxels(mask)):
+        if mask is None or not np.any(sitk.GetArrayViewFromImage(mask)):
             return None
         return mask
 
@@ -375,7 +377,9 @@ class BreastSegmentationLogic(ParameterNodeLogic):
 
     @staticmethod
     def _volume_cm3(mask) -> float:
-        return float(np.count_nonzero(_voxels(mask)) * np.prod(mask.GetSpacing()) / 1000.0)
+        import SimpleITK as sitk
+
+        return float(np.count_nonzero(sitk.GetArrayViewFromImage(mask)) * np.prod(mask.GetSpacing()) / 1000.0)
 
     def showResults(self, parameterNode) -> None:
         """Show the MR volume with the segmentation over it in the slice views (application only)."""
@@ -387,13 +391,6 @@ class BreastSegmentationLogic(ParameterNodeLogic):
         segmentation = parameterNode.reference("outputSegmentation")
         if segmentation is not None and segmentation.GetDisplayNode() is not None:
             segmentation.GetDisplayNode().SetVisibility(True)
-
-
-def _voxels(image):
-    """The voxels of a SimpleITK image as a numpy view (z, y, x)."""
-    import SimpleITK as sitk
-
-    return sitk.GetArrayViewFromImage(image)
 
 
 #

@@ -78,33 +78,44 @@ def segment_tissues(image: sitk.Image, muscle_seeds, tumour_seeds=None,
     seconds["body"] = time.perf_counter() - started
     report(0.1, "pectoral muscle from seeds")
     started = time.perf_counter()
-    muscle = grow_from_seeds(array, seed_voxels(grid, muscle_seeds, body, "pectoral muscle", "inside the body"),
-                             body, grid, settings.muscle)
+    muscle = _grow_muscle(grid, array, body, muscle_seeds, settings)
     seconds["muscle"] = time.perf_counter() - started
-    tumour = None
+    tumour, regions = None, None
     if tumour_seeds is not None and len(tumour_seeds):
         report(0.2, "tumour from seeds")
         started = time.perf_counter()
-        tumour = _grow_tumour(grid, array, body, muscle, tumour_seeds, settings)
+        regions = _breast_and_skin(grid, body, muscle.mask, settings)
+        tumour = _grow_tumour(grid, array, muscle, *regions, tumour_seeds, settings)
         seconds["tumour"] = time.perf_counter() - started
     result = _classify(grid, array, body, muscle, tumour, settings,
-                       lambda f, m: report(0.4 + 0.6 * f, m))
+                       lambda f, m: report(0.4 + 0.6 * f, m), regions)
     result.summary["seconds"] = {**{k: round(v, 2) for k, v in seconds.items()}, **result.summary["seconds"]}
     result.summary["seeds"] = {"muscle": int(len(muscle_seeds)),
                                "tumour": 0 if tumour_seeds is None else int(len(tumour_seeds))}
     return result
 
 
-def _grow_tumour(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: SeededRegion, seeds,
+def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
                  settings: SegmentationSettings) -> SeededRegion:
+    return grow_from_seeds(array, seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body"),
+                           body, grid, settings.muscle)
+
+
+def _breast_and_skin(grid: VoxelGrid, body: np.ndarray, muscle_mask: np.ndarray,
+                     settings: SegmentationSettings) -> tuple[np.ndarray, np.ndarray]:
+    """The breast in front of the muscle and its outer skin layer (both independent of the tumour)."""
+    breast = breast_mask(body, muscle_mask, grid)
+    return breast, skin_layer(body, breast, grid, settings.skin_mm)
+
+
+def _grow_tumour(grid: VoxelGrid, array: np.ndarray, muscle: SeededRegion, breast: np.ndarray, skin: np.ndarray,
+                 seeds, settings: SegmentationSettings) -> SeededRegion:
     """The tumour, delineated against the glandular tissue it sits in: a first fat/glandular fit
     of the breast (tumour included, as glandular) gives the bias-corrected glandular level at
     every voxel, and the tumour is what is connected to the seeds on the tumour's side of the
     midpoint between its level and that one."""
-    breast = breast_mask(body, muscle.mask, grid)
     seed_index = seed_voxels(grid, seeds, breast, "tumour", "inside the breast (anterior to the pectoral muscle)")
-    region = breast & ~skin_layer(body, breast, grid, settings.skin_mm)
-    em = classify_fat_glandular(_unmixed(array, breast, muscle), region, grid.spacing_zyx, settings.em)
+    em = classify_fat_glandular(_unmixed(array, breast, muscle), breast & ~skin, grid.spacing_zyx, settings.em)
     return grow_to_midpoint(array, seed_index, breast, grid, em.means[GLANDULAR] * em.bias_field, settings.tumour)
 
 
@@ -123,9 +134,8 @@ def segment_muscle(image: sitk.Image, seeds, settings: SegmentationSettings | No
     settings = settings or SegmentationSettings()
     grid = check_volume(image)
     array = sitk.GetArrayFromImage(image).astype(np.float32)
-    body = body_mask(array, grid, surface_fraction=settings.body_surface_fraction)
-    muscle = grow_from_seeds(array, seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body"),
-                             body, grid, settings.muscle)
+    muscle = _grow_muscle(grid, array, body_mask(array, grid, surface_fraction=settings.body_surface_fraction),
+                          seeds, settings)
     return StructureSegmentation(grid.to_image(muscle.mask.astype(np.uint8)), grid.to_image(muscle.probability))
 
 
@@ -137,7 +147,8 @@ def segment_tumour(image: sitk.Image, muscle: sitk.Image, seeds,
     grid = check_volume(image)
     array = sitk.GetArrayFromImage(image).astype(np.float32)
     body, muscle_region, _ = _regions_from_masks(grid, image, array, muscle, None, settings)
-    tumour = _grow_tumour(grid, array, body, muscle_region, seeds, settings)
+    tumour = _grow_tumour(grid, array, muscle_region, *_breast_and_skin(grid, body, muscle_region.mask, settings),
+                          seeds, settings)
     return StructureSegmentation(grid.to_image(tumour.mask.astype(np.uint8)), grid.to_image(tumour.probability))
 
 
@@ -192,12 +203,14 @@ def _check_same_grid(image: sitk.Image, mask: sitk.Image, name: str) -> None:
 
 
 def _classify(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: SeededRegion,
-              tumour: SeededRegion | None, settings: SegmentationSettings, report: Progress) -> TissueSegmentation:
+              tumour: SeededRegion | None, settings: SegmentationSettings, report: Progress,
+              regions: tuple[np.ndarray, np.ndarray] | None = None) -> TissueSegmentation:
+    """Fat/glandular fit and merging; ``regions``: the breast and skin layer when already made."""
     started = time.perf_counter()
     report(0.0, "breast region")
-    breast = breast_mask(body, muscle.mask, grid)
+    breast, skin = regions or _breast_and_skin(grid, body, muscle.mask, settings)
     tumour_mask = tumour.mask & breast if tumour is not None else np.zeros_like(breast)
-    skin = skin_layer(body, breast, grid, settings.skin_mm) & ~tumour_mask
+    skin = skin & ~tumour_mask
     em_region = breast & ~skin & ~tumour_mask
     if not em_region.any():
         raise ValueError("the breast region is empty: check that the muscle seeds sit on the pectoral "
