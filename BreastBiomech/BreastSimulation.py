@@ -319,9 +319,10 @@ class BreastSimulationLogic(ParameterNodeLogic):
 
     def plateContacts(self, parameterNode, mesh, plates) -> np.ndarray:
         """The contact nodes the plates touch (BreastBiomechLib.solver.placement.plate_contacts):
-        those that start between the plates and, on a mesh with a chest wall, lie more than
-        ``chestClearanceMm`` anterior to it (< 0: auto, the larger plate travel, at least 5 mm);
-        a plate that starts behind a placement node is refused."""
+        those that start between the plates; on a mesh with a chest wall the plates' flat faces
+        end ``chestClearanceMm`` anterior to it (< 0: auto, the larger plate travel, at least
+        5 mm) in a rounded edge of that radius, set on the plates. A plate that starts behind a
+        placement node is refused."""
         from BreastBiomechLib.solver.placement import plate_contacts
 
         for plate in plates:

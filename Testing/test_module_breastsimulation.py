@@ -16,7 +16,7 @@ from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh  # noqa: E402
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes  # noqa: E402
 from BreastBiomechLib.mrml import frames, tetmesh_to_model_node  # noqa: E402
 from BreastBiomechLib.solver import DynamicRelaxation, ElementMaterials, Loading, Material, Model, solve  # noqa: E402
-from BreastBiomechLib.solver.model import Constraint  # noqa: E402
+from BreastBiomechLib.solver.model import Constraint, PlateEdge  # noqa: E402
 from BreastBiomechLib.solver.placement import compression_plates  # noqa: E402
 
 pytestmark = pytest.mark.mrml
@@ -82,14 +82,17 @@ def test_run_matches_the_library_and_writes_results(scene, breast):
     def patch(node):
         return chest[np.linalg.norm(breast.nodes[chest] - breast.nodes[node], axis=1) <= 10.0]
 
-    # the plates touch the boundary nodes more than the plate travel (auto chest clearance)
-    # anterior to the chest wall (y = 0)
+    # the plates' flat faces end the plate travel (auto chest clearance) anterior to the chest
+    # wall (y = 0) in a rounded edge of that radius: they may touch every boundary node in front
+    # of the chest wall
     boundary = np.flatnonzero(boundary_nodes(breast.tets, len(breast.nodes)))
-    travel = 0.1 * np.ptp(breast.nodes[:, 0])
+    clearance = max(0.1 * np.ptp(breast.nodes[:, 0]), 5.0)
     assert breast.nodes[chest, 1].min() == pytest.approx(0.0)
-    contact = boundary[breast.nodes[boundary, 1] < -max(travel, 5.0)]
+    contact = boundary[breast.nodes[boundary, 1] < 0.0]
     plates = compression_plates(breast, "LR", 0.2, contact, names=("Right plate", "Left plate"),
                                 extent_nodes=boundary)
+    for plate in plates:
+        plate.edge = PlateEdge([0.0, 1.0, 0.0], -clearance - plate.point[1], clearance)
     materials = ElementMaterials.from_tissues(breast.cell_data["tissue"], {
         labels.FAT.label: Material(10e3, 0.49), labels.GLANDULAR.label: Material(35e3, 0.49)})
     loading = Loading([Constraint.fixed(chest, (False, True, False)), Constraint.fixed(patch(centre)),

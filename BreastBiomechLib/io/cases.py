@@ -18,7 +18,7 @@ import numpy as np
 from BreastBiomechLib.labels import tissue as lookup_tissue
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material
-from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
+from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate, PlateEdge
 from BreastBiomechLib.solver.tled import DynamicRelaxation
 
 SOLVER_METHODS = ("relaxation", "physical", "static")
@@ -73,6 +73,20 @@ def _components(spec, path: Path) -> tuple[bool, bool, bool]:
     return tuple(bool(c) for c in spec)
 
 
+def _plate_edge(spec, what: str, path: Path) -> PlateEdge | None:
+    """A plate's ``edge`` entry: {"direction": in-plane unit vector, "distance": mm from the
+    plate's point to where its flat face ends, "radius": mm of its rounded edge}."""
+    if spec is None:
+        return None
+    missing = {"direction", "distance", "radius"} - set(spec)
+    if missing:
+        raise ValueError(f"{path}: {what}: its edge needs {sorted(missing)} (direction, distance mm, radius mm)")
+    try:
+        return PlateEdge(spec["direction"], spec["distance"], spec["radius"])
+    except ValueError as error:
+        raise ValueError(f"{path}: {what}: {error}") from None
+
+
 def _material(values: dict, key: str, path: Path) -> Material:
     known = {"E", "nu", "eta", "fibre", "density", "prony"}
     unknown = set(values) - known
@@ -113,7 +127,7 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
         constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1))))
     plates = [Plate(p["point"], p["normal"], p.get("displacement", (0.0, 0.0, 0.0)),
                     _node_set(mesh, p.get("slaves", "surface"), f"plate {p.get('name', i)}", path),
-                    p.get("name", f"plate{i}"))
+                    p.get("name", f"plate{i}"), _plate_edge(p.get("edge"), f"plate {p.get('name', i)}", path))
               for i, p in enumerate(data.get("plates", []))]
     loading = Loading(constraints, plates, gravity=data.get("gravity", (0.0, 0.0, 0.0)),
                       total_time=float(data.get("total_time", 1.0)), load_shape=data.get("load_shape", "POLY345"),
@@ -200,7 +214,8 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
         "materials": materials,
         "constraints": constraints,
         "plates": [{"name": p.name, "point": p.point.tolist(), "normal": p.normal.tolist(),
-                    "displacement": p.displacement.tolist(), "slaves": p.slave_nodes.tolist()} for p in plates],
+                    "displacement": p.displacement.tolist(), "slaves": p.slave_nodes.tolist(),
+                    **({"edge": p.edge.to_dict()} if p.edge else {})} for p in plates],
         "total_time": total_time, "settle_time": settle_time,
         "solver": {"method": "relaxation"},
     }

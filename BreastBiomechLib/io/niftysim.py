@@ -19,6 +19,7 @@ converts back). Mapping (see docs/solver.md and NiftySim's user guide):
 
 from __future__ import annotations
 
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -115,16 +116,27 @@ def write_niftysim(path: str | Path, model: Model, drop_settling: bool = False) 
 
 def _plate_corners(plate: Plate, nodes_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Corners a, b, c (mm) of a rectangle in the plate's plane covering its slave nodes (with a
-    margin), ordered so that (b - a) x (c - a) points along the plate normal."""
+    margin), ordered so that (b - a) x (c - a) points along the plate normal. A plate with an
+    edge ends where its flat face ends: NiftySim's plates are flat rectangles, so the rounded
+    edge is not exported (a warning says so)."""
     n = plate.normal
-    helper = np.eye(3)[np.argmin(np.abs(n))]
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)  # e1 x e2 = n
+    if plate.edge is None:
+        helper = np.eye(3)[np.argmin(np.abs(n))]
+        e1 = np.cross(n, helper)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)  # e1 x e2 = n
+    else:
+        e2 = plate.edge.direction
+        e1 = np.cross(e2, n)  # (e2 x n) x e2 = n for unit e2 perpendicular to n
+        warnings.warn(f"plate {plate.name!r}: NiftySim plates are flat rectangles, so its rounded edge (radius "
+                      f"{plate.edge.radius:g} mm) is not exported; the rectangle ends where the flat face ends, "
+                      "and NiftySim's result will differ near that edge", stacklevel=3)
     rel = (nodes_mm[plate.slave_nodes] if len(plate.slave_nodes) else nodes_mm) - plate.point
     s, t = rel @ e1, rel @ e2
     margin = 0.5 * max(np.ptp(s), np.ptp(t), 1.0)
     s0, s1, t0, t1 = s.min() - margin, s.max() + margin, t.min() - margin, t.max() + margin
+    if plate.edge is not None:
+        t1 = min(t1, plate.edge.distance)
     a = plate.point + s0 * e1 + t0 * e2
     return a, plate.point + s1 * e1 + t0 * e2, plate.point + s0 * e1 + t1 * e2
 

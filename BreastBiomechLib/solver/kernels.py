@@ -222,12 +222,16 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
                   x0: wp.array(dtype=wp.vec3), slaves: wp.array(dtype=int),
                   p: int, plate_point: wp.array(dtype=wp.vec3),
                   plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
+                  edge_direction: wp.array(dtype=wp.vec3), edge_shape: wp.array(dtype=wp.vec2),
                   forces: wp.array(dtype=wp.vec3), n_nodes: int, n_slaves: int, n_plates: int,
                   dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
-    """Kinematic frictionless contact with rigid planes: a slave node behind its plate is moved
-    back onto it along the normal (free to slide; its increment loses the same normal part). The
-    plate force is the sum of the internal forces of the nodes in contact: the force the plate
+    """Kinematic frictionless contact with rigid plates: a slave node behind its plate is moved
+    back onto its surface along the surface normal (free to slide; its increment loses the same
+    normal part). A plate's flat face ends ``edge_shape[p][0]`` (m) along ``edge_direction[p]``
+    from its point, in a convex rounded edge of radius ``edge_shape[p][1]`` (m); beyond it the
+    plate has ended (an unbounded plate has a huge distance). The plate force is the sum of the
+    internal forces of the nodes in contact along their contact normals: the force the plate
     applies to the tissue (N). One launch per plate ``p``."""
     tid = wp.tid()
     if inverted[0] != 0:
@@ -237,14 +241,27 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     node = slaves[k]
     i = b * n_nodes + node
     s = load_factor(float(step[0] + 1) * dt, t_total, load_shape)
-    point = plate_point[p] + s * plate_motion[b * n_plates + p]
+    rel = x0[node] + u[i] - (plate_point[p] + s * plate_motion[b * n_plates + p])
     n = plate_normal[p]
-    gap = wp.dot(x0[node] + u[i] - point, n)
-    if gap < 0.0:
-        u[i] = u[i] - gap * n
-        du[i] = du[i] - gap * n
-        low[i] = low[i] - wp.dot(low[i], n) * n
-        wp.atomic_add(plate_force, b * n_plates + p, wp.dot(forces[i], n) * n)
+    gap = wp.dot(rel, n)
+    e = edge_direction[p]
+    past = wp.dot(rel, e) - edge_shape[p][0]
+    radius = edge_shape[p][1]
+    normal = n
+    depth = float(0.0)  # how far the node lies inside the plate, along ``normal``
+    if past <= 0.0:
+        depth = -gap
+    elif gap > -radius:
+        v = past * e + (gap + radius) * n  # from the fillet's centre
+        distance = wp.length(v)
+        if distance > 0.0:
+            normal = v / distance
+            depth = radius - distance
+    if depth > 0.0:
+        u[i] = u[i] + depth * normal
+        du[i] = du[i] + depth * normal
+        low[i] = low[i] - wp.dot(low[i], normal) * normal
+        wp.atomic_add(plate_force, b * n_plates + p, wp.dot(forces[i], normal) * normal)
 
 
 @wp.kernel

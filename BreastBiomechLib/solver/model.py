@@ -19,19 +19,49 @@ PENETRATION_TOLERANCE_MM = 1e-3  # slave nodes may start this far behind a plate
 
 
 @dataclass
+class PlateEdge:
+    """Where a plate's flat face ends: at ``distance`` (mm) from the plate's ``point`` along the
+    in-plane unit vector ``direction``, with a rounded edge of ``radius`` (mm) that curves away
+    from the tissue (a convex fillet whose centre lies ``radius`` behind the face). Beyond the
+    fillet the plate has ended: tissue there is free. A real plate's edge is rounded; a knife
+    edge would push the contact nodes in by the full travel next to free nodes, a step that
+    inverts the elements between them at large compression."""
+
+    direction: np.ndarray
+    distance: float
+    radius: float
+
+    def __post_init__(self) -> None:
+        direction = np.asarray(self.direction, float).reshape(3)
+        norm = np.linalg.norm(direction)
+        if norm == 0:
+            raise ValueError("a plate edge needs a non-zero in-plane direction")
+        self.direction = direction / norm
+        self.distance = float(self.distance)
+        self.radius = float(self.radius)
+        if not self.radius > 0:
+            raise ValueError(f"a plate edge's radius must be positive (mm), not {self.radius}")
+
+    def to_dict(self) -> dict:
+        return {"direction": self.direction.tolist(), "distance": self.distance, "radius": self.radius}
+
+
+@dataclass
 class Plate:
     """A rigid planar plate in frictionless contact.
 
     ``point`` (mm) lies on the plate at t = 0 and ``normal`` (unit) points towards the tissue:
     slave nodes are kept on the side ``(x - point) . normal >= 0``. The plate translates by
     ``displacement`` (mm) over the loading with the load curve. ``slave_nodes`` are the node ids
-    that may touch it (e.g. the skin surface nodes)."""
+    that may touch it (e.g. the skin surface nodes). ``edge``: where the plate ends, with a
+    rounded edge (:class:`PlateEdge`); None: the plate is unbounded."""
 
     point: np.ndarray
     normal: np.ndarray
     displacement: np.ndarray
     slave_nodes: np.ndarray
     name: str = "plate"
+    edge: PlateEdge | None = None
 
     def __post_init__(self) -> None:
         self.point = np.asarray(self.point, float).reshape(3)
@@ -42,10 +72,21 @@ class Plate:
         self.normal = normal / norm
         self.displacement = np.asarray(self.displacement, float).reshape(3)
         self.slave_nodes = np.unique(np.asarray(self.slave_nodes, dtype=np.int64).ravel())
+        if self.edge is not None and abs(self.edge.direction @ self.normal) > 1e-6:
+            raise ValueError(f"plate {self.name!r}: its edge direction must lie in the plate's plane "
+                             "(perpendicular to the normal)")
 
     def gaps(self, positions_mm: np.ndarray) -> np.ndarray:
-        """Signed distances (mm) of points from the plate at the start, > 0 on the tissue side."""
-        return (np.asarray(positions_mm, float).reshape(-1, 3) - self.point) @ self.normal
+        """Signed distances (mm) of points from the plate's surface at the start, > 0 on the
+        tissue side (beyond a rounded edge: from the fillet, positive past the plate's end)."""
+        rel = np.asarray(positions_mm, float).reshape(-1, 3) - self.point
+        gap = rel @ self.normal
+        if self.edge is None:
+            return gap
+        past = rel @ self.edge.direction - self.edge.distance
+        radius = self.edge.radius
+        fillet = np.hypot(past, gap + radius) - radius
+        return np.where(past <= 0, gap, np.where(gap > -radius, fillet, np.inf))
 
     def check_clear_of(self, positions_mm: np.ndarray) -> None:
         """Raise a ValueError naming the fix when any of the points (mm) starts behind the plate

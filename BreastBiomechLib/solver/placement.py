@@ -45,29 +45,45 @@ def nodes_in_front(nodes_mm: np.ndarray, candidates, plates: list[Plate]) -> np.
 MIN_CHEST_CLEARANCE_MM = 5.0
 
 
-def plate_contacts(mesh: TetMesh, candidates, plates: list[Plate], chest_clearance_mm: float | None = None) -> np.ndarray:
+def plate_contacts(mesh: TetMesh, candidates, plates: list[Plate], chest_clearance_mm: float | None = None,
+                   edge_radius_mm: float | None = None) -> np.ndarray:
     """The ``candidates`` (node ids) the plates touch: those that start between them
     (:func:`nodes_in_front`) and, on a mesh with a chest (muscle elements in the cell array
-    ``tissue``, or a ``chest_wall`` point array), lie more than ``chest_clearance_mm`` anterior
-    to its most anterior node (None: the larger plate travel, at least 5 mm).
+    ``tissue``, or a ``chest_wall`` point array), lie anterior to the plates' posterior edge.
 
-    The band left free stands for the rig's support between the chest and the plates'
-    posterior edge, and keeps a rigid plate edge from shearing the breast base against the
-    stiffer chest wall: plates reaching to within ~2 mm of the muscle invert elements there at
-    25 % compression with the default materials (docs/meshing.md, Known limits)."""
+    The plates' flat faces end ``chest_clearance_mm`` anterior to the chest's most anterior
+    node (None: the larger plate travel, at least 5 mm) in a rounded edge of ``edge_radius_mm``
+    (:class:`~BreastBiomechLib.solver.model.PlateEdge`, set on each plate whose plane runs
+    anterior-posterior). The band left free stands for the rig's support between the chest and
+    the plates' posterior edge, and keeps a rigid plate from shearing the breast base against the
+    stiffer chest wall; the rounded edge spreads the step between pushed and free skin over
+    several elements (a knife edge inverted elements there at 40 % compression)."""
     from BreastBiomechLib.mesh.node_sets import chest_front_y
+    from BreastBiomechLib.solver.model import PlateEdge
 
     if chest_clearance_mm is None:
         chest_clearance_mm = max([MIN_CHEST_CLEARANCE_MM] + [float(np.linalg.norm(p.displacement)) for p in plates])
     if chest_clearance_mm < 0:
         raise ValueError(f"the chest clearance is a distance (mm >= 0), not {chest_clearance_mm}")
+    if edge_radius_mm is None:
+        edge_radius_mm = max(chest_clearance_mm, MIN_CHEST_CLEARANCE_MM)
+    if not edge_radius_mm > 0:
+        raise ValueError(f"the plates' edge radius must be positive (mm), not {edge_radius_mm}")
     candidates = np.asarray(candidates, dtype=np.int64).ravel()
     tissue = mesh.cell_data.get("tissue")
     chest = mesh.point_data.get("chest_wall")
     front = chest_front_y(mesh, np.zeros(len(mesh.tets), int) if tissue is None else np.asarray(tissue).astype(int),
                           np.zeros(len(mesh.nodes), bool) if chest is None else np.asarray(chest) > 0)
     if front is not None:
-        candidates = candidates[mesh.nodes[candidates, 1] < front - chest_clearance_mm]
+        end = front - chest_clearance_mm  # LPS y where the plates' flat faces end
+        reach = end
+        for plate in plates:
+            posterior = np.array([0.0, 1.0, 0.0]) - plate.normal[1] * plate.normal  # +y in the plate's plane
+            if np.linalg.norm(posterior) > 0.5:
+                direction = posterior / np.linalg.norm(posterior)
+                plate.edge = PlateEdge(direction, (end - plate.point[1]) / direction[1], edge_radius_mm)
+                reach = end + edge_radius_mm
+        candidates = candidates[mesh.nodes[candidates, 1] < reach]
     contacts = nodes_in_front(mesh.nodes, candidates, plates)
     if len(contacts) == 0:
         raise ValueError(f"no contact node lies between the plates and more than {chest_clearance_mm:g} mm anterior "

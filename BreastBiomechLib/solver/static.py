@@ -195,6 +195,10 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
     ``initial_displacement`` (N, 3) mm instead starts Newton at full load from that
     configuration, e.g. to polish an explicit solution or to test whether it is an equilibrium;
     its nodes on a plate (within 1e-4 mm) start in the active set."""
+    edged = [plate.name for plate in model.loading.plates if plate.edge is not None]
+    if edged:
+        raise ValueError(f"the static reference solver handles flat unbounded plates only; plates {edged} have a "
+                         "rounded edge: solve with dynamic relaxation, or set their edge to None")
     started = time.perf_counter()
     disc = Discretisation(model)
     N = disc.n_nodes

@@ -25,15 +25,19 @@ from BreastBiomechLib.solver.model import Model
 from BreastBiomechLib.solver.stability import StableStepMonitor
 
 MM = 1e-3  # metres per millimetre
+ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
+UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
 
 
 class DistanceToRest:
     """Estimated distance (mm) each of B models still has to travel, from its displacement
     sampled on the device: with c_k = max |u_k - u_(k-1)| between samples and r = c_k / c_(k-1)
     the observed contraction, the remaining travel of a geometric approach is c_k r / (1 - r)
-    (inf while not contracting). Changes over a whole sampling interval, not single steps, so
-    that float32 round-off of the displacement (about 1e-6 mm) does not drown the estimate near
-    convergence. Only B numbers per sample come back to the host."""
+    (inf while not contracting; the change itself once it is down to float32 round-off, where a
+    model at rest - e.g. an exact affine solution - stops contracting). Changes over a whole
+    sampling interval, not single steps, so that float32 round-off of the displacement (about
+    1e-6 mm) does not drown the estimate near convergence. Only B numbers per sample come back
+    to the host."""
 
     def __init__(self, like: wp.array, n_models: int) -> None:
         self._sample = wp.zeros_like(like)
@@ -53,6 +57,7 @@ class DistanceToRest:
             if self._change is not None:
                 rate = change / np.maximum(self._change, 1e-300)
                 remaining = np.where(rate < 1.0, change * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
+                remaining = np.where(change <= ROUND_OFF_MM, change, remaining)  # at rest: nothing left to contract
             self._change = change
         wp.copy(self._sample, u)
         self._samples += 1
@@ -392,6 +397,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_slaves = [arr(p.slave_nodes, int) for p in plates]
         d_ppoint = arr(np.array([p.point for p in plates]).reshape(-1, 3) * MM, wp.vec3)
         d_pnormal = arr(np.array([p.normal for p in plates]).reshape(-1, 3), wp.vec3)
+        d_edge_direction = arr(np.array([p.edge.direction if p.edge else np.zeros(3) for p in plates]).reshape(-1, 3),
+                               wp.vec3)
+        d_edge_shape = arr(np.array([(p.edge.distance * MM, p.edge.radius * MM) if p.edge else (UNBOUNDED_M, 1.0)
+                                     for p in plates]).reshape(-1, 2), wp.vec2)
         d_pmotion = arr(np.concatenate([np.asarray(d, float).reshape(P, 3) for d in plate_displacements]) * MM,
                         wp.vec3)
         use_anp = 1 if model.formulation == "T4ANP" else 0
@@ -423,7 +432,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             for p, d_sl in enumerate(d_slaves):
                 if d_sl.shape[0]:
                     wp.launch(k.plate_contact, B * d_sl.shape[0], [u, low, du, d_x0, d_sl, p, d_ppoint, d_pnormal,
-                                                                    d_pmotion, forces, N, d_sl.shape[0], P,
+                                                                    d_pmotion, d_edge_direction, d_edge_shape,
+                                                                    forces, N, d_sl.shape[0], P,
                                                                     float(dt), step, float(total), load_shape,
                                                                     plate_force, inverted])
             wp.launch(k.finish_step, B * N, [forces, step, inverted])
