@@ -2,13 +2,17 @@
 #   make demo   create .venv, install, run the main job on the built-in phantom (out/demo)
 #   make test   create .venv if missing, install, run the whole test suite
 #   make bench  print benchmark figures (see docs/benchmarks.md)
+#   make table1-cases  the five compressed phantom cases of the seed's Table 1 (out/table1/case<N>;
+#               DEVICE=cuda on a GPU; about an hour on 2 CPU cores)
 
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench table1-cases clean
+
+DEVICE ?=
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +33,11 @@ bench: $(STAMP)
 	$(BIN)/breastbiomech bench mesh --volume-cm3 1000 --edge-mm 3.0 --json
 	$(BIN)/breastbiomech bench warp --json
 	$(BIN)/breastbiomech bench solver --tets 20000 --relaxation --json
+
+table1-cases: $(STAMP)
+	for n in 1 2 3 4 5; do \
+	  $(BIN)/breastbiomech phantom --case $$n --compressed $(if $(DEVICE),--device $(DEVICE)) --out out/table1/case$$n || exit 1; \
+	done
 
 clean:
 	rm -rf out .pytest_cache

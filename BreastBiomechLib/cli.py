@@ -44,9 +44,26 @@ def _add_phantom_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skin-separate", action="store_true", help="keep skin as its own label")
 
 
+def _truth_model(args):
+    """The truth of ``phantom --compressed``: the Table 1 preset of ``--case`` (else the
+    default truth), with ``--compression``, ``--axis`` and ``--truth-edge-mm`` applied."""
+    from BreastBiomechLib.phantom.compressed import TruthModel, table1_truth
+
+    truth = table1_truth(args.case) if args.case else TruthModel()
+    if args.compression is not None:
+        truth.compression = args.compression
+    truth.axis = args.axis
+    truth.edge_mm = args.truth_edge_mm
+    truth.__post_init__()  # the overrides pass the same checks
+    return truth
+
+
 def cmd_phantom(args) -> int:
     from BreastBiomechLib.phantom import generate_phantom, write_phantom
 
+    truth = _truth_model(args) if args.compressed else None
+    if not args.compressed and args.compression is not None:
+        raise ValueError("--compression applies to a compressed case: add --compressed")
     case = generate_phantom(_phantom_parameters(args))
     paths = write_phantom(case, args.out, overview=not args.no_overview)
     s = case.summary
@@ -55,6 +72,21 @@ def cmd_phantom(args) -> int:
           f"{len(case.landmarks)} landmarks, {s['seconds']:.1f} s")
     for role, path in paths.items():
         print(f"  {role:20s} {path}")
+    if truth is not None:
+        from BreastBiomechLib.phantom.compressed import compress_phantom
+        from BreastBiomechLib.phantom.compressed_files import write_compressed
+
+        compressed = compress_phantom(case, truth, device=args.device,
+                                      progress=lambda fraction, message: print(f"  [{fraction:4.0%}] {message}",
+                                                                                flush=True))
+        paths = write_compressed(compressed, args.out, overview=not args.no_overview)
+        c = compressed.summary
+        forces = ", ".join(f"{name} {force:.2f} N" for name, force in c["plate_forces_N"].items())
+        print(f"compressed case written to {Path(args.out) / 'compressed'}: {truth.compression:.1%} {truth.axis}, "
+              f"truth mesh {c['truth_tets']} tets ({truth.edge_mm:g} mm), {c['solve_message']}; plate forces "
+              f"{forces}; largest displacement {c['max_displacement_mm']:.1f} mm; {c['seconds']:.0f} s")
+        for role, path in paths.items():
+            print(f"  {role:20s} {path}")
     return 0
 
 
@@ -572,6 +604,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     _add_phantom_options(p)
     p.add_argument("--no-overview", action="store_true", help="skip the PNG overview")
+    p.add_argument("--compressed", action="store_true",
+                   help="also write a compressed 'measured' case (OUT/compressed): a truth simulation with hidden "
+                        "materials, imaged like a second scan, its landmarks and plates")
+    p.add_argument("--compression", type=float,
+                   help="fraction of the breast's thickness the plates close (default: the seed's for --case, else 0.25)")
+    p.add_argument("--axis", choices=("LR", "SI"), default="LR", help="compression axis (default LR, as the seed)")
+    p.add_argument("--truth-edge-mm", type=float, default=2.0,
+                   help="element size of the truth mesh (default 2 mm: finer than any fitting mesh)")
+    p.add_argument("--device", help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     p.set_defaults(func=cmd_phantom)
 
     p = sub.add_parser("segment", help="tissue label map and probabilities of an MR volume (EM + MRF + bias, seeds)")

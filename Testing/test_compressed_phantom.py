@@ -7,53 +7,66 @@ import pytest
 import SimpleITK as sitk
 
 from BreastBiomechLib.landmarks import map_landmarks
-from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
-from BreastBiomechLib.phantom.compressed import TruthModel, compress_phantom, table1_truth
+from BreastBiomechLib.phantom.compressed import TruthModel, table1_truth
 from BreastBiomechLib.similarity import Similarity
 from BreastBiomechLib.warping import ImageWarper
 
 
 @pytest.fixture(scope="module")
-def cases():
+def cases(tmp_path_factory):
     """A small coarse phantom (heterogeneous default truth materials), compressed by 25 % LR
-    on a 6 mm truth mesh, on the CPU."""
-    case = generate_phantom(PhantomParameters(seed=2, volume_cm3=450.0, spacing_mm=(1.5, 1.5, 3.0)))
-    return case, compress_phantom(case, TruthModel(compression=0.25, edge_mm=6.0), device="cpu")
+    on a 6 mm truth mesh on the CPU by `breastbiomech phantom --compressed`, read back from
+    its files: the undeformed case, what a fit may use, and the truth mesh."""
+    from BreastBiomechLib.cli import main
+    from BreastBiomechLib.io.meshes import read_vtu
+    from BreastBiomechLib.phantom import read_phantom
+    from BreastBiomechLib.phantom.compressed_files import read_compressed
+
+    out = tmp_path_factory.mktemp("compressed") / "case"
+    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
+                 "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
+                 "--out", str(out)]) == 0
+    return read_phantom(out), read_compressed(out), read_vtu(out / "compressed" / "truth_mesh.vtu")
 
 
 def test_the_truth_solve_closes_the_plates_by_the_compression(cases):
-    _, compressed = cases
-    assert compressed.summary["solve_status"] == "completed"
-    mesh = compressed.mesh
+    _, measured, mesh = cases
+    summary = measured.truth()["summary"]
+    assert summary["solve_status"] == "completed"
     skin = mesh.nodes[mesh.node_set("breast_skin")]
-    assert compressed.summary["plate_gap_mm"] == pytest.approx(0.75 * np.ptp(skin[:, 0]), rel=1e-6)
+    assert summary["plate_gap_mm"] == pytest.approx(0.75 * np.ptp(skin[:, 0]), rel=1e-6)
     # the nipple, in contact with neither plate, stays on the breast's midline between them
     nipple = np.argmin(mesh.nodes[:, 1])
     x = (mesh.nodes + mesh.point_data["displacement"])[nipple, 0]
-    low, high = sorted(plate["point"][0] for plate in compressed.plates)
+    low, high = sorted(plate["point"][0] for plate in measured.plates)
     assert low < x < high
-    assert all(force > 0.5 for force in compressed.summary["plate_forces_N"].values())
+    assert all(force > 0.5 for force in summary["plate_forces_N"].values())
+    # the plates' flat faces end the plate travel anterior to the chest, rounded back to it
+    travel = measured.plates[0]["travel_mm"]
+    assert travel == pytest.approx(0.125 * np.ptp(skin[:, 0]), rel=1e-6)
+    assert all(plate["edge"]["radius"] == pytest.approx(travel) for plate in measured.plates)
+    assert (measured.axis, measured.compression) == ("LR", 0.25)
+    assert measured.truth()["truth"]["materials"]["muscle"]["E"] == 80e3
 
 
 def test_the_measured_image_is_the_warped_signal_with_its_own_noise(cases):
-    case, compressed = cases
-    mesh = compressed.mesh
-    clean = ImageWarper(mesh, case.signal, compressed.image, device="cpu").predict(mesh.point_data["displacement"])
+    case, measured, mesh = cases
+    clean = ImageWarper(mesh, case.signal, measured.image, device="cpu").predict(mesh.point_data["displacement"])
     inside = sitk.GetArrayFromImage(clean.inside).astype(bool)
-    measure = Similarity(compressed.image, inside, device="cpu")
+    measure = Similarity(measured.image, inside, device="cpu")
     assert measure.ncc(clean.image) > 0.9           # the same anatomy under +-20 % bias and noise
     assert measure.nmi(clean.image) > 1.2
-    background = sitk.GetArrayFromImage(compressed.image)[~inside]
+    background = sitk.GetArrayFromImage(measured.image)[~inside]
     sigma = 1000.0 / case.parameters.snr
     assert np.median(background) == pytest.approx(sigma * np.sqrt(2 * np.log(2)), rel=0.05)  # Rayleigh median
 
 
 def test_landmarks_follow_the_truth_displacement(cases):
-    case, compressed = cases
-    moved = map_landmarks(compressed.mesh, compressed.mesh.point_data["displacement"], case.landmarks)
-    np.testing.assert_allclose(compressed.landmarks.positions, moved.positions)
-    assert compressed.landmarks.labels == case.landmarks.labels
-    shift = np.abs(compressed.landmarks.positions - case.landmarks.positions)
+    case, measured, mesh = cases
+    moved = map_landmarks(mesh, mesh.point_data["displacement"], case.landmarks)
+    np.testing.assert_allclose(measured.landmarks.positions, moved.positions, atol=1e-4)  # float32 in the .vtu
+    assert measured.landmarks.labels == case.landmarks.labels
+    shift = np.abs(measured.landmarks.positions - case.landmarks.positions)
     assert shift[:, 0].max() > 5.0  # squeezed left-right
 
 
@@ -64,3 +77,16 @@ def test_presets_and_checks():
         TruthModel(compression=0.9)
     with pytest.raises(ValueError, match="cases 1-5"):
         table1_truth(6)
+
+
+def test_the_command_refuses_bad_requests(tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+    from BreastBiomechLib.phantom.compressed_files import read_compressed
+
+    assert main(["phantom", "--compression", "0.3", "--out", str(tmp_path / "a")]) == 2
+    assert "add --compressed" in capsys.readouterr().err
+    assert main(["phantom", "--compressed", "--compression", "0.8", "--out", str(tmp_path / "b")]) == 2
+    assert "compression must lie" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()  # refused before anything was made
+    with pytest.raises(FileNotFoundError, match="not a compressed case"):
+        read_compressed(tmp_path)

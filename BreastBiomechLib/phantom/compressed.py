@@ -88,9 +88,11 @@ class CompressedCase:
 
 
 def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=None,
-                     progress: Callable[[float, str], None] | None = None) -> CompressedCase:
-    """Simulate ``truth`` on ``case`` and image the result (see the module notes). Raises
-    RuntimeError when the truth solve fails (it would not be a truth)."""
+                     progress: Callable[[float, str], None] | None = None,
+                     mesh: TetMesh | None = None) -> CompressedCase:
+    """Simulate ``truth`` on ``case`` and image the result (see the module notes). ``mesh``: a
+    truth mesh made already (``breastbiomech mesh`` of the case's labels at ``truth.edge_mm``;
+    default: made here). Raises RuntimeError when the truth solve fails (it would not be a truth)."""
     from BreastBiomechLib.io.cases import case_from_dict, compression_case
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.solver import solve
@@ -102,9 +104,10 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         raise ValueError("the phantom case has no noise-free signal image (signal.nrrd); regenerate it with "
                          "this version (`breastbiomech phantom`)")
     started = time.perf_counter()
-    report(0.0, f"truth mesh ({truth.edge_mm:g} mm)")
-    mesh = mesh_labels(case.labels, MeshSettings(edge_mm=truth.edge_mm),
-                       nipple_mm=case.landmarks.position("nipple")).mesh
+    if mesh is None:
+        report(0.0, f"truth mesh ({truth.edge_mm:g} mm)")
+        mesh = mesh_labels(case.labels, MeshSettings(edge_mm=truth.edge_mm),
+                           nipple_mm=case.landmarks.position("nipple")).mesh
     report(0.3, "truth simulation")
     spec = compression_case(mesh, "truth_mesh.vtu", truth.axis, truth.compression,
                             chest_clearance_mm=truth.chest_clearance_mm)
@@ -138,8 +141,9 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     image.CopyInformation(like)
 
     landmarks = map_landmarks(mesh, displacement, case.landmarks)
-    plates = [{"name": p.name, "point": (p.point + p.displacement).tolist(), "normal": p.normal.tolist()}
-              for p in model.loading.plates]
+    plates = [{"name": p.name, "point": (p.point + p.displacement).tolist(), "normal": p.normal.tolist(),
+               "travel_mm": float(p.displacement @ p.normal), **({"edge": p.edge.to_dict()} if p.edge else {})}
+              for p in model.loading.plates]  # a plate moves along its normal: its edge distance holds
     truth_mesh = TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data, "displacement": displacement},
                          dict(mesh.cell_data))
     summary = {

@@ -1,0 +1,93 @@
+"""A compressed "measured" phantom case on disk, in the ``compressed/`` folder of its undeformed
+phantom case (:mod:`BreastBiomechLib.phantom.files`)::
+
+    compressed/mr.nrrd              the measured compressed MR (float32; its own grid)
+    compressed/landmarks.mrk.json   the 17 landmarks after compression (LPS)
+    compressed/plates.json          the final plate planes: name, point, normal (LPS mm, unit),
+                                    their rounded edge, the axis and compression
+    compressed/truth.json           the truth model (materials, mesh size, noise) and the truth
+                                    solve's figures: for validation, hidden from the fitting
+    compressed/truth_mesh.vtu       the truth mesh with its ``displacement`` (mm): validation only
+    compressed/overview.png         three slices of the measured image with its landmarks
+
+What a fit may use: the undeformed case, ``mr.nrrd``, ``landmarks.mrk.json`` and ``plates.json``
+(in the seed the plates are seen in the compressed image).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from BreastBiomechLib.io.images import read_image, write_image
+from BreastBiomechLib.io.markups import read_markups, write_markups
+from BreastBiomechLib.landmarks import Landmarks
+from BreastBiomechLib.phantom.compressed import CompressedCase
+
+FOLDER = "compressed"
+
+
+def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview: bool = True) -> dict[str, Path]:
+    """Write ``compressed`` into ``case_dir``/compressed (created if needed; the undeformed case
+    is written by :func:`~BreastBiomechLib.phantom.files.write_phantom`); returns the paths by role."""
+    from BreastBiomechLib.io.meshes import write_vtu
+
+    out = Path(case_dir) / FOLDER
+    out.mkdir(parents=True, exist_ok=True)
+    truth = compressed.truth
+    paths = {
+        "measured": write_image(out / "mr.nrrd", compressed.image),
+        "landmarks": write_markups(out / "landmarks.mrk.json", compressed.landmarks, name="Compressed landmarks"),
+        "plates": out / "plates.json",
+        "truth": out / "truth.json",
+        "truth_mesh": write_vtu(out / "truth_mesh.vtu", compressed.mesh),
+    }
+    paths["plates"].write_text(json.dumps({"axis": truth.axis, "compression": truth.compression,
+                                           "plates": compressed.plates}, indent=2) + "\n")
+    paths["truth"].write_text(json.dumps({"truth": truth.to_dict(), "summary": compressed.summary}, indent=2) + "\n")
+    if overview:
+        from BreastBiomechLib.visualisation import save_overview
+
+        paths["overview"] = save_overview(
+            out / "overview.png", compressed.image, None, compressed.landmarks,
+            title=f"Compressed {truth.compression:.1%} {truth.axis}: measured image and landmarks")
+    return paths
+
+
+@dataclass
+class MeasuredCompression:
+    """What a fit may use of a compressed case: the measured ``image``, the compressed
+    ``landmarks`` and the final ``plates`` (dicts: name, point, normal, optional edge; LPS mm),
+    the compression ``axis`` and ``compression`` fraction, and the ``folder``."""
+
+    image: sitk.Image
+    landmarks: Landmarks
+    plates: list[dict]
+    axis: str
+    compression: float
+    folder: Path
+
+    def truth(self) -> dict:
+        """The hidden truth (truth.json: the truth model and its solve's figures), for validation."""
+        return json.loads((self.folder / "truth.json").read_text())
+
+
+def read_compressed(case_dir: str | Path) -> MeasuredCompression:
+    """Read the measured part of a compressed case written by :func:`write_compressed`
+    (``case_dir`` is the undeformed case's folder, or its ``compressed/`` folder)."""
+    folder = Path(case_dir)
+    if (folder / FOLDER).is_dir():
+        folder = folder / FOLDER
+    if not (folder / "plates.json").is_file():
+        raise FileNotFoundError(f"{folder}: not a compressed case (no plates.json); make one with "
+                                "`breastbiomech phantom --case N --compressed --out DIR`")
+    document = json.loads((folder / "plates.json").read_text())
+    for plate in document["plates"]:
+        if np.linalg.norm(plate["normal"]) == 0:
+            raise ValueError(f"{folder / 'plates.json'}: plate {plate.get('name')!r} has a zero normal")
+    return MeasuredCompression(read_image(folder / "mr.nrrd"), read_markups(folder / "landmarks.mrk.json"),
+                               document["plates"], document["axis"], float(document["compression"]), folder)
