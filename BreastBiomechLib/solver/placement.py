@@ -42,6 +42,51 @@ def nodes_in_front(nodes_mm: np.ndarray, candidates, plates: list[Plate]) -> np.
     return candidates[keep]
 
 
+def within_reach(nodes_mm: np.ndarray, candidates, plates: list[Plate]) -> np.ndarray:
+    """The ``candidates`` (node ids) that lie short of every edged plate's end (its flat face
+    plus the rounded edge): past it the plate has ended and cannot touch them."""
+    candidates = np.asarray(candidates, dtype=np.int64).ravel()
+    keep = np.ones(len(candidates), bool)
+    for plate in plates:
+        if plate.edge is not None:
+            along = (nodes_mm[candidates] - plate.point) @ plate.edge.direction
+            keep &= along < plate.edge.distance + plate.edge.radius
+    return candidates[keep]
+
+
+def plates_to_final_planes(mesh: TetMesh, planes: list[dict], candidates, extent_nodes=None) -> list[Plate]:
+    """Plates that start touching the mesh (its ``extent_nodes``, e.g. the breast skin) and end
+    on measured final ``planes`` (dicts: ``name``, ``point`` and ``normal`` towards the tissue,
+    LPS mm; optional ``edge`` as in a case file): each plate travels along its normal from the
+    mesh's extreme node to its plane. The contact nodes are the ``candidates`` between the plates
+    and within their reach. How a fitting mesh meets the plates seen in a compressed image."""
+    from BreastBiomechLib.solver.model import PlateEdge
+
+    reference = mesh.nodes if extent_nodes is None else mesh.nodes[np.asarray(extent_nodes, dtype=np.int64)]
+    if len(reference) == 0:
+        raise ValueError("the node set the plates are placed against is empty")
+    plates = []
+    for i, plane in enumerate(planes):
+        name = plane.get("name", f"plate{i + 1}")
+        normal = np.asarray(plane["normal"], float)
+        normal = normal / np.linalg.norm(normal)
+        final = np.asarray(plane["point"], float)
+        start = float((reference @ normal).min())  # the plate starts touching the mesh here
+        travel = float(final @ normal) - start
+        if travel < 0:
+            raise ValueError(f"plate {name!r}: its final plane lies {-travel:.1f} mm outside the mesh, so it would "
+                             "never touch it; check the plates and that the mesh and the plates share a frame (LPS mm)")
+        edge = plane.get("edge")
+        plates.append(Plate(final - travel * normal, normal, travel * normal, [], name,
+                            PlateEdge(edge["direction"], edge["distance"], edge["radius"]) if edge else None))
+    contacts = nodes_in_front(mesh.nodes, within_reach(mesh.nodes, candidates, plates), plates)
+    if len(contacts) == 0:
+        raise ValueError("no contact node lies between the plates; check the plates and the contact nodes")
+    for plate in plates:
+        plate.slave_nodes = contacts
+    return plates
+
+
 MIN_CHEST_CLEARANCE_MM = 5.0
 
 
@@ -76,15 +121,14 @@ def plate_contacts(mesh: TetMesh, candidates, plates: list[Plate], chest_clearan
                           np.zeros(len(mesh.nodes), bool) if chest is None else np.asarray(chest) > 0)
     if front is not None:
         end = front - chest_clearance_mm  # LPS y where the plates' flat faces end
-        reach = end
         for plate in plates:
             posterior = np.array([0.0, 1.0, 0.0]) - plate.normal[1] * plate.normal  # +y in the plate's plane
             if np.linalg.norm(posterior) > 0.5:
                 direction = posterior / np.linalg.norm(posterior)
                 plate.edge = PlateEdge(direction, (end - plate.point[1]) / direction[1], edge_radius_mm)
-                reach = end + edge_radius_mm
-        candidates = candidates[mesh.nodes[candidates, 1] < reach]
-    contacts = nodes_in_front(mesh.nodes, candidates, plates)
+            else:  # a plate facing the chest: no edge, the band is left out of its contact
+                candidates = candidates[mesh.nodes[candidates, 1] < end]
+    contacts = nodes_in_front(mesh.nodes, within_reach(mesh.nodes, candidates, plates), plates)
     if len(contacts) == 0:
         raise ValueError(f"no contact node lies between the plates and more than {chest_clearance_mm:g} mm anterior "
                          "to the chest wall; check the plates and the contact nodes, or lower the chest clearance")

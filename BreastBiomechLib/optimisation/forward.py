@@ -1,0 +1,136 @@
+"""The forward problem of a fit (seed section 2.4, steps 2-4): material parameters -> FE solve of
+the plate compression -> FE-predicted compressed MR image -> similarity to the measured one,
+for a whole batch of parameter sets in one batched solve.
+
+Frames and units: LPS millimetres; the mesh is the fitting mesh of the undeformed breast; the
+plates are the measured final planes (a compressed case's plates.json).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+
+from BreastBiomechLib.landmarks import Landmarks, map_landmarks
+from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.optimisation.space import ParameterSpace
+from BreastBiomechLib.solver import DynamicRelaxation, Model
+
+OBJECTIVES = ("nmi", "landmarks", "nmi+landmarks")
+FAILED = 0.0  # the objective of a failed solve: worse than any -NMI (NMI lies in [1, 2])
+
+
+@dataclass
+class Evaluation:
+    """One forward evaluation: the unit position ``z``, the parameter ``values``, the
+    ``objective`` (minimised), NMI and NCC of the prediction against the measured image, the
+    landmark errors' mean and max (mm; NaN without landmarks), the solve's status, iterations
+    and the batch's wall time (s)."""
+
+    z: list[float]
+    values: dict[str, float]
+    objective: float
+    nmi: float
+    ncc: float
+    landmark_mean_mm: float
+    landmark_max_mm: float
+    status: str
+    iterations: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class FittingProblem:
+    """Evaluates parameter sets of ``space`` on one compressed case.
+
+    ``mesh``: the fitting mesh (cell array ``tissue``; node sets ``chest_wall``, ``skin``,
+    ``breast_skin``, ``fov_cut`` as ``breastbiomech mesh`` makes them); ``undeformed`` and
+    ``measured``: the MR volumes before and after compression; ``plates``: the measured final
+    plate planes (dicts as in plates.json); ``landmarks`` (reference, measured): optional
+    landmark pairs; ``objective``: "nmi" (-NMI, the seed's eq. (17)), "landmarks" (mean error,
+    mm) or "nmi+landmarks" (-NMI + ``landmark_weight`` x mean error); ``mask``: the measured
+    voxels compared (default: all); ``bins``: NMI histogram bins; ``relaxation``: the dynamic
+    relaxation settings of every forward solve; ``device``: warp device."""
+
+    def __init__(self, space: ParameterSpace, mesh: TetMesh, undeformed: sitk.Image, measured: sitk.Image,
+                 plates: list[dict], landmarks: tuple[Landmarks, Landmarks] | None = None,
+                 objective: str = "nmi", landmark_weight: float = 0.01, mask=None, bins: int = 64,
+                 relaxation: DynamicRelaxation | None = None, device=None):
+        from BreastBiomechLib.io.cases import case_from_dict, compression_case
+        from BreastBiomechLib.similarity import Similarity
+        from BreastBiomechLib.solver.placement import plates_to_final_planes
+        from BreastBiomechLib.warping import ImageWarper
+
+        if objective not in OBJECTIVES:
+            raise ValueError(f"unknown objective {objective!r}; choose one of {OBJECTIVES}")
+        if objective != "nmi" and landmarks is None:
+            raise ValueError(f"the {objective!r} objective needs landmarks (reference and measured)")
+        if landmarks is not None:
+            reference, target = landmarks
+            if reference.labels != target.labels:
+                raise ValueError("the reference and measured landmarks must carry the same labels in the same order")
+        if "tissue" not in mesh.cell_data:
+            raise ValueError("the fitting mesh has no 'tissue' cell array; make it with `breastbiomech mesh`")
+        self.space = space
+        self.mesh = mesh
+        self.tissue = np.asarray(mesh.cell_data["tissue"]).astype(int)
+        self.objective = objective
+        self.landmark_weight = float(landmark_weight)
+        self.landmarks = landmarks
+        self.device = device
+        self.relaxation = relaxation or DynamicRelaxation()
+        # the loading of `breastbiomech mesh`'s case (chest wall, field-of-view cuts), with the
+        # measured plates in place of placed ones
+        # (its default materials stand in until each evaluation sets its own)
+        template, _ = case_from_dict(compression_case(mesh, "fitting_mesh.vtu"), mesh)
+        template.loading.plates = plates_to_final_planes(mesh, plates, mesh.node_set("skin"),
+                                                         mesh.node_set("breast_skin"))
+        self.model: Model = Model(mesh, template.materials, template.loading, template.formulation,
+                                  template.damping, template.time_step, template.safety)
+        self.warper = ImageWarper(mesh, undeformed, measured, device=device)
+        self.similarity = Similarity(measured, mask, bins=bins, device=device)
+
+    def solve(self, positions) -> list:
+        """The FE solutions (:class:`~BreastBiomechLib.solver.Solution`) at unit positions (B, d),
+        in one batched solve."""
+        from BreastBiomechLib.solver import solve_batch
+
+        positions = np.atleast_2d(np.asarray(positions, float))
+        materials = [self.space.element_materials(z, self.tissue) for z in positions]
+        return solve_batch(self.model, materials, device=self.device, relaxation=self.relaxation)
+
+    def predict(self, displacement_mm: np.ndarray):
+        """The FE-predicted image (:class:`~BreastBiomechLib.warping.PredictedImage`, on the
+        measured grid) for nodal displacements (N, 3) mm of the fitting mesh."""
+        return self.warper.predict(displacement_mm)
+
+    def evaluate(self, positions) -> list[Evaluation]:
+        """Evaluate unit positions (B, d) in one batched solve; failed solves get the objective
+        :data:`FAILED` and their status."""
+        positions = np.atleast_2d(np.asarray(positions, float))
+        started = time.perf_counter()
+        solutions = self.solve(positions)
+        seconds = time.perf_counter() - started
+        out = []
+        for z, solution in zip(positions, solutions):
+            nmi = ncc = mean = worst = float("nan")
+            objective = FAILED
+            if solution.ok:
+                predicted = self.warper.warp(solution.displacement)
+                nmi, ncc = self.similarity.nmi(predicted), self.similarity.ncc(predicted)
+                if self.landmarks is not None:
+                    reference, target = self.landmarks
+                    moved = map_landmarks(self.mesh, solution.displacement, reference)
+                    errors = np.linalg.norm(moved.positions - target.positions, axis=1)
+                    mean, worst = float(errors.mean()), float(errors.max())
+                objective = {"nmi": -nmi, "landmarks": mean,
+                             "nmi+landmarks": -nmi + self.landmark_weight * mean}[self.objective]
+            out.append(Evaluation([float(v) for v in z], self.space.values(z), float(objective), float(nmi),
+                                  float(ncc), mean, worst, solution.status, int(solution.steps),
+                                  round(seconds, 3)))
+        return out

@@ -1,0 +1,117 @@
+"""Bookkeeping of an optimisation: every evaluation appended to a JSON-lines results file as it
+is made, the evaluation budget (count and wall time), progress and cancel, and resume.
+
+Resume replays: the optimisers are deterministic for a given seed, so a rerun with the same
+settings asks for the same positions in the same order, and those already in the results file
+are answered from it without a solve. An interruption loses at most the batch in flight.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib.optimisation.forward import Evaluation
+
+
+class BudgetExhausted(Exception):
+    """Raised inside an optimiser when the evaluation or time budget is spent, or on cancel."""
+
+
+class EvaluationLog:
+    """Counts, caches and records evaluations for the optimisers.
+
+    ``evaluate``: unit positions (B, d) -> list of :class:`Evaluation` (one batched solve);
+    ``budget``: most evaluations in all (replayed ones included, so that a resumed run ends where
+    an uninterrupted one would); ``seconds``: most wall time of this run (None: no limit);
+    ``path``: the results file (JSON lines; None: kept in memory only), whose evaluations are
+    replayed when ``resume``; ``progress(done, budget, best objective, message)``: called after
+    every batch, returning False cancels."""
+
+    def __init__(self, evaluate: Callable[[np.ndarray], list[Evaluation]], budget: int,
+                 seconds: float | None = None, path: str | Path | None = None, resume: bool = False,
+                 progress: Callable[[int, int, float, str], bool | None] | None = None):
+        if budget < 1:
+            raise ValueError("the evaluation budget must be at least 1")
+        if seconds is not None and seconds <= 0:
+            raise ValueError("the time budget must be positive (s)")
+        self._evaluate = evaluate
+        self.budget = int(budget)
+        self.seconds = seconds
+        self.path = Path(path) if path is not None else None
+        self.progress = progress
+        self.evaluations: list[Evaluation] = []
+        self.phase = ""
+        self.stopped = ""
+        self.replayed = 0
+        self._cache: dict[tuple, Evaluation] = {}
+        self._limit = self.budget
+        self._started = time.perf_counter()
+        if self.path is not None:
+            if self.path.exists() and not resume:
+                raise FileExistsError(f"{self.path} exists: resume it (--resume) or choose another output folder")
+            if resume and self.path.exists():
+                for line in self.path.read_text().splitlines():
+                    if line.strip():
+                        record = json.loads(line)
+                        record.pop("index", None)
+                        record.pop("phase", None)
+                        evaluation = Evaluation(**record)
+                        self._cache.setdefault(tuple(evaluation.z), evaluation)
+
+    @property
+    def best(self) -> Evaluation | None:
+        return min(self.evaluations, key=lambda e: e.objective, default=None)
+
+    @property
+    def remaining(self) -> int:
+        return self._limit - len(self.evaluations)
+
+    def limit(self, count: int | None) -> None:
+        """End the current phase after ``count`` more evaluations (None: at the budget)."""
+        self._limit = self.budget if count is None else min(self.budget, len(self.evaluations) + int(count))
+
+    def __call__(self, positions) -> np.ndarray:
+        """Objectives of unit positions (B, d). Raises :class:`BudgetExhausted` once the budget
+        (of the phase), the time or a cancel stops the run; the positions evaluated before that
+        are recorded."""
+        positions = np.atleast_2d(np.asarray(positions, float))
+        if self.remaining <= 0:
+            self._stop("budget")
+        if self.seconds is not None and time.perf_counter() - self._started > self.seconds:
+            self._stop("time")
+        positions = positions[: self.remaining]
+        results: list[Evaluation | None] = [self._cache.get(tuple(float(v) for v in z)) for z in positions]
+        new = [i for i, r in enumerate(results) if r is None]
+        if new:
+            for i, evaluation in zip(new, self._evaluate(positions[new])):
+                results[i] = evaluation
+        self.replayed += len(positions) - len(new)
+        fresh = set(new)
+        for i, evaluation in enumerate(results):
+            self._record(evaluation, fresh=i in fresh)
+        best = self.best
+        if self.progress is not None and self.progress(len(self.evaluations), self.budget, best.objective,
+                                                       self.phase) is False:
+            self._stop("cancelled")
+        return np.array([e.objective for e in results])
+
+    def _record(self, evaluation: Evaluation, fresh: bool) -> None:
+        self.evaluations.append(evaluation)
+        if fresh and self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "a") as stream:
+                stream.write(json.dumps({"index": len(self.evaluations) - 1, "phase": self.phase,
+                                         **evaluation.to_dict()}) + "\n")
+                stream.flush()
+                os.fsync(stream.fileno())
+
+    def _stop(self, reason: str) -> None:
+        if reason != "budget" or self._limit == self.budget:
+            self.stopped = reason
+        raise BudgetExhausted(reason)

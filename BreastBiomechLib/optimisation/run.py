@@ -1,0 +1,90 @@
+"""Run an optimisation: the chosen optimiser over a :class:`FittingProblem`, with a budget,
+progress and cancel, a results folder written as it goes, and resume.
+
+Results folder::
+
+    settings.json      the parameter space, optimiser, seed, budget and objective (checked on resume)
+    evaluations.jsonl  every evaluation, one JSON object per line, appended as it is made
+    result.json        the best evaluation, its materials, the stop reason and the figures
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib.optimisation import search
+from BreastBiomechLib.optimisation.forward import Evaluation, FittingProblem
+from BreastBiomechLib.optimisation.record import EvaluationLog
+
+
+@dataclass
+class OptimisationResult:
+    """``best``: the best evaluation; ``materials``: every material's {"E", "nu", "eta"} there;
+    ``evaluations``: all, in order; ``stopped``: why the run ended ("converged", "budget",
+    "time", "cancelled"); ``replayed``: evaluations answered from a resumed results file;
+    ``seconds``: wall time of this run."""
+
+    best: Evaluation
+    materials: dict[str, dict[str, float]]
+    evaluations: list[Evaluation]
+    stopped: str
+    replayed: int
+    seconds: float
+
+    def summary(self) -> dict:
+        return {"best": self.best.to_dict(), "materials": self.materials, "stopped": self.stopped,
+                "evaluations": len(self.evaluations), "replayed": self.replayed,
+                "failed": sum(e.status != "completed" for e in self.evaluations), "seconds": round(self.seconds, 2)}
+
+
+def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 500, seconds: float | None = None,
+             seed: int = 0, out_dir: str | Path | None = None, resume: bool = False,
+             progress: Callable[[int, int, float, str], bool | None] | None = None,
+             start: dict[str, float] | None = None, population: int | None = None) -> OptimisationResult:
+    """Minimise ``problem``'s objective over its parameter space with ``optimiser`` ("hybrid"
+    or "cmaes") from ``start`` ({"tissue.name": value}; default the middle of the unit cube),
+    within ``budget`` evaluations and ``seconds`` of wall time. With ``out_dir`` every
+    evaluation is written as it is made, and ``resume`` continues a run interrupted there (the
+    same settings replay to where it stopped). ``progress(done, budget, best objective, phase)``
+    returning False cancels (the results so far are kept)."""
+    if optimiser not in search.OPTIMISERS:
+        raise ValueError(f"unknown optimiser {optimiser!r}; choose one of {search.OPTIMISERS}")
+    space = problem.space
+    if space.dimension == 0:
+        raise ValueError("no parameter is free: choose at least one to optimise")
+    z0 = space.unit(start) if start else np.full(space.dimension, 0.5)
+    settings = {"space": space.to_dict(), "optimiser": optimiser, "seed": int(seed), "budget": int(budget),
+                "objective": problem.objective, "start": [float(v) for v in z0], "population": population}
+    path = None
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        path = out / "evaluations.jsonl"
+        settings_path = out / "settings.json"
+        if resume and settings_path.exists():
+            before = json.loads(settings_path.read_text())
+            changed = sorted(k for k in settings if k != "budget" and before.get(k) != settings[k])
+            if changed:
+                raise ValueError(f"{out}: cannot resume with other settings ({', '.join(changed)} differ); "
+                                 "resume with the same ones or start a new output folder")
+        settings_path.write_text(json.dumps(settings, indent=2) + "\n")
+    started = time.perf_counter()
+    log = EvaluationLog(problem.evaluate, budget, seconds, path, resume, progress)
+    if optimiser == "hybrid":
+        search.hybrid(log, z0, seed)
+    else:
+        search.cmaes(log, z0, seed, population=population)
+    if log.best is None:
+        raise RuntimeError("the optimisation stopped before its first evaluation")
+    result = OptimisationResult(log.best, space.materials(log.best.z), log.evaluations,
+                                log.stopped or ("budget" if len(log.evaluations) >= budget else "converged"),
+                                log.replayed, time.perf_counter() - started)
+    if out_dir is not None:
+        (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
+    return result

@@ -1,0 +1,76 @@
+"""Optimisers over the unit cube of a :class:`~BreastBiomechLib.optimisation.space.ParameterSpace`,
+minimising the objective through an :class:`~BreastBiomechLib.optimisation.record.EvaluationLog`.
+
+- ``hybrid``: the seed's search - simulated annealing for the global search (scipy's
+  ``dual_annealing`` without its local steps, as MATLAB's ``simulannealbnd``), then a bounded
+  quasi-Newton local search from the best point (L-BFGS-B, as ``fmincon``) whose forward-difference
+  gradient is evaluated in one batched solve of d + 1 models.
+- ``cmaes``: CMA-ES (the ``cma`` package) whose whole population is one batched solve.
+
+Both are deterministic for a given ``seed``, which resume relies on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from BreastBiomechLib.optimisation.record import BudgetExhausted, EvaluationLog
+
+OPTIMISERS = ("hybrid", "cmaes")
+GRADIENT_STEP = 0.01  # forward-difference step in the unit cube (a 10 % change of E over 4 decades)
+
+
+def hybrid(log: EvaluationLog, start: np.ndarray, seed: int = 0, global_fraction: float = 0.6) -> None:
+    """Simulated annealing on ``global_fraction`` of the budget from ``start``, then L-BFGS-B
+    from the best point found on the rest."""
+    from scipy.optimize import dual_annealing, minimize
+
+    d = len(start)
+    bounds = [(0.0, 1.0)] * d
+    log.phase = "global"
+    log.limit(max(1, int(round(global_fraction * log.remaining))))
+    try:
+        dual_annealing(lambda z: float(log(z[None])[0]), bounds, x0=np.clip(start, 0, 1), seed=seed,
+                       no_local_search=True, maxfun=10**9, maxiter=10**9)
+    except BudgetExhausted:
+        if log.stopped:
+            return
+    log.phase = "local"
+    log.limit(None)
+
+    def value_and_gradient(z):
+        step = np.where(z + GRADIENT_STEP <= 1.0, GRADIENT_STEP, -GRADIENT_STEP)
+        points = np.vstack([z, z + np.diag(step)])
+        values = log(points)
+        if len(values) < d + 1:  # the budget ended inside the gradient
+            raise BudgetExhausted("budget")
+        return float(values[0]), (values[1:] - values[0]) / step
+
+    try:
+        minimize(value_and_gradient, log.best.z if log.best else start, jac=True, method="L-BFGS-B",
+                 bounds=bounds, options={"maxfun": 10**9, "maxiter": 10**9, "ftol": 1e-9, "gtol": 1e-7})
+    except BudgetExhausted:
+        return
+
+
+def cmaes(log: EvaluationLog, start: np.ndarray, seed: int = 0, sigma: float = 0.25,
+          population: int | None = None) -> None:
+    """CMA-ES from ``start`` with step size ``sigma`` (unit cube), ``population`` per generation
+    (default 4 + 3 ln d), each generation one batched evaluation."""
+    import cma
+
+    options = {"bounds": [0.0, 1.0], "seed": 1000 + seed, "verbose": -9, "maxfevals": 10**9,
+               "tolfun": 1e-9, "tolx": 1e-6}
+    if population is not None:
+        options["popsize"] = int(population)
+    strategy = cma.CMAEvolutionStrategy(np.clip(start, 0, 1).tolist(), sigma, options)
+    log.phase = "cmaes"
+    try:
+        while not strategy.stop():
+            candidates = strategy.ask()
+            values = log(np.array(candidates))
+            if len(values) < len(candidates):
+                return
+            strategy.tell(candidates, values.tolist())
+    except BudgetExhausted:
+        return

@@ -1,0 +1,167 @@
+"""Material-parameter optimisation: the parameter space, the forward problem, the optimisers
+recovering a truth inside the fitted family, the results file, budget, cancel and resume.
+
+The fit runs on a small synthetic breast (a stair-stepped half ellipsoid with a glandular core,
+a textured image) whose "measured" compressed image is the prediction at known parameters: the
+truth lies in the family, so a fit must find it.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from scipy.ndimage import gaussian_filter
+
+from BreastBiomechLib import labels
+from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace, optimise
+from BreastBiomechLib.optimisation.space import BOUNDS, REFERENCE_E, FreeParameter
+from BreastBiomechLib.solver import DynamicRelaxation
+
+TRUTH = {"glandular.E": 30e3}
+RADII = (40.0, 35.0, 40.0)
+
+
+def _breast():
+    """A half-ellipsoid breast (LPS mm, chest wall y = 0) with a glandular core, its node sets
+    as `breastbiomech mesh` names them, and a textured MR-like image of it (2 mm voxels)."""
+    mesh = hemi_ellipsoid_mesh(RADII, spacing_mm=6.0)
+    centres = mesh.nodes[mesh.tets].mean(axis=1)
+    core = (((centres - [0.0, -14.0, 0.0]) / [22.0, 14.0, 22.0]) ** 2).sum(axis=1) <= 1.0
+    mesh.cell_data["tissue"] = np.where(core, labels.GLANDULAR.label, labels.FAT.label).astype(np.uint8)
+    surface = mesh.point_data["surface"]
+    mesh.point_data.update({"skin": surface, "breast_skin": surface, "fov_cut": np.zeros_like(surface)})
+
+    spacing = 2.0
+    origin = np.array([-56.0, -60.0, -56.0])
+    size = np.array([57, 36, 57])
+    k, j, i = np.meshgrid(*(np.arange(n) for n in size[::-1]), indexing="ij")
+    x, y, z = (origin[a] + spacing * idx for a, idx in enumerate((i, j, k)))
+    body = ((x / RADII[0]) ** 2 + (y / RADII[1]) ** 2 + (z / RADII[2]) ** 2 <= 1.0) & (y <= 0)
+    gland = ((x / 22.0) ** 2 + ((y + 14.0) / 14.0) ** 2 + (z / 22.0) ** 2) <= 1.0
+    texture = gaussian_filter(np.random.default_rng(3).standard_normal(body.shape), 1.5)
+    values = np.where(body, np.where(gland, 420.0, 1000.0) * (1.0 + 0.6 * texture), 0.0).astype(np.float32)
+    image = sitk.GetImageFromArray(values)
+    image.SetOrigin(tuple(origin))
+    image.SetSpacing((spacing,) * 3)
+    return mesh, image
+
+
+def _final_planes(mesh):
+    """The final plate planes of a 25 % LR compression of ``mesh`` (as plates.json holds them)."""
+    from BreastBiomechLib.io.cases import compression_case
+
+    return [{"name": p["name"], "point": (np.add(p["point"], p["displacement"])).tolist(), "normal": p["normal"],
+             **({"edge": p["edge"]} if "edge" in p else {})}
+            for p in compression_case(mesh, "m.vtu", "LR", 0.25)["plates"]]
+
+
+RELAXATION = DynamicRelaxation(load_iterations=400, tolerance_mm=0.002)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    """The fitting problem of glandular E (iso-hetero, only E free) whose measured image is the
+    prediction at E_glandular = 30 kPa."""
+    mesh, undeformed = _breast()
+    space = ParameterSpace.for_model("iso-hetero", ["fat", "glandular"], free=("E",))
+    planes = _final_planes(mesh)
+    truth_problem = FittingProblem(space, mesh, undeformed, undeformed, planes, relaxation=RELAXATION, device="cpu")
+    solution = truth_problem.solve(space.unit(TRUTH))[0]
+    assert solution.ok, solution.message
+    measured = truth_problem.predict(solution.displacement).image
+    return FittingProblem(space, mesh, undeformed, measured, planes, relaxation=RELAXATION, device="cpu")
+
+
+def test_unit_positions_map_onto_the_bounds_on_log_scales():
+    E = FreeParameter("glandular", "E", *BOUNDS["E"])
+    assert E.from_unit(0.0) == pytest.approx(100.0) and E.from_unit(1.0) == pytest.approx(1e6)
+    assert E.from_unit(0.5) == pytest.approx(1e4)  # the geometric middle of 4 decades
+    nu = FreeParameter("fat", "nu", *BOUNDS["nu"])
+    assert nu.from_unit(0.0) == pytest.approx(0.45) and nu.from_unit(1.0) == pytest.approx(0.4999)
+    assert nu.from_unit(0.5) == pytest.approx(0.5 - np.sqrt(0.05 * 1e-4))  # middle of log(0.5 - nu)
+    for p, value in ((E, 31.6e3), (nu, 0.4987)):
+        assert p.from_unit(p.to_unit(value)) == pytest.approx(value, rel=1e-12)
+    assert E.from_unit(1.7) == pytest.approx(1e6)  # clipped to the bounds
+
+
+def test_the_four_model_variants_free_what_the_seed_fits():
+    tissues = ["fat", "glandular", "muscle", "tumour"]
+    keys = {model: ParameterSpace.for_model(model, tissues).keys for model in
+            ("iso-homo", "aniso-homo", "iso-hetero", "aniso-hetero")}
+    assert keys["iso-homo"] == ["breast.nu"]  # fat's E is the reference; one material
+    assert keys["aniso-homo"] == ["breast.nu", "breast.eta"]
+    assert keys["iso-hetero"] == ["fat.nu", "glandular.E", "glandular.nu", "muscle.E", "muscle.nu", "tumour.E",
+                                  "tumour.nu"]
+    assert len(keys["aniso-hetero"]) == 11 and "fat.E" not in keys["aniso-hetero"]
+    space = ParameterSpace.for_model("aniso-hetero", [1, 2, 3], fibre=(1.0, 0.0, 0.0))
+    table = space.materials(np.full(space.dimension, 0.5))
+    assert table["fat"]["E"] == REFERENCE_E and table["muscle"]["E"] == pytest.approx(1e4)
+    tissue = np.array([1, 2, 3, 3])
+    materials = space.element_materials(np.full(space.dimension, 0.5), tissue)
+    assert np.all(materials.fibre == [1.0, 0.0, 0.0]) and np.all(materials.eta > 0)
+    homogeneous = ParameterSpace.for_model("iso-homo", [1, 2]).element_materials([0.2], np.array([1, 2]))
+    assert homogeneous.mu[0] == homogeneous.mu[1] and np.all(homogeneous.eta == 0)
+    assert ParameterSpace.from_dict(space.to_dict()).keys == space.keys
+
+
+def test_bad_spaces_are_refused():
+    with pytest.raises(ValueError, match="unknown model"):
+        ParameterSpace.for_model("aniso", ["fat"])
+    with pytest.raises(ValueError, match="unknown free parameters"):
+        ParameterSpace.for_model("iso-hetero", ["fat"], free=("G",))
+    with pytest.raises(ValueError, match="below 0.5"):
+        FreeParameter("fat", "nu", 0.45, 0.5)
+    with pytest.raises(ValueError, match="name no parameter"):
+        ParameterSpace.for_model("iso-homo", ["fat"], start={"glandular.E": 1e4})
+    with pytest.raises(ValueError, match="3 coordinates"):
+        ParameterSpace.for_model("iso-hetero", ["fat", "glandular"]).values([0.5])
+
+
+def test_the_truth_maximises_nmi_and_fits_the_landmarks(problem):
+    space = problem.space
+    at_truth, softer, stiffer = problem.evaluate([space.unit(TRUTH), space.unit({"glandular.E": 12e3}),
+                                                  space.unit({"glandular.E": 80e3})])
+    assert at_truth.status == "completed" and at_truth.objective == pytest.approx(-at_truth.nmi)
+    assert at_truth.nmi > softer.nmi + 1e-3 and at_truth.nmi > stiffer.nmi + 1e-3
+    assert at_truth.ncc > 0.999
+    assert at_truth.values["glandular.E"] == pytest.approx(30e3)
+
+
+@pytest.mark.parametrize("optimiser, budget", [("hybrid", 30), ("cmaes", 36)])
+def test_the_optimisers_recover_the_truth(problem, optimiser, budget, tmp_path):
+    result = optimise(problem, optimiser, budget=budget, seed=1, out_dir=tmp_path)
+    assert result.best.values["glandular.E"] == pytest.approx(TRUTH["glandular.E"], rel=0.05)
+    assert result.materials["glandular"]["E"] == result.best.values["glandular.E"]
+    assert result.materials["fat"]["E"] == REFERENCE_E
+    assert len(result.evaluations) <= budget
+    lines = (tmp_path / "evaluations.jsonl").read_text().splitlines()
+    assert len(lines) == len(result.evaluations)
+    assert json.loads(lines[0])["z"] == result.evaluations[0].z
+    summary = json.loads((tmp_path / "result.json").read_text())
+    assert summary["best"]["objective"] == result.best.objective == min(e.objective for e in result.evaluations)
+
+
+def test_cancel_and_resume_lose_nothing_and_end_where_an_uninterrupted_run_does(problem, tmp_path):
+    whole = optimise(problem, "cmaes", budget=14, seed=4, population=4)
+    calls = []
+
+    def cancel_after_two_batches(done, budget, best, phase):
+        calls.append(done)
+        return len(calls) < 2
+
+    first = optimise(problem, "cmaes", budget=14, seed=4, population=4, out_dir=tmp_path,
+                     progress=cancel_after_two_batches)
+    assert first.stopped == "cancelled" and len(first.evaluations) == 8
+    with pytest.raises(FileExistsError, match="resume"):
+        optimise(problem, "cmaes", budget=14, seed=4, population=4, out_dir=tmp_path)
+    with pytest.raises(ValueError, match="seed differ"):
+        optimise(problem, "cmaes", budget=14, seed=5, population=4, out_dir=tmp_path, resume=True)
+    resumed = optimise(problem, "cmaes", budget=14, seed=4, population=4, out_dir=tmp_path, resume=True)
+    assert resumed.replayed == 8 and resumed.stopped == "budget"
+    assert [e.z for e in resumed.evaluations] == [e.z for e in whole.evaluations]
+    assert resumed.best.objective == whole.best.objective
+    assert len((tmp_path / "evaluations.jsonl").read_text().splitlines()) == 14
