@@ -1,4 +1,4 @@
-"""Command line: ``breastbiomech phantom|segment|mesh|simulate|warp|compare|demo|bench``.
+"""Command line: ``breastbiomech phantom|segment|mesh|simulate|warp|compare|optimise|demo|bench``.
 
 Each sub-command is a thin layer over library functions; results go to files and a short report
 on standard output (``--json`` where a machine reads it).
@@ -14,6 +14,8 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib import __version__
+
+MODEL_CHOICES = ("iso-homo", "iso-hetero", "aniso-homo", "aniso-hetero")  # optimisation.space.MODELS
 
 
 def _phantom_parameters(args):
@@ -387,6 +389,45 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_optimise(args) -> int:
+    """Fit material parameters to a compressed case (seed section 2.4)."""
+    from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
+
+    settings = FitSettings(model=args.model, free=tuple(args.free), fibre=tuple(args.fibre), edge_mm=args.edge_mm,
+                           optimiser=args.optimiser, budget=args.budget, seconds=args.seconds, seed=args.seed,
+                           objective=args.objective, bins=args.bins, tolerance_mm=args.tolerance_mm,
+                           population=args.population)
+    started = time.perf_counter()
+
+    def progress(done, budget, best, phase):
+        if not args.quiet:
+            width = 30
+            filled = int(width * done / budget)
+            print(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{budget} {phase:6s} best {best:.5f} "
+                  f"{time.perf_counter() - started:6.0f} s", end="", file=sys.stderr, flush=True)
+
+    fit = fit_compressed_case(args.case_dir, args.out, settings, labels=args.labels, mesh_path=args.mesh,
+                              resume=args.resume, device=args.device, progress=progress)
+    if not args.quiet:
+        print(file=sys.stderr)
+    summary = fit.result.summary()
+    if args.json:
+        print(json.dumps({**summary, "landmark_errors": fit.landmark_errors}))
+        return 0
+    best = fit.result.best
+    print(f"{settings.model} fit of {args.case_dir} ({settings.optimiser}, {summary['evaluations']} evaluations, "
+          f"{summary['replayed']} replayed, stopped: {summary['stopped']}, {summary['seconds']:.0f} s)")
+    print(f"  best objective {best.objective:.5f}: NMI {best.nmi:.4f}, NCC {best.ncc:.4f}")
+    for name, values in fit.result.materials.items():
+        print(f"  {name:10s} E {values['E']:10.0f} Pa  nu {values['nu']:.4f}  eta {values['eta']:10.1f} Pa")
+    if fit.landmark_errors:
+        e = fit.landmark_errors
+        print(f"  landmarks: displacement {e['displacement_mm']['mean']:.2f} ± {e['displacement_mm']['sd']:.2f} mm, "
+              f"error {e['error_mm']['mean']:.2f} ± {e['error_mm']['sd']:.2f} mm (max {e['error_mm']['max']:.2f})")
+    print(f"  results in {fit.folder}")
+    return 0
+
+
 def _bench_solver(args) -> dict:
     """One forward solve (or a batch) of the hemi-ellipsoid compression case; figures as a dict."""
     import numpy as np
@@ -615,6 +656,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     p.set_defaults(func=cmd_phantom)
 
+    p = sub.add_parser("optimise", help="fit tissue material parameters to a compressed case by maximising NMI")
+    p.add_argument("case_dir", help="a case folder with its compressed/ part (`breastbiomech phantom --compressed`)")
+    p.add_argument("--out", required=True, help="output folder (results written as the fit goes)")
+    p.add_argument("--model", choices=MODEL_CHOICES, default="aniso-hetero", help="the seed's model variant")
+    p.add_argument("--free", nargs="+", choices=("E", "nu", "eta"), default=["E", "nu", "eta"],
+                   help="parameters searched per material (fat's E is the reference, eta only for aniso models)")
+    p.add_argument("--fibre", type=float, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
+                   help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
+    p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="hybrid",
+                   help="hybrid: annealing then L-BFGS-B (the seed's); cmaes: CMA-ES, one batch per generation")
+    p.add_argument("--budget", type=int, default=500, help="forward solves in all (default 500)")
+    p.add_argument("--seconds", type=float, help="wall-time limit of this run (s)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same run)")
+    p.add_argument("--population", type=int, help="CMA-ES population per generation (default 4 + 3 ln d)")
+    p.add_argument("--objective", choices=("nmi", "landmarks", "nmi+landmarks"), default="nmi")
+    p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
+    p.add_argument("--mesh", help="fitting mesh (.vtu from `breastbiomech mesh`); default: made from the labels")
+    p.add_argument("--labels", help="label map to mesh (default: the case's labels.nrrd)")
+    p.add_argument("--edge-mm", type=float, default=4.0, help="fitting mesh element size (default 4 mm)")
+    p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
+    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--resume", action="store_true", help="continue a fit interrupted in --out")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_optimise)
+
     p = sub.add_parser("segment", help="tissue label map and probabilities of an MR volume (EM + MRF + bias, seeds)")
     p.add_argument("volume", help="MR volume (.nrrd/.nii.gz), T1-weighted without fat suppression")
     p.add_argument("--seeds-muscle", required=True, help="point list (.mrk.json) on the pectoral muscle, 3-5 spread over it")
@@ -720,7 +787,7 @@ def main(argv: list[str] | None = None) -> int:
         warp.config.log_level = warp.LOG_WARNING
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
         _end_progress()
         print(f"breastbiomech {args.command}: error: {exc}", file=sys.stderr)
         return 2

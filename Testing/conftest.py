@@ -41,3 +41,16 @@ def make_image(array: np.ndarray, geometry):
     image.SetSpacing(spacing)
     image.SetDirection(direction)
     return image
+
+
+@pytest.fixture(scope="session")
+def compressed_case_dir(tmp_path_factory):
+    """A small coarse phantom (heterogeneous default truth materials) compressed by 25 % LR on a
+    6 mm truth mesh on the CPU by `breastbiomech phantom --compressed`: the case folder."""
+    from BreastBiomechLib.cli import main
+
+    out = tmp_path_factory.mktemp("compressed") / "case"
+    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
+                 "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
+                 "--out", str(out)]) == 0
+    return out

@@ -13,20 +13,15 @@ from BreastBiomechLib.warping import ImageWarper
 
 
 @pytest.fixture(scope="module")
-def cases(tmp_path_factory):
-    """A small coarse phantom (heterogeneous default truth materials), compressed by 25 % LR
-    on a 6 mm truth mesh on the CPU by `breastbiomech phantom --compressed`, read back from
-    its files: the undeformed case, what a fit may use, and the truth mesh."""
-    from BreastBiomechLib.cli import main
+def cases(compressed_case_dir):
+    """The undeformed case, what a fit may use, and the truth mesh of the compressed case made
+    by the command (conftest.compressed_case_dir), read back from its files."""
     from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.phantom import read_phantom
     from BreastBiomechLib.phantom.compressed_files import read_compressed
 
-    out = tmp_path_factory.mktemp("compressed") / "case"
-    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
-                 "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
-                 "--out", str(out)]) == 0
-    return read_phantom(out), read_compressed(out), read_vtu(out / "compressed" / "truth_mesh.vtu")
+    return (read_phantom(compressed_case_dir), read_compressed(compressed_case_dir),
+            read_vtu(compressed_case_dir / "compressed" / "truth_mesh.vtu"))
 
 
 def test_the_truth_solve_closes_the_plates_by_the_compression(cases):

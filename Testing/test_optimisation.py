@@ -165,3 +165,39 @@ def test_cancel_and_resume_lose_nothing_and_end_where_an_uninterrupted_run_does(
     assert [e.z for e in resumed.evaluations] == [e.z for e in whole.evaluations]
     assert resumed.best.objective == whole.best.objective
     assert len((tmp_path / "evaluations.jsonl").read_text().splitlines()) == 14
+
+
+def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_case_dir, tmp_path, capsys):
+    """`breastbiomech optimise` on the compressed phantom of conftest, with a small fitting mesh
+    (the labels' body, tissues by voxel majority) and a budget of a few solves."""
+    from BreastBiomechLib.cli import MODEL_CHOICES, main
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.optimisation.space import MODELS
+
+    assert MODEL_CHOICES == MODELS
+    mesh = mesh_labels(read_image(compressed_case_dir / "labels.nrrd"),
+                       MeshSettings(edge_mm=10.0, refine_interfaces=False)).mesh
+    write_vtu(tmp_path / "fitting.vtu", mesh)
+    out = tmp_path / "fit"
+    arguments = ["optimise", str(compressed_case_dir), "--model", "iso-hetero", "--free", "E", "--budget", "3",
+                 "--mesh", str(tmp_path / "fitting.vtu"), "--device", "cpu", "--tolerance-mm", "0.05",
+                 "--out", str(out), "--json", "--quiet"]
+    assert main(arguments) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["evaluations"] == 3 and summary["stopped"] == "budget" and summary["failed"] == 0
+    assert 1.0 < summary["best"]["nmi"] < 2.0
+    assert set(summary["materials"]) >= {"fat", "glandular", "muscle"}
+    errors = summary["landmark_errors"]
+    assert errors["displacement_mm"]["mean"] > 3.0 and 0 < errors["error_mm"]["mean"] < errors["displacement_mm"]["max"]
+    for name in ("settings.json", "evaluations.jsonl", "result.json", "fitting_mesh.vtu", "predicted.nrrd",
+                 "predicted_landmarks.mrk.json", "deformed_mesh.vtu", "landmark_errors.json", "convergence.png"):
+        assert (out / name).is_file(), name
+    predicted, measured = read_image(out / "predicted.nrrd"), read_image(compressed_case_dir / "compressed" / "mr.nrrd")
+    assert predicted.GetSize() == measured.GetSize()
+    # a second run into the same folder must resume, not overwrite
+    assert main(arguments) == 2
+    assert "resume it" in capsys.readouterr().err
+    assert main(arguments + ["--resume", "--budget", "4"]) == 0
+    assert json.loads(capsys.readouterr().out)["replayed"] == 3

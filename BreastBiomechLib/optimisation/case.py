@@ -1,0 +1,143 @@
+"""Fit a compressed case end to end: fitting mesh, parameter space, optimisation, and the
+results a user looks at (the predicted image and landmarks at the best parameters, the
+landmark errors, the convergence). What ``breastbiomech optimise`` and the Breast Optimization
+module run.
+
+Output folder (besides the optimisation's settings.json, evaluations.jsonl, result.json)::
+
+    fitting_mesh.vtu              the fitting mesh (reused on resume)
+    predicted.nrrd                the FE-predicted compressed MR at the best parameters
+    predicted_landmarks.mrk.json  the landmarks moved by the best solution (LPS)
+    deformed_mesh.vtu             the fitting mesh with the best solution's ``displacement`` (mm)
+    landmark_errors.json          per landmark and summarised as the seed's Table 2 (mm)
+    convergence.png               objective and best-so-far against evaluations
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib.optimisation.forward import FittingProblem
+from BreastBiomechLib.optimisation.run import OptimisationResult, optimise
+from BreastBiomechLib.optimisation.space import ParameterSpace
+from BreastBiomechLib.solver import DynamicRelaxation
+
+
+@dataclass
+class FitSettings:
+    """How to fit: the ``model`` variant, the ``free`` parameter names, the anisotropic ``fibre``
+    direction (LPS), the fitting mesh's ``edge_mm``, the ``optimiser``, ``budget``
+    (evaluations), ``seconds`` (wall time, None: none), ``seed``, the ``objective``, NMI
+    ``bins``, the forward solves' relaxation ``tolerance_mm``, the CMA-ES ``population``."""
+
+    model: str = "aniso-hetero"
+    free: tuple[str, ...] = ("E", "nu", "eta")
+    fibre: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    edge_mm: float = 4.0
+    optimiser: str = "hybrid"
+    budget: int = 500
+    seconds: float | None = None
+    seed: int = 0
+    objective: str = "nmi"
+    bins: int = 64
+    tolerance_mm: float = 0.01
+    population: int | None = None
+
+
+@dataclass
+class CaseFit:
+    """A finished fit: the optimisation ``result``, the ``landmark_errors`` summary (the seed's
+    Table 2 figures, mm), and the output ``folder``."""
+
+    result: OptimisationResult
+    landmark_errors: dict | None
+    folder: Path
+
+
+def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: FitSettings | None = None,
+                        labels: str | Path | None = None, mesh_path: str | Path | None = None,
+                        resume: bool = False, device=None,
+                        progress: Callable[[int, int, float, str], bool | None] | None = None) -> CaseFit:
+    """Fit ``settings.model`` to the compressed case in ``case_dir`` (a phantom case folder with
+    its ``compressed/`` part, :mod:`BreastBiomechLib.phantom.compressed_files`) and write the
+    results to ``out_dir``. The fitting mesh is ``mesh_path`` (a ``breastbiomech mesh`` .vtu), or
+    made from ``labels`` (default: the case's labels.nrrd; a segmentation's label map fits the
+    real workflow) at ``settings.edge_mm``."""
+    from BreastBiomechLib.io.images import read_image, write_image
+    from BreastBiomechLib.io.markups import read_markups, write_markups
+    from BreastBiomechLib.io.meshes import read_vtu, write_vtu
+    from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
+    from BreastBiomechLib.mesh.tetmesh import TetMesh
+    from BreastBiomechLib.phantom.compressed_files import read_compressed
+
+    settings = settings or FitSettings()
+    case = Path(case_dir)
+    out = Path(out_dir)
+    measured = read_compressed(case)
+    undeformed = read_image(case / "mr.nrrd")
+    reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
+    out.mkdir(parents=True, exist_ok=True)
+    mesh_file = out / "fitting_mesh.vtu"
+    if mesh_path is not None:
+        mesh = read_vtu(mesh_path)
+    elif resume and mesh_file.is_file():
+        mesh = read_vtu(mesh_file)
+    else:
+        from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+
+        nipple = reference.position("nipple") if reference is not None and "nipple" in reference.labels else None
+        mesh = mesh_labels(read_image(labels or case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
+                           nipple_mm=nipple).mesh
+    write_vtu(mesh_file, mesh)
+    space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
+                                     free=settings.free, fibre=settings.fibre)
+    problem = FittingProblem(space, mesh, undeformed, measured.image, measured.plates,
+                             landmarks=(reference, measured.landmarks) if reference is not None else None,
+                             objective=settings.objective, bins=settings.bins,
+                             relaxation=DynamicRelaxation(tolerance_mm=settings.tolerance_mm), device=device)
+    result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
+                      progress, population=settings.population)
+
+    best = problem.solve(result.best.z)[0]
+    if not best.ok:
+        raise RuntimeError(f"the best parameters no longer solve ({best.message})")
+    write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)
+    write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
+                                                                          "displacement": best.displacement},
+                                                 dict(mesh.cell_data)))
+    errors = None
+    if reference is not None:
+        moved = map_landmarks(mesh, best.displacement, reference)
+        write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
+        table = landmark_errors(reference, moved, measured.landmarks)
+        errors = table.summary()
+        (out / "landmark_errors.json").write_text(json.dumps({**errors, "per_landmark": {
+            label: {"displacement_mm": float(d), "error_mm": float(e)}
+            for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}}, indent=2) + "\n")
+    save_convergence(out / "convergence.png", result)
+    return CaseFit(result, errors, out)
+
+
+def save_convergence(path: str | Path, result: OptimisationResult) -> Path:
+    """A PNG of each evaluation's objective and the best so far against the evaluation count."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    values = np.array([e.objective for e in result.evaluations])
+    figure, axes = plt.subplots(figsize=(6, 3.5), dpi=100)
+    axes.plot(np.arange(1, len(values) + 1), values, ".", color="0.6", label="evaluation")
+    axes.plot(np.arange(1, len(values) + 1), np.minimum.accumulate(values), "-", color="C3", label="best so far")
+    axes.set_xlabel("forward solves")
+    axes.set_ylabel("objective (-NMI)" if result.best.objective < 0 else "objective")
+    axes.legend(loc="upper right")
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
+    return Path(path)
