@@ -602,6 +602,44 @@ def _bench_mesh(args) -> dict:
             "dice": {k: round(v["dice"], 4) for k, v in summary["tissue_representation"].items()}}
 
 
+BENCH_TRUTH = {"glandular.E": 25e3, "muscle.E": 80e3, "tumour.E": 120e3, "fat.nu": 0.495, "glandular.nu": 0.49,
+               "muscle.nu": 0.48, "tumour.nu": 0.495, "fat.eta": 4e3, "glandular.eta": 1e3, "muscle.eta": 2e4,
+               "tumour.eta": 1e3}  # bench optimise's truth: 4 tissues x (E, nu, eta), fat's E the reference
+
+
+def _bench_optimise(args) -> dict:
+    """An end-to-end aniso-hetero fit (4 tissues x E, nu, eta; fat's E the reference) of the
+    synthetic breast (optimisation.synthetic: ``--radii``, ``--element-mm``, ``--voxel-mm``)
+    whose measured image is the prediction at :data:`BENCH_TRUTH`, within ``--budget`` solves
+    by ``--optimiser``; the case's set-up is not timed."""
+    import numpy as np
+
+    from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace, optimise
+    from BreastBiomechLib.optimisation.synthetic import measured_at, synthetic_case
+    from BreastBiomechLib.solver import DynamicRelaxation
+
+    case = synthetic_case(tuple(args.radii), element_mm=args.element_mm, voxel_mm=tuple(args.voxel_mm),
+                          muscle_mm=10.0, tumour_mm=0.3 * args.radii[0])
+    space = ParameterSpace.for_model("aniso-hetero", ["fat", "glandular", "muscle", "tumour"])
+    relaxation = DynamicRelaxation(tolerance_mm=args.tolerance_mm)
+    measured = measured_at(case, space, BENCH_TRUTH, relaxation, device=args.device)
+    problem = FittingProblem(space, case.mesh, case.undeformed, measured, case.planes, relaxation=relaxation,
+                             device=args.device)
+    started = time.perf_counter()
+    result = optimise(problem, args.optimiser, budget=args.budget, seed=args.seed, population=args.population)
+    seconds = time.perf_counter() - started
+    truth = problem.evaluate(space.unit(BENCH_TRUTH))[0]
+    errors = {key: round(abs(value / BENCH_TRUTH[key] - 1.0), 4) for key, value in result.best.values.items()}
+    return {"benchmark": "optimise", "version": __version__, "device": str(problem.warper.device),
+            "optimiser": args.optimiser, "tets": len(case.mesh.tets), "nodes": len(case.mesh.nodes),
+            "voxels": int(measured.GetNumberOfPixels()), "free_parameters": space.dimension,
+            "budget": args.budget, "evaluations": len(result.evaluations), "stopped": result.stopped,
+            "failed": sum(e.status != "completed" for e in result.evaluations),
+            "seconds": round(seconds, 2), "seconds_per_evaluation": round(seconds / len(result.evaluations), 4),
+            "best_nmi": round(result.best.nmi, 5), "truth_nmi": round(truth.nmi, 5),
+            "max_relative_error": max(errors.values()), "relative_errors": errors}
+
+
 def cmd_bench(args) -> int:
     if args.what == "solver":
         figures = _bench_solver(args)
@@ -611,8 +649,9 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
-    if args.what in ("mesh", "segment", "warp"):
-        figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp}[args.what](args)
+    if args.what in ("mesh", "segment", "warp", "optimise"):
+        figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp,
+                   "optimise": _bench_optimise}[args.what](args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -751,7 +790,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "warp"], help="what to time")
+    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "warp", "optimise"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
     p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
     p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
@@ -773,6 +812,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--edge-mm", type=float, default=3.0, help="mesh: element edge (mm)")
     p.add_argument("--grid", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
                    help="mesh, segment: pad or crop the phantom to this many voxels (e.g. 256 256 80); warp: the grid")
+    p.add_argument("--radii", type=float, nargs=3, default=[70.0, 60.0, 65.0], metavar=("LR", "AP", "SI"),
+                   help="optimise: synthetic breast radii (mm)")
+    p.add_argument("--element-mm", type=float, default=4.0, help="optimise: synthetic mesh cube size (mm)")
+    p.add_argument("--voxel-mm", type=float, nargs=3, default=[1.0, 1.0, 2.5], help="optimise: voxel size (mm)")
+    p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
+    p.add_argument("--budget", type=int, default=500, help="optimise: forward solves")
+    p.add_argument("--population", type=int, default=None, help="optimise: CMA-ES population (batch size)")
+    p.add_argument("--tolerance-mm", type=float, default=0.01, help="optimise: forward solves' relaxation tolerance")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser

@@ -1,9 +1,9 @@
 """Material-parameter optimisation: the parameter space, the forward problem, the optimisers
 recovering a truth inside the fitted family, the results file, budget, cancel and resume.
 
-The fit runs on a small synthetic breast (a stair-stepped half ellipsoid with a glandular core,
-a textured image) whose "measured" compressed image is the prediction at known parameters: the
-truth lies in the family, so a fit must find it.
+The fit runs on a small synthetic breast (optimisation.synthetic: a stair-stepped half ellipsoid
+with a glandular core, a textured image) whose "measured" compressed image is the prediction at
+known parameters: the truth lies in the family, so a fit must find it.
 """
 
 from __future__ import annotations
@@ -12,68 +12,25 @@ import json
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
-from scipy.ndimage import gaussian_filter
 
-from BreastBiomechLib import labels
-from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
 from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace, optimise
 from BreastBiomechLib.optimisation.space import BOUNDS, REFERENCE_E, FreeParameter
+from BreastBiomechLib.optimisation.synthetic import measured_at, synthetic_case
 from BreastBiomechLib.solver import DynamicRelaxation
 
 TRUTH = {"glandular.E": 30e3}
-RADII = (40.0, 35.0, 40.0)
-
-
-def _breast():
-    """A half-ellipsoid breast (LPS mm, chest wall y = 0) with a glandular core, its node sets
-    as `breastbiomech mesh` names them, and a textured MR-like image of it (2 mm voxels)."""
-    mesh = hemi_ellipsoid_mesh(RADII, spacing_mm=6.0)
-    centres = mesh.nodes[mesh.tets].mean(axis=1)
-    core = (((centres - [0.0, -14.0, 0.0]) / [22.0, 14.0, 22.0]) ** 2).sum(axis=1) <= 1.0
-    mesh.cell_data["tissue"] = np.where(core, labels.GLANDULAR.label, labels.FAT.label).astype(np.uint8)
-    surface = mesh.point_data["surface"]
-    mesh.point_data.update({"skin": surface, "breast_skin": surface, "fov_cut": np.zeros_like(surface)})
-
-    spacing = 2.0
-    origin = np.array([-56.0, -60.0, -56.0])
-    size = np.array([57, 36, 57])
-    k, j, i = np.meshgrid(*(np.arange(n) for n in size[::-1]), indexing="ij")
-    x, y, z = (origin[a] + spacing * idx for a, idx in enumerate((i, j, k)))
-    body = ((x / RADII[0]) ** 2 + (y / RADII[1]) ** 2 + (z / RADII[2]) ** 2 <= 1.0) & (y <= 0)
-    gland = ((x / 22.0) ** 2 + ((y + 14.0) / 14.0) ** 2 + (z / 22.0) ** 2) <= 1.0
-    texture = gaussian_filter(np.random.default_rng(3).standard_normal(body.shape), 1.5)
-    values = np.where(body, np.where(gland, 420.0, 1000.0) * (1.0 + 0.6 * texture), 0.0).astype(np.float32)
-    image = sitk.GetImageFromArray(values)
-    image.SetOrigin(tuple(origin))
-    image.SetSpacing((spacing,) * 3)
-    return mesh, image
-
-
-def _final_planes(mesh):
-    """The final plate planes of a 25 % LR compression of ``mesh`` (as plates.json holds them)."""
-    from BreastBiomechLib.io.cases import compression_case
-
-    return [{"name": p["name"], "point": (np.add(p["point"], p["displacement"])).tolist(), "normal": p["normal"],
-             **({"edge": p["edge"]} if "edge" in p else {})}
-            for p in compression_case(mesh, "m.vtu", "LR", 0.25)["plates"]]
-
-
 RELAXATION = DynamicRelaxation(load_iterations=400, tolerance_mm=0.002)
 
 
 @pytest.fixture(scope="module")
 def problem():
-    """The fitting problem of glandular E (iso-hetero, only E free) whose measured image is the
-    prediction at E_glandular = 30 kPa."""
-    mesh, undeformed = _breast()
+    """The fitting problem of glandular E (iso-hetero, only E free) on the small synthetic
+    breast, whose measured image is the prediction at E_glandular = 30 kPa."""
+    case = synthetic_case((40.0, 35.0, 40.0), element_mm=6.0, voxel_mm=(2.0, 2.0, 2.0))
     space = ParameterSpace.for_model("iso-hetero", ["fat", "glandular"], free=("E",))
-    planes = _final_planes(mesh)
-    truth_problem = FittingProblem(space, mesh, undeformed, undeformed, planes, relaxation=RELAXATION, device="cpu")
-    solution = truth_problem.solve(space.unit(TRUTH))[0]
-    assert solution.ok, solution.message
-    measured = truth_problem.predict(solution.displacement).image
-    return FittingProblem(space, mesh, undeformed, measured, planes, relaxation=RELAXATION, device="cpu")
+    measured = measured_at(case, space, TRUTH, RELAXATION, device="cpu")
+    return FittingProblem(space, case.mesh, case.undeformed, measured, case.planes, relaxation=RELAXATION,
+                          device="cpu")
 
 
 def test_unit_positions_map_onto_the_bounds_on_log_scales():
