@@ -102,7 +102,15 @@ class FittingProblem:
 
         positions = np.atleast_2d(np.asarray(positions, float))
         materials = [self.space.element_materials(z, self.tissue) for z in positions]
-        return solve_batch(self.model, materials, device=self.device, relaxation=self.relaxation)
+        solutions = solve_batch(self.model, materials, device=self.device, relaxation=self.relaxation)
+        if len(solutions) > 1 and any(s.status == "inverted elements" for s in solutions):
+            # an inverted element in one model stops the whole batch (one flag for the batch):
+            # the models of a stopped batch are solved again alone, so one bad model fails alone
+            for i, solution in enumerate(solutions):
+                if solution.status == "inverted elements":
+                    solutions[i] = solve_batch(self.model, [materials[i]], device=self.device,
+                                               relaxation=self.relaxation)[0]
+        return solutions
 
     def predict(self, displacement_mm: np.ndarray):
         """The FE-predicted image (:class:`~BreastBiomechLib.warping.PredictedImage`, on the

@@ -35,7 +35,7 @@ def synthetic_case(radii_mm=(40.0, 35.0, 40.0), element_mm: float = 6.0, voxel_m
                    muscle_mm: float = 0.0, tumour_mm: float = 0.0, compression: float = 0.25,
                    seed: int = 3) -> SyntheticCase:
     """The breast of ``radii_mm`` (LR, AP depth, SI) meshed by cubes of ``element_mm``, its
-    posterior ``muscle_mm`` muscle (0: none), a central glandular core (half the radii) and a
+    posterior ``muscle_mm`` of pectoral muscle under the central base (0: none), a central glandular core (half the radii) and a
     tumour of diameter ``tumour_mm`` inside it (0: none); the image at ``voxel_mm`` with a smooth
     random texture (``seed``) so that interior motion shows; plates closing by ``compression``."""
     from BreastBiomechLib.io.cases import compression_case
@@ -51,14 +51,14 @@ def synthetic_case(radii_mm=(40.0, 35.0, 40.0), element_mm: float = 6.0, voxel_m
         tissue[(((points - core_centre) / core_radii) ** 2).sum(axis=1) <= 1.0] = labels.GLANDULAR.label
         if tumour_mm > 0:
             tissue[np.linalg.norm(points - tumour_centre, axis=1) <= tumour_mm / 2] = labels.TUMOUR.label
-        if muscle_mm > 0:
-            tissue[points[:, 1] > -muscle_mm] = labels.MUSCLE.label
+        if muscle_mm > 0:  # under the central base, clear of the plates' rounded edges at the sides
+            central = (points[:, 0] / (0.7 * a)) ** 2 + (points[:, 2] / (0.7 * b)) ** 2 <= 1.0
+            tissue[(points[:, 1] > -muscle_mm) & central] = labels.MUSCLE.label
         return tissue
 
     mesh.cell_data["tissue"] = tissue_at(mesh.nodes[mesh.tets].mean(axis=1)).astype(np.uint8)
     surface = mesh.point_data["surface"].astype(bool)
-    front = -muscle_mm if muscle_mm > 0 else 0.0
-    breast_skin = surface & (mesh.nodes[:, 1] < front)
+    breast_skin = surface & (mesh.nodes[:, 1] < 0.0)
     mesh.point_data.update({"skin": surface.astype(np.uint8), "breast_skin": breast_skin.astype(np.uint8),
                             "fov_cut": np.zeros(len(mesh.nodes), np.uint8)})
 
