@@ -49,15 +49,13 @@ def _add_phantom_options(p: argparse.ArgumentParser) -> None:
 def _truth_model(args):
     """The truth of ``phantom --compressed``: the Table 1 preset of ``--case`` (else the
     default truth), with ``--compression``, ``--axis`` and ``--truth-edge-mm`` applied."""
+    from dataclasses import replace
+
     from BreastBiomechLib.phantom.compressed import TruthModel, table1_truth
 
     truth = table1_truth(args.case) if args.case else TruthModel()
-    if args.compression is not None:
-        truth.compression = args.compression
-    truth.axis = args.axis
-    truth.edge_mm = args.truth_edge_mm
-    truth.__post_init__()  # the overrides pass the same checks
-    return truth
+    compression = truth.compression if args.compression is None else args.compression
+    return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm)  # checked again
 
 
 def cmd_phantom(args) -> int:

@@ -89,24 +89,44 @@ def _distance_to_triangle(p, a, b, c) -> float:
     return float(np.linalg.norm(p - (a + ab * vb * denom + ac * vc * denom)))
 
 
+class LandmarkMapper:
+    """Moves one set of reference ``landmarks`` with nodal displacements of one ``mesh``: each
+    landmark is located in its reference tet once, so mapping many displacements (an
+    optimisation's evaluations) costs a weighted sum each. Landmarks more than
+    ``max_outside_mm`` outside the mesh are refused: their motion would be a guess (skin
+    fiducials just outside a smoothed surface are within it)."""
+
+    def __init__(self, mesh: TetMesh, landmarks: Landmarks, max_outside_mm: float = 5.0):
+        where = locate_points(mesh, landmarks.positions)
+        far = where.outside_mm > max_outside_mm
+        if far.any():
+            names = [f"{landmarks.labels[i]} ({where.outside_mm[i]:.1f} mm)" for i in np.flatnonzero(far)]
+            raise ValueError(f"landmarks outside the mesh by more than {max_outside_mm:g} mm: {', '.join(names)}; "
+                             "are they in the mesh's frame (LPS mm)?")
+        self.mesh = mesh
+        self.landmarks = landmarks
+        self._nodes = mesh.tets[where.tets]  # (K, 4) the nodes of each landmark's tet
+        self._weights = where.weights
+
+    def map(self, displacement_mm: np.ndarray) -> Landmarks:
+        """The landmarks moved by the nodal displacements (N, 3) mm."""
+        displacement = np.asarray(displacement_mm, dtype=float)
+        if displacement.shape != self.mesh.nodes.shape:
+            raise ValueError(f"displacements must be one 3-vector per node, shape {self.mesh.nodes.shape}; "
+                             f"got {displacement.shape}")
+        moved = self.landmarks.positions + np.einsum("ki,kij->kj", self._weights, displacement[self._nodes])
+        return Landmarks(moved, list(self.landmarks.labels), list(self.landmarks.descriptions))
+
+
 def map_landmarks(mesh: TetMesh, displacement_mm: np.ndarray, landmarks: Landmarks,
                   max_outside_mm: float = 5.0) -> Landmarks:
-    """``landmarks`` (reference, LPS mm) moved by the nodal displacements (N, 3) mm of ``mesh``.
-
-    Landmarks more than ``max_outside_mm`` outside the mesh are refused: their motion would be a
-    guess (skin fiducials just outside a smoothed surface are within it)."""
+    """``landmarks`` (reference, LPS mm) moved by the nodal displacements (N, 3) mm of ``mesh``
+    (see :class:`LandmarkMapper`, which also refuses landmarks far outside the mesh)."""
     displacement = np.asarray(displacement_mm, dtype=float)
     if displacement.shape != mesh.nodes.shape:
         raise ValueError(f"displacements must be one 3-vector per node, shape {mesh.nodes.shape}; "
                          f"got {displacement.shape}")
-    where = locate_points(mesh, landmarks.positions)
-    far = where.outside_mm > max_outside_mm
-    if far.any():
-        names = [f"{landmarks.labels[i]} ({where.outside_mm[i]:.1f} mm)" for i in np.flatnonzero(far)]
-        raise ValueError(f"landmarks outside the mesh by more than {max_outside_mm:g} mm: {', '.join(names)}; "
-                         "are they in the mesh's frame (LPS mm)?")
-    moved = landmarks.positions + np.einsum("ki,kij->kj", where.weights, displacement[mesh.tets[where.tets]])
-    return Landmarks(moved, list(landmarks.labels), list(landmarks.descriptions))
+    return LandmarkMapper(mesh, landmarks, max_outside_mm).map(displacement)
 
 
 @dataclass

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import SimpleITK as sitk
 
-from BreastBiomechLib.landmarks import Landmarks, map_landmarks
+from BreastBiomechLib.landmarks import LandmarkMapper, Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation, Model
@@ -82,6 +82,8 @@ class FittingProblem:
         self.objective = objective
         self.landmark_weight = float(landmark_weight)
         self.landmarks = landmarks
+        # located once in their reference tets: each evaluation then only weighs its displacements
+        self._landmark_mapper = LandmarkMapper(mesh, landmarks[0]) if landmarks is not None else None
         self.device = device
         self.relaxation = relaxation or DynamicRelaxation()
         # the loading of `breastbiomech mesh`'s case (chest wall, field-of-view cuts), with the
@@ -131,10 +133,9 @@ class FittingProblem:
             if solution.ok:
                 predicted = self.warper.warp(solution.displacement)
                 nmi, ncc = self.similarity.nmi(predicted), self.similarity.ncc(predicted)
-                if self.landmarks is not None:
-                    reference, target = self.landmarks
-                    moved = map_landmarks(self.mesh, solution.displacement, reference)
-                    errors = np.linalg.norm(moved.positions - target.positions, axis=1)
+                if self._landmark_mapper is not None:
+                    moved = self._landmark_mapper.map(solution.displacement)
+                    errors = np.linalg.norm(moved.positions - self.landmarks[1].positions, axis=1)
                     mean, worst = float(errors.mean()), float(errors.max())
                 objective = {"nmi": -nmi, "landmarks": mean,
                              "nmi+landmarks": -nmi + self.landmark_weight * mean}[self.objective]

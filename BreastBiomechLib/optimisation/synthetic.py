@@ -38,7 +38,8 @@ def synthetic_case(radii_mm=(40.0, 35.0, 40.0), element_mm: float = 6.0, voxel_m
     posterior ``muscle_mm`` of pectoral muscle under the central base (0: none), a central glandular core (half the radii) and a
     tumour of diameter ``tumour_mm`` inside it (0: none); the image at ``voxel_mm`` with a smooth
     random texture (``seed``) so that interior motion shows; plates closing by ``compression``."""
-    from BreastBiomechLib.io.cases import compression_case
+    from BreastBiomechLib.io.cases import case_from_dict, compression_case
+    from BreastBiomechLib.solver.placement import final_planes
 
     a, d, b = (float(r) for r in radii_mm)
     mesh = hemi_ellipsoid_mesh((a, d, b), spacing_mm=element_mm)
@@ -80,10 +81,8 @@ def synthetic_case(radii_mm=(40.0, 35.0, 40.0), element_mm: float = 6.0, voxel_m
     image.SetOrigin(tuple(float(v) for v in low))
     image.SetSpacing(tuple(float(v) for v in spacing))
 
-    planes = [{"name": p["name"], "point": np.add(p["point"], p["displacement"]).tolist(), "normal": p["normal"],
-               **({"edge": p["edge"]} if "edge" in p else {})}
-              for p in compression_case(mesh, "synthetic.vtu", "LR", compression)["plates"]]
-    return SyntheticCase(mesh, image, planes)
+    model, _ = case_from_dict(compression_case(mesh, "synthetic.vtu", "LR", compression), mesh)
+    return SyntheticCase(mesh, image, final_planes(model.loading.plates))
 
 
 def measured_at(case: SyntheticCase, space, truth: dict[str, float], relaxation=None, device=None) -> sitk.Image:

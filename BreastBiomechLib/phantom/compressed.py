@@ -96,6 +96,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     from BreastBiomechLib.io.cases import case_from_dict, compression_case
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.solver import solve
+    from BreastBiomechLib.solver.placement import final_planes
     from BreastBiomechLib.warping import ImageWarper
 
     truth = truth or TruthModel()
@@ -141,9 +142,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     image.CopyInformation(like)
 
     landmarks = map_landmarks(mesh, displacement, case.landmarks)
-    plates = [{"name": p.name, "point": (p.point + p.displacement).tolist(), "normal": p.normal.tolist(),
-               "travel_mm": float(p.displacement @ p.normal), **({"edge": p.edge.to_dict()} if p.edge else {})}
-              for p in model.loading.plates]  # a plate moves along its normal: its edge distance holds
+    plates = final_planes(model.loading.plates)
     truth_mesh = TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data, "displacement": displacement},
                          dict(mesh.cell_data))
     summary = {

@@ -54,6 +54,16 @@ def within_reach(nodes_mm: np.ndarray, candidates, plates: list[Plate]) -> np.nd
     return candidates[keep]
 
 
+def final_planes(plates: list[Plate]) -> list[dict]:
+    """Where ``plates`` end (what a compressed image shows, and plates.json holds): name, final
+    ``point`` and ``normal`` (LPS mm, towards the tissue), the travel along the normal (mm) and
+    the rounded edge. A plate moves along its normal, so its edge's distance holds. The inverse
+    of :func:`plates_to_final_planes`."""
+    return [{"name": p.name, "point": (p.point + p.displacement).tolist(), "normal": p.normal.tolist(),
+             "travel_mm": float(p.displacement @ p.normal), **({"edge": p.edge.to_dict()} if p.edge else {})}
+            for p in plates]
+
+
 def plates_to_final_planes(mesh: TetMesh, planes: list[dict], candidates, extent_nodes=None) -> list[Plate]:
     """Plates that start touching the mesh (its ``extent_nodes``, e.g. the breast skin) and end
     on measured final ``planes`` (dicts: ``name``, ``point`` and ``normal`` towards the tissue,
