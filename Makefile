@@ -3,7 +3,8 @@
 #   make test   create .venv if missing, install, run the whole test suite
 #   make bench  print benchmark figures (see docs/benchmarks.md)
 #   make table1-cases  the five compressed phantom cases of the seed's Table 1 (out/table1/case<N>;
-#               DEVICE=cuda on a GPU; about an hour on 2 CPU cores)
+#               2 mm truth meshes; DEVICE=cuda on a GPU: under a minute per case
+#               on an H100; far slower on a CPU)
 
 PYTHON ?= python3
 VENV   := .venv
