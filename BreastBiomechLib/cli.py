@@ -638,6 +638,49 @@ def _bench_optimise(args) -> dict:
             "max_relative_error": max(errors.values()), "relative_errors": errors}
 
 
+def cmd_study(args) -> int:
+    """The four-model study of the seed's Tables 2 and 3 on compressed cases."""
+    import datetime
+
+    from BreastBiomechLib.optimisation.study import (StudySettings, provenance, run_study, study_markdown,
+                                                     write_report)
+
+    budgets = {}
+    for item in args.budget or []:
+        model, _, count = item.partition("=")
+        if model not in MODEL_CHOICES or not count.isdigit():
+            raise ValueError(f"--budget takes MODEL=SOLVES with MODEL one of {MODEL_CHOICES}, not {item!r}")
+        budgets[model] = int(count)
+    settings = StudySettings(models=tuple(args.models), optimisers=tuple(args.optimisers),
+                             budgets={**StudySettings().budgets, **budgets}, fibre=tuple(args.fibre),
+                             edge_mm=args.edge_mm, seed=args.seed, bins=args.bins, tolerance_mm=args.tolerance_mm)
+    started = time.perf_counter()
+
+    def progress(fit, done, budget, best, phase):
+        if not args.quiet:
+            print(f"\r  {fit}: {done}/{budget} {phase:6s} best {best:.5f} {time.perf_counter() - started:6.0f} s ",
+                  end="", file=sys.stderr, flush=True)
+
+    rows = run_study(args.case_dirs, args.out, settings, device=args.device, progress=progress)
+    if not args.quiet:
+        print(file=sys.stderr)
+    if args.report:
+        import warp as wp
+
+        wp.init()
+        device = wp.get_device(args.device) if args.device else wp.get_device()
+        info = provenance(f"{device.name} ({device.alias})", "breastbiomech " + " ".join(args.argv),
+                          datetime.date.today().isoformat())
+        write_report(args.report, study_markdown(rows, settings, info))
+        print(f"tables written to {args.report}")
+    for row in sorted(rows, key=lambda r: (r.case, r.model, r.optimiser)):
+        s = row.landmark_errors["error_mm"] if row.landmark_errors else None
+        print(f"{row.case:8s} {row.model:13s} {row.optimiser:7s} NMI {row.nmi:.4f} "
+              + (f"landmark error {s['mean']:.2f} ± {s['sd']:.2f} mm (max {s['max']:.1f})" if s else "")
+              + f" {row.evaluations} solves, {row.stopped}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     if args.what == "solver":
         figures = _bench_solver(args)
@@ -718,6 +761,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_optimise)
+
+    p = sub.add_parser("study", help="the four model variants fitted to compressed cases (the seed's Tables 2, 3)")
+    p.add_argument("case_dirs", nargs="+", help="compressed case folders (`make table1-cases`: out/table1/case*)")
+    p.add_argument("--out", required=True, help="results folder (rerun to resume)")
+    p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=list(MODEL_CHOICES))
+    p.add_argument("--optimisers", nargs="+", choices=("hybrid", "cmaes"), default=["cmaes"])
+    p.add_argument("--budget", nargs="+", metavar="MODEL=SOLVES",
+                   help="forward solves per fit of a model (default iso-homo=24 aniso-homo=48 iso-hetero=160 "
+                        "aniso-hetero=240)")
+    p.add_argument("--fibre", type=float, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
+                   help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
+    p.add_argument("--edge-mm", type=float, default=4.0, help="fitting mesh element size (default 4 mm)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
+    p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
+    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--report", help="Markdown file whose study tables are (re)written, e.g. docs/validation.md")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=cmd_study)
 
     p = sub.add_parser("segment", help="tissue label map and probabilities of an MR volume (EM + MRF + bias, seeds)")
     p.add_argument("volume", help="MR volume (.nrrd/.nii.gz), T1-weighted without fat suppression")
@@ -826,6 +888,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # as typed, for reports' provenance
     if getattr(args, "json", False):  # standard output is for the one JSON line: no warp banner
         import warp
 

@@ -1,0 +1,329 @@
+"""The four-model study of the seed's Tables 2 and 3: every model variant fitted to every
+compressed case, the landmark errors (Table 2) and the fitted parameters (Table 3) set against
+the hidden truth, and a Markdown report of both.
+
+Output folder (rerunning the same command resumes: finished fits are replayed, an interrupted
+one continues)::
+
+    <case>/fitting_mesh.vtu         the case's fitting mesh, made once and shared by its fits
+    <case>/<model>-<optimiser>/     one fit (:func:`BreastBiomechLib.optimisation.case.fit_compressed_case`)
+    study.json                      every finished fit's row, rewritten after each fit
+
+Units: landmark errors and displacements in mm (LPS), moduli in Pa.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
+from BreastBiomechLib.optimisation.search import OPTIMISERS
+from BreastBiomechLib.optimisation.space import HOMOGENEOUS, MODELS, REFERENCE_E
+
+# Forward solves per fit: about 20 per free parameter for the homogeneous variants (1-2 free),
+# more for the heterogeneous ones, whose 5-11 parameters interact.
+DEFAULT_BUDGETS = {"iso-homo": 24, "aniso-homo": 48, "iso-hetero": 160, "aniso-hetero": 240}
+VOXEL_DIAGONAL_MM = float(np.sqrt(1.0 + 1.0 + 2.5**2))  # the seed's 1 x 1 x 2.5 mm voxel: 2.87 mm
+
+
+@dataclass
+class StudySettings:
+    """What the study fits: the ``models``, each with the ``optimisers`` and its ``budgets``
+    (forward solves; a model missing there gets :data:`DEFAULT_BUDGETS`), and the settings
+    shared by every fit (:class:`~BreastBiomechLib.optimisation.case.FitSettings`)."""
+
+    models: tuple[str, ...] = MODELS
+    optimisers: tuple[str, ...] = ("cmaes",)
+    budgets: dict[str, int] = field(default_factory=lambda: dict(DEFAULT_BUDGETS))
+    fibre: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    edge_mm: float = 4.0
+    seed: int = 0
+    objective: str = "nmi"
+    bins: int = 64
+    tolerance_mm: float = 0.01
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.models if m not in MODELS]
+        if unknown or not self.models:
+            raise ValueError(f"choose models among {MODELS}, not {list(self.models)}")
+        unknown = [o for o in self.optimisers if o not in OPTIMISERS]
+        if unknown or not self.optimisers:
+            raise ValueError(f"choose optimisers among {OPTIMISERS}, not {list(self.optimisers)}")
+        for model in self.models:
+            if self.budget(model) < 1:
+                raise ValueError(f"the budget of {model} must be at least one forward solve")
+
+    def budget(self, model: str) -> int:
+        return int(self.budgets.get(model, DEFAULT_BUDGETS[model]))
+
+    def fit_settings(self, model: str, optimiser: str) -> FitSettings:
+        return FitSettings(model=model, fibre=self.fibre, edge_mm=self.edge_mm, optimiser=optimiser,
+                           budget=self.budget(model), seed=self.seed, objective=self.objective, bins=self.bins,
+                           tolerance_mm=self.tolerance_mm)
+
+
+@dataclass
+class StudyFit:
+    """One fit of the study: ``case`` (folder name), ``model``, ``optimiser``; the best
+    ``nmi`` and ``objective``; ``evaluations`` (forward solves), ``failed`` solves, ``seconds``
+    (wall time of the run that finished it; 0 when replayed), ``stopped``; the
+    ``landmark_errors`` summary (mm); the fitted ``materials`` and the case's ``truth``
+    materials ({name: {"E", "nu", "eta"} in Pa}); ``in_family``: whether the truth lies in the
+    fitted model family."""
+
+    case: str
+    model: str
+    optimiser: str
+    nmi: float
+    objective: float
+    evaluations: int
+    failed: int
+    seconds: float
+    stopped: str
+    landmark_errors: dict | None
+    materials: dict
+    truth: dict
+    in_family: bool
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def truth_in_family(truth: dict, model: str, fibre) -> bool:
+    """Whether the truth materials ({tissue: {"E", "nu", optional "eta" and "fibre"}}) are a
+    member of the ``model`` family with fat's E as the reference: isotropic variants need no
+    eta anywhere; anisotropic ones a fibre along ``fibre`` wherever there is an eta (an
+    isotropic tissue is the family's eta at its lower bound, 1 Pa, which is negligible);
+    homogeneous ones one material for every tissue."""
+    if not np.isclose(truth.get("fat", {}).get("E", REFERENCE_E), REFERENCE_E):
+        return False
+    anisotropic = model.startswith("aniso")
+    for values in truth.values():
+        if values.get("eta", 0.0) > 0:
+            if not anisotropic or not np.allclose(np.abs(np.asarray(values.get("fibre", fibre), float)),
+                                                  np.abs(np.asarray(fibre, float))):
+                return False
+    if model.endswith("homo"):
+        keys = {(v["E"], v["nu"], v.get("eta", 0.0)) for v in truth.values()}
+        return len(keys) == 1
+    return True
+
+
+def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = None, device=None,
+              progress: Callable[[str, int, int, float, str], bool | None] | None = None) -> list[StudyFit]:
+    """Fit every model of ``settings`` with every optimiser to every compressed case in
+    ``case_dirs`` (phantom case folders with their ``compressed/`` part); results in
+    ``out_dir`` (see the module notes; an existing folder is resumed). ``progress(fit,
+    done, budget, best objective, phase)`` is called after every batch; returning False cancels
+    (the fits so far are kept and a rerun resumes). Returns every fit's row, also those of
+    earlier runs into ``out_dir`` that this one did not redo."""
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.markups import read_markups
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.phantom.compressed_files import read_compressed
+
+    settings = settings or StudySettings()
+    cases = [Path(c) for c in case_dirs]
+    if not cases:
+        raise ValueError("give at least one compressed case folder (`breastbiomech phantom --case N --compressed`)")
+    names = [c.name for c in cases]
+    if len(set(names)) != len(names):
+        raise ValueError(f"the case folders' names must differ (they name the result folders): {names}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = {(r.case, r.model, r.optimiser): r for r in read_study(out)}
+    for case in cases:
+        truth = read_compressed(case).truth()["truth"]["materials"]
+        mesh_file = out / case.name / "fitting_mesh.vtu"
+        if not mesh_file.is_file():
+            reference = read_markups(case / "landmarks.mrk.json")
+            nipple = reference.position("nipple") if "nipple" in reference.labels else None
+            mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
+                               nipple_mm=nipple).mesh
+            write_vtu(mesh_file, mesh)
+        for model in settings.models:
+            for optimiser in settings.optimisers:
+                label = f"{case.name} {model} {optimiser}"
+                folder = out / case.name / f"{model}-{optimiser}"
+                report = None
+                if progress is not None:
+                    def report(done, budget, best, phase, label=label):
+                        return progress(label, done, budget, best, phase)
+                fit = fit_compressed_case(case, folder, settings.fit_settings(model, optimiser), mesh_path=mesh_file,
+                                          resume=(folder / "evaluations.jsonl").exists(), device=device,
+                                          progress=report)
+                summary = fit.result.summary()
+                rows[(case.name, model, optimiser)] = StudyFit(
+                    case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
+                    summary["evaluations"], summary["failed"], summary["seconds"], summary["stopped"],
+                    fit.landmark_errors, fit.result.materials, truth, truth_in_family(truth, model, settings.fibre))
+                _write_study(out, settings, rows.values())
+                if fit.result.stopped == "cancelled":
+                    return list(rows.values())
+    return list(rows.values())
+
+
+def _write_study(out: Path, settings: StudySettings, rows) -> None:
+    document = {"settings": asdict(settings), "fits": [r.to_dict() for r in rows]}
+    path = out / "study.json"
+    temporary = path.with_suffix(".json.tmp")
+    temporary.write_text(json.dumps(document, indent=2) + "\n")
+    temporary.replace(path)
+
+
+def read_study(out_dir: str | Path) -> list[StudyFit]:
+    """The rows of a study folder's study.json (none when there is none)."""
+    path = Path(out_dir) / "study.json"
+    if not path.is_file():
+        return []
+    return [StudyFit(**row) for row in json.loads(path.read_text())["fits"]]
+
+
+def best_fits(rows: list[StudyFit]) -> dict[tuple[str, str], StudyFit]:
+    """For each (case, model) the fit of the optimiser that reached the lowest objective."""
+    best: dict[tuple[str, str], StudyFit] = {}
+    for row in rows:
+        key = (row.case, row.model)
+        if key not in best or row.objective < best[key].objective:
+            best[key] = row
+    return best
+
+
+def recovery(row: StudyFit) -> dict[str, dict[str, float]]:
+    """For a heterogeneous fit, each tissue's fitted against truth E (relative error) and nu
+    (absolute error): {tissue: {"E_rel": ..., "nu_abs": ...}}; fat's E is the reference and left out."""
+    if row.model.endswith("homo"):
+        return {}
+    errors = {}
+    for tissue, fitted in row.materials.items():
+        truth = row.truth.get(tissue)
+        if truth is None:
+            continue
+        entry = {"nu_abs": abs(fitted["nu"] - truth["nu"])}
+        if tissue != "fat":
+            entry["E_rel"] = abs(fitted["E"] / truth["E"] - 1.0)
+        errors[tissue] = entry
+    return errors
+
+
+def _value(fitted: dict, truth: dict | None, key: str, scale: float, form: str) -> str:
+    """A fitted value / ``scale`` with the truth's in brackets (a truth without ``key`` has 0)."""
+    text = format(fitted[key] / scale, form)
+    return text + (f" [{format(truth.get(key, 0.0) / scale, form)}]" if truth else "")
+
+
+def _mean_sd(summary: dict | None, key: str, with_max: bool = False) -> str:
+    if not summary:
+        return "-"
+    s = summary[key]
+    return f"{s['mean']:.2f} ± {s['sd']:.2f}" + (f" ({s['max']:.1f})" if with_max else "")
+
+
+def study_markdown(rows: list[StudyFit], settings: StudySettings, provenance: dict) -> str:
+    """The study as Markdown: the settings and ``provenance`` ({"date", "device", "command", ...}),
+    landmark errors as the seed's Table 2, fitted against truth parameters as its Table 3, the
+    recovery where the truth lies in the fitted family, and the optimisers side by side."""
+    best = best_fits(rows)
+    cases = sorted({r.case for r in rows}, key=_natural)
+    models = [m for m in ("aniso-hetero", "aniso-homo", "iso-hetero", "iso-homo") if any(k[1] == m for k in best)]
+    lines = ["| " + " | ".join(f"{k}: {v}" for k, v in provenance.items()) + " |",
+             "|" + "---|" * len(provenance), "",
+             f"Fits: {', '.join(settings.optimisers)}; budgets (forward solves) "
+             + ", ".join(f"{m} {settings.budget(m)}" for m in models)
+             + f"; fitting mesh {settings.edge_mm:g} mm; objective {settings.objective} ({settings.bins} bins); "
+             f"fibre (LPS) {list(settings.fibre)}; seed {settings.seed}. Where several optimisers fitted a "
+             "model, the tables show the one that reached the lower objective.", "",
+             "### Landmark errors (the seed's Table 2)", "",
+             "Mean ± sd (max) over the 17 landmarks, mm; * marks fits whose truth lies in the fitted family.", "",
+             "| case | landmark displacement | " + " | ".join(models) + " |",
+             "|---|---|" + "---|" * len(models)]
+    for case in cases:
+        first = next((best[(case, m)] for m in models if (case, m) in best), None)
+        cells = []
+        for m in models:
+            row = best.get((case, m))
+            cells.append("-" if row is None else _mean_sd(row.landmark_errors, "error_mm", True)
+                         + ("*" if row.in_family else ""))
+        lines.append(f"| {case} | {_mean_sd(first.landmark_errors if first else None, 'displacement_mm', True)} | "
+                     + " | ".join(cells) + " |")
+    lines += ["", "### Fitted parameters (the seed's Table 3)", "",
+              "E in kPa, eta in kPa; truth in brackets. Fat's E is the reference (10 kPa).", ""]
+    for model in [m for m in models if not m.endswith("homo")] + [m for m in models if m.endswith("homo")]:
+        lines += [f"**{model}**", "", "| case | material | E | nu | eta | NMI | solves (failed) | wall time (s) |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for case in cases:
+            row = best.get((case, model))
+            if row is None:
+                continue
+            for i, (name, fitted) in enumerate(row.materials.items()):
+                truth = row.truth.get(name) if name != HOMOGENEOUS else None
+                extra = f"{row.nmi:.4f} | {row.evaluations} ({row.failed}) | {row.seconds:.0f}" if i == 0 else " |  | "
+                eta = _value(fitted, truth, "eta", 1e3, ".4g") if model.startswith("aniso") else "-"
+                lines.append(f"| {case if i == 0 else ''} | {name} | {_value(fitted, truth, 'E', 1e3, '.4g')} | "
+                             f"{_value(fitted, truth, 'nu', 1.0, '.4f')} | {eta} | {extra} |")
+        lines.append("")
+    family = [r for r in best.values() if r.in_family and not r.model.endswith("homo")]
+    if family:
+        lines += ["### Recovery where the truth lies in the fitted family", "",
+                  "| case | model | largest E error (tissue) | largest nu error | landmark error mean (max), mm | "
+                  f"below one voxel diagonal ({VOXEL_DIAGONAL_MM:.2f} mm) |", "|---|---|---|---|---|---|"]
+        for row in sorted(family, key=lambda r: (_natural(r.case), r.model)):
+            errors = recovery(row)
+            e_tissue, e_worst = max(((t, v["E_rel"]) for t, v in errors.items() if "E_rel" in v),
+                                    key=lambda item: item[1], default=("-", float("nan")))
+            nu_worst = max((v["nu_abs"] for v in errors.values()), default=float("nan"))
+            s = row.landmark_errors["error_mm"] if row.landmark_errors else None
+            lines.append(f"| {row.case} | {row.model} | {e_worst:.1%} ({e_tissue}) | {nu_worst:.4f} | "
+                         + (f"{s['mean']:.2f} ({s['max']:.2f}) | {'yes' if s['mean'] < VOXEL_DIAGONAL_MM else 'no'} |"
+                            if s else "- | - |"))
+        lines.append("")
+    if len({r.optimiser for r in rows}) > 1:
+        lines += ["### Optimisers on the same fits", "",
+                  "| case | model | optimiser | best NMI | solves (failed) | wall time (s) | stopped |",
+                  "|---|---|---|---|---|---|---|"]
+        for row in sorted(rows, key=lambda r: (_natural(r.case), r.model, r.optimiser)):
+            if sum(1 for r in rows if (r.case, r.model) == (row.case, row.model)) > 1:
+                lines.append(f"| {row.case} | {row.model} | {row.optimiser} | {row.nmi:.4f} | {row.evaluations} "
+                             f"({row.failed}) | {row.seconds:.0f} | {row.stopped} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+MARKERS = ("<!-- study tables: begin (written by `breastbiomech study --report`) -->",
+           "<!-- study tables: end -->")
+
+
+def write_report(path: str | Path, tables: str) -> Path:
+    """Put ``tables`` between the :data:`MARKERS` of the Markdown file ``path``, keeping the prose
+    around them; a new file, or one without the markers, gets them appended."""
+    path = Path(path)
+    text = path.read_text() if path.is_file() else ""
+    begin, end = MARKERS
+    if begin in text and end in text and text.index(begin) < text.index(end):
+        before, rest = text.split(begin, 1)
+        after = rest.split(end, 1)[1]
+    else:
+        before, after = (text.rstrip() + "\n\n" if text.strip() else ""), "\n"
+    path.write_text(f"{before}{begin}\n{tables.strip()}\n{end}{after}")
+    return path
+
+
+def provenance(device: str, command: str, date: str) -> dict:
+    """The provenance row of a study report: date, device, command, and the software."""
+    import warp as wp
+
+    return {"date": date, "device": device, "command": f"`{command}`", "python": platform.python_version(),
+            "warp": wp.config.version}
+
+
+def _natural(name: str):
+    digits = "".join(ch for ch in name if ch.isdigit())
+    return (name.rstrip("0123456789"), int(digits) if digits else -1, name)
+
