@@ -158,3 +158,28 @@ def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_ca
     assert "resume it" in capsys.readouterr().err
     assert main(arguments + ["--resume", "--budget", "4"]) == 0
     assert json.loads(capsys.readouterr().out)["replayed"] == 3
+
+
+def test_one_free_parameter_is_searched_by_batched_bracketing():
+    """CMA-ES needs two dimensions (the cma package fails on one): a single free parameter (e.g.
+    nu of a homogeneous model) is bracketed, one population per batch, down to the minimum."""
+    from BreastBiomechLib.optimisation.forward import Evaluation
+    from BreastBiomechLib.optimisation.record import EvaluationLog
+    from BreastBiomechLib.optimisation.search import bracketing, cmaes
+
+    batches = []
+
+    def evaluate(positions):
+        batches.append(len(positions))
+        return [Evaluation([float(z[0])], {}, float((z[0] - 0.3137) ** 2), 1.0, 1.0, np.nan, np.nan, "completed",
+                           1, 0.0) for z in positions]
+
+    log = EvaluationLog(evaluate, budget=60)
+    cmaes(log, np.array([0.5]), seed=0, population=8)
+    assert log.best.z[0] == pytest.approx(0.3137, abs=1e-4)
+    assert batches[0] == 8 and max(batches) <= 8 and len(log.evaluations) == 60
+    converged = EvaluationLog(evaluate, budget=10_000)
+    bracketing(converged, population=5, tolerance=1e-6)
+    assert converged.best.z[0] == pytest.approx(0.3137, abs=1e-6) and len(converged.evaluations) < 10_000
+    with pytest.raises(ValueError, match="at least 3"):
+        bracketing(EvaluationLog(evaluate, budget=10), population=2)

@@ -190,6 +190,28 @@ def test_inverted_elements_are_reported_not_nan():
     assert np.all(np.isfinite(s.displacement))
 
 
+@pytest.mark.parametrize("relaxed", [False, True])
+def test_an_inverting_model_stops_alone_in_its_batch(relaxed):
+    """A plate driven through the block (110 % of its height) inverts elements of its model only:
+    the other model of the batch finishes and equals its separate solve."""
+    from BreastBiomechLib.solver import DynamicRelaxation
+
+    mesh = _block(3)
+    model = _compression_model(mesh, Material(E, NU), strain=0.2)
+    variants = [ElementMaterials.uniform(len(mesh.tets), Material(E, NU))] * 2
+    motions = [np.array([[0, 0, 0], [0, 0, -2.0]]), np.array([[0, 0, 0], [0, 0, -1.1 * SIDE]])]
+    relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.005) if relaxed else None
+    good, bad = solve_batch(model, variants, plate_displacements=motions, device="cpu", relaxation=relaxation)
+    assert bad.status == "inverted elements" and "first element" in bad.message
+    assert np.all(np.isfinite(bad.displacement))
+    assert good.ok, good.message
+    single = Model(mesh, variants[0], model.loading, formulation=model.formulation, damping=model.damping,
+                   time_step=None if relaxed else good.time_step)
+    single.loading.plates[1].displacement = motions[0][1]
+    one = solve(single, device="cpu", relaxation=relaxation)
+    np.testing.assert_allclose(good.displacement, one.displacement, atol=0.02 if relaxed else 1e-5)
+
+
 def test_undamped_free_vibration_conserves_energy():
     """T4, whose forces are the exact gradient of the stored energy (ANP's averaged pressure has no
     element-wise energy, so its internal-energy monitor is approximate)."""

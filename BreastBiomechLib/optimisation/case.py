@@ -103,7 +103,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
                       progress, population=settings.population)
 
-    best = problem.solve(result.best.z)[0]
+    best = problem.solve_alone(result.best.z)
     if not best.ok:
         raise RuntimeError(f"the best parameters no longer solve ({best.message})")
     write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)

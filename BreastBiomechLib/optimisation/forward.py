@@ -97,22 +97,32 @@ class FittingProblem:
         self.warper = ImageWarper(mesh, undeformed, measured, device=device)
         self.similarity = Similarity(measured, mask, bins=bins, device=device)
 
-    def solve(self, positions) -> list:
+    def solve(self, positions, relaxation: DynamicRelaxation | None = None) -> list:
         """The FE solutions (:class:`~BreastBiomechLib.solver.Solution`) at unit positions (B, d),
-        in one batched solve."""
+        in one batched solve (``relaxation``: other settings than the problem's)."""
         from BreastBiomechLib.solver import solve_batch
 
         positions = np.atleast_2d(np.asarray(positions, float))
         materials = [self.space.element_materials(z, self.tissue) for z in positions]
-        solutions = solve_batch(self.model, materials, device=self.device, relaxation=self.relaxation)
-        if len(solutions) > 1 and any(s.status == "inverted elements" for s in solutions):
-            # an inverted element in one model stops the whole batch (one flag for the batch):
-            # the models of a stopped batch are solved again alone, so one bad model fails alone
-            for i, solution in enumerate(solutions):
-                if solution.status == "inverted elements":
-                    solutions[i] = solve_batch(self.model, [materials[i]], device=self.device,
-                                               relaxation=self.relaxation)[0]
-        return solutions
+        return solve_batch(self.model, materials, device=self.device, relaxation=relaxation or self.relaxation)
+
+    def solve_alone(self, z, retries: int = 2):
+        """The solution at one unit position ``z``, solved by itself. A batch loads all its models
+        as slowly as its most nearly incompressible one needs, so a model that converged in a
+        batch may invert elements under the faster load it gets alone: then it is solved again
+        with a load four times slower (``retries`` times at most). Dynamic relaxation seeks the
+        static equilibrium, which the loading speed does not change once it converges."""
+        from dataclasses import replace
+
+        relaxation = self.relaxation
+        solution = self.solve(z, relaxation)[0]
+        for _ in range(retries):
+            if solution.status != "inverted elements":
+                break
+            relaxation = replace(relaxation, load_iterations=4 * relaxation.load_iterations,
+                                 max_iterations=4 * relaxation.max_iterations)
+            solution = self.solve(z, relaxation)[0]
+        return solution
 
     def predict(self, displacement_mm: np.ndarray):
         """The FE-predicted image (:class:`~BreastBiomechLib.warping.PredictedImage`, on the

@@ -56,8 +56,13 @@ def hybrid(log: EvaluationLog, start: np.ndarray, seed: int = 0, global_fraction
 def cmaes(log: EvaluationLog, start: np.ndarray, seed: int = 0, sigma: float = 0.25,
           population: int | None = None) -> None:
     """CMA-ES from ``start`` with step size ``sigma`` (unit cube), ``population`` per generation
-    (default 4 + 3 ln d), each generation one batched evaluation."""
+    (default 4 + 3 ln d), each generation one batched evaluation. CMA-ES needs two dimensions
+    or more: one free parameter is searched by :func:`bracketing` instead."""
     import cma
+
+    if len(start) == 1:
+        bracketing(log, population or 8)
+        return
 
     options = {"bounds": [0.0, 1.0], "seed": 1000 + seed, "verbose": -9, "maxfevals": 10**9,
                "tolfun": 1e-9, "tolx": 1e-6}
@@ -72,5 +77,29 @@ def cmaes(log: EvaluationLog, start: np.ndarray, seed: int = 0, sigma: float = 0
             if len(values) < len(candidates):
                 return
             strategy.tell(candidates, values.tolist())
+    except BudgetExhausted:
+        return
+
+
+def bracketing(log: EvaluationLog, population: int = 8, tolerance: float = 1e-6) -> None:
+    """A batched search of one parameter: ``population`` points spread evenly over the unit
+    interval in one batch, then the same number inside the bracket around the best, shrinking
+    the bracket ``population``/2-fold per batch until it is narrower than ``tolerance``."""
+    if population < 3:
+        raise ValueError("the bracketing search needs a population of at least 3")
+    log.phase = "bracket"
+    low, high = 0.0, 1.0
+    points = np.linspace(low, high, population)
+    known: dict[float, float] = {}
+    try:
+        while high - low > tolerance:
+            fresh = [z for z in points if z not in known]
+            for z, value in zip(fresh, log(np.array(fresh)[:, None])):
+                known[z] = float(value)
+            ordered = sorted(known)
+            best = min(ordered, key=known.get)
+            i = ordered.index(best)
+            low, high = ordered[max(i - 1, 0)], ordered[min(i + 1, len(ordered) - 1)]
+            points = np.linspace(low, high, population + 2)[1:-1]
     except BudgetExhausted:
         return

@@ -7,7 +7,12 @@ one continues)::
 
     <case>/fitting_mesh.vtu         the case's fitting mesh, made once and shared by its fits
     <case>/<model>-<optimiser>/     one fit (:func:`BreastBiomechLib.optimisation.case.fit_compressed_case`)
-    study.json                      every finished fit's row, rewritten after each fit
+                   study_row.json   its row of the tables, written when it ends
+    study.json                      the settings and every fit's row, rewritten after each fit
+
+A fit whose row shows its budget spent (or converged) is not run again, so several processes
+can fit different cases into one folder at once (e.g. one per case on one GPU) and a last run
+over all cases writes the report.
 
 Units: landmark errors and displacements in mm (LPS), moduli in Pa.
 """
@@ -72,7 +77,8 @@ class StudySettings:
 class StudyFit:
     """One fit of the study: ``case`` (folder name), ``model``, ``optimiser``; the best
     ``nmi`` and ``objective``; ``evaluations`` (forward solves), ``failed`` solves, ``seconds``
-    (wall time of the run that finished it; 0 when replayed), ``stopped``; the
+    (wall time of the runs that made it; a run killed before the fit ended is not counted),
+    ``stopped``; the
     ``landmark_errors`` summary (mm); the fitted ``materials`` and the case's ``truth``
     materials ({name: {"E", "nu", "eta"} in Pa}); ``in_family``: whether the truth lies in the
     fitted model family."""
@@ -138,7 +144,6 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
         raise ValueError(f"the case folders' names must differ (they name the result folders): {names}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rows = {(r.case, r.model, r.optimiser): r for r in read_study(out)}
     for case in cases:
         truth = read_compressed(case).truth()["truth"]["materials"]
         mesh_file = out / case.name / "fitting_mesh.vtu"
@@ -152,6 +157,9 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
             for optimiser in settings.optimisers:
                 label = f"{case.name} {model} {optimiser}"
                 folder = out / case.name / f"{model}-{optimiser}"
+                done = _read_row(folder)
+                if done is not None and (done.evaluations >= settings.budget(model) or done.stopped == "converged"):
+                    continue
                 report = None
                 if progress is not None:
                     def report(done, budget, best, phase, label=label):
@@ -160,30 +168,36 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
                                           resume=(folder / "evaluations.jsonl").exists(), device=device,
                                           progress=report)
                 summary = fit.result.summary()
-                rows[(case.name, model, optimiser)] = StudyFit(
-                    case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
-                    summary["evaluations"], summary["failed"], summary["seconds"], summary["stopped"],
-                    fit.landmark_errors, fit.result.materials, truth, truth_in_family(truth, model, settings.fibre))
-                _write_study(out, settings, rows.values())
+                earlier = done.seconds if done is not None else 0.0
+                row = StudyFit(case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
+                               summary["evaluations"], summary["failed"], earlier + summary["seconds"],
+                               summary["stopped"], fit.landmark_errors, fit.result.materials, truth,
+                               truth_in_family(truth, model, settings.fibre))
+                _write_json(folder / ROW_FILE, row.to_dict())
+                _write_json(out / "study.json", {"settings": asdict(settings),
+                                                 "fits": [r.to_dict() for r in read_study(out)]})
                 if fit.result.stopped == "cancelled":
-                    return list(rows.values())
-    return list(rows.values())
+                    return read_study(out)
+    return read_study(out)
 
 
-def _write_study(out: Path, settings: StudySettings, rows) -> None:
-    document = {"settings": asdict(settings), "fits": [r.to_dict() for r in rows]}
-    path = out / "study.json"
+ROW_FILE = "study_row.json"
+
+
+def _write_json(path: Path, document: dict) -> None:
     temporary = path.with_suffix(".json.tmp")
     temporary.write_text(json.dumps(document, indent=2) + "\n")
     temporary.replace(path)
 
 
+def _read_row(folder: Path) -> StudyFit | None:
+    path = folder / ROW_FILE
+    return StudyFit(**json.loads(path.read_text())) if path.is_file() else None
+
+
 def read_study(out_dir: str | Path) -> list[StudyFit]:
-    """The rows of a study folder's study.json (none when there is none)."""
-    path = Path(out_dir) / "study.json"
-    if not path.is_file():
-        return []
-    return [StudyFit(**row) for row in json.loads(path.read_text())["fits"]]
+    """Every fit's row in a study folder (none when there is none)."""
+    return [StudyFit(**json.loads(p.read_text())) for p in sorted(Path(out_dir).glob(f"*/*/{ROW_FILE}"))]
 
 
 def best_fits(rows: list[StudyFit]) -> dict[tuple[str, str], StudyFit]:

@@ -96,13 +96,14 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
     with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
     (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set.
-    Elements with J <= 0 are counted and the first one and its step recorded in ``inverted`` =
-    [count, element, step, frozen]; once frozen the whole step loop stands still, keeping the last
-    configuration for inspection instead of producing NaN."""
+    Elements with J <= 0 are counted per model, the first one and its step recorded in
+    ``inverted[4b:4b+4]`` = [count, element, step, frozen] of model b; once frozen that model
+    stands still (the others of the batch go on), keeping its last configuration for
+    inspection instead of producing NaN."""
     tid = wp.tid()
-    if inverted[3] != 0:
-        return
     b = tid // n_elements
+    if inverted[4 * b + 3] != 0:
+        return
     e = tid - b * n_elements
     base = b * n_nodes
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
@@ -110,9 +111,9 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     F = deformation_gradient(u, base, n0, n1, n2, n3, d0, d1, d2, d3)
     J = wp.determinant(F)
     if J <= 0.0:
-        if wp.atomic_add(inverted, 0, 1) == 0:
-            inverted[1] = e
-            inverted[2] = step[0]
+        if wp.atomic_add(inverted, 4 * b, 1) == 0:
+            inverted[4 * b + 1] = e
+            inverted[4 * b + 2] = step[0]
         return
     if use_anp != 0:
         s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
@@ -121,9 +122,9 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                      + pressure_volume[sb + s2] / slot_volume[s2] + pressure_volume[sb + s3] / slot_volume[s3])
         Jm = pm / kappa[tid] + 1.0
         if Jm <= 0.0:
-            if wp.atomic_add(inverted, 0, 1) == 0:
-                inverted[1] = e
-                inverted[2] = step[0]
+            if wp.atomic_add(inverted, 4 * b, 1) == 0:
+                inverted[4 * b + 1] = e
+                inverted[4 * b + 2] = step[0]
             return
         F = wp.pow(Jm / J, 1.0 / 3.0) * F
     S_iso = isochoric_stress(F, mu[tid], eta[tid], fibre[tid])
@@ -167,7 +168,7 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
     updated in place with ``u``. ``body_force`` is the full-load external force per node (N,
     gravity on the physical mass; ``mass`` may be fictitious under mass scaling). ``damping[b]``
     is model b's coefficient a (1/s), adapted between steps by dynamic relaxation; a model with
-    ``active[b]`` = 0 (converged) stands still. Also clears what the next kernels of the step
+    ``active[b]`` = 0 (converged) or an inverted element stands still. Also clears what the next kernels of the step
     accumulate into (fewer graph nodes than separate memsets): the ANP pressures, already used,
     and the plate forces, which the contact kernels sum next."""
     i = wp.tid()
@@ -175,9 +176,7 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
         pressure_volume[j] = 0.0
     if i < plate_force.shape[0]:
         plate_force[i] = wp.vec3(0.0)
-    if inverted[0] != 0:
-        return
-    if active[i // n_nodes] == 0:
+    if active[i // n_nodes] == 0 or inverted[4 * (i // n_nodes)] != 0:
         du[i] = wp.vec3(0.0)
         return
     t = float(step[0] + 1) * dt
@@ -204,9 +203,9 @@ def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), 
     """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m); their
     increment becomes the change from the previous step and their compensation zero."""
     tid = wp.tid()
-    if inverted[0] != 0:
-        return
     b = tid // n_constrained
+    if inverted[4 * b] != 0:
+        return
     k = tid - b * n_constrained
     i = b * n_nodes + nodes[k]
     m = mask[k]
@@ -234,9 +233,9 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     internal forces of the nodes in contact along their contact normals: the force the plate
     applies to the tissue (N). One launch per plate ``p``."""
     tid = wp.tid()
-    if inverted[0] != 0:
-        return
     b = tid // n_slaves
+    if inverted[4 * b] != 0:
+        return
     k = tid - b * n_slaves
     node = slaves[k]
     i = b * n_nodes + node
@@ -266,15 +265,16 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
 
 @wp.kernel
 def finish_step(forces: wp.array(dtype=wp.vec3), step: wp.array(dtype=int), inverted: wp.array(dtype=int)):
-    """End of a step: clear the internal forces for the next one, and advance the step counter
-    (or freeze the loop once an inverted element was found)."""
+    """End of a step: clear the internal forces for the next one, freeze each model in which an
+    inverted element was found (``inverted``: 4 flags per model, see :func:`element_forces`),
+    and advance the step counter."""
     i = wp.tid()
     forces[i] = wp.vec3(0.0)
+    if i < inverted.shape[0] // 4:
+        if inverted[4 * i] != 0:
+            inverted[4 * i + 3] = 1
     if i == 0:
-        if inverted[0] != 0:
-            inverted[3] = 1
-        else:
-            step[0] = step[0] + 1
+        step[0] = step[0] + 1
 
 
 @wp.kernel

@@ -68,4 +68,5 @@ class StableStepMonitor:
         quotient = self._vkv.numpy().astype(float) / np.maximum(self._vmv.numpy().astype(float), 1e-300)
         self.omega_squared = quotient
         with np.errstate(divide="ignore"):
-            return np.where(self.omega_squared > 0, 2.0 / np.sqrt(self.omega_squared), np.inf)
+            positive = self.omega_squared > 0
+        return np.where(positive, 2.0 / np.sqrt(np.where(positive, self.omega_squared, 1.0)), np.inf)

@@ -267,7 +267,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     Every ``sample_every`` steps the energies, plate forces and the stable step are sampled and
     ``progress(fraction done)`` is called; returning False cancels the solve (status "cancelled",
     the displacement returned is the last configuration). Dynamic relaxation finds the
-    equilibrium, so visco materials enter it fully relaxed.
+    equilibrium, so visco materials enter it fully relaxed. A variant in which an element
+    inverts stops there alone (status "inverted elements", its displacement that
+    configuration); the others go on.
 
     ``steady_state_mm`` (physical time only) stops the settling phase early once every model is
     at rest: after the end of loading, when the estimated distance still to travel, max|du| r /
@@ -375,7 +377,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         forces = wp.zeros(B * N, dtype=wp.vec3)
         pressure = wp.zeros(B * S, dtype=float)
         step = wp.zeros(1, dtype=int)
-        inverted = wp.zeros(4, dtype=int)
+        inverted = wp.zeros(4 * B, dtype=int)  # per model: count, first element, its step, frozen
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
         # gravity acts on the physical masses, also where dynamic relaxation scales them
         d_body_force = arr(weight[:, None] * model.loading.gravity, wp.vec3)
@@ -472,7 +474,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         settled_checks = 0
         distance_to_rest = DistanceToRest(u, B)
         pressure_tmp = wp.zeros(B * S, dtype=float)
-        no_flags = wp.zeros(4, dtype=int)
+        no_flags = wp.zeros(4 * B, dtype=int)
+        failed: dict[int, str] = {}  # models stopped by an inverted element: their message
 
         def probe_force(state, out):
             """Internal forces for diagnostics: no visco update, inverted elements not recorded."""
@@ -532,20 +535,24 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             history["kinetic"].append(ke)
             history["internal"].append(ie)
             history["plate_forces"].append(plate_force.numpy()[: B * P].reshape(B, P, 3).astype(float))
-            flags = inverted.numpy()
-            if flags[0] > 0:
-                status = "inverted elements"
-                message = (f"{flags[0]} element(s) inverted (J <= 0) at step {flags[2]} (t = {flags[2] * dt:.4g} s), "
-                           f"first element {flags[1]}; the displacement returned is that configuration. Reduce "
-                           "the load, refine the mesh there or check the constraints")
+            flags = inverted.numpy().reshape(B, 4)
+            for b in np.flatnonzero((flags[:, 0] > 0) & (active == 1)):
+                count, element, at = flags[b, :3]
+                failed[int(b)] = (f"{count} element(s) inverted (J <= 0) at step {at} (t = {at * dt:.4g} s), first "
+                                  f"element {element}; the displacement returned is that configuration. Reduce the "
+                                  "load, refine the mesh there or check the constraints")
+                active[b] = 0  # frozen by the kernels; the other models of the batch go on
+            if len(failed) == B:
                 break
-            if not np.all(np.isfinite(ke)) or not np.all(np.isfinite(ie)):
+            alive = np.array([b not in failed for b in range(B)])
+            if not np.all(np.isfinite(ke[alive])) or not np.all(np.isfinite(ie[alive])):
                 status, message = "unstable", (f"the solution diverged by step {done}; reduce the time step "
                                                f"(now {dt:.3g} s) or the safety factor")
                 break
             if relaxation is not None:  # the relaxation update below needs the same forces
                 probe_force(u, f_curr)
             stable_step = monitor.iterate(u, base_force=f_curr if relaxation is not None else None)
+            stable_step[~alive] = np.inf  # a frozen model's step no longer matters
             history["stable_time_step"].append(stable_step)
             if scaled:
                 stable_step = keep_step_stable(stable_step)
@@ -556,7 +563,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 status, message = "cancelled", f"cancelled after {done} steps; the displacement returned is that state"
                 break
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
-                ke_ie_end_of_loading = float(np.max(ke / np.maximum(ie, 1e-30)))
+                ke_ie_end_of_loading = float(np.max((ke / np.maximum(ie, 1e-30))[alive]))
             if steady_state_mm is not None and done * dt >= total - 0.5 * dt:
                 remaining = distance_to_rest.update(u)
                 if remaining is not None:
@@ -604,7 +611,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         ke_ie_end_of_loading = float("nan")  # fictitious masses: the energy criterion does not apply
         rescaled = f"; fictitious masses raised {mass_rescales} time(s) as elements stiffened" if mass_rescales else ""
         for b in range(B):
-            if status != "completed":
+            if status != "completed" or b in failed:
                 continue
             if active[b]:
                 statuses[b] = "not converged"
@@ -619,6 +626,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         statuses = ["energy criterion exceeded"] * B
         messages = [(f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
                    f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")] * B
+    for b, text in failed.items():  # whatever else happened, these models stopped on an inverted element
+        statuses[b], messages[b] = "inverted elements", text
     if mass_scaling:
         ratio = mass.reshape(B, N).sum(axis=1) / weight.reshape(B, N).sum(axis=1)
         messages = [f"{m}; mass scaling: total mass x{r:.3g}, time step {dt:.3g} s" for m, r in zip(messages, ratio)]
@@ -630,7 +639,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 "stable_time_step": np.array([h[b] for h in history["stable_time_step"]]),
                 "plate_forces": np.array([h[b] for h in history["plate_forces"]])}
         plate_forces = hist["plate_forces"][-1] if len(hist["time"]) else np.zeros((P, 3))
-        if relaxation is not None and not active[b]:
+        if relaxation is not None and not active[b] and b not in failed:
             plate_forces = converged_forces[b]  # at rest on the plates the contact kernel sees no force
         solutions.append(Solution(
             displacement=displacement[b], plate_forces=plate_forces,
