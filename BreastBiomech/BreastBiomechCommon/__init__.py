@@ -99,7 +99,7 @@ class ParameterNodeLogic:
 
 # Python packages the library needs that a Slicer installation may lack: import name -> pip name
 DEPENDENCIES = {"scipy": "scipy", "SimpleITK": "SimpleITK", "matplotlib": "matplotlib",
-                "tetgen": "tetgen", "warp": "warp-lang"}
+                "tetgen": "tetgen", "warp": "warp-lang", "cma": "cma"}
 
 
 def ensure_library_importable() -> None:

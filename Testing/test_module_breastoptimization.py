@@ -1,0 +1,124 @@
+"""The BreastOptimization module's Logic against a real MRML scene (slicer-core, headless, CPU).
+
+Through the nodes a user works with: a compressed case loaded from its folder (volumes,
+landmarks, plates as markups planes whose RAS positions must give back the LPS plates of the
+case), a fitting mesh model node, a few forward solves; pause and resume through the progress
+callback, and the results as nodes checked against the library's own figures."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("slicer")
+import BreastOptimization  # noqa: E402  (BreastBiomech/ is on the test path)
+from BreastBiomechLib.io.images import read_image  # noqa: E402
+from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels  # noqa: E402
+from BreastBiomechLib.mrml import image_from_volume_node, tetmesh_to_model_node  # noqa: E402
+
+pytestmark = [pytest.mark.mrml, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def fitting_mesh(compressed_case_dir):
+    """A coarse fitting mesh of the compressed test phantom (10 mm, tissues by voxel majority)."""
+    return mesh_labels(read_image(compressed_case_dir / "labels.nrrd"),
+                       MeshSettings(edge_mm=10.0, refine_interfaces=False)).mesh
+
+
+def _set_up(scene, case_dir, mesh, out_dir, budget=3):
+    logic = BreastOptimization.BreastOptimizationLogic(scene)
+    p = logic.getParameterNode()
+    logic.loadCompressedCase(p, str(case_dir))
+    p.set_reference("inputMesh", tetmesh_to_model_node(mesh, scene, "Fitting mesh"))
+    p["model"], p["freeNu"], p["budget"], p["device"] = "iso-hetero", False, budget, "cpu"
+    p["toleranceMm"], p["outputDirectory"] = 0.05, str(out_dir)
+    return logic, p
+
+
+def test_a_loaded_case_gives_back_its_plates_and_images(scene, compressed_case_dir, fitting_mesh):
+    logic, p = _set_up(scene, compressed_case_dir, fitting_mesh, "unused")
+    plates = json.loads((compressed_case_dir / "compressed" / "plates.json").read_text())["plates"]
+    back = logic.finalPlates(p, fitting_mesh)
+    assert [b["name"] for b in back] == [plate["name"] for plate in plates]
+    for b, plate in zip(back, plates):
+        normal = np.asarray(plate["normal"]) / np.linalg.norm(plate["normal"])
+        np.testing.assert_allclose(b["normal"], normal, atol=1e-9)  # towards the tissue, as in the file
+        assert abs((np.asarray(b["point"]) - plate["point"]) @ normal) < 1e-6  # the same plane (LPS)
+        assert b["edge"] == plate["edge"]
+    measured = image_from_volume_node(p.reference("measuredVolume"))
+    expected = read_image(compressed_case_dir / "compressed" / "mr.nrrd")
+    np.testing.assert_allclose(measured.GetOrigin(), expected.GetOrigin(), atol=1e-6)
+    assert p.reference("referenceLandmarks").GetNumberOfControlPoints() == 17
+    fibre = logic.fibre(p)  # RAS (0, 0, 1) is LPS (0, 0, 1); R is -L
+    assert fibre == pytest.approx((0.0, 0.0, 1.0))
+    p["fibreR"], p["fibreS"] = 1.0, 0.0
+    assert logic.fibre(p) == pytest.approx((-1.0, 0.0, 0.0))
+
+
+def test_refusals_name_what_is_missing(scene, compressed_case_dir, fitting_mesh, tmp_path):
+    logic = BreastOptimization.BreastOptimizationLogic(scene)
+    p = logic.getParameterNode()
+    with pytest.raises(ValueError, match="output folder"):
+        logic.run(p)
+    p["outputDirectory"] = str(tmp_path)
+    with pytest.raises(ValueError, match="fitting mesh"):
+        logic.run(p)
+    with pytest.raises(FileNotFoundError, match="not a compressed case"):
+        logic.loadCompressedCase(p, str(tmp_path))
+    logic, p = _set_up(scene, compressed_case_dir, fitting_mesh, tmp_path)
+    p["freeE"] = False
+    with pytest.raises(ValueError, match="no parameter is free"):
+        logic.run(p)
+
+
+def test_pause_resume_and_results(scene, compressed_case_dir, fitting_mesh, tmp_path):
+    """A run paused after its first batch keeps its evaluations and makes no result nodes;
+    resumed, it replays them and finishes the budget; the result nodes agree with each other and
+    with the optimisation's result."""
+    logic, p = _set_up(scene, compressed_case_dir, fitting_mesh, tmp_path, budget=8)
+    paused = logic.run(p, progress=lambda done, budget, best, phase: False, showBest=False)
+    first = paused["result"]
+    assert first.stopped == "cancelled" and "Resume" in paused["summary"]
+    assert 0 < len(first.evaluations) < 8 and p.reference("predictedVolume") is None
+    lines = (tmp_path / "evaluations.jsonl").read_text().splitlines()
+    assert len(lines) == len(first.evaluations)
+
+    outcome = logic.run(p, resume=True)
+    result = outcome["result"]
+    assert len(result.evaluations) == 8 and result.replayed == len(first.evaluations)
+    assert [e.z for e in result.evaluations[:len(lines)]] == [json.loads(line)["z"] for line in lines]
+
+    convergence = p.reference("convergenceTable").GetTable()
+    assert convergence.GetValueByName(convergence.GetNumberOfRows() - 1, "forward solves").ToDouble() == 8
+    assert convergence.GetValueByName(convergence.GetNumberOfRows() - 1,
+                                      "best objective").ToDouble() == pytest.approx(result.best.objective)
+    assert p.reference("convergenceChart").GetNumberOfPlotSeriesNodes() == 1
+
+    predicted = image_from_volume_node(p.reference("predictedVolume"))
+    measured = image_from_volume_node(p.reference("measuredVolume"))
+    assert predicted.GetSize() == measured.GetSize()
+    np.testing.assert_allclose(predicted.GetOrigin(), measured.GetOrigin(), atol=1e-6)
+
+    parameters = p.reference("parametersTable").GetTable()
+    names = [parameters.GetValueByName(r, "material").ToString() for r in range(parameters.GetNumberOfRows())]
+    assert names == list(result.materials)
+    glandular = names.index("glandular")
+    assert parameters.GetValueByName(glandular, "E (Pa)").ToDouble() == pytest.approx(
+        result.materials["glandular"]["E"])
+
+    errors = p.reference("landmarkErrorsTable").GetTable()
+    assert errors.GetNumberOfRows() == 17
+    predicted_points, measured_points = p.reference("predictedLandmarks"), p.reference("measuredLandmarks")
+    lines_node = p.reference("errorLines").GetPolyData()
+    assert lines_node.GetNumberOfCells() == 17
+    for row in range(17):
+        label = errors.GetValueByName(row, "landmark").ToString()
+        a = predicted_points.GetNthControlPointPosition(predicted_points.GetControlPointIndexByLabel(label))
+        b = measured_points.GetNthControlPointPosition(measured_points.GetControlPointIndexByLabel(label))
+        error = errors.GetValueByName(row, "error (mm)").ToDouble()
+        assert error == pytest.approx(np.linalg.norm(np.subtract(a, b)), abs=1e-6)  # RAS distance = LPS distance
+        assert lines_node.GetCellData().GetArray("error_mm").GetValue(row) == pytest.approx(error)
+    assert "landmark error" in outcome["summary"]
