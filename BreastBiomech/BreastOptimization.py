@@ -207,7 +207,7 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         try:
             with slicer.util.tryWithErrorDisplay("Optimisation failed.", waitCursor=True):
                 outcome = self.logic.run(self._parameterNode, progress=report, resume=resume,
-                                         showBest=self._stopRequest != "pause")
+                                         showBest=lambda: self._stopRequest != "pause")
                 self.ui.statusLabel.text = outcome["summary"]
                 if outcome["result"].stopped != "cancelled" or self._stopRequest == "cancel":
                     self.logic.showComparison(self._parameterNode)
@@ -370,8 +370,9 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         table (best objective against forward solves) and its chart grow after every batch.
         ``progress(done, budget, best objective, phase)`` returning False stops the run: a later
         ``run(resume=True)`` continues it (the evaluations made are replayed, not solved again).
-        A run that ends, or stops with ``showBest``, puts the results at the best parameters into
-        the scene (:meth:`writeResults`). Returns {"result", "summary"}."""
+        A run that ends, or stops with ``showBest`` (a bool, or a function asked when it stops:
+        pause or cancel), puts the results at the best parameters into the scene
+        (:meth:`writeResults`). Returns {"result", "summary"}."""
         from BreastBiomechLib.optimisation import optimise
 
         p = parameterNode
@@ -391,7 +392,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         summary = (f"{result.stopped}: best objective {result.best.objective:.5f} (NMI {result.best.nmi:.4f}) after "
                    f"{len(result.evaluations)} solves ({result.replayed} replayed, "
                    f"{sum(e.status != 'completed' for e in result.evaluations)} failed), {result.seconds:.0f} s")
-        if result.stopped == "cancelled" and not showBest:
+        if result.stopped == "cancelled" and not (showBest() if callable(showBest) else showBest):
             summary += "; paused: Resume continues"
         else:
             summary += "\n" + self.writeResults(p, problem, result)
