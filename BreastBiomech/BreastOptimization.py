@@ -30,6 +30,7 @@ from BreastBiomechCommon import (
     ScriptedLoadableModuleWidget,
     ensure_dependencies,
     ensure_library_importable,
+    resolve_device,
     resource_path,
 )
 from slicer.util import VTKObservationMixin
@@ -354,14 +355,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
     @staticmethod
     def resolveDevice(choice: str) -> str:
         """"cuda" or "cpu" for "auto" (the GPU when present), "cuda" or "cpu"."""
-        import warp as wp
-
-        if choice not in ("auto", "cuda", "cpu"):
-            raise ValueError(f"device must be auto, cuda or cpu, not {choice!r}")
-        wp.init()
-        if choice == "cuda" and wp.get_cuda_device_count() == 0:
-            raise ValueError("no CUDA GPU was found; choose the device 'auto' or 'cpu'")
-        return ("cuda" if wp.get_cuda_device_count() else "cpu") if choice == "auto" else choice
+        return resolve_device(choice)
 
     # -- run -------------------------------------------------------------------------------------
 

@@ -25,6 +25,7 @@ from BreastBiomechCommon import (
     ScriptedLoadableModuleWidget,
     ensure_dependencies,
     ensure_library_importable,
+    resolve_device,
     resource_path,
 )
 from slicer.util import VTKObservationMixin
@@ -449,15 +450,10 @@ class BreastSimulationLogic(ParameterNodeLogic):
         wp.init()
         return wp.get_cuda_device_count() > 0
 
-    def resolveDevice(self, choice: str) -> str:
+    @staticmethod
+    def resolveDevice(choice: str) -> str:
         """"cuda" or "cpu" for the choice "auto" (the GPU when present), "cuda" or "cpu"."""
-        if choice not in ("auto", "cuda", "cpu"):
-            raise ValueError(f"device must be auto, cuda or cpu, not {choice!r}")
-        if choice == "auto":
-            return "cuda" if self.cudaAvailable() else "cpu"
-        if choice == "cuda" and not self.cudaAvailable():
-            raise ValueError("no CUDA GPU was found; choose the device 'auto' or 'cpu'")
-        return choice
+        return resolve_device(choice)
 
     def deviceDescription(self, choice: str = "auto") -> str:
         """What the solver will run on, for the panel, e.g. "GPU: NVIDIA H100 80GB HBM3"."""

@@ -164,11 +164,7 @@ def cmd_demo(args) -> int:
 
     step(f"5/6 material fit (iso-hetero, E per tissue, CMA-ES, {budget} forward solves; the first is the "
          "simulation with the starting materials)")
-    first = {}
-
     def progress(done, total, best, phase):
-        if not first:
-            first["objective"] = best
         print(f"\r    {done}/{total} solves, best NMI {-best:.4f}", end="", flush=True)
 
     settings = FitSettings(model="iso-hetero", free=("E",), edge_mm=fit_mm, optimiser="cmaes", budget=budget,

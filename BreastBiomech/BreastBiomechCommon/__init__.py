@@ -102,6 +102,20 @@ DEPENDENCIES = {"scipy": "scipy", "SimpleITK": "SimpleITK", "matplotlib": "matpl
                 "tetgen": "tetgen", "warp": "warp-lang", "cma": "cma"}
 
 
+def resolve_device(choice: str) -> str:
+    """The warp device for a panel's choice: "cuda" or "cpu" for "auto" (the GPU when present),
+    "cuda" (refused without a GPU) or "cpu"."""
+    import warp as wp
+
+    if choice not in ("auto", "cuda", "cpu"):
+        raise ValueError(f"device must be auto, cuda or cpu, not {choice!r}")
+    wp.init()
+    cuda = wp.get_cuda_device_count() > 0
+    if choice == "cuda" and not cuda:
+        raise ValueError("no CUDA GPU was found; choose the device 'auto' or 'cpu'")
+    return ("cuda" if cuda else "cpu") if choice == "auto" else choice
+
+
 def ensure_library_importable() -> None:
     """Make ``import BreastBiomechLib`` work when the modules run from a source checkout."""
     if importlib.util.find_spec("BreastBiomechLib") is None and os.path.isdir(
