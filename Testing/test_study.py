@@ -13,6 +13,7 @@ from BreastBiomechLib.optimisation.study import (
     StudyFit,
     StudySettings,
     best_fits,
+    device_name,
     recovery,
     study_markdown,
     truth_in_family,
@@ -81,6 +82,10 @@ def test_markdown_tables():
     assert "| case2 | iso-hetero | 0.0% (glandular) | 0.0010 | 3.50 (4.50) | no |" in text  # 3.5 > 2.87 mm
     assert "### Optimisers on the same fits" in text
     assert "| case10 | iso-hetero | hybrid | 1.5000 | 40 (1) | 12 | budget |" in text
+    assert "Solved on" not in text  # rows from before devices were recorded claim none
+    rows[0].device = rows[1].device = "GPU A"
+    assert "Solved on: GPU A (2 fits); device not recorded (2 fits). " in study_markdown(
+        rows, StudySettings(models=("iso-hetero", "iso-homo")), {"date": "2026-11-23"})
 
 
 def test_report_keeps_the_prose_around_the_tables(tmp_path):
@@ -119,12 +124,13 @@ def test_the_command_fits_resumes_and_reports(compressed_case_dir, tmp_path, cap
         ("case", "iso-homo", "cmaes", 3)]
     assert rows[0]["in_family"] is False and 1.0 < rows[0]["nmi"] < 2.0
     assert rows[0]["landmark_errors"]["error_mm"]["mean"] > 0
+    assert rows[0]["device"] == device_name("cpu")
     assert set(rows[0]["truth"]) >= {"fat", "glandular", "muscle"}
     assert (out / "case" / "fitting_mesh.vtu").is_file()
     assert (out / "case" / "iso-homo-cmaes" / "predicted.nrrd").is_file()
     text = report.read_text()
     assert text.startswith("# Validation\n\nProse that stays.\n") and MARKERS[0] in text
-    assert "breastbiomech study" in text and "| case |" in text
+    assert "breastbiomech study" in text and "| case |" in text and f"Solved on: {device_name('cpu')} (1 fit)" in text
     capsys.readouterr()
 
     first = (out / "case" / "iso-homo-cmaes" / "evaluations.jsonl").read_text()

@@ -81,7 +81,8 @@ class StudyFit:
     ``stopped``; the
     ``landmark_errors`` summary (mm); the fitted ``materials`` and the case's ``truth``
     materials ({name: {"E", "nu", "eta"} in Pa}); ``in_family``: whether the truth lies in the
-    fitted model family."""
+    fitted model family; ``device``: the name of the warp device that solved it (empty in rows
+    written before devices were recorded)."""
 
     case: str
     model: str
@@ -96,6 +97,7 @@ class StudyFit:
     materials: dict
     truth: dict
     in_family: bool
+    device: str = ""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -172,7 +174,7 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
                 row = StudyFit(case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
                                summary["evaluations"], summary["failed"], earlier + summary["seconds"],
                                summary["stopped"], fit.landmark_errors, fit.result.materials, truth,
-                               truth_in_family(truth, model, settings.fibre))
+                               truth_in_family(truth, model, settings.fibre), device_name(device))
                 _write_json(folder / ROW_FILE, row.to_dict())
                 _write_json(out / "study.json", {"settings": asdict(settings),
                                                  "fits": [r.to_dict() for r in read_study(out)]})
@@ -182,6 +184,14 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
 
 
 ROW_FILE = "study_row.json"
+
+
+def device_name(device=None) -> str:
+    """The name of warp's ``device`` (default: warp's default device), e.g. "NVIDIA H100 80GB HBM3"."""
+    import warp as wp
+
+    wp.init()
+    return (wp.get_device(device) if device is not None else wp.get_device()).name
 
 
 def _write_json(path: Path, document: dict) -> None:
@@ -240,8 +250,19 @@ def _mean_sd(summary: dict | None, key: str, with_max: bool = False) -> str:
     return f"{s['mean']:.2f} ± {s['sd']:.2f}" + (f" ({s['max']:.1f})" if with_max else "")
 
 
+def _devices(rows: list[StudyFit]) -> str:
+    """Which devices solved the fits ("Solved on: NAME (n fits); ..."), or nothing when no row says."""
+    counts: dict[str, int] = {}
+    for row in rows:
+        counts[row.device or "device not recorded"] = counts.get(row.device or "device not recorded", 0) + 1
+    if set(counts) == {"device not recorded"}:
+        return ""
+    return "Solved on: " + "; ".join(f"{name} ({n} fit{'s' * (n != 1)})" for name, n in counts.items()) + ". "
+
+
 def study_markdown(rows: list[StudyFit], settings: StudySettings, provenance: dict) -> str:
-    """The study as Markdown: the settings and ``provenance`` ({"date", "device", "command", ...}),
+    """The study as Markdown: the settings and ``provenance`` ({"date", "command", ...}), the devices
+    that solved the fits,
     landmark errors as the seed's Table 2, fitted against truth parameters as its Table 3, the
     recovery where the truth lies in the fitted family, and the optimisers side by side."""
     best = best_fits(rows)
@@ -252,8 +273,8 @@ def study_markdown(rows: list[StudyFit], settings: StudySettings, provenance: di
              f"Fits: {', '.join(settings.optimisers)}; budgets (forward solves) "
              + ", ".join(f"{m} {settings.budget(m)}" for m in models)
              + f"; fitting mesh {settings.edge_mm:g} mm; objective {settings.objective} ({settings.bins} bins); "
-             f"fibre (LPS) {list(settings.fibre)}; seed {settings.seed}. Where several optimisers fitted a "
-             "model, the tables show the one that reached the lower objective.", "",
+             f"fibre (LPS) {list(settings.fibre)}; seed {settings.seed}. " + _devices(rows)
+             + "Where several optimisers fitted a model, the tables show the one that reached the lower objective.", "",
              "### Landmark errors (the seed's Table 2)", "",
              "Mean ± sd (max) over the 17 landmarks, mm; * marks fits whose truth lies in the fitted family.", "",
              "| case | landmark displacement | " + " | ".join(models) + " |",
@@ -330,10 +351,11 @@ def write_report(path: str | Path, tables: str) -> Path:
 
 
 def provenance(device: str, command: str, date: str) -> dict:
-    """The provenance row of a study report: date, device, command, and the software."""
+    """The provenance row of a study report: date, the device the report was written on (each
+    fit's own device is in its row), command, and the software."""
     import warp as wp
 
-    return {"date": date, "device": device, "command": f"`{command}`", "python": platform.python_version(),
+    return {"date": date, "report written on": device, "command": f"`{command}`", "python": platform.python_version(),
             "warp": wp.config.version}
 
 
