@@ -16,6 +16,7 @@ from pathlib import Path
 from BreastBiomechLib import __version__
 
 MODEL_CHOICES = ("iso-homo", "iso-hetero", "aniso-homo", "aniso-hetero")  # optimisation.space.MODELS
+OBJECTIVE_CHOICES = ("nmi", "landmarks", "surface", "nmi+landmarks", "nmi+surface")  # optimisation.forward.OBJECTIVES
 
 
 def _phantom_parameters(args):
@@ -532,6 +533,10 @@ def cmd_optimise(args) -> int:
     print(f"  best objective {best.objective:.5f}: NMI {best.nmi:.4f}, NCC {best.ncc:.4f}")
     for name, values in fit.result.materials.items():
         print(f"  {name:10s} E {values['E']:10.0f} Pa  nu {values['nu']:.4f}  eta {values['eta']:10.1f} Pa")
+    if "fibre" in fit.result.geometry:
+        print("  fibre direction (LPS) " + " ".join(f"{v:.3f}" for v in fit.result.geometry["fibre"]))
+    if "plate_offsets_mm" in fit.result.geometry:
+        print("  plate offsets (mm, towards the tissue) " + " ".join(f"{v:.2f}" for v in fit.result.geometry["plate_offsets_mm"]))
     if fit.landmark_errors:
         e = fit.landmark_errors
         print(f"  landmarks: displacement {e['displacement_mm']['mean']:.2f} ± {e['displacement_mm']['sd']:.2f} mm, "
@@ -854,8 +859,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("case_dir", help="a case folder with its compressed/ part (`breastbiomech phantom --compressed`)")
     p.add_argument("--out", required=True, help="output folder (results written as the fit goes)")
     p.add_argument("--model", choices=MODEL_CHOICES, default="aniso-hetero", help="the seed's model variant")
-    p.add_argument("--free", nargs="+", choices=("E", "nu", "eta"), default=["E", "nu", "eta"],
-                   help="parameters searched per material (fat's E is the reference, eta only for aniso models)")
+    p.add_argument("--free", nargs="+", choices=("E", "nu", "eta", "fibre", "offset"), default=["E", "nu", "eta"],
+                   help="parameters searched per material (fat's E is the reference, eta only for aniso models); "
+                        "fibre: the fibre direction's angles (aniso models); offset: each plate's position")
     p.add_argument("--fibre", type=float, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
                    help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
     p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="hybrid",
@@ -864,7 +870,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=float, help="wall-time limit of this run (s)")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same run)")
     p.add_argument("--population", type=int, help="CMA-ES population per generation (default 4 + 3 ln d)")
-    p.add_argument("--objective", choices=("nmi", "landmarks", "nmi+landmarks"), default="nmi")
+    p.add_argument("--objective", choices=OBJECTIVE_CHOICES, default="nmi",
+                   help="nmi (the seed's), landmarks (mean error), surface (mean distance of the predicted breast "
+                        "skin to the measured body surface) or a weighted sum with NMI (default nmi)")
     p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
     p.add_argument("--mesh", help="fitting mesh (.vtu from `breastbiomech mesh`); default: made from the labels")
     p.add_argument("--labels", help="label map to mesh (default: the case's labels.nrrd)")

@@ -30,8 +30,9 @@ from BreastBiomechLib.solver import DynamicRelaxation
 
 @dataclass
 class FitSettings:
-    """How to fit: the ``model`` variant, the ``free`` parameter names, the anisotropic ``fibre``
-    direction (LPS), the fitting mesh's ``edge_mm``, the ``optimiser``, ``budget``
+    """How to fit: the ``model`` variant, the ``free`` parameter names ("E", "nu", "eta"; "fibre"
+    for the fibre angles, "offset" for the plates' offsets), the anisotropic ``fibre``
+    direction (LPS; where "fibre" is free, the start), the fitting mesh's ``edge_mm``, the ``optimiser``, ``budget``
     (evaluations), ``seconds`` (wall time, None: none), ``seed``, the ``objective``, NMI
     ``bins``, the forward solves' relaxation ``tolerance_mm``, the CMA-ES ``population``."""
 
@@ -95,7 +96,8 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
                            nipple_mm=nipple).mesh
     write_vtu(mesh_file, mesh)
     space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
-                                     free=settings.free, fibre=settings.fibre)
+                                     free=settings.free, fibre=settings.fibre,
+                                     plates=len(measured.plates) if "offset" in settings.free else 0)
     problem = FittingProblem(space, mesh, undeformed, measured.image, measured.plates,
                              landmarks=(reference, measured.landmarks) if reference is not None else None,
                              objective=settings.objective, bins=settings.bins,

@@ -19,8 +19,9 @@ from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 
-OBJECTIVES = ("nmi", "landmarks", "nmi+landmarks")
-FAILED = 0.0  # the objective of a failed solve: worse than any -NMI (NMI lies in [1, 2])
+OBJECTIVES = ("nmi", "landmarks", "surface", "nmi+landmarks", "nmi+surface")
+FAILED_NMI = 0.0  # -NMI of a failed solve: worse than any (NMI lies in [1, 2])
+FAILED_MM = 1000.0  # a failed solve's distance (mm): worse than any in a breast
 
 
 @dataclass
@@ -28,7 +29,8 @@ class Evaluation:
     """One forward evaluation: the unit position ``z``, the parameter ``values``, the
     ``objective`` (minimised), NMI and NCC of the prediction against the measured image, the
     landmark errors' mean and max (mm; NaN without landmarks), the solve's status, iterations
-    and the batch's wall time (s)."""
+    and the batch's wall time (s); the mean distance (mm) of the predicted breast skin to the
+    measured body surface (NaN unless the objective uses it)."""
 
     z: list[float]
     values: dict[str, float]
@@ -40,6 +42,7 @@ class Evaluation:
     status: str
     iterations: int
     seconds: float
+    surface_mm: float = float("nan")
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -53,13 +56,19 @@ class FittingProblem:
     ``measured``: the MR volumes before and after compression; ``plates``: the measured final
     plate planes (dicts as in plates.json); ``landmarks`` (reference, measured): optional
     landmark pairs; ``objective``: "nmi" (-NMI, the seed's eq. (17)), "landmarks" (mean error,
-    mm) or "nmi+landmarks" (-NMI + ``landmark_weight`` x mean error); ``mask``: the measured
-    voxels compared (default: all); ``bins``: NMI histogram bins; ``relaxation``: the dynamic
-    relaxation settings of every forward solve; ``device``: warp device."""
+    mm), "surface" (mean distance, mm, of the predicted breast skin nodes to the measured body
+    surface, :class:`~BreastBiomechLib.similarity.surface.SurfaceDistance`; nodes outside the
+    measured field of view do not count), "nmi+landmarks" (-NMI + ``landmark_weight`` x mean
+    error) or "nmi+surface" (-NMI + ``surface_weight`` x mean distance); ``body``: the measured
+    body mask for the surface objectives (default: found in ``measured``); ``mask``: the
+    measured voxels compared (default: all); ``bins``: NMI histogram bins; ``relaxation``: the
+    dynamic relaxation settings of every forward solve; ``device``: warp device. Plate offsets
+    free in ``space`` move the measured ``plates`` along their normals, model by model."""
 
     def __init__(self, space: ParameterSpace, mesh: TetMesh, undeformed: sitk.Image, measured: sitk.Image,
                  plates: list[dict], landmarks: tuple[Landmarks, Landmarks] | None = None,
-                 objective: str = "nmi", landmark_weight: float = 0.01, mask=None, bins: int = 64,
+                 objective: str = "nmi", landmark_weight: float = 0.01, surface_weight: float = 0.01,
+                 body: sitk.Image | None = None, mask=None, bins: int = 64,
                  relaxation: DynamicRelaxation | None = None, device=None):
         from BreastBiomechLib.io.cases import case_from_dict, compression_case
         from BreastBiomechLib.similarity import Similarity
@@ -68,8 +77,10 @@ class FittingProblem:
 
         if objective not in OBJECTIVES:
             raise ValueError(f"unknown objective {objective!r}; choose one of {OBJECTIVES}")
-        if objective != "nmi" and landmarks is None:
+        if "landmarks" in objective and landmarks is None:
             raise ValueError(f"the {objective!r} objective needs landmarks (reference and measured)")
+        if space.plates and space.plates != len(plates):
+            raise ValueError(f"the parameter space offsets {space.plates} plate(s), the case has {len(plates)}")
         if landmarks is not None:
             reference, target = landmarks
             if reference.labels != target.labels:
@@ -81,6 +92,7 @@ class FittingProblem:
         self.tissue = np.asarray(mesh.cell_data["tissue"]).astype(int)
         self.objective = objective
         self.landmark_weight = float(landmark_weight)
+        self.surface_weight = float(surface_weight)
         self.landmarks = landmarks
         # located once in their reference tets: each evaluation then only weighs its displacements
         self._landmark_mapper = LandmarkMapper(mesh, landmarks[0]) if landmarks is not None else None
@@ -96,6 +108,42 @@ class FittingProblem:
                                   template.damping, template.time_step, template.safety)
         self.warper = ImageWarper(mesh, undeformed, measured, device=device)
         self.similarity = Similarity(measured, mask, bins=bins, device=device)
+        self._surface = self._skin = None
+        if "surface" in objective:
+            from BreastBiomechLib.similarity.surface import SurfaceDistance
+
+            self._surface = SurfaceDistance(measured, body)
+            # the breast skin the image shows: not the faces where the label map's field of view cut it
+            cut = set(mesh.node_set("fov_cut").tolist()) if "fov_cut" in mesh.point_data else set()
+            self._skin = np.array([n for n in mesh.node_set("breast_skin").tolist() if n not in cut], dtype=np.int64)
+            if len(self._skin) == 0:
+                raise ValueError("the fitting mesh has no breast skin nodes to measure to the surface")
+
+    @property
+    def failed_objective(self) -> float:
+        """The objective a failed solve scores: worse than any solve's (:data:`FAILED_NMI` for
+        -NMI, :data:`FAILED_MM` for the distances, their weighted sum for the sums)."""
+        return {"nmi": FAILED_NMI, "landmarks": FAILED_MM, "surface": FAILED_MM,
+                "nmi+landmarks": FAILED_NMI + self.landmark_weight * FAILED_MM,
+                "nmi+surface": FAILED_NMI + self.surface_weight * FAILED_MM}[self.objective]
+
+    def plate_displacements(self, z) -> np.ndarray | None:
+        """The plates' displacements (P, 3) mm at unit position ``z``: the measured travel plus
+        the free offsets along each normal (None when no offset is free: the measured plates)."""
+        if not self.space.plates:
+            return None
+        return np.array([(float(p.displacement @ p.normal) + offset) * p.normal
+                         for p, offset in zip(self.model.loading.plates, self.space.plate_offsets(z))])
+
+    def surface_distance(self, displacement_mm: np.ndarray) -> float:
+        """Mean distance (mm) of the displaced breast skin nodes inside the measured field of view
+        to the measured body surface."""
+        if self._surface is None:
+            raise ValueError("this problem measures no surface distance; choose a surface objective")
+        distances = self._surface.distances(self.mesh.nodes[self._skin] + displacement_mm[self._skin])
+        if np.all(np.isnan(distances)):
+            raise ValueError("no breast skin node lies inside the measured image after the deformation")
+        return float(np.nanmean(distances))
 
     def solve(self, positions, relaxation: DynamicRelaxation | None = None) -> list:
         """The FE solutions (:class:`~BreastBiomechLib.solver.Solution`) at unit positions (B, d),
@@ -104,7 +152,9 @@ class FittingProblem:
 
         positions = np.atleast_2d(np.asarray(positions, float))
         materials = [self.space.element_materials(z, self.tissue) for z in positions]
-        return solve_batch(self.model, materials, device=self.device, relaxation=relaxation or self.relaxation)
+        plates = [self.plate_displacements(z) for z in positions] if self.space.plates else None
+        return solve_batch(self.model, materials, plates, device=self.device,
+                           relaxation=relaxation or self.relaxation)
 
     def solve_alone(self, z, retries: int = 2):
         """The solution at one unit position ``z``, solved by itself. A batch loads all its models
@@ -131,15 +181,15 @@ class FittingProblem:
 
     def evaluate(self, positions) -> list[Evaluation]:
         """Evaluate unit positions (B, d) in one batched solve; failed solves get the objective
-        :data:`FAILED` and their status."""
+        :attr:`failed_objective` and their status."""
         positions = np.atleast_2d(np.asarray(positions, float))
         started = time.perf_counter()
         solutions = self.solve(positions)
         seconds = time.perf_counter() - started
         out = []
         for z, solution in zip(positions, solutions):
-            nmi = ncc = mean = worst = float("nan")
-            objective = FAILED
+            nmi = ncc = mean = worst = surface = float("nan")
+            objective = self.failed_objective
             if solution.ok:
                 predicted = self.warper.warp(solution.displacement)
                 nmi, ncc = self.similarity.nmi(predicted), self.similarity.ncc(predicted)
@@ -147,9 +197,12 @@ class FittingProblem:
                     moved = self._landmark_mapper.map(solution.displacement)
                     errors = np.linalg.norm(moved.positions - self.landmarks[1].positions, axis=1)
                     mean, worst = float(errors.mean()), float(errors.max())
-                objective = {"nmi": -nmi, "landmarks": mean,
-                             "nmi+landmarks": -nmi + self.landmark_weight * mean}[self.objective]
+                if self._surface is not None:
+                    surface = self.surface_distance(solution.displacement)
+                objective = {"nmi": -nmi, "landmarks": mean, "surface": surface,
+                             "nmi+landmarks": -nmi + self.landmark_weight * mean,
+                             "nmi+surface": -nmi + self.surface_weight * surface}[self.objective]
             out.append(Evaluation([float(v) for v in z], self.space.values(z), float(objective), float(nmi),
                                   float(ncc), mean, worst, solution.status, int(solution.steps),
-                                  round(seconds, 3)))
+                                  round(seconds, 3), surface))
         return out

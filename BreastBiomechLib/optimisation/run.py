@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +28,8 @@ class OptimisationResult:
     """``best``: the best evaluation; ``materials``: every material's {"E", "nu", "eta"} there;
     ``evaluations``: all, in order; ``stopped``: why the run ended ("converged", "budget",
     "time", "cancelled"); ``replayed``: evaluations answered from a resumed results file;
-    ``seconds``: wall time of this run."""
+    ``seconds``: wall time of this run; ``geometry``: the free fibre direction and plate
+    offsets there (:meth:`ParameterSpace.geometry`; empty when none is free)."""
 
     best: Evaluation
     materials: dict[str, dict[str, float]]
@@ -36,9 +37,11 @@ class OptimisationResult:
     stopped: str
     replayed: int
     seconds: float
+    geometry: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
-        return {"best": self.best.to_dict(), "materials": self.materials, "stopped": self.stopped,
+        return {"best": self.best.to_dict(), "materials": self.materials, "geometry": self.geometry,
+                "stopped": self.stopped,
                 "evaluations": len(self.evaluations), "replayed": self.replayed,
                 "failed": sum(e.status != "completed" for e in self.evaluations), "seconds": round(self.seconds, 2)}
 
@@ -48,7 +51,8 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
              progress: Callable[[int, int, float, str], bool | None] | None = None,
              start: dict[str, float] | None = None, population: int | None = None) -> OptimisationResult:
     """Minimise ``problem``'s objective over its parameter space with ``optimiser`` ("hybrid"
-    or "cmaes") from ``start`` ({"tissue.name": value}; default the middle of the unit cube),
+    or "cmaes") from ``start`` ({"tissue.name": value}; default :meth:`ParameterSpace.start`:
+    the middle of the material parameters' ranges, the given fibre and plates),
     within ``budget`` evaluations and ``seconds`` of wall time. With ``out_dir`` every
     evaluation is written as it is made, and ``resume`` continues a run interrupted there (the
     same settings replay to where it stopped). ``progress(done, budget, best objective, phase)``
@@ -58,7 +62,7 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
     space = problem.space
     if space.dimension == 0:
         raise ValueError("no parameter is free: choose at least one to optimise")
-    z0 = space.unit(start) if start else np.full(space.dimension, 0.5)
+    z0 = space.unit(start) if start else space.start()
     settings = {"space": space.to_dict(), "optimiser": optimiser, "seed": int(seed), "budget": int(budget),
                 "objective": problem.objective, "start": [float(v) for v in z0], "population": population}
     path = None
@@ -84,7 +88,7 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
         raise RuntimeError("the optimisation stopped before its first evaluation")
     result = OptimisationResult(log.best, space.materials(log.best.z), log.evaluations,
                                 log.stopped or ("budget" if len(log.evaluations) >= budget else "converged"),
-                                log.replayed, time.perf_counter() - started)
+                                log.replayed, time.perf_counter() - started, space.geometry(log.best.z))
     if out_dir is not None:
         (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
     return result
