@@ -96,7 +96,8 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         for comboBox in (self.ui.modelComboBox, self.ui.optimiserComboBox, self.ui.objectiveComboBox,
                          self.ui.deviceComboBox):
             comboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
-        for checkBox in (self.ui.freeECheckBox, self.ui.freeNuCheckBox, self.ui.freeEtaCheckBox):
+        for checkBox in (self.ui.freeECheckBox, self.ui.freeNuCheckBox, self.ui.freeEtaCheckBox,
+                         self.ui.freeFibreCheckBox, self.ui.freeOffsetCheckBox):
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
         for spinBox in (self.ui.budgetSpinBox, self.ui.secondsSpinBox, self.ui.seedSpinBox,
                         self.ui.populationSpinBox, self.ui.binsSpinBox, self.ui.toleranceSpinBox,
@@ -134,6 +135,9 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             self.ui.freeNuCheckBox.checked = p["freeNu"]
             self.ui.freeEtaCheckBox.checked = p["freeEta"]
             self.ui.freeEtaCheckBox.enabled = p["model"].startswith("aniso")
+            self.ui.freeFibreCheckBox.checked = p["freeFibre"]
+            self.ui.freeFibreCheckBox.enabled = p["model"].startswith("aniso")
+            self.ui.freeOffsetCheckBox.checked = p["freeOffset"]
             for spinBox, name in ((self.ui.budgetSpinBox, "budget"), (self.ui.secondsSpinBox, "seconds"),
                                   (self.ui.seedSpinBox, "seed"), (self.ui.populationSpinBox, "population"),
                                   (self.ui.binsSpinBox, "bins"), (self.ui.toleranceSpinBox, "toleranceMm"),
@@ -165,6 +169,8 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["freeE"] = self.ui.freeECheckBox.checked
         p["freeNu"] = self.ui.freeNuCheckBox.checked
         p["freeEta"] = self.ui.freeEtaCheckBox.checked
+        p["freeFibre"] = self.ui.freeFibreCheckBox.checked
+        p["freeOffset"] = self.ui.freeOffsetCheckBox.checked
         p["budget"] = int(self.ui.budgetSpinBox.value)
         p["seconds"] = self.ui.secondsSpinBox.value
         p["seed"] = int(self.ui.seedSpinBox.value)
@@ -229,7 +235,8 @@ class BreastOptimizationLogic(ParameterNodeLogic):
     direction parameters are RAS components. Moduli in Pa."""
 
     MODULE_NAME = "BreastOptimization"
-    DEFAULTS = {"model": "aniso-hetero", "freeE": True, "freeNu": True, "freeEta": True,
+    DEFAULTS = {"model": "aniso-hetero", "freeE": True, "freeNu": True, "freeEta": True, "freeFibre": False,
+                "freeOffset": False,
                 "fibreR": 0.0, "fibreA": 0.0, "fibreS": 1.0, "optimiser": "cmaes", "budget": 200, "seconds": 0.0,
                 "seed": 0, "population": 0, "objective": "nmi", "bins": 64, "toleranceMm": 0.01, "device": "auto",
                 "outputDirectory": ""}
@@ -321,15 +328,22 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         return tuple(float(v) for v in frames.flip(ras / np.linalg.norm(ras)))
 
     def space(self, parameterNode, mesh):
-        """The parameter space of the chosen model and free parameters on ``mesh``'s tissues."""
+        """The parameter space of the chosen model and free parameters on ``mesh``'s tissues (the
+        fibre direction's angles, anisotropic models only, and the plates' offsets included
+        where chosen)."""
         from BreastBiomechLib.optimisation import ParameterSpace
 
-        free = tuple(name for name, key in (("E", "freeE"), ("nu", "freeNu"), ("eta", "freeEta"))
+        free = tuple(name for name, key in (("E", "freeE"), ("nu", "freeNu"), ("eta", "freeEta"),
+                                            ("fibre", "freeFibre"), ("offset", "freeOffset"))
                      if parameterNode[key])
+        if "fibre" in free and not parameterNode["model"].startswith("aniso"):
+            free = tuple(name for name in free if name != "fibre")  # the checkbox is disabled there
         if "tissue" not in mesh.cell_data:
             raise ValueError("the mesh has no cell array 'tissue' (make it with Breast Mesh)")
         tissues = np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int))
-        return ParameterSpace.for_model(parameterNode["model"], tissues, free=free, fibre=self.fibre(parameterNode))
+        plates = len(parameterNode.references("plates")) if "offset" in free else 0
+        return ParameterSpace.for_model(parameterNode["model"], tissues, free=free, fibre=self.fibre(parameterNode),
+                                        plates=plates)
 
     def problem(self, parameterNode):
         """The :class:`~BreastBiomechLib.optimisation.FittingProblem` of the chosen nodes."""
@@ -345,7 +359,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         landmarks = None
         if reference is not None and moved is not None:
             landmarks = (landmarks_from_markups_node(reference), landmarks_from_markups_node(moved))
-        elif p["objective"] != "nmi":
+        elif "landmarks" in p["objective"]:
             raise ValueError(f"the objective {p['objective']!r} needs the reference and measured landmarks")
         return FittingProblem(self.space(p, mesh), mesh, undeformed, measured, self.finalPlates(p, mesh),
                               landmarks=landmarks, objective=p["objective"], bins=p["bins"],
@@ -367,6 +381,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         A run that ends, or stops with ``showBest`` (a bool, or a function asked when it stops:
         pause or cancel), puts the results at the best parameters into the scene
         (:meth:`writeResults`). Returns {"result", "summary"}."""
+        from BreastBiomechLib.mrml import frames
         from BreastBiomechLib.optimisation import optimise
 
         p = parameterNode
@@ -386,6 +401,13 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         summary = (f"{result.stopped}: best objective {result.best.objective:.5f} (NMI {result.best.nmi:.4f}) after "
                    f"{len(result.evaluations)} solves ({result.replayed} replayed, "
                    f"{sum(e.status != 'completed' for e in result.evaluations)} failed), {result.seconds:.0f} s")
+        if "fibre" in result.geometry:
+            ras = frames.flip(np.asarray(result.geometry["fibre"]))
+            summary += "\nfitted fibre direction (RAS): " + " ".join(f"{v:.3f}" for v in ras)
+        if "plate_offsets_mm" in result.geometry:
+            summary += "\nfitted plate offsets (mm, towards the tissue): " + ", ".join(
+                f"{node.GetName()} {offset:+.2f}" for node, offset in
+                zip(p.references("plates"), result.geometry["plate_offsets_mm"]))
         if result.stopped == "cancelled" and not (showBest() if callable(showBest) else showBest):
             summary += "; paused: Resume continues"
         else:

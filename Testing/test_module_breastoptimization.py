@@ -122,3 +122,26 @@ def test_pause_resume_and_results(scene, compressed_case_dir, fitting_mesh, tmp_
         assert error == pytest.approx(np.linalg.norm(np.subtract(a, b)), abs=1e-6)  # RAS distance = LPS distance
         assert lines_node.GetCellData().GetArray("error_mm").GetValue(row) == pytest.approx(error)
     assert "landmark error" in outcome["summary"]
+
+
+def test_fibre_plates_and_surface_choices(scene, compressed_case_dir, fitting_mesh, tmp_path):
+    """The fibre direction (anisotropic models only) and the plates' offsets become free
+    parameters; the surface objective runs without landmarks and the summary names the fitted
+    plate offsets by the plates' names."""
+    logic, p = _set_up(scene, compressed_case_dir, fitting_mesh, tmp_path, budget=2)
+    p["freeFibre"], p["freeOffset"] = True, True
+    plates = p.references("plates")
+    assert len(plates) == 2
+    space = logic.space(p, fitting_mesh)  # iso-hetero: no fibres to turn
+    assert [k for k in space.keys if not k.startswith(("fat", "glandular", "muscle", "tumour", "skin"))] == [
+        "plate1.offset", "plate2.offset"]
+    p["model"] = "aniso-homo"
+    assert logic.space(p, fitting_mesh).keys[-4:] == ["fibre.gamma", "fibre.alpha", "plate1.offset", "plate2.offset"]
+    p["model"], p["freeE"], p["objective"] = "iso-hetero", False, "surface"
+    p.set_reference("referenceLandmarks", None)
+    p.set_reference("measuredLandmarks", None)
+    outcome = logic.run(p)
+    result = outcome["result"]
+    assert len(result.evaluations) == 2 and all(0 < e.surface_mm < 20 for e in result.evaluations)
+    assert result.best.objective == pytest.approx(result.best.surface_mm)
+    assert f"{plates[0].GetName()} {result.geometry['plate_offsets_mm'][0]:+.2f}" in outcome["summary"]
