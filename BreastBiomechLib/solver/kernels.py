@@ -65,11 +65,15 @@ def strain_energy_density(F: wp.mat33, mu: float, kappa: float, eta: float, a: w
 @wp.kernel
 def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
                    dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), kappa: wp.array(dtype=float),
-                   n_nodes: int, n_slots: int, n_elements: int, pressure_volume: wp.array(dtype=float)):
+                   n_nodes: int, n_slots: int, n_elements: int, active: wp.array(dtype=int),
+                   pressure_volume: wp.array(dtype=float)):
     """ANP pass 1: accumulate kappa (J_e - 1) V_e at each of the element's ANP slots: its nodes,
-    one slot per node and material (see :func:`BreastBiomechLib.solver.tled.anp_slots`)."""
+    one slot per node and material (see :func:`BreastBiomechLib.solver.tled.anp_slots`). Models
+    with ``active[b]`` = 0 (converged: they stand still) are skipped."""
     tid = wp.tid()
     b = tid // n_elements
+    if active[b] == 0:
+        return
     e = tid - b * n_elements
     base = b * n_nodes
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
@@ -90,7 +94,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                    pressure_volume: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
-                   n_nodes: int, n_elements: int, step: wp.array(dtype=int),
+                   n_nodes: int, n_elements: int, step: wp.array(dtype=int), active: wp.array(dtype=int),
                    forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
     the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
@@ -99,10 +103,11 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     Elements with J <= 0 are counted per model, the first one and its step recorded in
     ``inverted[4b:4b+4]`` = [count, element, step, frozen] of model b; once frozen that model
     stands still (the others of the batch go on), keeping its last configuration for
-    inspection instead of producing NaN."""
+    inspection instead of producing NaN. Models with ``active[b]`` = 0 (converged: they stand
+    still, so their forces no longer change anything) are skipped."""
     tid = wp.tid()
     b = tid // n_elements
-    if inverted[4 * b + 3] != 0:
+    if inverted[4 * b + 3] != 0 or active[b] == 0:
         return
     e = tid - b * n_elements
     base = b * n_nodes

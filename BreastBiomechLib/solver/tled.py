@@ -221,16 +221,18 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         forces = wp.zeros(N, dtype=wp.vec3)
         inverted = wp.zeros(4, dtype=int)
         anp = 1 if model.formulation == "T4ANP" else 0
+        one_model = wp.ones(1, dtype=int)
         if anp:
-            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, kappa, N, len(slot_volume), M, pressure])
+            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, kappa, N, len(slot_volume), M, one_model,
+                                            pressure])
         wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, wp.array(mat.mu.astype(f32), dtype=float), kappa,
                                          wp.array(mat.eta.astype(f32), dtype=float),
                                          wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, d_slots,
                                          len(slot_volume), pressure,
                                          wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
-                                         wp.zeros(1, dtype=wp.mat33), 0, N, M, wp.zeros(1, dtype=int), forces,
-                                         inverted])
+                                         wp.zeros(1, dtype=wp.mat33), 0, N, M, wp.zeros(1, dtype=int), one_model,
+                                         forces, inverted])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
         return forces.numpy().astype(np.float64)
@@ -407,23 +409,27 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                         wp.vec3)
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
-        def internal_force(state, out, pressure_buffer, flags, update_state=0, cleared=False):
-            """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``);
-            ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
-            and ``pressure_buffer`` are zero already (the step kernels clear them)."""
+        every_model = arr(np.ones(B, np.int32), int)
+
+        def internal_force(state, out, pressure_buffer, flags, models=every_model, update_state=0, cleared=False):
+            """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)
+            for the ``models`` flagged 1 (the others' stay zero); ``update_state`` advances the
+            visco state variables by one step; ``cleared``: ``out`` and ``pressure_buffer`` are
+            zero already (the step kernels clear them)."""
             if not cleared:
                 out.zero_()
                 pressure_buffer.zero_()
             if use_anp:
                 wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_kappa, N, S, M,
-                                                     pressure_buffer])
+                                                     models, pressure_buffer])
             wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
                                                  use_anp, d_slots, S, pressure_buffer, d_slotvol, K, d_prony_g,
                                                  d_prony_decay,
-                                                 visco_state, update_state, N, M, step, out, flags])
+                                                 visco_state, update_state, N, M, step, models, out, flags])
 
         def one_step():
-            internal_force(u, forces, pressure, inverted, update_state=1, cleared=True)
+            # converged models stand still: their element forces are not computed again
+            internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True)
             wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_force,
                                                      d_damping, d_active, N, float(dt), step, float(total),
                                                      load_shape, inverted])
