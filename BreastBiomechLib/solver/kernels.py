@@ -165,7 +165,8 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
                        plate_force: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                        body_force: wp.array(dtype=wp.vec3),
                        damping: wp.array(dtype=float), active: wp.array(dtype=int), n_nodes: int, dt: float,
-                       step: wp.array(dtype=int), t_total: float, load_shape: int, inverted: wp.array(dtype=int)):
+                       step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
+                       inverted: wp.array(dtype=int)):
     """Seed eq. (15) in increment form: du_(n+1) = ((R - F) dt^2 / m + (1 - a dt/2) du_n) / (1 + a dt/2),
     u_(n+1) = u_n + du_(n+1), the same scheme as (m/dt^2 + a m/(2 dt)) u_(n+1) = R - F + 2m/dt^2 u_n
     - (m/dt^2 - a m/(2 dt)) u_(n-1) without its float32 cancellation, and u accumulated with
@@ -173,7 +174,9 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
     updated in place with ``u``. ``body_force`` is the full-load external force per node (N,
     gravity on the physical mass; ``mass`` may be fictitious under mass scaling). ``damping[b]``
     is model b's coefficient a (1/s), adapted between steps by dynamic relaxation; a model with
-    ``active[b]`` = 0 (converged) or an inverted element stands still. Also clears what the next kernels of the step
+    ``active[b]`` = 0 (converged) or an inverted element stands still. The load is full at
+    ``t_total[b]``, model b's loading time (under dynamic relaxation each model's own, as slow
+    as its materials need). Also clears what the next kernels of the step
     accumulate into (fewer graph nodes than separate memsets): the ANP pressures, already used,
     and the plate forces, which the contact kernels sum next."""
     i = wp.tid()
@@ -186,7 +189,7 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
         return
     t = float(step[0] + 1) * dt
     half = 0.5 * damping[i // n_nodes] * dt
-    accel = (load_factor(t, t_total, load_shape) * body_force[i] - forces[i]) / mass[i]
+    accel = (load_factor(t, t_total[i // n_nodes], load_shape) * body_force[i] - forces[i]) / mass[i]
     increment = (accel * (dt * dt) + (1.0 - half) * du[i]) / (1.0 + half)
     du[i] = increment
     compensated_add(u, low, i, increment)
@@ -203,7 +206,7 @@ def set_component(x: wp.vec3, mask: wp.vec3, value: wp.vec3) -> wp.vec3:
 def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                       nodes: wp.array(dtype=int), mask: wp.array(dtype=wp.vec3),
                       value: wp.array(dtype=wp.vec3), n_nodes: int, n_constrained: int,
-                      dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
+                      dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
                       inverted: wp.array(dtype=int)):
     """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m); their
     increment becomes the change from the previous step and their compensation zero."""
@@ -214,7 +217,7 @@ def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), 
     k = tid - b * n_constrained
     i = b * n_nodes + nodes[k]
     m = mask[k]
-    target = load_factor(float(step[0] + 1) * dt, t_total, load_shape) * value[tid]
+    target = load_factor(float(step[0] + 1) * dt, t_total[b], load_shape) * value[tid]
     previous = u[i] - du[i]
     u[i] = set_component(u[i], m, target)
     du[i] = set_component(du[i], m, target - previous)
@@ -228,7 +231,7 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
                   plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
                   edge_direction: wp.array(dtype=wp.vec3), edge_shape: wp.array(dtype=wp.vec2),
                   forces: wp.array(dtype=wp.vec3), n_nodes: int, n_slaves: int, n_plates: int,
-                  dt: float, step: wp.array(dtype=int), t_total: float, load_shape: int,
+                  dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
     """Kinematic frictionless contact with rigid plates: a slave node behind its plate is moved
     back onto its surface along the surface normal (free to slide; its increment loses the same
@@ -244,7 +247,7 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     k = tid - b * n_slaves
     node = slaves[k]
     i = b * n_nodes + node
-    s = load_factor(float(step[0] + 1) * dt, t_total, load_shape)
+    s = load_factor(float(step[0] + 1) * dt, t_total[b], load_shape)
     rel = x0[node] + u[i] - (plate_point[p] + s * plate_motion[b * n_plates + p])
     n = plate_normal[p]
     gap = wp.dot(rel, n)

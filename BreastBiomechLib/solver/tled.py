@@ -77,7 +77,10 @@ class DynamicRelaxation:
     ``load_iterations`` is a minimum: the load is applied slowly enough that prescribed boundaries
     (plates, displacements) move at under a third of the shear wave speed of the scaled model,
     which for near-incompressible tissue (c_dilatational / c_shear = 7 at nu = 0.49, 22 at 0.499)
-    can take more iterations; faster loading crushes the surface elements."""
+    can take more iterations; faster loading crushes the surface elements. In a batch each model
+    loads as slowly as its own materials and travel need (and its damping adapts and its
+    convergence counts from the end of its own load), so a stiff-bulk model does not slow the
+    others down."""
 
     load_iterations: int = 1000
     tolerance_mm: float = 0.01
@@ -325,16 +328,19 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         densities = [mat.density for mat in materials]
         dt = model.time_step or model.safety * critical_time_step(model, materials, length)
     if relaxation is None:
-        total = model.loading.total_time
-        n_steps = int(math.ceil((total + model.loading.settle_time) / dt))
-    else:  # fictitious time
-        travel = max([np.abs(np.asarray(d, float)).max(initial=0.0) for d in plate_displacements]
-                     + [np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
-        ratio = max(float(np.max(np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.mu))) for m in materials)
-        load_iterations = relaxation.load_iterations_for(travel, ratio, float(np.median(length)), model.safety)
-        total = load_iterations * dt
-        n_steps = max(relaxation.max_iterations, 2 * load_iterations)
+        totals = np.full(B, model.loading.total_time)
+        n_steps = int(math.ceil((model.loading.total_time + model.loading.settle_time) / dt))
+    else:  # fictitious time: each model loads as slowly as its own materials and travel need
+        constrained = max([np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
+        load_iterations = np.array([
+            relaxation.load_iterations_for(max(np.abs(np.asarray(d, float)).max(initial=0.0), constrained),
+                                           float(np.max(np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.mu))),
+                                           float(np.median(length)), model.safety)
+            for d, m in zip(plate_displacements, materials)])
+        totals = load_iterations * dt
+        n_steps = max(relaxation.max_iterations, 2 * int(load_iterations.max()))
         sample_every = relaxation.update_every
+    total = float(totals.max())  # the batch's loading ends with its slowest model's
     def lumped(element_density):
         """Nodal masses (kg) of the B models: a quarter of each element's mass at its nodes."""
         return np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=N)
@@ -384,7 +390,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         # gravity acts on the physical masses, also where dynamic relaxation scales them
         d_body_force = arr(weight[:, None] * model.loading.gravity, wp.vec3)
         # dynamic relaxation starts critically damped for a mode of period ~ the loading time
-        damping = np.full(B, model.damping if relaxation is None else 4.0 * np.pi / total)
+        damping = np.full(B, model.damping) if relaxation is None else 4.0 * np.pi / totals
+        d_totals = arr(totals, float)
         d_damping = arr(damping, float)
         active = np.ones(B, np.int32)  # dynamic relaxation stops each model once it has converged
         d_active = arr(active, int)
@@ -431,18 +438,18 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             # converged models stand still: their element forces are not computed again
             internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True)
             wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_force,
-                                                     d_damping, d_active, N, float(dt), step, float(total),
+                                                     d_damping, d_active, N, float(dt), step, d_totals,
                                                      load_shape, inverted])
             if n_con:
                 wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, N, n_con,
-                                                            float(dt), step, float(total), load_shape,
+                                                            float(dt), step, d_totals, load_shape,
                                                             inverted])
             for p, d_sl in enumerate(d_slaves):
                 if d_sl.shape[0]:
                     wp.launch(k.plate_contact, B * d_sl.shape[0], [u, low, du, d_x0, d_sl, p, d_ppoint, d_pnormal,
                                                                     d_pmotion, d_edge_direction, d_edge_shape,
                                                                     forces, N, d_sl.shape[0], P,
-                                                                    float(dt), step, float(total), load_shape,
+                                                                    float(dt), step, d_totals, load_shape,
                                                                     plate_force, inverted])
             wp.launch(k.finish_step, B * N, [forces, step, inverted])
 
@@ -473,7 +480,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         chunk = max(2, sample_every - sample_every % 2)
         done = 0
         estimated_error = np.full(B, np.nan)
-        updates = 0
+        updates = np.zeros(B, int)  # relaxation updates since each model's load was complete
         checks_below = np.zeros(B, int)
         converged_at = np.zeros(B, int)
         converged_forces = np.zeros((B, P, 3))
@@ -587,21 +594,23 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 wp.copy(u_last, u)
                 wp.copy(f_last, f_curr)
                 lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
-                if done * dt >= total:
-                    ok = lam > 0
+                loaded = done * dt >= totals
+                if loaded.any():
+                    ok = (lam > 0) & loaded
                     damping[ok] = np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt)
                     d_damping.assign(damping.astype(f32))
                     remaining = distance_to_rest.update(u)
                     if remaining is not None:
-                        running = active == 1
+                        running = (active == 1) & loaded
                         estimated_error[running] = remaining[running]
                         # trust the estimate only once the damping has adapted (three updates after
-                        # the load) and it has held for two checks in a row; each model of the
-                        # batch stops (stands still) as soon as it has converged
-                        checks_below = np.where(estimated_error < relaxation.tolerance_mm, checks_below + 1, 0)
-                        updates += 1
-                        if updates > 3:
-                            done_now = running & (checks_below >= 2)
+                        # the model's load) and it has held for two checks in a row; each model of
+                        # the batch stops (stands still) as soon as it has converged
+                        checks_below = np.where(running & (estimated_error < relaxation.tolerance_mm),
+                                                checks_below + 1, 0)
+                        updates += loaded
+                        done_now = running & (updates > 3) & (checks_below >= 2)
+                        if done_now.any():
                             active[done_now] = 0
                             converged_at[done_now] = done
                             converged_forces[done_now] = history["plate_forces"][-1][done_now]
