@@ -127,13 +127,14 @@ def test_cancel_and_resume_lose_nothing_and_end_where_an_uninterrupted_run_does(
 def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_case_dir, tmp_path, capsys):
     """`breastbiomech optimise` on the compressed phantom of conftest, with a small fitting mesh
     (the labels' body, tissues by voxel majority) and a budget of a few solves."""
-    from BreastBiomechLib.cli import MODEL_CHOICES, main
+    from BreastBiomechLib.cli import MODEL_CHOICES, OBJECTIVE_CHOICES, main
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.optimisation.forward import OBJECTIVES
     from BreastBiomechLib.optimisation.space import MODELS
 
-    assert MODEL_CHOICES == MODELS
+    assert MODEL_CHOICES == MODELS and OBJECTIVE_CHOICES == OBJECTIVES
     mesh = mesh_labels(read_image(compressed_case_dir / "labels.nrrd"),
                        MeshSettings(edge_mm=10.0, refine_interfaces=False)).mesh
     write_vtu(tmp_path / "fitting.vtu", mesh)

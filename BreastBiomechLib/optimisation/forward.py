@@ -114,8 +114,8 @@ class FittingProblem:
 
             self._surface = SurfaceDistance(measured, body)
             # the breast skin the image shows: not the faces where the label map's field of view cut it
-            cut = set(mesh.node_set("fov_cut").tolist()) if "fov_cut" in mesh.point_data else set()
-            self._skin = np.array([n for n in mesh.node_set("breast_skin").tolist() if n not in cut], dtype=np.int64)
+            cut = mesh.node_set("fov_cut") if "fov_cut" in mesh.point_data else []
+            self._skin = np.setdiff1d(mesh.node_set("breast_skin"), cut)
             if len(self._skin) == 0:
                 raise ValueError("the fitting mesh has no breast skin nodes to measure to the surface")
 
@@ -157,11 +157,12 @@ class FittingProblem:
                            relaxation=relaxation or self.relaxation)
 
     def solve_alone(self, z, retries: int = 2):
-        """The solution at one unit position ``z``, solved by itself. A batch loads all its models
-        as slowly as its most nearly incompressible one needs, so a model that converged in a
-        batch may invert elements under the faster load it gets alone: then it is solved again
-        with a load four times slower (``retries`` times at most). Dynamic relaxation seeks the
-        static equilibrium, which the loading speed does not change once it converges."""
+        """The solution at one unit position ``z``, solved by itself (the outputs of a fit's best
+        parameters). Each model of a batch loads at its own pace, so alone it is solved as in
+        its batch; should it still invert elements (float32 rounding can tip a marginal solve)
+        it is solved again with a load four times slower (``retries`` times at most). Dynamic
+        relaxation seeks the static equilibrium, which the loading speed does not change once it
+        converges."""
         from dataclasses import replace
 
         relaxation = self.relaxation

@@ -15,7 +15,7 @@ A = (sin gamma cos alpha, sin gamma sin alpha, cos gamma), gamma the angle betwe
 alpha the azimuth from L towards P. (The seed prints cos alpha as the third component, which
 would not give a unit vector; cos gamma is meant.) A fibre family has no sign, so gamma in
 [0, 90] with alpha in [0, 360) reaches every direction; the seed's alpha in [0, 180] reaches
-half of them, and these are the default bounds' wider ones.
+only half of them, so the default bounds take alpha in [0, 360).
 
 A plate offset moves a plate's measured final plane along its normal (towards the tissue for
 a positive offset, i.e. more compression): for a measured plate position that is uncertain.
@@ -267,10 +267,11 @@ class ParameterSpace:
     def fibre_at(self, z) -> np.ndarray:
         """The unit fibre direction (LPS) at unit position ``z``: :attr:`fibre`, turned to the
         free angles' values where they are free."""
-        angles = dict(zip(("gamma", "alpha"), fibre_angles(self.fibre)))
         free = {p.name: v for p, v in zip(self.free, self.values(z).values()) if p.tissue == FIBRE}
-        return fibre_direction(**{f"{k}_deg": v for k, v in {**angles, **free}.items()}) if free \
-            else np.asarray(self.fibre, float)
+        if not free:
+            return np.asarray(self.fibre, float)
+        angles = {**dict(zip(("gamma", "alpha"), fibre_angles(self.fibre))), **free}
+        return fibre_direction(angles["gamma"], angles["alpha"])
 
     def plate_offsets(self, z) -> np.ndarray:
         """The plates' offsets (mm, along each normal, positive towards the tissue) at ``z``."""
