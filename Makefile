@@ -27,7 +27,7 @@ demo: $(STAMP)
 	$(BIN)/breastbiomech demo --out out/demo
 
 test: $(STAMP)
-	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist loadfile
 
 bench: $(STAMP)
 	$(BIN)/breastbiomech bench phantom --json
