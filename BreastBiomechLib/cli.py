@@ -747,6 +747,8 @@ def _bench_optimise(args) -> dict:
     seconds = time.perf_counter() - started
     truth = problem.evaluate(space.unit(BENCH_TRUTH))[0]
     errors = {key: round(abs(value / BENCH_TRUTH[key] - 1.0), 4) for key, value in result.best.values.items()}
+    best_so_far = np.maximum.accumulate([e.nmi if e.status == "completed" else 0.0 for e in result.evaluations])
+    quarters = sorted({max(1, round(q * len(best_so_far))) for q in (0.25, 0.5, 0.75, 1.0)})
     return {"benchmark": "optimise", "version": __version__, "device": str(problem.warper.device),
             "optimiser": args.optimiser, "tets": len(case.mesh.tets), "nodes": len(case.mesh.nodes),
             "voxels": int(measured.GetNumberOfPixels()), "free_parameters": space.dimension,
@@ -754,6 +756,7 @@ def _bench_optimise(args) -> dict:
             "failed": sum(e.status != "completed" for e in result.evaluations),
             "seconds": round(seconds, 2), "seconds_per_evaluation": round(seconds / len(result.evaluations), 4),
             "best_nmi": round(result.best.nmi, 5), "truth_nmi": round(truth.nmi, 5),
+            "best_nmi_after": {str(n): round(float(best_so_far[n - 1]), 5) for n in quarters},
             "max_relative_error": max(errors.values()), "relative_errors": errors}
 
 
