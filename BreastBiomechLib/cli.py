@@ -91,6 +91,20 @@ def cmd_phantom(args) -> int:
     return 0
 
 
+def clear_earlier_fit(folder: Path) -> None:
+    """Remove the fit an earlier demo run left in ``folder``: the demo remakes its phantom,
+    segmentation and mesh on every run, so that fit is stale (resuming it would replay
+    evaluations of another mesh). A folder that holds no fit (no settings.json) is refused."""
+    import shutil
+
+    if not folder.exists():
+        return
+    if not (folder / "settings.json").is_file():
+        raise FileExistsError(f"{folder} exists and holds no earlier demo fit; choose another --out for the demo")
+    print(f"    replacing the earlier run's fit in {folder}")
+    shutil.rmtree(folder)
+
+
 def cmd_demo(args) -> int:
     """The main job on the built-in phantom: phantom and its compressed "measured" scan,
     segmentation from seed points, FE mesh of the segmentation, a simulation with the starting
@@ -170,6 +184,7 @@ def cmd_demo(args) -> int:
 
     settings = FitSettings(model="iso-hetero", free=("E",), edge_mm=fit_mm, optimiser="cmaes", budget=budget,
                            population=min(6, budget))
+    clear_earlier_fit(out / "fit")
     fit = fit_compressed_case(out / "case", out / "fit", settings, mesh_path=mesh_path, device=args.device,
                               progress=progress)
     print()

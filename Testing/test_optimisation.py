@@ -184,3 +184,24 @@ def test_one_free_parameter_is_searched_by_batched_bracketing():
     assert converged.best.z[0] == pytest.approx(0.3137, abs=1e-6) and len(converged.evaluations) < 10_000
     with pytest.raises(ValueError, match="at least 3"):
         bracketing(EvaluationLog(evaluate, budget=10), population=2)
+
+
+def test_the_demo_replaces_its_earlier_fit_and_nothing_else(tmp_path, capsys):
+    """`make demo` twice: the second run remakes the case and mesh, so the first run's fit is
+    removed, not resumed; a folder that holds no fit is refused, not deleted."""
+    from BreastBiomechLib.cli import clear_earlier_fit
+
+    fit = tmp_path / "fit"
+    clear_earlier_fit(fit)  # nothing there yet
+    fit.mkdir()
+    (fit / "settings.json").write_text("{}")
+    (fit / "evaluations.jsonl").write_text("{}\n")
+    clear_earlier_fit(fit)
+    assert not fit.exists() and "replacing" in capsys.readouterr().out
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep")
+    with pytest.raises(FileExistsError, match="no earlier demo fit"):
+        clear_earlier_fit(other)
+    assert (other / "notes.txt").read_text() == "keep"
+
