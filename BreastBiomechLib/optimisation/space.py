@@ -256,10 +256,14 @@ class ParameterSpace:
             raise ValueError(f"values needed for {sorted(missing)}")
         return np.array([float(p.to_unit(values[p.key])) for p in self.free])
 
+    def _searched(self, z) -> list[tuple[FreeParameter, float]]:
+        """Each free parameter with its value at unit position ``z``."""
+        return list(zip(self.free, self.values(z).values()))
+
     def materials(self, z) -> dict[str, dict[str, float]]:
         """Every material's {"E", "nu", "eta"} at unit position ``z``."""
         table = {name: dict(values) for name, values in self.fixed.items()}
-        for p, value in zip(self.free, self.values(z).values()):
+        for p, value in self._searched(z):
             if not p.geometric:
                 table[p.tissue][p.name] = value
         return table
@@ -267,7 +271,7 @@ class ParameterSpace:
     def fibre_at(self, z) -> np.ndarray:
         """The unit fibre direction (LPS) at unit position ``z``: :attr:`fibre`, turned to the
         free angles' values where they are free."""
-        free = {p.name: v for p, v in zip(self.free, self.values(z).values()) if p.tissue == FIBRE}
+        free = {p.name: v for p, v in self._searched(z) if p.tissue == FIBRE}
         if not free:
             return np.asarray(self.fibre, float)
         angles = {**dict(zip(("gamma", "alpha"), fibre_angles(self.fibre))), **free}
@@ -276,7 +280,7 @@ class ParameterSpace:
     def plate_offsets(self, z) -> np.ndarray:
         """The plates' offsets (mm, along each normal, positive towards the tissue) at ``z``."""
         offsets = np.zeros(self.plates)
-        for p, value in zip(self.free, self.values(z).values()):
+        for p, value in self._searched(z):
             if p.name == "offset":
                 offsets[int(p.tissue[5:]) - 1] = value
         return offsets

@@ -252,9 +252,9 @@ def _mean_sd(summary: dict | None, key: str, with_max: bool = False) -> str:
 
 def _devices(rows: list[StudyFit]) -> str:
     """Which devices solved the fits ("Solved on: NAME (n fits); ..."), or nothing when no row says."""
-    counts: dict[str, int] = {}
-    for row in rows:
-        counts[row.device or "device not recorded"] = counts.get(row.device or "device not recorded", 0) + 1
+    from collections import Counter
+
+    counts = Counter(row.device or "device not recorded" for row in rows)
     if set(counts) == {"device not recorded"}:
         return ""
     return "Solved on: " + "; ".join(f"{name} ({n} fit{'s' * (n != 1)})" for name, n in counts.items()) + ". "

@@ -184,12 +184,13 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
         pressure_volume[j] = 0.0
     if i < plate_force.shape[0]:
         plate_force[i] = wp.vec3(0.0)
-    if active[i // n_nodes] == 0 or inverted[4 * (i // n_nodes)] != 0:
+    b = i // n_nodes
+    if active[b] == 0 or inverted[4 * b] != 0:
         du[i] = wp.vec3(0.0)
         return
     t = float(step[0] + 1) * dt
-    half = 0.5 * damping[i // n_nodes] * dt
-    accel = (load_factor(t, t_total[i // n_nodes], load_shape) * body_force[i] - forces[i]) / mass[i]
+    half = 0.5 * damping[b] * dt
+    accel = (load_factor(t, t_total[b], load_shape) * body_force[i] - forces[i]) / mass[i]
     increment = (accel * (dt * dt) + (1.0 - half) * du[i]) / (1.0 + half)
     du[i] = increment
     compensated_add(u, low, i, increment)
