@@ -531,3 +531,32 @@ def test_batched_dynamic_relaxation_stops_each_model_when_it_converges():
         assert "converged in" in b.message and b.steps == one.steps
         np.testing.assert_allclose(b.displacement, one.displacement, atol=0.02)
         np.testing.assert_allclose(b.plate_forces, one.plate_forces, rtol=0.01, atol=1e-6)
+
+
+def test_distance_to_rest_extrapolates_a_geometric_approach():
+    """The relaxation's stopping estimate: for u_k = (1 - r^k) d the remaining travel after the
+    change c_k is c_k r / (1 - r) = r^k d, exactly; a model that stood still (the plate still
+    short of the skin) and then moves is not contracting (inf), without a floating-point warning;
+    one at rest reports its round-off-sized change."""
+    import warnings
+
+    import warp as wp
+
+    from BreastBiomechLib.solver.tled import DistanceToRest
+
+    wp.init()
+    n_nodes, d_mm, r = 5, 10.0, 0.6
+    monitor = DistanceToRest(wp.zeros(3 * n_nodes, dtype=wp.vec3, device="cpu"), 3)
+    estimates = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for k in range(6):
+            u = np.zeros((3, n_nodes, 3))
+            u[0, :, 0] = (1.0 - r ** k) * d_mm * 1e-3  # approaching d geometrically (m)
+            u[1, :, 2] = 0.0 if k < 4 else 2e-3 * (k - 3)  # still, then moving
+            estimates.append(monitor.update(wp.array(u.reshape(-1, 3), dtype=wp.vec3, device="cpu")))
+    assert estimates[0] is None and estimates[1] is None
+    for k in range(2, 6):
+        assert estimates[k][0] == pytest.approx(r ** k * d_mm, rel=1e-4)
+        assert estimates[k][2] == 0.0  # at rest all along
+    assert estimates[4][1] == np.inf and estimates[5][1] == np.inf

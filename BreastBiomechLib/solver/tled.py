@@ -55,8 +55,11 @@ class DistanceToRest:
             wp.launch(k.largest_change, u.shape[0], [u, self._sample, self._n_nodes, self._largest])
             change = self._largest.numpy().astype(np.float64) / MM
             if self._change is not None:
-                rate = change / np.maximum(self._change, 1e-300)
-                remaining = np.where(rate < 1.0, change * rate / np.maximum(1.0 - rate, 1e-12), np.inf)
+                # a model that stood still at the previous sample is not contracting (rate inf)
+                rate = np.divide(change, self._change, out=np.full_like(change, np.inf), where=self._change > 0)
+                contracting = rate < 1.0
+                remaining = np.full_like(change, np.inf)
+                remaining[contracting] = change[contracting] * rate[contracting] / (1.0 - rate[contracting])
                 remaining = np.where(change <= ROUND_OFF_MM, change, remaining)  # at rest: nothing left to contract
             self._change = change
         wp.copy(self._sample, u)
