@@ -84,8 +84,9 @@ def test_markdown_tables():
     assert "| case10 | iso-hetero | hybrid | 1.5000 | 40 (1) | 12 | budget |" in text
     assert "Solved on" not in text  # rows from before devices were recorded claim none
     rows[0].device = rows[1].device = "GPU A"
-    assert "Solved on: GPU A (2 fits); device not recorded (2 fits). " in study_markdown(
-        rows, StudySettings(models=("iso-hetero", "iso-homo")), {"date": "2026-11-23"})
+    text = study_markdown(rows, StudySettings(models=("iso-hetero", "iso-homo")), {"date": "2026-11-23"})
+    assert "Solved on: GPU A (2 fits); device not recorded (2 fits). " in text
+    assert "Fits: hybrid, cmaes;" in text  # the optimisers of the rows, also those another run fitted
 
 
 def test_report_keeps_the_prose_around_the_tables(tmp_path):

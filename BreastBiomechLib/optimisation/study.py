@@ -268,9 +268,10 @@ def study_markdown(rows: list[StudyFit], settings: StudySettings, provenance: di
     best = best_fits(rows)
     cases = sorted({r.case for r in rows}, key=_natural)
     models = [m for m in ("aniso-hetero", "aniso-homo", "iso-hetero", "iso-homo") if any(k[1] == m for k in best)]
+    optimisers = [o for o in OPTIMISERS if any(r.optimiser == o for r in rows)]  # also other runs' fits
     lines = ["| " + " | ".join(f"{k}: {v}" for k, v in provenance.items()) + " |",
              "|" + "---|" * len(provenance), "",
-             f"Fits: {', '.join(settings.optimisers)}; budgets (forward solves) "
+             f"Fits: {', '.join(optimisers)}; budgets (forward solves) "
              + ", ".join(f"{m} {settings.budget(m)}" for m in models)
              + f"; fitting mesh {settings.edge_mm:g} mm; objective {settings.objective} ({settings.bins} bins); "
              f"fibre (LPS) {list(settings.fibre)}; seed {settings.seed}. " + _devices(rows)
