@@ -758,7 +758,8 @@ def _bench_optimise(args) -> dict:
     problem = FittingProblem(space, case.mesh, case.undeformed, measured, case.planes, relaxation=relaxation,
                              device=args.device)
     started = time.perf_counter()
-    result = optimise(problem, args.optimiser, budget=args.budget, seed=args.seed, population=args.population)
+    result = optimise(problem, args.optimiser, budget=args.budget, seed=args.seed, out_dir=args.out,
+                      population=args.population)
     seconds = time.perf_counter() - started
     truth = problem.evaluate(space.unit(BENCH_TRUTH))[0]
     errors = {key: round(abs(value / BENCH_TRUTH[key] - 1.0), 4) for key, value in result.best.values.items()}
@@ -1022,6 +1023,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--budget", type=int, default=500, help="optimise: forward solves")
     p.add_argument("--population", type=int, default=None, help="optimise: CMA-ES population (batch size)")
     p.add_argument("--tolerance-mm", type=float, default=0.01, help="optimise: forward solves' relaxation tolerance")
+    p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
+                                 "parameters, objective and status; result.json)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
     return parser

@@ -205,3 +205,27 @@ def test_the_demo_replaces_its_earlier_fit_and_nothing_else(tmp_path, capsys):
         clear_earlier_fit(other)
     assert (other / "notes.txt").read_text() == "keep"
 
+
+
+def test_bench_optimise_figures_agree_with_its_log(tmp_path, capsys):
+    """`bench optimise --json --out DIR`: one JSON line whose counts and best NMI are those of the
+    evaluation log it keeps; the truth reproduces its own measured image (NMI 2); a second run
+    into the same folder is refused, not mixed into the first."""
+    import json
+
+    from BreastBiomechLib.cli import main
+
+    command = ["bench", "optimise", "--device", "cpu", "--radii", "40", "35", "40", "--element-mm", "8",
+               "--voxel-mm", "3", "3", "3", "--budget", "4", "--population", "4", "--out", str(tmp_path / "fit"),
+               "--json"]
+    assert main(command) == 0
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    log = [json.loads(line) for line in (tmp_path / "fit" / "evaluations.jsonl").read_text().splitlines()]
+    assert figures["evaluations"] == len(log) == 4
+    assert figures["failed"] == sum(e["status"] != "completed" for e in log)
+    assert figures["best_nmi"] == pytest.approx(max(e["nmi"] for e in log if e["status"] == "completed"), abs=1e-5)
+    assert figures["truth_nmi"] == pytest.approx(2.0, abs=1e-4)
+    after = list(figures["best_nmi_after"].values())
+    assert after == sorted(after) and after[-1] == figures["best_nmi"]
+    assert main(command) == 2
+    assert "resume" in capsys.readouterr().err
