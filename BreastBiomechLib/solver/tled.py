@@ -57,10 +57,11 @@ class DistanceToRest:
             if self._change is not None:
                 # a model that stood still at the previous sample is not contracting (rate inf)
                 rate = np.divide(change, self._change, out=np.full_like(change, np.inf), where=self._change > 0)
-                contracting = rate < 1.0
                 remaining = np.full_like(change, np.inf)
+                contracting = rate < 1.0
                 remaining[contracting] = change[contracting] * rate[contracting] / (1.0 - rate[contracting])
-                remaining = np.where(change <= ROUND_OFF_MM, change, remaining)  # at rest: nothing left to contract
+                at_rest = change <= ROUND_OFF_MM  # nothing left to contract
+                remaining[at_rest] = change[at_rest]
             self._change = change
         wp.copy(self._sample, u)
         self._samples += 1
