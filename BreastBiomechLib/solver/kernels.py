@@ -225,22 +225,43 @@ def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), 
     low[i] = set_component(low[i], m, wp.vec3(0.0))
 
 
+@wp.func
+def clipped(v: wp.vec3, limit: float) -> wp.vec3:
+    """v shortened to length ``limit`` where it is longer."""
+    length = wp.length(v)
+    if length > limit and length > 0.0:
+        return v * (limit / length)
+    return v
+
+
 @wp.kernel
 def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                   x0: wp.array(dtype=wp.vec3), slaves: wp.array(dtype=int),
                   p: int, plate_point: wp.array(dtype=wp.vec3),
                   plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
                   edge_direction: wp.array(dtype=wp.vec3), edge_shape: wp.array(dtype=wp.vec2),
-                  forces: wp.array(dtype=wp.vec3), n_nodes: int, n_slaves: int, n_plates: int,
+                  friction: wp.array(dtype=float), anchor: wp.array(dtype=wp.vec3), touching: wp.array(dtype=int),
+                  forces: wp.array(dtype=wp.vec3), body_force: wp.array(dtype=wp.vec3),
+                  n_nodes: int, n_slaves: int, n_plates: int,
                   dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
-    """Kinematic frictionless contact with rigid plates: a slave node behind its plate is moved
-    back onto its surface along the surface normal (free to slide; its increment loses the same
-    normal part). A plate's flat face ends ``edge_shape[p][0]`` (m) along ``edge_direction[p]``
-    from its point, in a convex rounded edge of radius ``edge_shape[p][1]`` (m); beyond it the
-    plate has ended (an unbounded plate has a huge distance). The plate force is the sum of the
-    internal forces of the nodes in contact along their contact normals: the force the plate
-    applies to the tissue (N). One launch per plate ``p``."""
+    """Kinematic contact with rigid plate ``p`` (one launch per plate; its pose per model b at
+    ``b * n_plates + p``): a slave node behind the plate is moved back onto its surface along the
+    surface normal by the depth d it went in. A plate's flat face ends ``edge_shape[q][0]`` (m)
+    along ``edge_direction[q]`` from its point, in a convex rounded edge of radius
+    ``edge_shape[q][1]`` (m); beyond it the plate has ended (an unbounded plate has a huge distance).
+
+    Coulomb friction (``friction[q]`` = mu > 0), by return mapping: a node's position on the plate
+    (relative to the moving plate, ``anchor``, per node and model) is kept from its first contact
+    (``touching``); each step it is pulled back tangentially to that point (stick) unless the pull
+    t exceeds mu d, when it moves by mu d towards it and the anchor follows (slip). A kinematic
+    correction c in one step stands for the force m c (1 + a dt / 2) / dt^2, the same factor for
+    the normal and the tangential part, so |t| <= mu d is |f_t| <= mu f_n whatever the (scaled)
+    mass and damping. mu = 0 leaves the frictionless contact unchanged.
+
+    The plate force is the contact force on the nodes in contact, internal minus external
+    (gravity) force: its normal part, and with friction its tangential part up to mu times the
+    normal part (N, the force the plate applies to the tissue)."""
     tid = wp.tid()
     b = tid // n_slaves
     if inverted[4 * b] != 0:
@@ -248,13 +269,14 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     k = tid - b * n_slaves
     node = slaves[k]
     i = b * n_nodes + node
+    q = b * n_plates + p
     s = load_factor(float(step[0] + 1) * dt, t_total[b], load_shape)
-    rel = x0[node] + u[i] - (plate_point[p] + s * plate_motion[b * n_plates + p])
-    n = plate_normal[p]
+    rel = x0[node] + u[i] - (plate_point[q] + s * plate_motion[q])
+    n = plate_normal[q]
     gap = wp.dot(rel, n)
-    e = edge_direction[p]
-    past = wp.dot(rel, e) - edge_shape[p][0]
-    radius = edge_shape[p][1]
+    e = edge_direction[q]
+    past = wp.dot(rel, e) - edge_shape[q][0]
+    radius = edge_shape[q][1]
     normal = n
     depth = float(0.0)  # how far the node lies inside the plate, along ``normal``
     if past <= 0.0:
@@ -265,11 +287,31 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
         if distance > 0.0:
             normal = v / distance
             depth = radius - distance
+    mu = friction[q]
     if depth > 0.0:
-        u[i] = u[i] + depth * normal
-        du[i] = du[i] + depth * normal
-        low[i] = low[i] - wp.dot(low[i], normal) * normal
-        wp.atomic_add(plate_force, b * n_plates + p, wp.dot(forces[i], normal) * normal)
+        correction = depth * normal
+        contact = forces[i] - s * body_force[i]
+        normal_force = wp.dot(contact, normal)
+        if mu > 0.0:
+            on_plate = rel + correction
+            if touching[tid] == 0:  # first contact: stick where it touched
+                touching[tid] = 1
+                anchor[tid] = on_plate
+            else:
+                pull = anchor[tid] - on_plate
+                pull = clipped(pull - wp.dot(pull, normal) * normal, mu * depth)
+                anchor[tid] = on_plate + pull  # unchanged in stick, the new position in slip
+                correction = correction + pull
+            low[i] = wp.vec3(0.0)
+            tangential = clipped(contact - normal_force * normal, mu * wp.max(normal_force, 0.0))
+            wp.atomic_add(plate_force, q, normal_force * normal + tangential)
+        else:
+            low[i] = low[i] - wp.dot(low[i], normal) * normal
+            wp.atomic_add(plate_force, q, normal_force * normal)
+        u[i] = u[i] + correction
+        du[i] = du[i] + correction
+    elif mu > 0.0:
+        touching[tid] = 0
 
 
 @wp.kernel

@@ -48,13 +48,16 @@ class PlateEdge:
 
 @dataclass
 class Plate:
-    """A rigid planar plate in frictionless contact.
+    """A rigid planar plate in contact with the tissue, frictionless or with Coulomb friction.
 
     ``point`` (mm) lies on the plate at t = 0 and ``normal`` (unit) points towards the tissue:
     slave nodes are kept on the side ``(x - point) . normal >= 0``. The plate translates by
     ``displacement`` (mm) over the loading with the load curve. ``slave_nodes`` are the node ids
     that may touch it (e.g. the skin surface nodes). ``edge``: where the plate ends, with a
-    rounded edge (:class:`PlateEdge`); None: the plate is unbounded."""
+    rounded edge (:class:`PlateEdge`); None: the plate is unbounded. ``friction``: the Coulomb
+    coefficient mu (>= 0; 0: frictionless; skin on plastic is about 0.2-1, dry skin ~0.5): a
+    contact node sticks to the plate while the tangential force it needs is within mu times its
+    normal force, and slips otherwise (:func:`BreastBiomechLib.solver.kernels.plate_contact`)."""
 
     point: np.ndarray
     normal: np.ndarray
@@ -62,15 +65,24 @@ class Plate:
     slave_nodes: np.ndarray
     name: str = "plate"
     edge: PlateEdge | None = None
+    friction: float = 0.0
 
     def __post_init__(self) -> None:
         self.point = np.asarray(self.point, float).reshape(3)
         normal = np.asarray(self.normal, float).reshape(3)
         norm = np.linalg.norm(normal)
+        if not np.all(np.isfinite(self.point)) or not np.all(np.isfinite(normal)):
+            raise ValueError(f"plate {self.name!r}: its point and normal must be finite numbers (mm)")
         if norm == 0:
             raise ValueError(f"plate {self.name!r}: the normal must not be zero")
         self.normal = normal / norm
         self.displacement = np.asarray(self.displacement, float).reshape(3)
+        if not np.all(np.isfinite(self.displacement)):
+            raise ValueError(f"plate {self.name!r}: its displacement must be finite (mm)")
+        self.friction = float(self.friction)
+        if not (np.isfinite(self.friction) and self.friction >= 0):
+            raise ValueError(f"plate {self.name!r}: the friction coefficient must be a finite number >= 0 "
+                             f"(0: frictionless; skin on plastic is about 0.2-1), not {self.friction}")
         self.slave_nodes = np.unique(np.asarray(self.slave_nodes, dtype=np.int64).ravel())
         if self.edge is not None and abs(self.edge.direction @ self.normal) > 1e-6:
             raise ValueError(f"plate {self.name!r}: its edge direction must lie in the plate's plane "

@@ -182,3 +182,69 @@ def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slav
     for plate in plates:
         plate.slave_nodes = between
     return plates
+
+
+MAX_TILT_DEG = 10.0  # paddles tilt 0.04-0.7 deg; larger is a wrong sign or unit, not a pose
+
+
+def tilt_axes(plate: Plate) -> tuple[np.ndarray, np.ndarray]:
+    """The two in-plane axes (unit, LPS) a plate's tilt angles turn it about: the first along its
+    edge direction (towards where its flat face ends, e.g. the chest) or, for a plate without an
+    edge, the in-plane part of LPS +y (posterior; +z, superior, for a plate facing y); the second
+    is normal x first. With a medio-lateral plate ending at the chest the first angle tilts it
+    superior-inferiorly, the second anterior-posteriorly (the nipple end closing more or less)."""
+    if plate.edge is not None:
+        first = plate.edge.direction
+    else:
+        axis = np.array([0.0, 1.0, 0.0]) if abs(plate.normal[1]) < np.sqrt(0.5) else np.array([0.0, 0.0, 1.0])
+        first = axis - (axis @ plate.normal) * plate.normal
+        first = first / np.linalg.norm(first)
+    return first, np.cross(plate.normal, first)
+
+
+def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Right-handed rotation matrix about the unit ``axis``."""
+    x, y, z = axis
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
+
+
+def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_mm: float = 0.0) -> Plate:
+    """``plate`` with its final pose changed: turned by ``tilt_deg`` (two angles, degrees, about
+    :func:`tilt_axes`, right-handed) about its final point (``point + displacement``) and moved
+    ``offset_mm`` along its new normal (> 0: further into the tissue). It starts where it just
+    touches the first of its contact nodes (``slave_nodes`` of the mesh nodes ``nodes_mm``, LPS
+    mm) and travels along its new normal to the final pose (plus the turned in-plane part of
+    its old travel, if any). Edge, friction, name and contact nodes are kept (the edge turned with
+    the plate). The pose a fit or a hidden-effect phantom gives a plate: paddles tilt by
+    0.04-0.7 degrees."""
+    tilt = np.asarray(tilt_deg, float).reshape(-1)
+    if tilt.shape != (2,) or not np.all(np.isfinite(tilt)) or not np.isfinite(offset_mm):
+        raise ValueError(f"plate {plate.name!r}: the tilt is two finite angles (degrees) and the offset a finite "
+                         f"distance (mm), not {tilt_deg!r} and {offset_mm!r}")
+    if np.any(np.abs(tilt) > MAX_TILT_DEG):
+        raise ValueError(f"plate {plate.name!r}: a tilt of {np.abs(tilt).max():g} degrees is more than "
+                         f"{MAX_TILT_DEG:g}; paddles tilt by under a degree - check the unit (degrees) and sign")
+    first, second = tilt_axes(plate)
+    turn = _rotation(second, np.radians(tilt[1])) @ _rotation(first, np.radians(tilt[0]))
+    normal = turn @ plate.normal
+    along = plate.displacement @ plate.normal
+    in_plane = turn @ (plate.displacement - along * plate.normal)
+    final = plate.point + plate.displacement + offset_mm * normal
+    edge = None
+    if plate.edge is not None:
+        from BreastBiomechLib.solver.model import PlateEdge
+
+        edge = PlateEdge(turn @ plate.edge.direction, plate.edge.distance, plate.edge.radius)
+    contacts = np.asarray(nodes_mm, float)[plate.slave_nodes]
+    at_end = Plate(final - in_plane, normal, np.zeros(3), [], plate.name, edge, plate.friction)
+    gaps = at_end.gaps(contacts)
+    gaps = gaps[np.isfinite(gaps)]
+    if len(gaps) == 0:
+        raise ValueError(f"plate {plate.name!r}: none of its contact nodes is within its reach")
+    travel = -float(gaps.min())
+    if travel < 0:
+        raise ValueError(f"plate {plate.name!r}: in that pose it ends {-travel:.2f} mm short of the tissue and would "
+                         "never touch it; lower the offset or check the tilt")
+    return Plate(final - in_plane - travel * normal, normal, travel * normal + in_plane, plate.slave_nodes,
+                 plate.name, edge, plate.friction)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -21,12 +21,13 @@ import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.materials import ElementMaterials
-from BreastBiomechLib.solver.model import Model
+from BreastBiomechLib.solver.model import Model, Plate
 from BreastBiomechLib.solver.stability import StableStepMonitor
 
 MM = 1e-3  # metres per millimetre
 ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
+FRICTION_WAVE_CROSSINGS = 6.0  # relaxation with friction loads over this many shear-wave crossings
 
 
 class DistanceToRest:
@@ -91,13 +92,23 @@ class DynamicRelaxation:
     max_iterations: int = 50_000
     update_every: int = 200
 
-    def load_iterations_for(self, travel_mm: float, wave_speed_ratio: float, length_m: float, safety: float) -> int:
+    def load_iterations_for(self, travel_mm: float, wave_speed_ratio: float, length_m: float, safety: float,
+                            friction_extent_m: float = 0.0) -> int:
         """Iterations to apply a load whose prescribed boundaries move up to ``travel_mm``: at
         least ``load_iterations``, and enough that the fastest motion (the 3-4-5 ramp peaks at
         1.875x its mean speed) stays below a third of the slowest shear wave, which crosses an
-        element of altitude ``length_m`` in (c_d / c_s) / safety steps under mass scaling."""
+        element of altitude ``length_m`` in (c_d / c_s) / safety steps under mass scaling.
+
+        With plate friction (``friction_extent_m`` > 0, the model's largest extent) the answer
+        depends on the path, so the load must follow the plates' monotone path quasi-statically
+        as physical time does: it lasts at least :data:`FRICTION_WAVE_CROSSINGS` times the time a
+        shear wave takes to cross the model, longer than its slowest modes' periods, so contact
+        nodes do not overshoot and stick where a slow load would not have put them (a 10 mm TetGen
+        breast at mu = 0.3 loaded over 300 iterations ended 0.35 mm from the physical-time
+        solution; over 3, 4, 6 and 10 crossings 0.084, 0.036, 0.016 and 0.023 mm)."""
         needed = 3.0 * 1.875 * travel_mm * MM * wave_speed_ratio / (safety * length_m)
-        return max(self.load_iterations, int(math.ceil(needed)))
+        crossing = FRICTION_WAVE_CROSSINGS * friction_extent_m * wave_speed_ratio / (safety * length_m)
+        return max(self.load_iterations, int(math.ceil(needed)), int(math.ceil(crossing)))
 
     def __post_init__(self) -> None:
         if self.load_iterations < 2 or self.max_iterations <= self.load_iterations:
@@ -110,7 +121,8 @@ class DynamicRelaxation:
 class Solution:
     """Result of one solve. Displacements in mm (LPS), forces in N, energies in J, times in s.
 
-    ``plate_forces[p]`` is the force plate p applies to the tissue; ``history`` holds sampled
+    ``plate_forces[p]`` is the force plate p applies to the tissue (its normal and tangential -
+    friction - parts: ``plate_normal_forces``, ``plate_tangential_forces``); ``history`` holds sampled
     ``time``, ``kinetic``, ``internal`` (energies), ``plate_forces`` (samples, P, 3) and
     ``stable_time_step`` (the power-iteration bound for the deformed model, see
     :mod:`BreastBiomechLib.solver.stability`). With visco materials ``internal`` is the stored
@@ -127,6 +139,17 @@ class Solution:
     history: dict = field(default_factory=dict)
     estimated_error_mm: float = float("nan")  # dynamic relaxation: distance to the static solution
     stable_time_step: float = float("inf")  # last power-iteration estimate for the deformed model (s)
+    plate_normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (P, 3) towards the tissue
+
+    @property
+    def plate_normal_forces(self) -> np.ndarray:
+        """(P,) the normal part of each plate's force (N, > 0 pressing on the tissue)."""
+        return np.einsum("pi,pi->p", self.plate_forces, self.plate_normals)
+
+    @property
+    def plate_tangential_forces(self) -> np.ndarray:
+        """(P, 3) the tangential part of each plate's force (N, LPS): friction (zero without)."""
+        return self.plate_forces - self.plate_normal_forces[:, None] * self.plate_normals
 
     @property
     def ok(self) -> bool:
@@ -202,6 +225,36 @@ def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarr
     return slots, np.bincount(slots.ravel(), weights=np.repeat(vol, 4), minlength=len(unique_pairs))
 
 
+def plate_sets_of_batch(model: Model, n_models: int, plate_displacements: list | None = None,
+                        plates: list[list[Plate]] | None = None) -> list[list[Plate]]:
+    """The plates of each of the ``n_models`` models of a batch: the model's own, with
+    ``plate_displacements[b]`` (P, 3) mm as model b's travel, or the given ``plates[b]`` (which
+    must be the model's plates in number, order and contact nodes: the contact launches share
+    the node lists)."""
+    own = model.loading.plates
+    if plates is not None and plate_displacements is not None:
+        raise ValueError("give either plate_displacements or plates per model, not both")
+    if plates is None:
+        if plate_displacements is None:
+            return [own] * n_models
+        if len(plate_displacements) != n_models:
+            raise ValueError("give one plate displacement set per material set")
+        plates = []
+        for motion in plate_displacements:
+            motion = np.asarray(motion, float).reshape(len(own), 3)
+            plates.append([replace(p, displacement=d) for p, d in zip(own, motion)])
+        return plates
+    if len(plates) != n_models:
+        raise ValueError(f"give one plate set per material set ({n_models}), not {len(plates)}")
+    for b, ps in enumerate(plates):
+        if len(ps) != len(own) or any(not np.array_equal(p.slave_nodes, o.slave_nodes) for p, o in zip(ps, own)):
+            raise ValueError(f"plate set {b} must hold the model's {len(own)} plates with their contact nodes "
+                             "(only pose, travel, edge and friction may differ between the models of a batch)")
+        for p in ps:
+            p.check_clear_of(model.mesh.nodes[p.slave_nodes])
+    return plates
+
+
 def _device(device):
     return wp.get_device(device) if device is not None else wp.get_device()
 
@@ -268,9 +321,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 initial_displacement: np.ndarray | None = None,
                 relaxation: DynamicRelaxation | None = None,
                 progress: Callable[[float], bool | None] | None = None,
-                steady_state_mm: float | None = None, mass_scaling: bool = False) -> list[Solution]:
+                steady_state_mm: float | None = None, mass_scaling: bool = False,
+                plates: list[list[Plate]] | None = None) -> list[Solution]:
     """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
-    ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm. All variants
+    ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm, or whole
+    plate sets ``plates[b]`` (pose, travel, edge and friction per variant; the same P plates in
+    the same order with the same contact nodes as the model's, which they replace). All variants
     use the smallest critical step of the batch, so results equal separate solves at that step.
     ``initial_displacement`` (N, 3) mm starts every variant from rest in that configuration.
     Every ``sample_every`` steps the energies, plate forces and the stable step are sampled and
@@ -307,14 +363,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     for mat in materials:
         if len(mat.mu) != M:
             raise ValueError(f"a material set has {len(mat.mu)} elements, the mesh has {M}")
-    plates = model.loading.plates
-    P = len(plates)
     if relaxation is not None:
         materials = [mat.long_term() for mat in materials]
-    if plate_displacements is None:
-        plate_displacements = [np.array([p.displacement for p in plates]).reshape(P, 3)] * B
-    if len(plate_displacements) != B:
-        raise ValueError("give one plate displacement set per material set")
+    plate_sets = plate_sets_of_batch(model, B, plate_displacements, plates)
+    P = len(model.loading.plates)
+    plate_displacements = [np.array([p.displacement for p in ps]).reshape(P, 3) for ps in plate_sets]
 
     nodes = model.mesh.nodes * MM
     tets = model.mesh.tets.astype(np.int32)
@@ -336,11 +389,13 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         n_steps = int(math.ceil((model.loading.total_time + model.loading.settle_time) / dt))
     else:  # fictitious time: each model loads as slowly as its own materials and travel need
         constrained = max([np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
+        extent = float(np.max(np.ptp(nodes, axis=0)))
         load_iterations = np.array([
             relaxation.load_iterations_for(max(np.abs(np.asarray(d, float)).max(initial=0.0), constrained),
                                            float(np.max(np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.mu))),
-                                           float(np.median(length)), model.safety)
-            for d, m in zip(plate_displacements, materials)])
+                                           float(np.median(length)), model.safety,
+                                           extent if any(p.friction > 0 for p in ps) else 0.0)
+            for d, m, ps in zip(plate_displacements, materials, plate_sets)])
         totals = load_iterations * dt
         n_steps = max(relaxation.max_iterations, 2 * int(load_iterations.max()))
         sample_every = relaxation.update_every
@@ -408,16 +463,21 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_cvals = arr(np.tile(c_vals, (B, 1)), wp.vec3)
 
         # one contact launch per plate: a node may be a slave of several plates, and the kernel
-        # writes its displacement (threads of one launch must not touch the same node)
-        d_slaves = [arr(p.slave_nodes, int) for p in plates]
-        d_ppoint = arr(np.array([p.point for p in plates]).reshape(-1, 3) * MM, wp.vec3)
-        d_pnormal = arr(np.array([p.normal for p in plates]).reshape(-1, 3), wp.vec3)
-        d_edge_direction = arr(np.array([p.edge.direction if p.edge else np.zeros(3) for p in plates]).reshape(-1, 3),
-                               wp.vec3)
+        # writes its displacement (threads of one launch must not touch the same node); the
+        # plates' poses, travel and friction per model (model b's plate p at b * P + p)
+        d_slaves = [arr(p.slave_nodes, int) for p in model.loading.plates]
+        every_plate = [p for ps in plate_sets for p in ps]
+        d_ppoint = arr(np.array([p.point for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
+        d_pnormal = arr(np.array([p.normal for p in every_plate]).reshape(-1, 3), wp.vec3)
+        d_edge_direction = arr(np.array([p.edge.direction if p.edge else np.zeros(3)
+                                         for p in every_plate]).reshape(-1, 3), wp.vec3)
         d_edge_shape = arr(np.array([(p.edge.distance * MM, p.edge.radius * MM) if p.edge else (UNBOUNDED_M, 1.0)
-                                     for p in plates]).reshape(-1, 2), wp.vec2)
-        d_pmotion = arr(np.concatenate([np.asarray(d, float).reshape(P, 3) for d in plate_displacements]) * MM,
-                        wp.vec3)
+                                     for p in every_plate]).reshape(-1, 2), wp.vec2)
+        d_pmotion = arr(np.array([p.displacement for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
+        d_friction = arr(np.array([p.friction for p in every_plate] or [0.0]), float)
+        # friction state per plate, contact node and model: where on the plate it sticks (m)
+        d_anchor = [wp.zeros(max(B * d_sl.shape[0], 1), dtype=wp.vec3) for d_sl in d_slaves]
+        d_touching = [wp.zeros(max(B * d_sl.shape[0], 1), dtype=int) for d_sl in d_slaves]
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
         every_model = arr(np.ones(B, np.int32), int)
@@ -452,7 +512,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 if d_sl.shape[0]:
                     wp.launch(k.plate_contact, B * d_sl.shape[0], [u, low, du, d_x0, d_sl, p, d_ppoint, d_pnormal,
                                                                     d_pmotion, d_edge_direction, d_edge_shape,
-                                                                    forces, N, d_sl.shape[0], P,
+                                                                    d_friction, d_anchor[p], d_touching[p],
+                                                                    forces, d_body_force, N, d_sl.shape[0], P,
                                                                     float(dt), step, d_totals, load_shape,
                                                                     plate_force, inverted])
             wp.launch(k.finish_step, B * N, [forces, step, inverted])
@@ -472,6 +533,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             pressure.zero_()
             inverted.zero_()
             visco_state.zero_()
+            for state in d_touching:
+                state.zero_()
             with wp.ScopedCapture() as capture:
                 two_steps()
             graph = capture.graph
@@ -664,5 +727,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             displacement=displacement[b], plate_forces=plate_forces,
             status=statuses[b], message=messages[b], steps=steps[b], time_step=dt, wall_time=wall,
             ke_ie_at_end_of_loading=ke_ie_end_of_loading, history=hist,
-            estimated_error_mm=float(estimated_error[b]), stable_time_step=float(stable_step[b])))
+            estimated_error_mm=float(estimated_error[b]), stable_time_step=float(stable_step[b]),
+            plate_normals=np.array([p.normal for p in plate_sets[b]]).reshape(P, 3)))
     return solutions
