@@ -409,6 +409,10 @@ def cmd_simulate(args) -> int:
         "estimated_error_mm": solution.estimated_error_mm, "stable_time_step_s": solution.stable_time_step,
         "max_displacement_mm": float(np.linalg.norm(solution.displacement, axis=1).max()),
         "plates": {p.name: solution.plate_forces[i].tolist() for i, p in enumerate(model.loading.plates)},
+        "plate_normal_forces": {p.name: float(solution.plate_normal_forces[i])
+                                for i, p in enumerate(model.loading.plates)},
+        "plate_tangential_forces": {p.name: solution.plate_tangential_forces[i].tolist()
+                                    for i, p in enumerate(model.loading.plates)},
         "history": {key: np.asarray(value).tolist() for key, value in solution.history.items()},
         "units": "mm, N, J, s (plate forces: force of the plate on the tissue, LPS)",
     }
@@ -417,7 +421,8 @@ def cmd_simulate(args) -> int:
     print(f"  {solution.steps} steps in {solution.wall_time:.2f} s; max displacement "
           f"{summary['max_displacement_mm']:.2f} mm")
     for name, force in summary["plates"].items():
-        print(f"  plate {name}: force {np.linalg.norm(force):.3f} N")
+        print(f"  plate {name}: force {np.linalg.norm(force):.3f} N (normal {summary['plate_normal_forces'][name]:.3f} N, "
+              f"tangential {np.linalg.norm(summary['plate_tangential_forces'][name]):.3f} N)")
     print(f"  written: {mesh_path} (point array 'displacement', mm) and {out / 'solution.json'}")
     return 0 if solution.ok else 1
 

@@ -87,6 +87,55 @@ def _plate_edge(spec, what: str, path: Path) -> PlateEdge | None:
         raise ValueError(f"{path}: {what}: {error}") from None
 
 
+PLATE_FIELDS = ("name", "point", "normal", "displacement", "slaves", "edge", "friction", "tilt_deg", "offset_mm")
+
+
+def _plate(mesh: TetMesh, spec: dict, index: int, path: Path) -> Plate:
+    """A case's plate: ``point`` and ``normal`` (towards the tissue) at the start, ``displacement``
+    (mm), contact nodes ``slaves``, optional rounded ``edge``, Coulomb ``friction`` (>= 0), and a
+    pose change of its final position (:func:`~BreastBiomechLib.solver.placement.posed_plate`):
+    ``tilt_deg`` (two angles about its tilt axes, at most 10 degrees) and ``offset_mm`` (along its
+    normal, > 0 further in); the posed plate starts just touching its contact nodes."""
+    from BreastBiomechLib.solver.placement import posed_plate
+
+    name = spec.get("name", f"plate{index}")
+    what = f"plate {name}"
+    unknown = set(spec) - set(PLATE_FIELDS)
+    if unknown:
+        raise ValueError(f"{path}: {what} has unknown fields {sorted(unknown)}; use {list(PLATE_FIELDS)}")
+    missing = {"point", "normal"} - set(spec)
+    if missing:
+        raise ValueError(f"{path}: {what} needs {sorted(missing)} (LPS mm; the normal towards the tissue)")
+    slaves = _node_set(mesh, spec.get("slaves", "surface"), what, path)
+    edge = _plate_edge(spec.get("edge"), what, path)
+    try:
+        plate = Plate(_vector(spec["point"], f"{what}: point"), _vector(spec["normal"], f"{what}: normal"),
+                      _vector(spec.get("displacement", (0.0, 0.0, 0.0)), f"{what}: displacement"), slaves, name, edge,
+                      _number(spec.get("friction", 0.0), f"{what}: friction"))
+        if "tilt_deg" in spec or "offset_mm" in spec:
+            plate = posed_plate(plate, mesh.nodes, spec.get("tilt_deg", (0.0, 0.0)),
+                                _number(spec.get("offset_mm", 0.0), f"{what}: offset_mm"))
+    except (TypeError, ValueError) as error:  # the messages name the plate
+        raise ValueError(f"{path}: {error}") from None
+    return plate
+
+
+def _vector(value, field: str) -> np.ndarray:
+    try:
+        vector = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        vector = None
+    if vector is None or vector.shape != (3,):
+        raise ValueError(f"{field} must be three numbers (LPS mm), not {value!r}")
+    return vector
+
+
+def _number(value, field: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{field} must be a number, not {value!r}")
+    return float(value)
+
+
 def _material(values: dict, key: str, path: Path) -> Material:
     known = {"E", "nu", "eta", "fibre", "density", "prony"}
     unknown = set(values) - known
@@ -125,10 +174,7 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
         mask = np.array(_components(c.get("components", "xyz"), path))
         values = np.zeros(3) if c.get("displacement") is None else np.asarray(c["displacement"], float)
         constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1))))
-    plates = [Plate(p["point"], p["normal"], p.get("displacement", (0.0, 0.0, 0.0)),
-                    _node_set(mesh, p.get("slaves", "surface"), f"plate {p.get('name', i)}", path),
-                    p.get("name", f"plate{i}"), _plate_edge(p.get("edge"), f"plate {p.get('name', i)}", path))
-              for i, p in enumerate(data.get("plates", []))]
+    plates = [_plate(mesh, p, i, path) for i, p in enumerate(data.get("plates", []))]
     loading = Loading(constraints, plates, gravity=data.get("gravity", (0.0, 0.0, 0.0)),
                       total_time=float(data.get("total_time", 1.0)), load_shape=data.get("load_shape", "POLY345"),
                       settle_time=float(data.get("settle_time", 0.0)))

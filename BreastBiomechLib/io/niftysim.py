@@ -48,7 +48,13 @@ def _material_sets(mat: ElementMaterials) -> tuple[np.ndarray, np.ndarray]:
 def write_niftysim(path: str | Path, model: Model, drop_settling: bool = False) -> Path:
     """Write ``model`` as a NiftySim XML file (SI units); returns the path. NiftySim moves plates
     with POLY345 and has no settling phase: other load shapes are refused, and a model with
-    ``settle_time`` unless ``drop_settling``."""
+    ``settle_time`` unless ``drop_settling``. Its ``ContactPlate`` is frictionless: plates with
+    friction are refused (a plate's pose, tilted or not, is written as its corners; gravity as
+    a ``Gravity`` constraint)."""
+    rough = [f"{p.name} (mu {p.friction:g})" for p in model.loading.plates if p.friction > 0]
+    if rough:
+        raise ValueError(f"NiftySim's ContactPlate is frictionless, so plates {', '.join(rough)} cannot be written "
+                         "as they are; set their friction to 0 to export the frictionless model")
     if model.loading.plates and model.loading.load_shape != "POLY345":
         raise ValueError("NiftySim moves contact plates with POLY345 only; use that load shape to export")
     if model.loading.settle_time and not drop_settling:

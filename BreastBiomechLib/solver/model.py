@@ -147,6 +147,8 @@ class Loading:
 
     def __post_init__(self) -> None:
         self.gravity = np.asarray(self.gravity, float).reshape(3)
+        if not np.all(np.isfinite(self.gravity)):
+            raise ValueError(f"gravity must be three finite numbers (m/s^2, LPS), not {self.gravity.tolist()}")
         if self.total_time <= 0 or self.settle_time < 0:
             raise ValueError("total_time must be positive and settle_time >= 0 (s)")
         if self.load_shape not in LOAD_SHAPES:

@@ -195,6 +195,10 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
     ``initial_displacement`` (N, 3) mm instead starts Newton at full load from that
     configuration, e.g. to polish an explicit solution or to test whether it is an equilibrium;
     its nodes on a plate (within 1e-4 mm) start in the active set."""
+    rough = [plate.name for plate in model.loading.plates if plate.friction > 0]
+    if rough:
+        raise ValueError(f"the static reference solver has frictionless contact only; plates {rough} have friction: "
+                         "solve with dynamic relaxation or in physical time")
     edged = [plate.name for plate in model.loading.plates if plate.edge is not None]
     if edged:
         raise ValueError(f"the static reference solver handles flat unbounded plates only; plates {edged} have a "
@@ -233,7 +237,8 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
     def result(status: str, message: str) -> Solution:
         return Solution(u / MM, forces_on_tissue, status, message, iterations, float("nan"),
                         time.perf_counter() - started, float("nan"),
-                        {key: np.array(v) for key, v in history.items()}, last_correction / MM)
+                        {key: np.array(v) for key, v in history.items()}, last_correction / MM,
+                        plate_normals=np.array([p.normal for p in model.loading.plates]).reshape(-1, 3))
 
     while done < 1.0 - 1e-12:
         target = min(1.0, done + step)
