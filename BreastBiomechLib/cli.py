@@ -414,6 +414,7 @@ def cmd_simulate(args) -> int:
         "plate_tangential_forces": {p.name: solution.plate_tangential_forces[i].tolist()
                                     for i, p in enumerate(model.loading.plates)},
         "history": {key: np.asarray(value).tolist() for key, value in solution.history.items()},
+        "supports": list(model.loading.notes),
         "units": "mm, N, J, s (plate forces: force of the plate on the tissue, LPS)",
     }
     (out / "solution.json").write_text(json.dumps(summary, indent=1, allow_nan=True))
@@ -423,6 +424,8 @@ def cmd_simulate(args) -> int:
     for name, force in summary["plates"].items():
         print(f"  plate {name}: force {np.linalg.norm(force):.3f} N (normal {summary['plate_normal_forces'][name]:.3f} N, "
               f"tangential {np.linalg.norm(summary['plate_tangential_forces'][name]):.3f} N)")
+    for note in model.loading.notes:
+        print(f"  support: {note}")
     print(f"  written: {mesh_path} (point array 'displacement', mm) and {out / 'solution.json'}")
     return 0 if solution.ok else 1
 

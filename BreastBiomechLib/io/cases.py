@@ -120,13 +120,43 @@ def _plate(mesh: TetMesh, spec: dict, index: int, path: Path) -> Plate:
     return plate
 
 
-def _vector(value, field: str) -> np.ndarray:
+SUPPORT_FIELDS = ("nodes", "kind", "components", "normal_stiffness", "tangential_stiffness", "anchor")
+
+
+def _support(mesh: TetMesh, spec: dict, index: int, path: Path):
+    """A case's surface support (e.g. the chest wall): ``nodes`` (a node set), ``kind`` "fixed"
+    (in ``components``, default "y"), "sliding" or "elastic", ``normal_stiffness`` and
+    ``tangential_stiffness`` (Pa/mm, per area), ``anchor`` (default true: patches against the
+    rigid motion the support leaves free). See
+    :func:`~BreastBiomechLib.solver.supports.chest_wall_support`."""
+    from BreastBiomechLib.solver.supports import chest_wall_support
+
+    what = f"support {index}"
+    unknown = set(spec) - set(SUPPORT_FIELDS)
+    if unknown:
+        raise ValueError(f"{path}: {what} has unknown fields {sorted(unknown)}; use {list(SUPPORT_FIELDS)}")
+    if "nodes" not in spec:
+        raise ValueError(f"{path}: {what} needs its nodes (a node set such as \"chest_wall\")")
+    nodes = _node_set(mesh, spec["nodes"], what, path)
+    anchor = spec.get("anchor", True)
+    if not isinstance(anchor, bool):
+        raise ValueError(f"{path}: {what}: anchor must be true or false")
+    try:
+        return chest_wall_support(mesh, nodes, spec.get("kind", "fixed"), _components(spec.get("components", "y"), path),
+                                  _number(spec.get("normal_stiffness", 0.0), f"{what}: normal_stiffness"),
+                                  _number(spec.get("tangential_stiffness", 0.0), f"{what}: tangential_stiffness"),
+                                  anchor)
+    except ValueError as error:
+        raise ValueError(f"{path}: {what}: {error}") from None
+
+
+def _vector(value, field: str, unit: str = "LPS mm") -> np.ndarray:
     try:
         vector = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         vector = None
     if vector is None or vector.shape != (3,):
-        raise ValueError(f"{field} must be three numbers (LPS mm), not {value!r}")
+        raise ValueError(f"{field} must be three numbers ({unit}), not {value!r}")
     return vector
 
 
@@ -175,7 +205,14 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
         values = np.zeros(3) if c.get("displacement") is None else np.asarray(c["displacement"], float)
         constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1))))
     plates = [_plate(mesh, p, i, path) for i, p in enumerate(data.get("plates", []))]
-    loading = Loading(constraints, plates, gravity=data.get("gravity", (0.0, 0.0, 0.0)),
+    supports, notes = [], []
+    for i, spec in enumerate(data.get("supports", [])):
+        held, surface, note = _support(mesh, spec, i, path)
+        constraints += held
+        supports += surface
+        notes.append(note)
+    loading = Loading(constraints, plates, supports=supports, notes=notes,
+                      gravity=_vector(data.get("gravity", (0.0, 0.0, 0.0)), f"{path}: gravity", "m/s^2, LPS"),
                       total_time=float(data.get("total_time", 1.0)), load_shape=data.get("load_shape", "POLY345"),
                       settle_time=float(data.get("settle_time", 0.0)))
     model = Model(mesh, _element_materials(mesh, data.get("materials", {}), path), loading,

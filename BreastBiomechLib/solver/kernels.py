@@ -421,3 +421,40 @@ def zero_constrained(v: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), mas
     m = mask[tid - b * n_constrained]
     x = v[i]
     v[i] = wp.vec3(wp.where(m[0] > 0.0, 0.0, x[0]), wp.where(m[1] > 0.0, 0.0, x[1]), wp.where(m[2] > 0.0, 0.0, x[2]))
+
+
+@wp.kernel
+def support_springs(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), normals: wp.array(dtype=wp.vec3),
+                    stiffness: wp.array(dtype=wp.vec2), n_nodes: int, n_supported: int,
+                    models: wp.array(dtype=int), forces: wp.array(dtype=wp.vec3)):
+    """Springs of a surface support added to the internal forces: k_n (u.n) n + k_t (u - (u.n) n)
+    at each supported node, ``stiffness[k]`` = (k_n, k_t) in N/m (the stiffness per area times
+    the node's area), n its surface normal. Models flagged 0 in ``models`` are skipped."""
+    tid = wp.tid()
+    b = tid // n_supported
+    if models[b] == 0:
+        return
+    k = tid - b * n_supported
+    i = b * n_nodes + nodes[k]
+    n = normals[k]
+    along = wp.dot(u[i], n) * n
+    wp.atomic_add(forces, i, stiffness[k][0] * along + stiffness[k][1] * (u[i] - along))
+
+
+@wp.kernel
+def slide_on_surface(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
+                     nodes: wp.array(dtype=int), normals: wp.array(dtype=wp.vec3), n_nodes: int, n_supported: int,
+                     inverted: wp.array(dtype=int)):
+    """A sliding support: each supported node's displacement loses its part along the node's
+    surface normal (zero normal displacement, free along the surface); so do its increment and
+    its compensation term."""
+    tid = wp.tid()
+    b = tid // n_supported
+    if inverted[4 * b] != 0:
+        return
+    k = tid - b * n_supported
+    i = b * n_nodes + nodes[k]
+    n = normals[k]
+    u[i] = u[i] - wp.dot(u[i], n) * n
+    du[i] = du[i] - wp.dot(du[i], n) * n
+    low[i] = low[i] - wp.dot(low[i], n) * n

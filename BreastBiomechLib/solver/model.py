@@ -133,10 +133,56 @@ class Constraint:
         return cls(nodes, np.asarray(components, bool)[None, :].repeat(len(np.ravel(nodes)), axis=0))
 
 
+SUPPORT_MODES = ("sliding", "elastic")
+
+
+@dataclass
+class SurfaceSupport:
+    """Nodes supported against a surface (e.g. the chest wall) along their local normals
+    ``normals`` (K, 3, unit; the direction's sign does not matter), each standing for the surface
+    ``areas`` (K,) mm^2 around it. ``mode`` "sliding": zero normal displacement (kinematic,
+    bilateral) and free along the surface, or held there by ``tangential_stiffness``; "elastic":
+    springs of ``normal_stiffness`` (> 0) and ``tangential_stiffness`` across and along it. The
+    stiffnesses are per area, Pa/mm (the spring force on a node is the stiffness x its area x its
+    displacement's part; 1 kPa/mm holds 1 mm^2 with 1 mN per mm). Fixed supports are
+    constraints (:class:`Constraint`); :func:`BreastBiomechLib.solver.supports.chest_wall_support` makes
+    either from a node set."""
+
+    nodes: np.ndarray
+    normals: np.ndarray
+    areas: np.ndarray
+    mode: str = "sliding"
+    normal_stiffness: float = 0.0
+    tangential_stiffness: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.nodes = np.asarray(self.nodes, dtype=np.int64).ravel()
+        normals = np.asarray(self.normals, float).reshape(len(self.nodes), 3)
+        length = np.linalg.norm(normals, axis=1)
+        if len(self.nodes) and not np.all(length > 0):
+            raise ValueError("a surface support needs a non-zero normal at every node")
+        self.normals = normals / np.where(length > 0, length, 1.0)[:, None]
+        self.areas = np.asarray(self.areas, float).reshape(len(self.nodes))
+        if np.any(~np.isfinite(self.areas)) or np.any(self.areas < 0):
+            raise ValueError("a surface support's nodal areas must be finite and >= 0 (mm^2)")
+        if self.mode not in SUPPORT_MODES:
+            raise ValueError(f"support mode must be one of {SUPPORT_MODES} (or a fixed Constraint), not {self.mode!r}")
+        for name in ("normal_stiffness", "tangential_stiffness"):
+            value = float(getattr(self, name))
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"the support's {name} must be a finite number >= 0 (Pa/mm), not {value}")
+            setattr(self, name, value)
+        if self.mode == "elastic" and self.normal_stiffness == 0:
+            raise ValueError("an elastic support needs a normal stiffness > 0 (Pa/mm); with none it is sliding")
+        if self.mode == "sliding" and self.normal_stiffness:
+            raise ValueError("a sliding support has no normal stiffness (its normal displacement is zero); "
+                             "use mode 'elastic' for a spring across the surface")
+
+
 @dataclass
 class Loading:
-    """Constraints, plates and gravity (m/s^2), applied over ``total_time`` seconds with
-    ``load_shape``; the solve then continues for ``settle_time`` seconds at full load."""
+    """Constraints, plates, surface supports and gravity (m/s^2), applied over ``total_time``
+    seconds with ``load_shape``; the solve then continues for ``settle_time`` seconds at full load."""
 
     constraints: list[Constraint] = field(default_factory=list)
     plates: list[Plate] = field(default_factory=list)
@@ -144,6 +190,8 @@ class Loading:
     total_time: float = 1.0
     load_shape: str = "POLY345"
     settle_time: float = 0.0
+    supports: list[SurfaceSupport] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # how the supports hold the model, for reports
 
     def __post_init__(self) -> None:
         self.gravity = np.asarray(self.gravity, float).reshape(3)
@@ -182,6 +230,9 @@ class Model:
         for c in self.loading.constraints:
             if len(c.nodes) and (c.nodes.min() < 0 or c.nodes.max() >= n):
                 raise ValueError("a constraint refers to nodes outside the mesh")
+        for support in self.loading.supports:
+            if len(support.nodes) and (support.nodes.min() < 0 or support.nodes.max() >= n):
+                raise ValueError("a surface support refers to nodes outside the mesh")
         for p in self.loading.plates:
             if len(p.slave_nodes) and (p.slave_nodes.min() < 0 or p.slave_nodes.max() >= n):
                 raise ValueError(f"plate {p.name!r} refers to nodes outside the mesh")

@@ -56,3 +56,91 @@ def support_constraints(positions: np.ndarray, nodes, components=(False, True, F
                              "from turning; fix them in more directions")
         constraints.append(Constraint.fixed(patch(far), np.eye(3, dtype=bool)[across]))
     return constraints
+
+
+SUPPORT_KINDS = ("fixed", "sliding", "elastic")
+
+
+def surface_normals_and_areas(mesh, nodes) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``nodes``' (boundary node ids) unit outward surface normal and the surface area
+    it stands for (mm^2): a third of each boundary face whose three nodes are all in the set
+    (area-weighted normals of those faces; for a node at the set's rim with no such face, of
+    the boundary faces around it)."""
+    from BreastBiomechLib.mesh.tetmesh import boundary_faces
+
+    nodes = np.unique(np.asarray(nodes, dtype=np.int64).ravel())
+    faces, _ = boundary_faces(mesh.tets)
+    p = mesh.nodes[faces]
+    area_vectors = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    in_set = np.zeros(len(mesh.nodes), bool)
+    in_set[nodes] = True
+    inside = in_set[faces].all(axis=1)
+    normal_sum = np.zeros((len(mesh.nodes), 3))
+    area = np.zeros(len(mesh.nodes))
+    for corner in range(3):
+        np.add.at(normal_sum, faces[inside, corner], area_vectors[inside])
+        np.add.at(area, faces[inside, corner], np.linalg.norm(area_vectors[inside], axis=1) / 3.0)
+    rim = nodes[np.linalg.norm(normal_sum[nodes], axis=1) == 0]
+    if len(rim):
+        touching = np.isin(faces, rim).any(axis=1)
+        for corner in range(3):
+            np.add.at(normal_sum, faces[touching, corner], area_vectors[touching])
+    normals = normal_sum[nodes]
+    length = np.linalg.norm(normals, axis=1)
+    if np.any(length == 0):
+        bad = nodes[length == 0][:5]
+        raise ValueError(f"nodes {bad.tolist()} of the support lie on no boundary face; a surface support needs "
+                         "surface nodes (e.g. the chest_wall node set)")
+    return normals / length[:, None], area[nodes]
+
+
+def chest_wall_support(mesh, nodes, kind: str = "fixed", components=(False, True, False),
+                       normal_stiffness: float = 0.0, tangential_stiffness: float = 0.0,
+                       anchor: bool = True) -> tuple[list, list, str]:
+    """The chest wall's boundary condition, as (constraints, surface supports, a sentence saying
+    what holds the model). ``kind``:
+
+    - "fixed": the seed's and today's default, ``nodes`` fixed in ``components`` with the anchor
+      patches of :func:`support_constraints` against the rigid motions this leaves;
+    - "sliding": zero displacement along the local chest-surface normal, free along the surface
+      or held by ``tangential_stiffness`` (Pa/mm, per area);
+    - "elastic": springs of ``normal_stiffness`` (> 0) and ``tangential_stiffness`` (Pa/mm).
+
+    Along a surface with no tangential stiffness the model could still move as a rigid body
+    (slide and turn on the chest); with ``anchor`` the patches of :func:`support_constraints` are
+    held along it (the coordinate axes other than the one the wall faces) at the chest wall's
+    centre and in one of them at its far end, and the sentence says so. Without anchor and without tangential stiffness it is refused.
+    ``mesh`` (TetMesh, LPS mm); ``nodes`` the chest-wall node ids."""
+    from BreastBiomechLib.solver.model import SurfaceSupport
+
+    nodes = np.unique(np.asarray(nodes, dtype=np.int64).ravel())
+    if kind not in SUPPORT_KINDS:
+        raise ValueError(f"the chest-wall support is one of {SUPPORT_KINDS}, not {kind!r}")
+    if kind == "fixed":
+        constraints = support_constraints(mesh.nodes, nodes, components, anchor=anchor)
+        axes = "".join(a for a, c in zip("xyz", components) if c) or "none"
+        held = (f"; rigid motion stopped by {sum(len(c.nodes) for c in constraints[1:])} anchor nodes"
+                if len(constraints) > 1 else "")
+        return constraints, [], f"chest wall fixed in {axes} ({len(nodes)} nodes){held}"
+    normals, areas = surface_normals_and_areas(mesh, nodes)
+    support = SurfaceSupport(nodes, normals, areas, kind, normal_stiffness, tangential_stiffness)
+    springs = (f"springs {normal_stiffness:g} Pa/mm across, {tangential_stiffness:g} Pa/mm along" if kind == "elastic"
+               else f"sliding on its surface{f', held along it by {tangential_stiffness:g} Pa/mm' if tangential_stiffness else ''}")
+    sentence = f"chest wall {springs} ({len(nodes)} nodes, {areas.sum():.0f} mm^2)"
+    if tangential_stiffness > 0:
+        return [], [support], sentence + "; the tangential springs stop rigid motion"
+    if not anchor:
+        raise ValueError(f"a {kind} chest wall without tangential stiffness leaves the model free to slide and turn "
+                         "on it; give a tangential stiffness (Pa/mm) or keep the anchor patches")
+    mean_normal = normals.mean(axis=0)
+    across = np.eye(3, dtype=bool)[int(np.argmax(np.abs(mean_normal)))]  # the axis the wall faces
+    # the anchor patches only, held along the surface (across it the support holds them)
+    constraints = support_constraints(mesh.nodes, nodes, across, anchor=True)[1:]
+    constraints[0] = Constraint.fixed(constraints[0].nodes, ~across)
+    return constraints, [support], (f"{sentence}; rigid motion along it stopped by fixing "
+                                    f"{', '.join(f'{len(c.nodes)} nodes in {_axes(c.mask[0])}' for c in constraints)} "
+                                    "(the anchor patches at its centre and far end)")
+
+
+def _axes(mask) -> str:
+    return "".join(a for a, c in zip("xyz", mask) if c)

@@ -27,6 +27,7 @@ from BreastBiomechLib.solver.stability import StableStepMonitor
 MM = 1e-3  # metres per millimetre
 ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
+SPRING_PA_PER_MM_MM2_TO_N_PER_M = 1e-3  # (Pa/mm) x mm^2 = 1e3 N/m^3 x 1e-6 m^2
 FRICTION_WAVE_CROSSINGS = 6.0  # relaxation with friction loads over this many shear-wave crossings
 
 
@@ -478,6 +479,14 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         # friction state per plate, contact node and model: where on the plate it sticks (m)
         d_anchor = [wp.zeros(max(B * d_sl.shape[0], 1), dtype=wp.vec3) for d_sl in d_slaves]
         d_touching = [wp.zeros(max(B * d_sl.shape[0], 1), dtype=int) for d_sl in d_slaves]
+        # surface supports: springs (with the internal forces) and, sliding, the normal projection
+        d_supports = []
+        for support in model.loading.supports:
+            spring = np.stack([support.normal_stiffness * support.areas, support.tangential_stiffness * support.areas],
+                              axis=1) * SPRING_PA_PER_MM_MM2_TO_N_PER_M
+            d_supports.append((len(support.nodes), support.mode == "sliding",
+                               support.normal_stiffness > 0 or support.tangential_stiffness > 0,
+                               arr(support.nodes, int), arr(support.normals, wp.vec3), arr(spring, wp.vec2)))
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
         every_model = arr(np.ones(B, np.int32), int)
@@ -497,6 +506,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                                  use_anp, d_slots, S, pressure_buffer, d_slotvol, K, d_prony_g,
                                                  d_prony_decay,
                                                  visco_state, update_state, N, M, step, models, out, flags])
+            for n_sup, _, springs, d_snodes, d_snormals, d_sstiff in d_supports:
+                if springs and n_sup:
+                    wp.launch(k.support_springs, B * n_sup, [state, d_snodes, d_snormals, d_sstiff, N, n_sup, models,
+                                                             out])
 
         def one_step():
             # converged models stand still: their element forces are not computed again
@@ -504,6 +517,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_force,
                                                      d_damping, d_active, N, float(dt), step, d_totals,
                                                      load_shape, inverted])
+            # sliding first: where a node is also constrained, its prescribed components win
+            for n_sup, sliding, _, d_snodes, d_snormals, _ in d_supports:
+                if sliding and n_sup:
+                    wp.launch(k.slide_on_surface, B * n_sup, [u, low, du, d_snodes, d_snormals, N, n_sup, inverted])
             if n_con:
                 wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, N, n_con,
                                                             float(dt), step, d_totals, load_shape,
