@@ -163,7 +163,7 @@ def compensated_add(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), i:
 def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                        forces: wp.array(dtype=wp.vec3), pressure_volume: wp.array(dtype=float),
                        plate_force: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
-                       body_force: wp.array(dtype=wp.vec3),
+                       body_start: wp.array(dtype=wp.vec3), body_force: wp.array(dtype=wp.vec3),
                        damping: wp.array(dtype=float), active: wp.array(dtype=int), n_nodes: int, dt: float,
                        step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
                        inverted: wp.array(dtype=int)):
@@ -171,8 +171,10 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
     u_(n+1) = u_n + du_(n+1), the same scheme as (m/dt^2 + a m/(2 dt)) u_(n+1) = R - F + 2m/dt^2 u_n
     - (m/dt^2 - a m/(2 dt)) u_(n-1) without its float32 cancellation, and u accumulated with
     compensation (:func:`compensated_add`). ``du`` holds the last increment (velocity x dt),
-    updated in place with ``u``. ``body_force`` is the full-load external force per node (N,
-    gravity on the physical mass; ``mass`` may be fictitious under mass scaling). ``damping[b]``
+    updated in place with ``u``. The external force per node is ``body_start + load x body_force``
+    (N, gravity on the physical mass; ``mass`` may be fictitious under mass scaling): the force
+    already acting at the start (a pre-stressed, gravity-loaded reference state) and its change
+    over the loading. ``damping[b]``
     is model b's coefficient a (1/s), adapted between steps by dynamic relaxation; a model with
     ``active[b]`` = 0 (converged) or an inverted element stands still. The load is full at
     ``t_total[b]``, model b's loading time (under dynamic relaxation each model's own, as slow
@@ -190,7 +192,7 @@ def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3),
         return
     t = float(step[0] + 1) * dt
     half = 0.5 * damping[b] * dt
-    accel = (load_factor(t, t_total[b], load_shape) * body_force[i] - forces[i]) / mass[i]
+    accel = (body_start[i] + load_factor(t, t_total[b], load_shape) * body_force[i] - forces[i]) / mass[i]
     increment = (accel * (dt * dt) + (1.0 - half) * du[i]) / (1.0 + half)
     du[i] = increment
     compensated_add(u, low, i, increment)
@@ -241,7 +243,8 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
                   plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
                   edge_direction: wp.array(dtype=wp.vec3), edge_shape: wp.array(dtype=wp.vec2),
                   friction: wp.array(dtype=float), anchor: wp.array(dtype=wp.vec3), touching: wp.array(dtype=int),
-                  forces: wp.array(dtype=wp.vec3), body_force: wp.array(dtype=wp.vec3),
+                  forces: wp.array(dtype=wp.vec3), body_start: wp.array(dtype=wp.vec3),
+                  body_force: wp.array(dtype=wp.vec3),
                   n_nodes: int, n_slaves: int, n_plates: int,
                   dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
@@ -290,7 +293,7 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     mu = friction[q]
     if depth > 0.0:
         correction = depth * normal
-        contact = forces[i] - s * body_force[i]
+        contact = forces[i] - (body_start[i] + s * body_force[i])
         normal_force = wp.dot(contact, normal)
         if mu > 0.0:
             on_plate = rel + correction

@@ -204,11 +204,33 @@ class Loading:
 
 
 @dataclass
+class ReferenceState:
+    """A pre-stressed start: the model's mesh is the stress-free (unloaded) shape, and at t = 0
+    the tissue rests at ``displacement`` (N, 3) mm from it, in equilibrium under ``gravity``
+    (m/s^2, LPS), e.g. the imaged prone shape (see :mod:`BreastBiomechLib.solver.unloaded`).
+    Over the loading gravity changes from this to the loading's gravity (the same: it stays;
+    another: a change of posture)."""
+
+    displacement: np.ndarray
+    gravity: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.displacement = np.asarray(self.displacement, float)
+        self.gravity = np.asarray(self.gravity, float).reshape(3)
+        if self.displacement.ndim != 2 or self.displacement.shape[1] != 3 or not np.all(np.isfinite(self.displacement)):
+            raise ValueError("a reference state's displacement is (N, 3) finite numbers (mm)")
+        if not np.all(np.isfinite(self.gravity)):
+            raise ValueError(f"gravity must be three finite numbers (m/s^2, LPS), not {self.gravity.tolist()}")
+
+
+@dataclass
 class Model:
     """Mesh (mm, LPS) + per-element materials + loading, and the solver settings.
 
     ``damping`` is the mass-proportional damping coefficient alpha (1/s) of seed eq. (15);
-    ``time_step`` None picks ``safety`` x the critical step."""
+    ``time_step`` None picks ``safety`` x the critical step. ``prestate``: a pre-stressed start
+    (:class:`ReferenceState`; the mesh is then the stress-free shape), None: the mesh's shape is
+    stress-free and the tissue starts at rest there."""
 
     mesh: TetMesh
     materials: ElementMaterials
@@ -217,6 +239,12 @@ class Model:
     damping: float = 50.0
     time_step: float | None = None
     safety: float = 0.8
+    prestate: ReferenceState | None = None
+
+    @property
+    def start_positions(self) -> np.ndarray:
+        """(N, 3) mm, LPS: where the nodes are at t = 0 (the mesh, or its pre-stressed state)."""
+        return self.mesh.nodes if self.prestate is None else self.mesh.nodes + self.prestate.displacement
 
     def __post_init__(self) -> None:
         if self.formulation not in FORMULATIONS:
@@ -227,6 +255,9 @@ class Model:
         if np.any(self.mesh.volumes <= 0):
             bad = np.flatnonzero(self.mesh.volumes <= 0)[:10]
             raise ValueError(f"elements {bad.tolist()} have zero or negative volume; fix the mesh orientation")
+        if self.prestate is not None and self.prestate.displacement.shape != (n, 3):
+            raise ValueError(f"the reference state gives {len(self.prestate.displacement)} node displacements, the "
+                             f"mesh has {n} nodes")
         for c in self.loading.constraints:
             if len(c.nodes) and (c.nodes.min() < 0 or c.nodes.max() >= n):
                 raise ValueError("a constraint refers to nodes outside the mesh")
@@ -236,7 +267,7 @@ class Model:
         for p in self.loading.plates:
             if len(p.slave_nodes) and (p.slave_nodes.min() < 0 or p.slave_nodes.max() >= n):
                 raise ValueError(f"plate {p.name!r} refers to nodes outside the mesh")
-            p.check_clear_of(self.mesh.nodes[p.slave_nodes])
+            p.check_clear_of(self.start_positions[p.slave_nodes])
         if self.damping < 0:
             raise ValueError("damping must be >= 0 (1/s)")
         if not 0 < self.safety <= 1:

@@ -252,7 +252,7 @@ def plate_sets_of_batch(model: Model, n_models: int, plate_displacements: list |
             raise ValueError(f"plate set {b} must hold the model's {len(own)} plates with their contact nodes "
                              "(only pose, travel, edge and friction may differ between the models of a batch)")
         for p in ps:
-            p.check_clear_of(model.mesh.nodes[p.slave_nodes])
+            p.check_clear_of(model.start_positions[p.slave_nodes])
     return plates
 
 
@@ -352,6 +352,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     meshes with slivers or very stiff small elements, whose critical step sets the pace."""
     wp.init()
     device = _device(device)
+    if initial_displacement is not None and model.prestate is not None:
+        raise ValueError("the model starts from its pre-stressed reference state; give no initial_displacement")
     if steady_state_mm is not None and (relaxation is not None or steady_state_mm <= 0):
         raise ValueError("steady_state_mm is a positive distance (mm) for physical-time solves; dynamic "
                          "relaxation has its own tolerance")
@@ -439,6 +441,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_x0 = arr(nodes, wp.vec3)
         u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.tile(
             np.asarray(initial_displacement, float).reshape(N, 3) * MM, (B, 1))
+        if model.prestate is not None:  # at rest in the pre-stressed state
+            u0 = np.tile(model.prestate.displacement * MM, (B, 1))
         # the state: displacement u (m), its float32 rounding remainder and the last increment
         u, low, du = arr(u0, wp.vec3), wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
         scratch = wp.zeros(B * N, dtype=wp.vec3)
@@ -448,7 +452,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         inverted = wp.zeros(4 * B, dtype=int)  # per model: count, first element, its step, frozen
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
         # gravity acts on the physical masses, also where dynamic relaxation scales them
-        d_body_force = arr(weight[:, None] * model.loading.gravity, wp.vec3)
+        # with a pre-stressed reference state its gravity acts from the start, changing to the
+        # loading's gravity over the load
+        start_gravity = np.zeros(3) if model.prestate is None else model.prestate.gravity
+        d_body_start = arr(weight[:, None] * start_gravity, wp.vec3)
+        d_body_force = arr(weight[:, None] * (model.loading.gravity - start_gravity), wp.vec3)
         # dynamic relaxation starts critically damped for a mode of period ~ the loading time
         damping = np.full(B, model.damping) if relaxation is None else 4.0 * np.pi / totals
         d_totals = arr(totals, float)
@@ -514,7 +522,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         def one_step():
             # converged models stand still: their element forces are not computed again
             internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True)
-            wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_force,
+            wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_start,
+                                                     d_body_force,
                                                      d_damping, d_active, N, float(dt), step, d_totals,
                                                      load_shape, inverted])
             # sliding first: where a node is also constrained, its prescribed components win
@@ -530,7 +539,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                     wp.launch(k.plate_contact, B * d_sl.shape[0], [u, low, du, d_x0, d_sl, p, d_ppoint, d_pnormal,
                                                                     d_pmotion, d_edge_direction, d_edge_shape,
                                                                     d_friction, d_anchor[p], d_touching[p],
-                                                                    forces, d_body_force, N, d_sl.shape[0], P,
+                                                                    forces, d_body_start, d_body_force, N,
+                                                                    d_sl.shape[0], P,
                                                                     float(dt), step, d_totals, load_shape,
                                                                     plate_force, inverted])
             wp.launch(k.finish_step, B * N, [forces, step, inverted])
