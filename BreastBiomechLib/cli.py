@@ -391,6 +391,21 @@ def cmd_simulate(args) -> int:
     def report(fraction):
         print(f"\r  {fraction:6.1%} of the step budget", end="", file=sys.stderr, flush=True)
 
+    reference_state = None
+    if settings.unloaded is not None:
+        from BreastBiomechLib.solver.unloaded import prestressed_model, unloaded_shape
+
+        request = settings.unloaded
+        unloaded = unloaded_shape(model, request.imaged_gravity, request.tolerance_mm, request.max_iterations,
+                                  device=device, progress=None if args.quiet else lambda i, r: print(
+                                      f"  unloaded shape: iteration {i}, largest node mismatch {r:.4f} mm",
+                                      file=sys.stderr))
+        model = prestressed_model(model, unloaded, model.loading.gravity)
+        reference_state = {"imaged_gravity": request.imaged_gravity.tolist(), "iterations": unloaded.iterations,
+                           "residual_mm": unloaded.residual_mm, "wall_s": unloaded.wall_time,
+                           "largest_sag_mm": float(np.linalg.norm(unloaded.loaded_displacement, axis=1).max())}
+        print(f"  unloaded reference state: {unloaded.iterations} iterations, residual {unloaded.residual_mm:.3g} mm, "
+              f"largest gravity sag {reference_state['largest_sag_mm']:.2f} mm, {unloaded.wall_time:.1f} s")
     if settings.method == "static":
         solution = solve_static(model, increments=settings.increments)
     else:
@@ -399,15 +414,20 @@ def cmd_simulate(args) -> int:
     if not args.quiet:
         print(file=sys.stderr)
     out = Path(args.out)
-    deformed = TetMesh(mesh.nodes, mesh.tets, point_data={**mesh.point_data, "displacement": solution.displacement},
-                       cell_data=dict(mesh.cell_data))
+    # displacements from the mesh as given (the imaged shape, also with a pre-stressed start)
+    point_data = {**mesh.point_data, "displacement": solution.displacement}
+    if reference_state is not None:
+        point_data["displacement"] = model.mesh.nodes + solution.displacement - mesh.nodes
+        point_data["unloaded_displacement"] = model.mesh.nodes - mesh.nodes
+    deformed = TetMesh(mesh.nodes, mesh.tets, point_data=point_data, cell_data=dict(mesh.cell_data))
     mesh_path = write_vtu(out / "deformed.vtu", deformed)
     summary = {
         "status": solution.status, "message": solution.message, "steps": solution.steps,
         "time_step_s": solution.time_step, "wall_s": solution.wall_time,
         "ke_ie_at_end_of_loading": solution.ke_ie_at_end_of_loading,
         "estimated_error_mm": solution.estimated_error_mm, "stable_time_step_s": solution.stable_time_step,
-        "max_displacement_mm": float(np.linalg.norm(solution.displacement, axis=1).max()),
+        "max_displacement_mm": float(np.linalg.norm(point_data["displacement"], axis=1).max()),
+        "reference_state": reference_state,
         "plates": {p.name: solution.plate_forces[i].tolist() for i, p in enumerate(model.loading.plates)},
         "plate_normal_forces": {p.name: float(solution.plate_normal_forces[i])
                                 for i, p in enumerate(model.loading.plates)},

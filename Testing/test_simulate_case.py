@@ -111,3 +111,24 @@ def test_bad_cases_are_refused_with_the_reason(tmp_path, change, message):
     with pytest.raises(ValueError, match=message):
         read_case(path)
     assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 2
+
+
+def test_simulate_starts_from_the_unloaded_state_of_the_imaged_shape(tmp_path):
+    """A block hanging from its fixed top under gravity, imaged as it hangs: simulate with a
+    reference_state unloads it (reported), starts pre-stressed and, with the same gravity and no
+    other load, stays at the imaged shape; the unloaded shape is written beside it."""
+    path, mesh, _ = _case(tmp_path, constraints=[{"nodes": "face_zhi"}], plates=[], gravity=[0, 0, -9.81],
+                          reference_state={"imaged_gravity": [0, 0, -9.81], "tolerance_mm": 0.005},
+                          solver={"method": "relaxation", "device": "cpu", "load_iterations": 300})
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "out" / "solution.json").read_text())
+    state = summary["reference_state"]
+    assert state["iterations"] >= 2 and state["residual_mm"] <= 0.005 and state["largest_sag_mm"] > 0.01
+    result = read_vtu(tmp_path / "out" / "deformed.vtu")
+    assert np.abs(result.point_data["displacement"]).max() < 0.01
+    unloaded = result.point_data["unloaded_displacement"]
+    assert unloaded[:, 2].max() > 0.5 * state["largest_sag_mm"]  # the stress-free block hangs higher
+    with pytest.raises(ValueError, match="reference_state"):
+        read_case(_case(tmp_path, reference_state={"gravity": [0, 0, -9.81]})[0])
+    with pytest.raises(ValueError, match="static reference solver"):
+        read_case(_case(tmp_path, reference_state={"imaged_gravity": [0, 0, -9.81]}, solver={"method": "static"})[0])

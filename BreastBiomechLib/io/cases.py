@@ -25,6 +25,26 @@ SOLVER_METHODS = ("relaxation", "physical", "static")
 
 
 @dataclass
+class UnloadedRequest:
+    """A case's ``reference_state``: the mesh is the shape imaged under ``imaged_gravity`` (m/s^2,
+    LPS; prone MR: anterior, (0, -9.81, 0)); the solve starts pre-stressed from its estimated
+    stress-free shape (:mod:`BreastBiomechLib.solver.unloaded`, to ``tolerance_mm`` within
+    ``max_iterations``), with the case's ``gravity`` acting over the loading."""
+
+    imaged_gravity: np.ndarray
+    tolerance_mm: float = 0.02
+    max_iterations: int = 30
+
+    def __post_init__(self) -> None:
+        self.imaged_gravity = np.asarray(self.imaged_gravity, float).reshape(3)
+        if not np.all(np.isfinite(self.imaged_gravity)):
+            raise ValueError(f"imaged_gravity must be three finite numbers (m/s^2, LPS), not "
+                             f"{self.imaged_gravity.tolist()}")
+        if not self.tolerance_mm > 0 or int(self.max_iterations) < 1:
+            raise ValueError("the reference state needs tolerance_mm > 0 and max_iterations >= 1")
+
+
+@dataclass
 class SolverSettings:
     """How to solve a case: ``method`` "relaxation" (static solution, fast), "physical"
     (explicit dynamics in physical time) or "static" (the Newton reference of
@@ -39,6 +59,7 @@ class SolverSettings:
     steady_state_mm: float | None = None  # physical time: stop settling once this close to rest
     increments: int | None = None  # static: load steps (None: the solver's default)
     mass_scaling: bool = False  # physical time: scale element masses up to a common stable step
+    unloaded: UnloadedRequest | None = None  # start pre-stressed from the imaged shape's unloaded state
 
     def __post_init__(self) -> None:
         if self.method not in SOLVER_METHODS:
@@ -231,8 +252,28 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
     except TypeError:
         raise ValueError(f"{path}: unknown solver settings {sorted(solver)}; use method, device, steady_state_mm, "
                          "increments, mass_scaling, load_iterations, tolerance_mm, max_iterations, update_every") from None
-    return model, SolverSettings(method, device, relaxation, None if steady is None else float(steady),
-                                 None if increments is None else int(increments), mass_scaling)
+    settings = SolverSettings(method, device, relaxation, None if steady is None else float(steady),
+                              None if increments is None else int(increments), mass_scaling,
+                              _unloaded_request(data.get("reference_state"), path))
+    if settings.unloaded is not None and method == "static":
+        raise ValueError(f"{path}: the static reference solver starts from the stress-free mesh; a reference_state "
+                         "needs the relaxation or physical method")
+    return model, settings
+
+
+def _unloaded_request(spec, path: Path) -> UnloadedRequest | None:
+    if spec is None:
+        return None
+    known = {"imaged_gravity", "tolerance_mm", "max_iterations"}
+    if not isinstance(spec, dict) or "imaged_gravity" not in spec or set(spec) - known:
+        raise ValueError(f"{path}: reference_state is {{\"imaged_gravity\": [gx, gy, gz] (m/s^2, LPS), optional "
+                         "\"tolerance_mm\", \"max_iterations\"}")
+    try:
+        return UnloadedRequest(_vector(spec["imaged_gravity"], "imaged_gravity", "m/s^2, LPS"),
+                               _number(spec.get("tolerance_mm", 0.02), "tolerance_mm"),
+                               int(_number(spec.get("max_iterations", 30), "max_iterations")))
+    except ValueError as error:
+        raise ValueError(f"{path}: reference_state: {error}") from None
 
 
 def read_case(path: str | Path) -> tuple[Model, SolverSettings]:

@@ -195,6 +195,9 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
     ``initial_displacement`` (N, 3) mm instead starts Newton at full load from that
     configuration, e.g. to polish an explicit solution or to test whether it is an equilibrium;
     its nodes on a plate (within 1e-4 mm) start in the active set."""
+    if model.prestate is not None or model.loading.supports:
+        raise ValueError("the static reference solver starts from a stress-free mesh with fixed supports; solve a "
+                         "pre-stressed model or one with sliding or elastic supports by dynamic relaxation")
     rough = [plate.name for plate in model.loading.plates if plate.friction > 0]
     if rough:
         raise ValueError(f"the static reference solver has frictionless contact only; plates {rough} have friction: "
