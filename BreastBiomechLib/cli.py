@@ -600,6 +600,8 @@ def _bench_solver(args) -> dict:
     spacing = (np.pi * 4 * radii[0] * radii[1] * radii[2] / args.tets) ** (1 / 3)
     settle = 0.25 * args.total_time if args.settle_time is None else args.settle_time
     model = hemi_ellipsoid_compression(spacing, compression=0.25, total_time=args.total_time, settle_time=settle)
+    for plate in model.loading.plates:
+        plate.friction = args.friction
     wp.init()
     device = wp.get_device(args.device)
     rng = np.random.default_rng(0)
@@ -622,7 +624,7 @@ def _bench_solver(args) -> dict:
     bytes_per_step = args.batch * (324 * m + 70 * n)  # reads/writes/atomics per step, see docs
     return {
         "benchmark": "solver", "device": str(device), "device_name": getattr(device, "name", ""),
-        "nodes": n, "tets": m, "batch": args.batch, "formulation": model.formulation,
+        "nodes": n, "tets": m, "batch": args.batch, "formulation": model.formulation, "friction": args.friction,
         "method": "dynamic relaxation" if args.relaxation else "physical time",
         "load_iterations": relaxation.load_iterations if relaxation else None,
         "estimated_error_mm": s.estimated_error_mm,
@@ -637,6 +639,35 @@ def _bench_solver(args) -> dict:
         "max_displacement_mm": float(np.abs(s.displacement).max()),
         "device_memory_in_use_mb": memory_mb,
     }
+
+
+def _bench_unloaded(args) -> dict:
+    """The unloaded reference state of the hemi-ellipsoid breast of about ``--tets`` tets imaged
+    prone (gravity 9.81 m/s^2 anterior) with the seed's chest wall: iterations, residual, wall
+    time and the gravity sag."""
+    import numpy as np
+    import warp as wp
+
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+    from BreastBiomechLib.solver.unloaded import unloaded_shape
+
+    radii = (80.0, 70.0, 75.0)
+    spacing = (np.pi * 4 * radii[0] * radii[1] * radii[2] / args.tets) ** (1 / 3)
+    model = hemi_ellipsoid_compression(spacing)
+    wp.init()
+    device = wp.get_device(args.device)
+    warm = hemi_ellipsoid_compression(20.0, total_time=0.05, settle_time=0.0)
+    unloaded_shape(warm, (0.0, -9.81, 0.0), tolerance_mm=0.5, device=device)  # compile outside the timing
+    tolerance = 0.02 if args.tolerance_mm is None else args.tolerance_mm
+    started = time.perf_counter()
+    unloaded = unloaded_shape(model, (0.0, -9.81, 0.0), tolerance_mm=tolerance, device=device)
+    wall = time.perf_counter() - started
+    return {"benchmark": "unloaded", "device": str(device), "device_name": getattr(device, "name", ""),
+            "nodes": len(model.mesh.nodes), "tets": len(model.mesh.tets), "gravity": [0.0, -9.81, 0.0],
+            "material": "E 10 kPa, nu 0.49", "tolerance_mm": tolerance, "iterations": unloaded.iterations,
+            "residual_mm": unloaded.residual_mm, "residual_history_mm": [round(r, 5) for r in unloaded.history],
+            "largest_sag_mm": float(np.linalg.norm(unloaded.loaded_displacement, axis=1).max()),
+            "wall_s": round(wall, 3)}
 
 
 def _fit_grid(image, grid):
@@ -781,7 +812,7 @@ def _bench_optimise(args) -> dict:
     case = synthetic_case(tuple(args.radii), element_mm=args.element_mm, voxel_mm=tuple(args.voxel_mm),
                           muscle_mm=10.0, tumour_mm=0.3 * args.radii[0])
     space = ParameterSpace.for_model("aniso-hetero", ["fat", "glandular", "muscle", "tumour"])
-    relaxation = DynamicRelaxation(tolerance_mm=args.tolerance_mm)
+    relaxation = DynamicRelaxation(tolerance_mm=0.01 if args.tolerance_mm is None else args.tolerance_mm)
     measured = measured_at(case, space, BENCH_TRUTH, relaxation, device=args.device)
     problem = FittingProblem(space, case.mesh, case.undeformed, measured, case.planes, relaxation=relaxation,
                              device=args.device)
@@ -856,9 +887,9 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
-    if args.what in ("mesh", "segment", "warp", "optimise"):
+    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded"):
         figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp,
-                   "optimise": _bench_optimise}[args.what](args)
+                   "optimise": _bench_optimise, "unloaded": _bench_unloaded}[args.what](args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -880,6 +911,14 @@ def cmd_bench(args) -> int:
             for number, f in figures["cases"].items():
                 print(f"case {number}: {f['seconds']:.1f} s, {f['voxels']} voxels, {f['breast_volume_cm3']} cm3")
     return 0
+
+
+def _non_negative(text: str) -> float:
+    """An argparse type: a finite number >= 0."""
+    value = float(text)
+    if not (value >= 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, not {text}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -1021,7 +1060,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "warp", "optimise"], help="what to time")
+    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "warp", "optimise"],
+                   help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
     p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
     p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
@@ -1032,6 +1072,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steady-state-mm", type=float, default=None,
                    help="solver, physical time: stop settling once this close to rest (mm)")
     p.add_argument("--relaxation", action="store_true", help="solver: dynamic relaxation (tolerance 0.01 mm)")
+    p.add_argument("--friction", type=_non_negative, default=0.0, help="solver: the plates' Coulomb friction mu")
     p.add_argument("--load-iterations", type=int, default=None,
                    help="solver, dynamic relaxation: iterations over which the load is applied, at least "
                         "(default: DynamicRelaxation's)")
@@ -1050,7 +1091,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
     p.add_argument("--budget", type=int, default=500, help="optimise: forward solves")
     p.add_argument("--population", type=int, default=None, help="optimise: CMA-ES population (batch size)")
-    p.add_argument("--tolerance-mm", type=float, default=0.01, help="optimise: forward solves' relaxation tolerance")
+    p.add_argument("--tolerance-mm", type=float, default=None,
+                   help="optimise: forward solves' relaxation tolerance (default 0.01); unloaded: largest node mismatch "
+                        "to reach (default 0.02 mm)")
     p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
                                  "parameters, objective and status; result.json)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
