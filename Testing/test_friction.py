@@ -127,3 +127,27 @@ def test_friction_per_model_of_a_batch_equals_separate_solves():
 def test_bad_friction_coefficients_are_refused(mu):
     with pytest.raises(ValueError, match="friction coefficient"):
         Plate([0, 0, 0], [0, 0, 1], [0, 0, 0], [0], "top", friction=mu)
+
+
+@pytest.mark.gpu
+def test_cpu_and_cuda_agree_with_friction_tilt_and_a_sliding_support():
+    """Friction (stick and slip), a tilted plate and a sliding base on both devices."""
+    wp = pytest.importorskip("warp")
+    wp.init()
+    if not wp.is_cuda_available():
+        pytest.skip("no CUDA device")
+    from BreastBiomechLib.solver.model import SurfaceSupport
+    from BreastBiomechLib.solver.placement import posed_plate
+    from BreastBiomechLib.solver.supports import surface_normals_and_areas
+
+    mesh, bottom, top = _block()
+    normals, areas = surface_normals_and_areas(mesh, bottom)
+    plate = posed_plate(Plate([5, 5, SIDE], [0, 0, -1], [2.0, 0, -1.0], top, "top", friction=0.3), mesh.nodes,
+                        (1.0, -0.5))
+    model = _model(mesh, [Constraint.fixed(bottom[:1])], [plate])
+    model.loading.supports = [SurfaceSupport(bottom, normals, areas, "sliding", tangential_stiffness=50.0)]
+    for options in ({}, {"relaxation": DynamicRelaxation(load_iterations=300)}):
+        cpu, gpu = solve(model, device="cpu", **options), solve(model, device="cuda", **options)
+        assert cpu.ok and gpu.ok, (cpu.message, gpu.message)
+        np.testing.assert_allclose(gpu.displacement, cpu.displacement, atol=1e-4)
+        np.testing.assert_allclose(gpu.plate_forces, cpu.plate_forces, rtol=1e-3, atol=1e-5)
