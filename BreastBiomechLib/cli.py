@@ -56,7 +56,11 @@ def _truth_model(args):
 
     truth = table1_truth(args.case) if args.case else TruthModel()
     compression = truth.compression if args.compression is None else args.compression
-    return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm)  # checked again
+    tilt = None if args.plate_tilt is None else [list(args.plate_tilt), [0.0, 0.0]]
+    return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm,  # checked again
+                   friction=args.friction, gravity=args.gravity, compression_gravity=args.compression_gravity,
+                   chest_wall=args.chest_wall, chest_wall_stiffness=list(args.chest_wall_stiffness),
+                   plate_tilt_deg=tilt)
 
 
 def cmd_phantom(args) -> int:
@@ -65,6 +69,11 @@ def cmd_phantom(args) -> int:
     truth = _truth_model(args) if args.compressed else None
     if not args.compressed and args.compression is not None:
         raise ValueError("--compression applies to a compressed case: add --compressed")
+    effects = {"--friction": args.friction, "--gravity": args.gravity, "--compression-gravity": args.compression_gravity,
+               "--plate-tilt": args.plate_tilt, "--chest-wall": args.chest_wall != "fixed" or None}
+    given = [name for name, value in effects.items() if value]
+    if given and not args.compressed:
+        raise ValueError(f"{', '.join(given)} change the truth simulation of a compressed case: add --compressed")
     case = generate_phantom(_phantom_parameters(args))
     paths = write_phantom(case, args.out, overview=not args.no_overview)
     s = case.summary
@@ -939,6 +948,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth-edge-mm", type=float, default=2.0,
                    help="element size of the truth mesh (default 2 mm: finer than any fitting mesh)")
     p.add_argument("--device", help="warp device of the truth simulation (cuda, cpu; default: warp's)")
+    effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
+    effects.add_argument("--friction", type=_non_negative, default=0.0, help="the plates' Coulomb friction mu")
+    effects.add_argument("--gravity", type=float, nargs=3, metavar=("GX", "GY", "GZ"),
+                         help="gravity the scan was imaged under (m/s^2, LPS; prone: 0 -9.81 0): the truth starts "
+                              "pre-stressed from its unloaded state")
+    effects.add_argument("--compression-gravity", type=float, nargs=3, metavar=("GX", "GY", "GZ"),
+                         help="gravity while the plates close (default: --gravity's)")
+    effects.add_argument("--chest-wall", choices=("fixed", "sliding", "elastic"), default="fixed",
+                         help="the chest wall's support (default fixed, as the seed)")
+    effects.add_argument("--chest-wall-stiffness", type=_non_negative, nargs=2, default=[0.0, 0.0],
+                         metavar=("NORMAL", "TANGENTIAL"), help="elastic or sliding chest wall's springs (Pa/mm)")
+    effects.add_argument("--plate-tilt", type=float, nargs=2, metavar=("DEG1", "DEG2"),
+                         help="the first plate's tilt about its two tilt axes (degrees, at most 10)")
     p.set_defaults(func=cmd_phantom)
 
     p = sub.add_parser("optimise", help="fit tissue material parameters to a compressed case by maximising NMI")

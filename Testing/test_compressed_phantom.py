@@ -85,3 +85,47 @@ def test_the_command_refuses_bad_requests(tmp_path, capsys):
     assert not (tmp_path / "b").exists()  # refused before anything was made
     with pytest.raises(FileNotFoundError, match="not a compressed case"):
         read_compressed(tmp_path)
+
+
+def test_hidden_effects_change_the_truth_model_and_are_recorded():
+    """Each hidden effect of a TruthModel reaches the truth simulation's model (on the small
+    hemi-ellipsoid compression, whose chest wall is held by anchor patches): plate friction and
+    tilt, a sliding chest wall (with the sentence saying what holds the model), the gravity
+    pre-stress (the model starts from the estimated unloaded state); the solve converges and
+    moves the breast differently from the seed's model."""
+    from BreastBiomechLib.phantom.compressed import TruthModel, _with_hidden_effects
+    from BreastBiomechLib.solver import DynamicRelaxation, solve
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+
+    seed = hemi_ellipsoid_compression(10.0)
+    relaxation = DynamicRelaxation(load_iterations=300)
+    truth = TruthModel(friction=0.5, gravity=[0, -9.81, 0], chest_wall="sliding",
+                       plate_tilt_deg=[[0.5, 0.0], [0.0, -0.5]])
+    assert truth.hidden_effects == ["friction 0.5", "gravity pre-stress [0.0, -9.81, 0.0]", "sliding chest wall",
+                                    "plate tilt [[0.5, 0.0], [0.0, -0.5]]"]
+    model, unloaded = _with_hidden_effects(seed, truth, relaxation, "cpu")
+    assert [p.friction for p in model.loading.plates] == [0.5, 0.5]
+    assert all(abs(p.normal @ q.normal) < 1 - 1e-6 for p, q in zip(model.loading.plates, seed.loading.plates))
+    assert model.loading.supports[0].mode == "sliding" and "rigid motion along it stopped" in model.loading.notes[0]
+    assert model.prestate is not None and unloaded.residual_mm <= 0.02 and unloaded.iterations >= 2
+    with_effects, plain = solve(model, device="cpu", relaxation=relaxation), solve(seed, device="cpu",
+                                                                                 relaxation=relaxation)
+    assert with_effects.ok and plain.ok, with_effects.message
+    final = model.mesh.nodes + with_effects.displacement
+    assert np.abs(final - (seed.mesh.nodes + plain.displacement)).max() > 0.5
+    assert TruthModel().hidden_effects == []
+    for bad, match in (({"friction": -1}, "friction"), ({"gravity": [0, 1]}, "three finite"),
+                       ({"compression_gravity": [0, 0, -9.81]}, "needs the gravity"),
+                       ({"chest_wall": "glued"}, "fixed, sliding or elastic")):
+        with pytest.raises(ValueError, match=match):
+            TruthModel(**bad)
+
+
+def test_hidden_effect_options_need_a_compressed_case(tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+
+    assert main(["phantom", "--out", str(tmp_path / "p"), "--friction", "0.5", "--no-overview"]) == 2
+    assert "--friction change the truth simulation of a compressed case: add --compressed" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        main(["phantom", "--out", str(tmp_path / "p"), "--friction", "-1", "--compressed"])
+    assert stop.value.code == 2 and "must be a finite number >= 0" in capsys.readouterr().err

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -126,7 +128,10 @@ def test_cancel_and_resume_lose_nothing_and_end_where_an_uninterrupted_run_does(
 
 def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_case_dir, tmp_path, capsys):
     """`breastbiomech optimise` on the compressed phantom of conftest, with a small fitting mesh
-    (the labels' body, tissues by voxel majority) and a budget of a few solves."""
+    (the labels' body, tissues by voxel majority) and a budget of a few solves. The case is a
+    copy without its truth (truth.json, the truth mesh): a fit never reads them."""
+    import shutil
+
     from BreastBiomechLib.cli import MODEL_CHOICES, OBJECTIVE_CHOICES, main
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import write_vtu
@@ -135,6 +140,9 @@ def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_ca
     from BreastBiomechLib.optimisation.space import MODELS
 
     assert MODEL_CHOICES == MODELS and OBJECTIVE_CHOICES == OBJECTIVES
+    compressed_case_dir = Path(shutil.copytree(compressed_case_dir, tmp_path / "case"))
+    for truth in ("truth.json", "truth_mesh.vtu"):
+        (compressed_case_dir / "compressed" / truth).unlink()
     mesh = mesh_labels(read_image(compressed_case_dir / "labels.nrrd"),
                        MeshSettings(edge_mm=10.0, refine_interfaces=False)).mesh
     write_vtu(tmp_path / "fitting.vtu", mesh)

@@ -39,7 +39,15 @@ class TruthModel:
     -> {"E" (Pa), "nu", optional "eta" (Pa) and "fibre" (unit vector, LPS)}; ``edge_mm``: the
     truth mesh's element size; ``snr`` and ``bias_strength``: the measured image's noise and
     bias (None: the undeformed scan's); ``seed``: its random numbers;
-    ``chest_clearance_mm``: see :func:`BreastBiomechLib.solver.placement.plate_contacts`."""
+    ``chest_clearance_mm``: see :func:`BreastBiomechLib.solver.placement.plate_contacts`.
+
+    Effects the seed's model leaves out, hidden in the truth (each off by default):
+    ``friction``: the plates' Coulomb mu; ``gravity``: the gravity (m/s^2, LPS) the undeformed
+    scan was imaged under (prone: (0, -9.81, 0)): the truth starts pre-stressed from that shape's
+    unloaded state, with ``compression_gravity`` (None: the same) while the plates close;
+    ``chest_wall``: "fixed" (the seed's), "sliding" or "elastic" with ``chest_wall_stiffness``
+    (normal, tangential; Pa/mm per area); ``plate_tilt_deg``: per plate two tilt angles (degrees,
+    :func:`~BreastBiomechLib.solver.placement.posed_plate`), or None."""
 
     compression: float = 0.25
     axis: str = "LR"
@@ -49,12 +57,44 @@ class TruthModel:
     bias_strength: float | None = None
     seed: int = 1000
     chest_clearance_mm: float | None = None
+    friction: float = 0.0
+    gravity: list | None = None
+    compression_gravity: list | None = None
+    chest_wall: str = "fixed"
+    chest_wall_stiffness: list = field(default_factory=lambda: [0.0, 0.0])
+    plate_tilt_deg: list | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 < self.compression < 0.7:
             raise ValueError("compression must lie between 0 and 0.7 of the breast thickness")
         if self.edge_mm <= 0:
             raise ValueError("the truth mesh's element size must be positive (mm)")
+        if not (np.isfinite(self.friction) and self.friction >= 0):
+            raise ValueError(f"the truth's plate friction must be a finite number >= 0, not {self.friction}")
+        for name in ("gravity", "compression_gravity"):
+            value = getattr(self, name)
+            if value is not None:
+                value = [float(g) for g in value]
+                if len(value) != 3 or not np.all(np.isfinite(value)):
+                    raise ValueError(f"the truth's {name} must be three finite numbers (m/s^2, LPS), not {value}")
+                setattr(self, name, value)
+        if self.compression_gravity is not None and self.gravity is None:
+            raise ValueError("a compression_gravity needs the gravity the scan was imaged under (gravity)")
+        if self.chest_wall not in ("fixed", "sliding", "elastic"):
+            raise ValueError(f"the truth's chest wall is fixed, sliding or elastic, not {self.chest_wall!r}")
+        self.chest_wall_stiffness = [float(k) for k in self.chest_wall_stiffness]
+        if len(self.chest_wall_stiffness) != 2 or min(self.chest_wall_stiffness) < 0:
+            raise ValueError("the truth's chest_wall_stiffness is (normal, tangential) >= 0 in Pa/mm")
+        if self.plate_tilt_deg is not None:
+            self.plate_tilt_deg = [[float(a) for a in pair] for pair in self.plate_tilt_deg]
+
+    @property
+    def hidden_effects(self) -> list[str]:
+        """The effects beyond the seed's model that this truth holds (names)."""
+        return ([f"friction {self.friction:g}"] * (self.friction > 0)
+                + [f"gravity pre-stress {self.gravity}"] * (self.gravity is not None)
+                + [f"{self.chest_wall} chest wall"] * (self.chest_wall != "fixed")
+                + [f"plate tilt {self.plate_tilt_deg}"] * (self.plate_tilt_deg is not None))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -118,10 +158,13 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         raise ValueError(f"the truth gives no material for {sorted(missing)}")
     spec["materials"] = {name: dict(truth.materials[name]) for name in present}
     model, settings = case_from_dict(spec, mesh)
+    model, unloaded = _with_hidden_effects(model, truth, settings.relaxation, device)
     solution = solve(model, device=device, relaxation=settings.relaxation)
     if not solution.ok:
         raise RuntimeError(f"the truth simulation failed ({solution.status}: {solution.message})")
     displacement = solution.displacement
+    if unloaded is not None:  # from the imaged shape, not the stress-free one the solve started from
+        displacement = model.mesh.nodes + solution.displacement - mesh.nodes
 
     report(0.8, "imaging the compressed breast")
     grid = _measured_grid(case, mesh.nodes + displacement)
@@ -153,11 +196,51 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         "max_displacement_mm": float(np.linalg.norm(displacement, axis=1).max()),
         "plate_gap_mm": float(abs((np.asarray(plates[0]["point"]) - plates[1]["point"]) @ model.loading.plates[0].normal))
         if len(plates) == 2 else None,
+        "hidden_effects": truth.hidden_effects, "support": list(model.loading.notes),
+        "plate_tangential_forces_N": {p.name: float(np.linalg.norm(f))
+                                      for p, f in zip(model.loading.plates, solution.plate_tangential_forces)},
+        "unloaded_state": None if unloaded is None else {
+            "iterations": unloaded.iterations, "residual_mm": unloaded.residual_mm,
+            "largest_sag_mm": float(np.linalg.norm(unloaded.loaded_displacement, axis=1).max())},
         "size_voxels": [int(n) for n in grid.size], "spacing_mm": [float(s) for s in grid.spacing],
         "seconds": round(time.perf_counter() - started, 2),
     }
     report(1.0, "done")
     return CompressedCase(image, landmarks, plates, truth, truth_mesh, summary)
+
+
+def _with_hidden_effects(model, truth: TruthModel, relaxation, device):
+    """``model`` (the seed's compression of the truth mesh) with the truth's hidden effects:
+    plate friction and tilt, the chest-wall support (the field-of-view cut stays fixed and holds
+    the model) and the gravity pre-stress (estimated unloaded state). Returns the model and the
+    unloaded shape (None without gravity)."""
+    from dataclasses import replace
+
+    from BreastBiomechLib.solver.placement import posed_plate
+    from BreastBiomechLib.solver.supports import chest_wall_support
+    from BreastBiomechLib.solver.unloaded import prestressed_model, unloaded_shape
+
+    plates = [replace(p, friction=truth.friction) for p in model.loading.plates]
+    if truth.plate_tilt_deg is not None:
+        if len(truth.plate_tilt_deg) != len(plates):
+            raise ValueError(f"the truth gives {len(truth.plate_tilt_deg)} plate tilts for {len(plates)} plates")
+        plates = [posed_plate(p, model.mesh.nodes, tilt) for p, tilt in zip(plates, truth.plate_tilt_deg)]
+    loading = replace(model.loading, plates=plates)
+    if truth.chest_wall != "fixed":
+        chest = model.mesh.node_set("chest_wall")
+        cut = model.mesh.node_set("fov_cut") if "fov_cut" in model.mesh.point_data else np.zeros(0, np.int64)
+        normal, tangential = truth.chest_wall_stiffness
+        held, supports, note = chest_wall_support(model.mesh, chest, truth.chest_wall, normal_stiffness=normal,
+                                                  tangential_stiffness=tangential, anchor=not len(cut),
+                                                  held_by="the fixed field-of-view cut" if len(cut) else "")
+        others = [c for c in loading.constraints if not np.array_equal(np.unique(c.nodes), np.unique(chest))]
+        loading = replace(loading, constraints=others + held, supports=supports, notes=[note])
+    model = replace(model, loading=loading)
+    if truth.gravity is None:
+        return model, None
+    unloaded = unloaded_shape(model, truth.gravity, device=device, relaxation=relaxation)
+    final = truth.gravity if truth.compression_gravity is None else truth.compression_gravity
+    return prestressed_model(model, unloaded, final), unloaded
 
 
 def _measured_grid(case: PhantomCase, deformed_nodes: np.ndarray) -> _Grid:

@@ -246,5 +246,13 @@ def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_
     if travel < 0:
         raise ValueError(f"plate {plate.name!r}: in that pose it ends {-travel:.2f} mm short of the tissue and would "
                          "never touch it; lower the offset or check the tilt")
+    # moved back along its normal, a rounded edge clears the nodes on it by less than the move:
+    # back off until none starts inside (the fillet's distance grows with the move, at most as fast)
+    for _ in range(100):
+        start = Plate(final - in_plane - travel * normal, normal, np.zeros(3), [], plate.name, edge, plate.friction)
+        inside = -float(start.gaps(contacts).min())
+        if inside <= 1e-9:
+            break
+        travel += inside
     return Plate(final - in_plane - travel * normal, normal, travel * normal + in_plane, plate.slave_nodes,
                  plate.name, edge, plate.friction)

@@ -96,7 +96,7 @@ def surface_normals_and_areas(mesh, nodes) -> tuple[np.ndarray, np.ndarray]:
 
 def chest_wall_support(mesh, nodes, kind: str = "fixed", components=(False, True, False),
                        normal_stiffness: float = 0.0, tangential_stiffness: float = 0.0,
-                       anchor: bool = True) -> tuple[list, list, str]:
+                       anchor: bool = True, held_by: str = "") -> tuple[list, list, str]:
     """The chest wall's boundary condition, as (constraints, surface supports, a sentence saying
     what holds the model). ``kind``:
 
@@ -129,6 +129,8 @@ def chest_wall_support(mesh, nodes, kind: str = "fixed", components=(False, True
     sentence = f"chest wall {springs} ({len(nodes)} nodes, {areas.sum():.0f} mm^2)"
     if tangential_stiffness > 0:
         return [], [support], sentence + "; the tangential springs stop rigid motion"
+    if not anchor and held_by:
+        return [], [support], f"{sentence}; rigid motion stopped by {held_by}"
     if not anchor:
         raise ValueError(f"a {kind} chest wall without tangential stiffness leaves the model free to slide and turn "
                          "on it; give a tangential stiffness (Pa/mm) or keep the anchor patches")
