@@ -91,13 +91,15 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
             selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
         for comboBox in (self.ui.compressionAxisComboBox, self.ui.movingPlatesComboBox, self.ui.methodComboBox,
                          self.ui.formulationComboBox, self.ui.deviceComboBox, self.ui.fixedNodeSetComboBox,
-                         self.ui.contactNodeSetComboBox):
+                         self.ui.contactNodeSetComboBox, self.ui.chestWallModeComboBox, self.ui.gravityComboBox):
             comboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
         for checkBox in (self.ui.fixLRCheckBox, self.ui.fixAPCheckBox, self.ui.fixSICheckBox, self.ui.anchorCheckBox,
-                         self.ui.stopWhenSettledCheckBox):
+                         self.ui.stopWhenSettledCheckBox, self.ui.startUnloadedCheckBox):
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
         for spinBox in (self.ui.compressionSliderWidget, self.ui.chestClearanceSpinBox, self.ui.dampingSpinBox,
-                        self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox):
+                        self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox,
+                        self.ui.plateFriction1SpinBox, self.ui.plateFriction2SpinBox,
+                        self.ui.chestWallNormalStiffnessSpinBox, self.ui.chestWallTangentialStiffnessSpinBox):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.inputMeshSelector.currentNodeChanged.connect(self.onInputMeshChanged)
         self.ui.defaultMaterialsButton.clicked.connect(self.onDefaultMaterialsButton)
@@ -131,8 +133,18 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
                                    (self.ui.movingPlatesComboBox, "movingPlates"),
                                    (self.ui.methodComboBox, "method"), (self.ui.formulationComboBox, "formulation"),
                                    (self.ui.deviceComboBox, "device"), (self.ui.fixedNodeSetComboBox, "fixedNodeSet"),
-                                   (self.ui.contactNodeSetComboBox, "contactNodeSet")):
+                                   (self.ui.contactNodeSetComboBox, "contactNodeSet"),
+                                   (self.ui.chestWallModeComboBox, "chestWallMode"), (self.ui.gravityComboBox, "gravity")):
                 self._setComboText(comboBox, p[name])
+            self.ui.plateFriction1SpinBox.value = p["plateFriction1"]
+            self.ui.plateFriction2SpinBox.value = p["plateFriction2"]
+            self.ui.chestWallNormalStiffnessSpinBox.value = p["chestWallNormalStiffness"]
+            self.ui.chestWallTangentialStiffnessSpinBox.value = p["chestWallTangentialStiffness"]
+            self.ui.startUnloadedCheckBox.checked = p["startUnloaded"]
+            self.ui.chestWallNormalStiffnessSpinBox.enabled = p["chestWallMode"] == "elastic"
+            self.ui.chestWallTangentialStiffnessSpinBox.enabled = p["chestWallMode"] != "fixed"
+            self.ui.fixedDirectionsWidget.enabled = p["chestWallMode"] == "fixed"
+            self.ui.startUnloadedCheckBox.enabled = p["gravity"] != "none"
             self.ui.compressionSliderWidget.value = p["compressionPercent"]
             self.ui.chestClearanceSpinBox.value = p["chestClearanceMm"]
             self.ui.fixLRCheckBox.checked = p["fixLR"]
@@ -195,6 +207,13 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         p["settleTime"] = self.ui.settleTimeSpinBox.value
         p["tolerance"] = self.ui.toleranceSpinBox.value
         p["stopWhenSettled"] = self.ui.stopWhenSettledCheckBox.checked
+        p["plateFriction1"] = self.ui.plateFriction1SpinBox.value
+        p["plateFriction2"] = self.ui.plateFriction2SpinBox.value
+        p["chestWallMode"] = self.ui.chestWallModeComboBox.currentText
+        p["chestWallNormalStiffness"] = self.ui.chestWallNormalStiffnessSpinBox.value
+        p["chestWallTangentialStiffness"] = self.ui.chestWallTangentialStiffnessSpinBox.value
+        p["gravity"] = self.ui.gravityComboBox.currentText
+        p["startUnloaded"] = self.ui.startUnloadedCheckBox.checked
         p.node.EndModify(wasModifying)
 
     def onInputMeshChanged(self, node):
@@ -254,11 +273,16 @@ class BreastSimulationLogic(ParameterNodeLogic):
                 "compressionAxis": "LR", "compressionPercent": 25.0, "movingPlates": "both",
                 "fixedNodeSet": "", "fixLR": False, "fixAP": True, "fixSI": False, "anchor": True,
                 "contactNodeSet": "boundary", "chestClearanceMm": -1.0, "damping": 50.0, "totalTime": 1.0, "settleTime": 0.25,
-                "tolerance": 0.01, "stopWhenSettled": True}
+                "tolerance": 0.01, "stopWhenSettled": True,
+                "plateFriction1": 0.0, "plateFriction2": 0.0, "chestWallMode": "fixed",
+                "chestWallNormalStiffness": 0.0, "chestWallTangentialStiffness": 0.0,
+                "gravity": "none", "startUnloaded": False}
     ROLES = ("inputMesh", "materials", "plates", "outputMesh", "history", "forceChart", "energyChart")
     PLATE_NAMES = {"LR": ("Right plate", "Left plate"), "AP": ("Anterior plate", "Posterior plate"),
                    "SI": ("Inferior plate", "Superior plate")}  # first: the lower coordinate in LPS
     KE_IE_LIMIT = 0.05  # the seed's quasi-static criterion
+    GRAVITY = {"none": None, "anterior (prone)": (0.0, -9.81, 0.0), "posterior (supine)": (0.0, 9.81, 0.0),
+               "inferior (upright)": (0.0, 0.0, -9.81)}  # LPS m/s^2: the direction gravity pulls the tissue
 
     # -- inputs ----------------------------------------------------------------------------------
 
@@ -357,20 +381,25 @@ class BreastSimulationLogic(ParameterNodeLogic):
         parameterNode.set_reference("materials", node)
         return node
 
-    def materials(self, parameterNode, mesh):
-        """Per-element materials from the table (one row per tissue label in the mesh)."""
+    def materialTable(self, parameterNode, mesh) -> dict:
+        """{tissue label: Material} of the tissues in the mesh, from the table (one row each)."""
         from BreastBiomechLib import labels
         from BreastBiomechLib.mrml import materials_from_table_node
-        from BreastBiomechLib.solver.materials import ElementMaterials
 
         table = materials_from_table_node(parameterNode.reference("materials"))
-        tissues = self._elementTissues(mesh)
-        missing = sorted(set(tissues.tolist()) - set(table))
+        present = sorted(set(self._elementTissues(mesh).tolist()))
+        missing = [t for t in present if t not in table]
         if missing:
             names = ", ".join(labels.tissue(t).name if t in labels.BY_LABEL else str(t) for t in missing)
             raise ValueError(f"the materials table has no row for {names}, which the mesh contains; add the rows "
                              "or press 'Default materials'")
-        return ElementMaterials.from_tissues(tissues, table)
+        return {t: table[t] for t in present}
+
+    def materials(self, parameterNode, mesh):
+        """Per-element materials from the table (one row per tissue label in the mesh)."""
+        from BreastBiomechLib.solver.materials import ElementMaterials
+
+        return ElementMaterials.from_tissues(self._elementTissues(mesh), self.materialTable(parameterNode, mesh))
 
     def createCompressionPlates(self, parameterNode) -> list:
         """Two plates tangent to the mesh (its breast skin where it has one) on both sides of
@@ -406,40 +435,91 @@ class BreastSimulationLogic(ParameterNodeLogic):
 
         return plate_travel(planeNode)
 
-    def constraints(self, parameterNode, mesh) -> list:
-        """The fixed node set in the chosen directions and (``anchor``) the nodes that stop rigid
-        motion in the others (BreastBiomechLib.solver.supports: the seed's chest-wall conditions,
-        plus a node against turning about the fixed axis)."""
-        from BreastBiomechLib.solver.supports import support_constraints
-
+    def supportDescription(self, parameterNode) -> dict:
+        """The chest-wall support as a case file's ``supports`` entry: the fixed node set, its
+        kind (``chestWallMode``: fixed in the chosen directions, sliding or elastic on its surface,
+        BreastBiomechLib.solver.supports.chest_wall_support), the springs (Pa/mm) and the anchor
+        patches that stop the rigid motion the support leaves free."""
         name = parameterNode["fixedNodeSet"]
         if not name:
             raise ValueError("choose the fixed node set (e.g. chest_wall): without fixed nodes the breast "
                              "can move as a rigid body and there is no solution")
+        kind = parameterNode["chestWallMode"]
         components = (parameterNode["fixLR"], parameterNode["fixAP"], parameterNode["fixSI"])
-        if not any(components):
+        if kind == "fixed" and not any(components):
             raise ValueError(f"choose at least one direction in which the {name!r} nodes are fixed")
-        return support_constraints(mesh.nodes, self._nodeSet(mesh, name, "fixed"), components,
-                                   anchor=parameterNode["anchor"])
+        return {"nodes": name, "kind": kind, "components": [bool(c) for c in components],
+                "normal_stiffness": float(parameterNode["chestWallNormalStiffness"]),
+                "tangential_stiffness": float(parameterNode["chestWallTangentialStiffness"]),
+                "anchor": bool(parameterNode["anchor"])}
 
-    def buildModel(self, parameterNode):
-        """The solver Model of the current choices (LPS mm, Pa, s)."""
+    def caseDescription(self, parameterNode) -> tuple[dict, object]:
+        """What a case file holds (BreastBiomechLib.io.cases, docs/solver.md), made from the
+        scene's nodes: materials from the table, plates from the markups planes (contact nodes,
+        rounded edges, each plate's friction), the chest-wall support, gravity and, with
+        ``startUnloaded``, the reference state; and the mesh (TetMesh, LPS mm). The one input
+        of the one model builder, :meth:`buildModel`, which `breastbiomech simulate` shares."""
+        from BreastBiomechLib import labels
         from BreastBiomechLib.mrml import plate_from_plane_node
-        from BreastBiomechLib.solver.model import Loading, Model
 
         mesh = self.inputMesh(parameterNode)
         planes = parameterNode.references("plates")
         if not planes:
             raise ValueError("no plates: press 'Place plates' (or add markups planes as plates)")
+        frictions = [parameterNode["plateFriction1"], parameterNode["plateFriction2"]]
+        if len(planes) > len(frictions):
+            raise ValueError(f"the panel sets the friction of two plates; this model has {len(planes)}: write a "
+                             "case file for more (docs/solver.md)")
         centre = mesh.nodes.mean(axis=0)
         plates = [plate_from_plane_node(node, [], towards=centre) for node in planes]
         contacts = self.plateContacts(parameterNode, mesh, plates)
-        for plate in plates:
-            plate.slave_nodes = contacts
-        loading = Loading(self.constraints(parameterNode, mesh), plates, total_time=parameterNode["totalTime"],
-                          settle_time=parameterNode["settleTime"])
-        return Model(mesh, self.materials(parameterNode, mesh), loading,
-                     formulation=parameterNode["formulation"], damping=parameterNode["damping"])
+        table = self.materialTable(parameterNode, mesh)
+        if "tissue" in mesh.cell_data:
+            materials = {labels.tissue(label).name: self._materialEntry(m) for label, m in table.items()}
+        else:
+            materials = {"default": self._materialEntry(table[labels.FAT.label])}
+        gravity = self.GRAVITY[parameterNode["gravity"]]
+        description = {
+            "materials": materials,
+            "supports": [self.supportDescription(parameterNode)],
+            "plates": [{"name": p.name, "point": p.point.tolist(), "normal": p.normal.tolist(),
+                        "displacement": p.displacement.tolist(), "slaves": contacts.tolist(),
+                        "friction": float(mu), **({"edge": p.edge.to_dict()} if p.edge else {})}
+                       for p, mu in zip(plates, frictions)],
+            "gravity": list(gravity or (0.0, 0.0, 0.0)),
+            "formulation": parameterNode["formulation"], "damping": float(parameterNode["damping"]),
+            "total_time": float(parameterNode["totalTime"]), "settle_time": float(parameterNode["settleTime"]),
+            "solver": {"method": parameterNode["method"]},
+        }
+        if parameterNode["method"] == "relaxation":
+            description["solver"]["tolerance_mm"] = float(parameterNode["tolerance"])
+        elif parameterNode["stopWhenSettled"]:
+            description["solver"]["steady_state_mm"] = float(parameterNode["tolerance"])
+        if parameterNode["startUnloaded"]:
+            if gravity is None:
+                raise ValueError("starting from the unloaded shape needs the gravity the mesh was imaged under: "
+                                 "choose its direction")
+            description["reference_state"] = {"imaged_gravity": list(gravity)}
+        return description, mesh
+
+    @staticmethod
+    def _materialEntry(material) -> dict:
+        return {"E": material.E, "nu": material.nu, "eta": material.eta, "fibre": list(material.fibre),
+                "density": material.density, "prony": [list(term) for term in material.prony]}
+
+    def buildCase(self, parameterNode):
+        """The solver Model and SolverSettings of the current choices (LPS mm, Pa, s): the scene's
+        case description through the case files' builder (BreastBiomechLib.io.cases.case_from_dict)."""
+        from pathlib import Path
+
+        from BreastBiomechLib.io.cases import case_from_dict
+
+        description, mesh = self.caseDescription(parameterNode)
+        return case_from_dict(description, mesh, Path(parameterNode.reference("inputMesh").GetName()))
+
+    def buildModel(self, parameterNode):
+        """The solver Model of the current choices (see :meth:`buildCase`)."""
+        return self.buildCase(parameterNode)[0]
 
     # -- device ----------------------------------------------------------------------------------
 
@@ -475,16 +555,21 @@ class BreastSimulationLogic(ParameterNodeLogic):
         ``progress(fraction, message)`` is called as the solve advances; returning False cancels
         it, and a cancelled run leaves the earlier results untouched. Returns a dict with the
         ``solution`` (library Solution, LPS), the ``model``, the ``device`` and a ``summary``."""
-        from BreastBiomechLib.solver import DynamicRelaxation, solve
+        from BreastBiomechLib.solver import solve
+        from BreastBiomechLib.solver.unloaded import start_from_reference_state
 
         if parameterNode["method"] not in ("relaxation", "physical"):
             raise ValueError(f"method must be relaxation or physical, not {parameterNode['method']!r}")
         device = self.resolveDevice(parameterNode["device"])
-        model = self.buildModel(parameterNode)
-        relaxation = (DynamicRelaxation(tolerance_mm=parameterNode["tolerance"])
-                      if parameterNode["method"] == "relaxation" else None)
-        steady = parameterNode["tolerance"] if relaxation is None and parameterNode["stopWhenSettled"] else None
+        model, settings = self.buildCase(parameterNode)
+        relaxation = settings.relaxation if settings.method == "relaxation" else None
+        steady = settings.steady_state_mm
         what = "dynamic relaxation" if relaxation else "explicit dynamics"
+        imaged = model
+        if settings.unloaded is not None:
+            if progress is not None:
+                progress(0.0, "estimating the unloaded (stress-free) shape")
+            model, _ = start_from_reference_state(model, settings.unloaded, device)
         report = None
         if progress is not None:
             def report(fraction):
@@ -493,10 +578,12 @@ class BreastSimulationLogic(ParameterNodeLogic):
             progress(0.0, f"{what} on {device}: starting")
         solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT, progress=report,
                          steady_state_mm=steady)
+        if model is not imaged:  # displacements from the mesh as imaged, not from its unloaded shape
+            solution.displacement = model.mesh.nodes + solution.displacement - imaged.mesh.nodes
         summary = self.summaryText(solution, model, device, relaxation is not None)
         logging.info("BreastSimulation: %s", summary)
         if solution.status != "cancelled":
-            self._writeResults(parameterNode, model, solution, relaxation is not None)
+            self._writeResults(parameterNode, imaged, solution, relaxation is not None)
         if progress is not None:
             progress(1.0, solution.status)
         return {"solution": solution, "model": model, "device": device, "summary": summary}
@@ -549,8 +636,9 @@ class BreastSimulationLogic(ParameterNodeLogic):
         forces = ", ".join(f"{p.name} {solution.plate_forces[i] @ p.normal:.3g} N"
                            for i, p in enumerate(model.loading.plates))
         largest = float(np.linalg.norm(solution.displacement, axis=1).max())
+        notes = "".join(f"\nSupport: {note}" for note in model.loading.notes)
         return (f"{solution.status}: {solution.message}\n{solution.steps} steps in {solution.wall_time:.2f} s on "
-                f"{device}; largest displacement {largest:.2f} mm; plate forces {forces}\n"
+                f"{device}; largest displacement {largest:.2f} mm; plate forces {forces}{notes}\n"
                 + self.energyVerdict(solution, relaxation))
 
     def energyVerdict(self, solution, relaxation: bool) -> str:

@@ -402,19 +402,14 @@ def cmd_simulate(args) -> int:
 
     reference_state = None
     if settings.unloaded is not None:
-        from BreastBiomechLib.solver.unloaded import prestressed_model, unloaded_shape
+        from BreastBiomechLib.solver.unloaded import start_from_reference_state
 
-        request = settings.unloaded
-        unloaded = unloaded_shape(model, request.imaged_gravity, request.tolerance_mm, request.max_iterations,
-                                  device=device, progress=None if args.quiet else lambda i, r: print(
-                                      f"  unloaded shape: iteration {i}, largest node mismatch {r:.4f} mm",
-                                      file=sys.stderr))
-        model = prestressed_model(model, unloaded, model.loading.gravity)
-        reference_state = {"imaged_gravity": request.imaged_gravity.tolist(), "iterations": unloaded.iterations,
-                           "residual_mm": unloaded.residual_mm, "wall_s": unloaded.wall_time,
-                           "largest_sag_mm": float(np.linalg.norm(unloaded.loaded_displacement, axis=1).max())}
-        print(f"  unloaded reference state: {unloaded.iterations} iterations, residual {unloaded.residual_mm:.3g} mm, "
-              f"largest gravity sag {reference_state['largest_sag_mm']:.2f} mm, {unloaded.wall_time:.1f} s")
+        model, reference_state = start_from_reference_state(
+            model, settings.unloaded, device, progress=None if args.quiet else lambda i, r: print(
+                f"  unloaded shape: iteration {i}, largest node mismatch {r:.4f} mm", file=sys.stderr))
+        print(f"  unloaded reference state: {reference_state['iterations']} iterations, residual "
+              f"{reference_state['residual_mm']:.3g} mm, largest gravity sag {reference_state['largest_sag_mm']:.2f} mm, "
+              f"{reference_state['wall_s']:.1f} s")
     if settings.method == "static":
         solution = solve_static(model, increments=settings.increments)
     else:

@@ -233,3 +233,64 @@ def test_physical_time_run_reports_the_energy_verdict(scene, breast):
     assert slow["solution"].status == "completed", slow["solution"].message
     assert "quasi-static" in slow["summary"]
     assert "settled at" in slow["summary"]  # stopWhenSettled (default): the settling phase ends early
+
+
+def test_the_panel_and_a_case_file_of_the_same_scene_build_the_same_model(scene, breast, tmp_path):
+    """One way to build a model: the Logic turns the scene into a case description, and the case
+    file written from it (with the mesh as .vtu) builds the same model through `read_case`, with
+    the new options (plate friction, a sliding chest wall, gravity) on."""
+    import json
+
+    from BreastBiomechLib.io.cases import read_case
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.solver.tled import merged_constraints
+
+    logic, p = _set_up(scene, breast)
+    p["plateFriction1"], p["plateFriction2"] = 0.4, 0.2
+    p["chestWallMode"] = "sliding"
+    p["gravity"] = "anterior (prone)"
+    description, mesh = logic.caseDescription(p)
+    write_vtu(tmp_path / "breast.vtu", mesh)
+    (tmp_path / "case.json").write_text(json.dumps({"mesh": "breast.vtu", **description}))
+    from_file, file_settings = read_case(tmp_path / "case.json")
+    from_panel, panel_settings = logic.buildCase(p)
+    np.testing.assert_allclose(from_file.mesh.nodes, from_panel.mesh.nodes, atol=1e-4)  # .vtu keeps float32
+    np.testing.assert_array_equal(from_file.mesh.tets, from_panel.mesh.tets)
+    for name in ("mu", "kappa", "eta", "fibre", "density"):
+        np.testing.assert_allclose(getattr(from_file.materials, name), getattr(from_panel.materials, name))
+    for a, b in zip(merged_constraints(from_file), merged_constraints(from_panel)):
+        np.testing.assert_array_equal(a, b)
+    assert [p.friction for p in from_panel.loading.plates] == [0.4, 0.2]
+    for a, b in zip(from_file.loading.plates, from_panel.loading.plates):
+        np.testing.assert_allclose([a.point, a.normal, a.displacement], [b.point, b.normal, b.displacement])
+        np.testing.assert_array_equal(a.slave_nodes, b.slave_nodes)
+        assert a.friction == b.friction and a.edge.to_dict() == b.edge.to_dict()
+    (s_file,), (s_panel,) = from_file.loading.supports, from_panel.loading.supports
+    assert s_panel.mode == "sliding" and np.array_equal(s_file.nodes, s_panel.nodes)
+    np.testing.assert_allclose(s_file.normals, s_panel.normals, atol=1e-5)
+    np.testing.assert_allclose(from_panel.loading.gravity, [0, -9.81, 0])
+    assert from_file.loading.notes == from_panel.loading.notes and "sliding" in from_panel.loading.notes[0]
+    assert file_settings.method == panel_settings.method == "relaxation"
+
+
+def test_the_new_options_run_through_the_logic(scene, breast):
+    """Friction, an elastic chest wall and a start from the unloaded prone shape through run():
+    the support and the pre-stress are in the summary and the displacements are from the mesh as
+    imaged; a start from the unloaded shape without gravity is refused."""
+    logic, p = _set_up(scene, breast)
+    p["plateFriction1"] = p["plateFriction2"] = 0.5
+    p["chestWallMode"] = "elastic"
+    p["chestWallNormalStiffness"], p["chestWallTangentialStiffness"] = 50.0, 5.0
+    p["startUnloaded"] = True
+    with pytest.raises(ValueError, match="needs the gravity"):
+        logic.run(p)
+    p["gravity"] = "anterior (prone)"
+    messages = []
+    result = logic.run(p, progress=lambda f, m: messages.append(m))
+    solution = result["solution"]
+    assert solution.status == "completed", solution.message
+    assert any("unloaded" in m for m in messages)
+    assert "chest wall springs 50 Pa/mm across, 5 Pa/mm along" in result["summary"]
+    assert np.linalg.norm(solution.plate_tangential_forces, axis=1).max() > 0.0
+    output = p.reference("outputMesh")
+    assert output is not None and output.GetUnstructuredGrid().GetNumberOfPoints() == len(breast.nodes)

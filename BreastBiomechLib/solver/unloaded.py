@@ -114,3 +114,18 @@ def prestressed_model(model: Model, unloaded: UnloadedShape, gravity=None) -> Mo
     loading: Loading = replace(model.loading, plates=plates, gravity=final_gravity)
     return replace(model, mesh=mesh, loading=loading,
                    prestate=ReferenceState(unloaded.loaded_displacement, unloaded.gravity))
+
+
+def start_from_reference_state(model: Model, request, device=None, progress=None) -> tuple[Model, dict]:
+    """A case's ``reference_state`` (:class:`BreastBiomechLib.io.cases.UnloadedRequest`) applied:
+    ``model``'s mesh taken as imaged under ``request.imaged_gravity``, its unloaded shape
+    estimated, and the pre-stressed model with the model's gravity over the loading. Returns
+    the model and the figures to report (imaged gravity, iterations, residual and largest sag in
+    mm, wall time in s). What `breastbiomech simulate` and the Breast Simulation module run."""
+    unloaded = unloaded_shape(model, request.imaged_gravity, request.tolerance_mm, request.max_iterations,
+                              device=device, progress=progress)
+    figures = {"imaged_gravity": np.asarray(request.imaged_gravity, float).tolist(),
+               "iterations": unloaded.iterations, "residual_mm": unloaded.residual_mm,
+               "wall_s": unloaded.wall_time,
+               "largest_sag_mm": float(np.linalg.norm(unloaded.loaded_displacement, axis=1).max())}
+    return prestressed_model(model, unloaded, model.loading.gravity), figures
