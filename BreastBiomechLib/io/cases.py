@@ -141,6 +141,47 @@ def _plate(mesh: TetMesh, spec: dict, index: int, path: Path) -> Plate:
     return plate
 
 
+SKIN_FIELDS = ("E", "nu", "density", "thickness_mm", "nodes")
+
+
+def _skin_layer(mesh: TetMesh, materials: ElementMaterials, spec: dict, path: Path):
+    """A case's ``skin``: {"E" (Pa), "nu", optional "density", "thickness_mm", "nodes" (the skin
+    surface's node set, default "skin")}. A mesh with skin elements (tissue ``skin``) gives them
+    this material; otherwise the elements within ``thickness_mm`` of the skin surface carry it by
+    partial-volume weighting (:mod:`BreastBiomechLib.mesh.skin`). Returns the materials and a
+    sentence saying which."""
+    from BreastBiomechLib.labels import SKIN
+    from BreastBiomechLib.mesh.skin import check_thickness, skin_fraction
+
+    if not isinstance(spec, dict) or set(spec) - set(SKIN_FIELDS) or not {"E", "nu", "thickness_mm"} <= set(spec):
+        raise ValueError(f"{path}: skin is {{\"E\": Pa, \"nu\", \"thickness_mm\", optional \"density\", \"nodes\" "
+                         "(the skin surface's node set, default \"skin\")}")
+    try:
+        skin = Material(E=_number(spec["E"], "skin E"), nu=_number(spec["nu"], "skin nu"),
+                        density=_number(spec.get("density", 1000.0), "skin density"))
+        thickness = _number(spec["thickness_mm"], "skin thickness_mm")
+        if not thickness > 0:
+            raise ValueError(f"the skin thickness must be positive (mm), not {thickness}")
+    except ValueError as error:
+        raise ValueError(f"{path}: skin: {error}") from None
+    tissue = np.asarray(mesh.cell_data.get("tissue", np.zeros(len(mesh.tets))), dtype=int)
+    if np.any(tissue == SKIN.label):
+        elements = tissue == SKIN.label
+        fraction = elements.astype(float)
+        note = f"skin E {skin.E:g} Pa: the mesh's {int(elements.sum())} skin elements"
+    else:
+        nodes = _node_set(mesh, spec.get("nodes", "skin"), "skin", path)
+        try:
+            check_thickness(mesh, nodes, thickness)
+            fraction = skin_fraction(mesh, nodes, thickness)
+        except ValueError as error:
+            raise ValueError(f"{path}: skin: {error}") from None
+        layer = float(fraction @ mesh.volumes)
+        note = (f"skin E {skin.E:g} Pa, {thickness:g} mm: partial-volume weighting of {int(np.sum(fraction > 0))} "
+                f"elements ({layer / 1000:.1f} cm^3 of layer)")
+    return materials.with_skin(fraction, skin), note
+
+
 SUPPORT_FIELDS = ("nodes", "kind", "components", "normal_stiffness", "tangential_stiffness", "anchor")
 
 
@@ -236,7 +277,11 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
                       gravity=_vector(data.get("gravity", (0.0, 0.0, 0.0)), f"{path}: gravity", "m/s^2, LPS"),
                       total_time=float(data.get("total_time", 1.0)), load_shape=data.get("load_shape", "POLY345"),
                       settle_time=float(data.get("settle_time", 0.0)))
-    model = Model(mesh, _element_materials(mesh, data.get("materials", {}), path), loading,
+    materials = _element_materials(mesh, data.get("materials", {}), path)
+    if "skin" in data:
+        materials, note = _skin_layer(mesh, materials, data["skin"], path)
+        loading.notes.append(note)
+    model = Model(mesh, materials, loading,
                   formulation=data.get("formulation", "T4ANP"), damping=float(data.get("damping", 50.0)),
                   time_step=data.get("time_step"), safety=float(data.get("safety", 0.8)))
     solver = dict(data.get("solver", {}))

@@ -120,6 +120,21 @@ class ElementMaterials:
             raise ValueError("mu, kappa and density must be positive in every element")
         check_prony(self.prony_g, self.prony_tau)
 
+    def with_skin(self, fraction, skin: "Material") -> "ElementMaterials":
+        """These materials with a skin layer by partial-volume (Voigt) weighting: in an element a
+        share ``fraction`` (M,) in [0, 1] of whose volume lies in the layer, mu, kappa and density
+        become (1 - f) x its own + f x the ``skin``'s, and eta and the Prony weights (1 - f) x its
+        own (the skin is isotropic and elastic). Stiffnesses in parallel: the layer carries the
+        in-plane (membrane) load beside the tissue under it, which is what skin does to a
+        compressed breast; the element count stays. :mod:`BreastBiomechLib.mesh.skin` gives the
+        fractions."""
+        f = np.asarray(fraction, np.float64).reshape(-1)
+        if f.shape != self.mu.shape or np.any(~np.isfinite(f)) or np.any((f < 0) | (f > 1)):
+            raise ValueError(f"skin fractions must be {len(self.mu)} numbers in [0, 1]")
+        return ElementMaterials((1 - f) * self.mu + f * skin.mu, (1 - f) * self.kappa + f * skin.kappa,
+                                (1 - f) * self.eta, self.fibre, (1 - f) * self.density + f * skin.density,
+                                (1 - f)[:, None] * self.prony_g, self.prony_tau)
+
     @property
     def prony_terms(self) -> int:
         """Number of Prony terms K (0 for hyperelastic materials)."""
