@@ -60,7 +60,7 @@ def _truth_model(args):
     return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm,  # checked again
                    friction=args.friction, gravity=args.gravity, compression_gravity=args.compression_gravity,
                    chest_wall=args.chest_wall, chest_wall_stiffness=list(args.chest_wall_stiffness),
-                   plate_tilt_deg=tilt)
+                   plate_tilt_deg=tilt, skin=None if args.skin is None else list(args.skin))
 
 
 def cmd_phantom(args) -> int:
@@ -70,7 +70,8 @@ def cmd_phantom(args) -> int:
     if not args.compressed and args.compression is not None:
         raise ValueError("--compression applies to a compressed case: add --compressed")
     effects = {"--friction": args.friction, "--gravity": args.gravity, "--compression-gravity": args.compression_gravity,
-               "--plate-tilt": args.plate_tilt, "--chest-wall": args.chest_wall != "fixed" or None}
+               "--plate-tilt": args.plate_tilt, "--chest-wall": args.chest_wall != "fixed" or None,
+               "--skin": args.skin}
     given = [name for name, value in effects.items() if value]
     if given and not args.compressed:
         raise ValueError(f"{', '.join(given)} change the truth simulation of a compressed case: add --compressed")
@@ -954,6 +955,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="the chest wall's support (default fixed, as the seed)")
     effects.add_argument("--chest-wall-stiffness", type=_non_negative, nargs=2, default=[0.0, 0.0],
                          metavar=("NORMAL", "TANGENTIAL"), help="elastic or sliding chest wall's springs (Pa/mm)")
+    effects.add_argument("--skin", type=float, nargs=2, metavar=("E_PA", "THICKNESS_MM"),
+                         help="a skin layer of this Young's modulus and thickness (partial-volume weighting)")
     effects.add_argument("--plate-tilt", type=float, nargs=2, metavar=("DEG1", "DEG2"),
                          help="the first plate's tilt about its two tilt axes (degrees, at most 10)")
     p.set_defaults(func=cmd_phantom)

@@ -100,14 +100,15 @@ def test_hidden_effects_change_the_truth_model_and_are_recorded():
     seed = hemi_ellipsoid_compression(10.0)
     relaxation = DynamicRelaxation(load_iterations=300)
     truth = TruthModel(friction=0.5, gravity=[0, -9.81, 0], chest_wall="sliding",
-                       plate_tilt_deg=[[0.5, 0.0], [0.0, -0.5]])
+                       plate_tilt_deg=[[0.5, 0.0], [0.0, -0.5]], skin=[50e3, 2.0])
     assert truth.hidden_effects == ["friction 0.5", "gravity pre-stress [0.0, -9.81, 0.0]", "sliding chest wall",
-                                    "plate tilt [[0.5, 0.0], [0.0, -0.5]]"]
+                                    "plate tilt [[0.5, 0.0], [0.0, -0.5]]", "skin 50000 Pa, 2 mm"]
     model, unloaded = _with_hidden_effects(seed, truth, relaxation, "cpu")
     assert [p.friction for p in model.loading.plates] == [0.5, 0.5]
     assert all(abs(p.normal @ q.normal) < 1 - 1e-6 for p, q in zip(model.loading.plates, seed.loading.plates))
     assert model.loading.supports[0].mode == "sliding" and "rigid motion along it stopped" in model.loading.notes[0]
     assert model.prestate is not None and unloaded.residual_mm <= 0.02 and unloaded.iterations >= 2
+    assert model.materials.mu.max() > 1.5 * seed.materials.mu.max()  # the skin layer's elements
     with_effects, plain = solve(model, device="cpu", relaxation=relaxation), solve(seed, device="cpu",
                                                                                  relaxation=relaxation)
     assert with_effects.ok and plain.ok, with_effects.message
@@ -116,7 +117,7 @@ def test_hidden_effects_change_the_truth_model_and_are_recorded():
     assert TruthModel().hidden_effects == []
     for bad, match in (({"friction": -1}, "friction"), ({"gravity": [0, 1]}, "three finite"),
                        ({"compression_gravity": [0, 0, -9.81]}, "needs the gravity"),
-                       ({"chest_wall": "glued"}, "fixed, sliding or elastic")):
+                       ({"chest_wall": "glued"}, "fixed, sliding or elastic"), ({"skin": [5e4, 9]}, "thickness")):
         with pytest.raises(ValueError, match=match):
             TruthModel(**bad)
 

@@ -47,7 +47,9 @@ class TruthModel:
     unloaded state, with ``compression_gravity`` (None: the same) while the plates close;
     ``chest_wall``: "fixed" (the seed's), "sliding" or "elastic" with ``chest_wall_stiffness``
     (normal, tangential; Pa/mm per area); ``plate_tilt_deg``: per plate two tilt angles (degrees,
-    :func:`~BreastBiomechLib.solver.placement.posed_plate`), or None."""
+    :func:`~BreastBiomechLib.solver.placement.posed_plate`), or None; ``skin``: (E in Pa,
+    thickness in mm) of a skin layer by partial-volume weighting (:mod:`BreastBiomechLib.mesh.skin`),
+    or None."""
 
     compression: float = 0.25
     axis: str = "LR"
@@ -63,6 +65,7 @@ class TruthModel:
     chest_wall: str = "fixed"
     chest_wall_stiffness: list = field(default_factory=lambda: [0.0, 0.0])
     plate_tilt_deg: list | None = None
+    skin: list | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 < self.compression < 0.7:
@@ -87,14 +90,20 @@ class TruthModel:
             raise ValueError("the truth's chest_wall_stiffness is (normal, tangential) >= 0 in Pa/mm")
         if self.plate_tilt_deg is not None:
             self.plate_tilt_deg = [[float(a) for a in pair] for pair in self.plate_tilt_deg]
+        if self.skin is not None:
+            self.skin = [float(v) for v in self.skin]
+            if len(self.skin) != 2 or not (self.skin[0] > 0 and 0 < self.skin[1] <= 5):
+                raise ValueError(f"the truth's skin is (E > 0 Pa, thickness in (0, 5] mm), not {self.skin}")
 
     @property
     def hidden_effects(self) -> list[str]:
         """The effects beyond the seed's model that this truth holds (names)."""
-        return ([f"friction {self.friction:g}"] * (self.friction > 0)
-                + [f"gravity pre-stress {self.gravity}"] * (self.gravity is not None)
-                + [f"{self.chest_wall} chest wall"] * (self.chest_wall != "fixed")
-                + [f"plate tilt {self.plate_tilt_deg}"] * (self.plate_tilt_deg is not None))
+        effects = [(self.friction > 0, lambda: f"friction {self.friction:g}"),
+                   (self.gravity is not None, lambda: f"gravity pre-stress {self.gravity}"),
+                   (self.chest_wall != "fixed", lambda: f"{self.chest_wall} chest wall"),
+                   (self.plate_tilt_deg is not None, lambda: f"plate tilt {self.plate_tilt_deg}"),
+                   (self.skin is not None, lambda: f"skin {self.skin[0]:g} Pa, {self.skin[1]:g} mm")]
+        return [name() for present, name in effects if present]
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -212,7 +221,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
 def _with_hidden_effects(model, truth: TruthModel, relaxation, device):
     """``model`` (the seed's compression of the truth mesh) with the truth's hidden effects:
     plate friction and tilt, the chest-wall support (the field-of-view cut stays fixed and holds
-    the model) and the gravity pre-stress (estimated unloaded state). Returns the model and the
+    the model), the skin layer and the gravity pre-stress (estimated unloaded state). Returns the model and the
     unloaded shape (None without gravity)."""
     from dataclasses import replace
 
@@ -235,7 +244,15 @@ def _with_hidden_effects(model, truth: TruthModel, relaxation, device):
                                                   held_by="the fixed field-of-view cut" if len(cut) else "")
         others = [c for c in loading.constraints if not np.array_equal(np.unique(c.nodes), np.unique(chest))]
         loading = replace(loading, constraints=others + held, supports=supports, notes=[note])
-    model = replace(model, loading=loading)
+    materials = model.materials
+    if truth.skin is not None:
+        from BreastBiomechLib.mesh.skin import skin_fraction
+        from BreastBiomechLib.solver.materials import Material
+
+        skin_nodes = model.mesh.node_set("skin" if "skin" in model.mesh.point_data else "surface")
+        nu = float(truth.materials.get("skin", {}).get("nu", 0.495))
+        materials = materials.with_skin(skin_fraction(model.mesh, skin_nodes, truth.skin[1]), Material(truth.skin[0], nu))
+    model = replace(model, loading=loading, materials=materials)
     if truth.gravity is None:
         return model, None
     unloaded = unloaded_shape(model, truth.gravity, device=device, relaxation=relaxation)
