@@ -99,7 +99,8 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         for spinBox in (self.ui.compressionSliderWidget, self.ui.chestClearanceSpinBox, self.ui.dampingSpinBox,
                         self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox,
                         self.ui.plateFriction1SpinBox, self.ui.plateFriction2SpinBox,
-                        self.ui.chestWallNormalStiffnessSpinBox, self.ui.chestWallTangentialStiffnessSpinBox):
+                        self.ui.chestWallNormalStiffnessSpinBox, self.ui.chestWallTangentialStiffnessSpinBox,
+                        self.ui.skinModulusSpinBox, self.ui.skinThicknessSpinBox):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.inputMeshSelector.currentNodeChanged.connect(self.onInputMeshChanged)
         self.ui.defaultMaterialsButton.clicked.connect(self.onDefaultMaterialsButton)
@@ -141,6 +142,9 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
             self.ui.chestWallNormalStiffnessSpinBox.value = p["chestWallNormalStiffness"]
             self.ui.chestWallTangentialStiffnessSpinBox.value = p["chestWallTangentialStiffness"]
             self.ui.startUnloadedCheckBox.checked = p["startUnloaded"]
+            self.ui.skinModulusSpinBox.value = p["skinModulusKPa"]
+            self.ui.skinThicknessSpinBox.value = p["skinThicknessMm"]
+            self.ui.skinThicknessSpinBox.enabled = p["skinModulusKPa"] > 0
             self.ui.chestWallNormalStiffnessSpinBox.enabled = p["chestWallMode"] == "elastic"
             self.ui.chestWallTangentialStiffnessSpinBox.enabled = p["chestWallMode"] != "fixed"
             self.ui.fixedDirectionsWidget.enabled = p["chestWallMode"] == "fixed"
@@ -214,6 +218,8 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         p["chestWallTangentialStiffness"] = self.ui.chestWallTangentialStiffnessSpinBox.value
         p["gravity"] = self.ui.gravityComboBox.currentText
         p["startUnloaded"] = self.ui.startUnloadedCheckBox.checked
+        p["skinModulusKPa"] = self.ui.skinModulusSpinBox.value
+        p["skinThicknessMm"] = self.ui.skinThicknessSpinBox.value
         p.node.EndModify(wasModifying)
 
     def onInputMeshChanged(self, node):
@@ -276,7 +282,7 @@ class BreastSimulationLogic(ParameterNodeLogic):
                 "tolerance": 0.01, "stopWhenSettled": True,
                 "plateFriction1": 0.0, "plateFriction2": 0.0, "chestWallMode": "fixed",
                 "chestWallNormalStiffness": 0.0, "chestWallTangentialStiffness": 0.0,
-                "gravity": "none", "startUnloaded": False}
+                "gravity": "none", "startUnloaded": False, "skinModulusKPa": 0.0, "skinThicknessMm": 2.0}
     ROLES = ("inputMesh", "materials", "plates", "outputMesh", "history", "forceChart", "energyChart")
     PLATE_NAMES = {"LR": ("Right plate", "Left plate"), "AP": ("Anterior plate", "Posterior plate"),
                    "SI": ("Inferior plate", "Superior plate")}  # first: the lower coordinate in LPS
@@ -456,7 +462,8 @@ class BreastSimulationLogic(ParameterNodeLogic):
     def caseDescription(self, parameterNode) -> tuple[dict, object]:
         """What a case file holds (BreastBiomechLib.io.cases, docs/solver.md), made from the
         scene's nodes: materials from the table, plates from the markups planes (contact nodes,
-        rounded edges, each plate's friction), the chest-wall support, gravity and, with
+        rounded edges, each plate's friction), the chest-wall support, the skin layer (with
+        ``skinModulusKPa`` > 0; its Poisson ratio the first material's), gravity and, with
         ``startUnloaded``, the reference state; and the mesh (TetMesh, LPS mm). The one input
         of the one model builder, :meth:`buildModel`, which `breastbiomech simulate` shares."""
         from BreastBiomechLib import labels
@@ -495,6 +502,11 @@ class BreastSimulationLogic(ParameterNodeLogic):
             description["solver"]["tolerance_mm"] = float(parameterNode["tolerance"])
         elif parameterNode["stopWhenSettled"]:
             description["solver"]["steady_state_mm"] = float(parameterNode["tolerance"])
+        if parameterNode["skinModulusKPa"] > 0:
+            skin_nodes = "skin" if "skin" in mesh.point_data else self.contactNodes(parameterNode, mesh).tolist()
+            description["skin"] = {"E": 1e3 * float(parameterNode["skinModulusKPa"]),
+                                   "nu": float(materials[next(iter(materials))]["nu"]),
+                                   "thickness_mm": float(parameterNode["skinThicknessMm"]), "nodes": skin_nodes}
         if parameterNode["startUnloaded"]:
             if gravity is None:
                 raise ValueError("starting from the unloaded shape needs the gravity the mesh was imaged under: "

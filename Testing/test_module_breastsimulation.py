@@ -282,6 +282,7 @@ def test_the_new_options_run_through_the_logic(scene, breast):
     p["chestWallMode"] = "elastic"
     p["chestWallNormalStiffness"], p["chestWallTangentialStiffness"] = 50.0, 5.0
     p["startUnloaded"] = True
+    p["skinModulusKPa"], p["skinThicknessMm"] = 50.0, 2.0
     with pytest.raises(ValueError, match="needs the gravity"):
         logic.run(p)
     p["gravity"] = "anterior (prone)"
@@ -291,6 +292,7 @@ def test_the_new_options_run_through_the_logic(scene, breast):
     assert solution.status == "completed", solution.message
     assert any("unloaded" in m for m in messages)
     assert "chest wall springs 50 Pa/mm across, 5 Pa/mm along" in result["summary"]
+    assert "skin E 50000 Pa, 2 mm: partial-volume weighting" in result["summary"]
     assert np.linalg.norm(solution.plate_tangential_forces, axis=1).max() > 0.0
     output = p.reference("outputMesh")
     assert output is not None and output.GetUnstructuredGrid().GetNumberOfPoints() == len(breast.nodes)
