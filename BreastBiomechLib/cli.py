@@ -675,6 +675,51 @@ def _bench_unloaded(args) -> dict:
             "wall_s": round(wall, 3)}
 
 
+EFFECT_SIZES = {"friction 0.5": {"friction": 0.5}, "gravity 9.81 m/s^2 prone": {"gravity": [0.0, -9.81, 0.0]},
+                "sliding chest wall": {"chest_wall": "sliding"}, "skin 50 kPa / 2 mm": {"skin": [50e3, 2.0]},
+                "tilt 0.5 deg": {"plate_tilt_deg": [[0.0, 0.5], [0.0, 0.0]]}}
+
+
+def _bench_effects(args) -> dict:
+    """How far the compressed landmarks of Table 1 case ``--cases[0]`` move when each effect the
+    seed's model leaves out is switched on alone at a realistic size (the truth simulation with
+    the effect vs without, one truth mesh of ``--truth-edge-mm``): the signal a discrepancy
+    diagnosis has to find. Landmark shifts in mm (17 landmarks), wall times in s."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.phantom import generate_phantom, table1_case
+    from BreastBiomechLib.phantom.compressed import compress_phantom, table1_truth
+
+    number = args.cases[0]
+    case = generate_phantom(table1_case(number))
+    truth = replace(table1_truth(number), edge_mm=args.truth_edge_mm)
+    started = time.perf_counter()
+    mesh = mesh_labels(case.labels, MeshSettings(edge_mm=truth.edge_mm), nipple_mm=case.landmarks.position("nipple")).mesh
+    figures = {"benchmark": "effects", "case": number, "truth_tets": len(mesh.tets), "truth_edge_mm": truth.edge_mm,
+               "mesh_s": round(time.perf_counter() - started, 1), "effects": {}}
+    started = time.perf_counter()
+    plain = compress_phantom(case, truth, device=args.device, mesh=mesh)
+    figures["seed_model"] = {"seconds": round(time.perf_counter() - started, 1),
+                             "landmark_displacement_mm": float(np.linalg.norm(
+                                 plain.landmarks.positions - case.landmarks.positions, axis=1).mean())}
+    for name, change in EFFECT_SIZES.items():
+        started = time.perf_counter()
+        try:
+            compressed = compress_phantom(case, replace(truth, **change), device=args.device, mesh=mesh)
+        except (RuntimeError, ValueError) as error:
+            figures["effects"][name] = {"error": str(error)}
+            continue
+        shift = np.linalg.norm(compressed.landmarks.positions - plain.landmarks.positions, axis=1)
+        figures["effects"][name] = {"landmark_shift_mean_mm": round(float(shift.mean()), 3),
+                                    "landmark_shift_max_mm": round(float(shift.max()), 3),
+                                    "seconds": round(time.perf_counter() - started, 1),
+                                    "solve": compressed.summary["solve_message"]}
+    return figures
+
+
 def _fit_grid(image, grid):
     """``image`` padded (edge voxels repeated: the chest and the air continue) or cropped
     symmetrically to ``grid`` voxels."""
@@ -892,9 +937,9 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
-    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded"):
+    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects"):
         figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp,
-                   "optimise": _bench_optimise, "unloaded": _bench_unloaded}[args.what](args)
+                   "optimise": _bench_optimise, "unloaded": _bench_unloaded, "effects": _bench_effects}[args.what](args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -1080,9 +1125,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "warp", "optimise"],
+    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise"],
                    help="what to time")
-    p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="Table 1 cases (phantom)")
+    p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5],
+                   help="Table 1 cases (phantom; effects: the first)")
+    p.add_argument("--truth-edge-mm", type=float, default=3.0, help="effects: the truth mesh's element size (mm)")
     p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
     p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
     p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
