@@ -46,8 +46,8 @@ def test_the_skin_effect_on_a_tetgen_breast_settles_under_refinement():
     """A 2 mm skin of 50 kPa on a 3 kPa TetGen breast compressed 25 %: the layer's volume is the
     same on 10, 7 and 5 mm meshes (within 3 %), and the plate force it adds is positive and falls
     as the mesh is refined (the Voigt weighting is an upper bound: a coarse element that holds
-    the layer stiffens more tissue than the layer is): +32 %, +29 %, +24 % here; +21 % at 3.5 mm
-    (docs/solver.md)."""
+    the layer stiffens more tissue than the layer is): +32 %, +29 %, +24 % here, converging to
+    +18 % at 2.5-1.6 mm (H100 run in docs/solver.md)."""
     from dataclasses import replace
 
     from BreastBiomechLib.solver import DynamicRelaxation, solve
