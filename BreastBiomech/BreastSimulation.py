@@ -568,7 +568,7 @@ class BreastSimulationLogic(ParameterNodeLogic):
         it, and a cancelled run leaves the earlier results untouched. Returns a dict with the
         ``solution`` (library Solution, LPS), the ``model``, the ``device`` and a ``summary``."""
         from BreastBiomechLib.solver import solve
-        from BreastBiomechLib.solver.unloaded import start_from_reference_state
+        from BreastBiomechLib.solver.unloaded import displacement_from_imaged, start_from_reference_state
 
         if parameterNode["method"] not in ("relaxation", "physical"):
             raise ValueError(f"method must be relaxation or physical, not {parameterNode['method']!r}")
@@ -590,8 +590,8 @@ class BreastSimulationLogic(ParameterNodeLogic):
             progress(0.0, f"{what} on {device}: starting")
         solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT, progress=report,
                          steady_state_mm=steady)
-        if model is not imaged:  # displacements from the mesh as imaged, not from its unloaded shape
-            solution.displacement = model.mesh.nodes + solution.displacement - imaged.mesh.nodes
+        # displacements from the mesh as imaged, not from its unloaded shape
+        solution.displacement = displacement_from_imaged(model, solution.displacement, imaged.mesh.nodes)
         summary = self.summaryText(solution, model, device, relaxation is not None)
         logging.info("BreastSimulation: %s", summary)
         if solution.status != "cancelled":

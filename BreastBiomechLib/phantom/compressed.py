@@ -146,6 +146,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.solver import solve
     from BreastBiomechLib.solver.placement import final_planes
+    from BreastBiomechLib.solver.unloaded import displacement_from_imaged
     from BreastBiomechLib.warping import ImageWarper
 
     truth = truth or TruthModel()
@@ -171,9 +172,8 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     solution = solve(model, device=device, relaxation=settings.relaxation)
     if not solution.ok:
         raise RuntimeError(f"the truth simulation failed ({solution.status}: {solution.message})")
-    displacement = solution.displacement
-    if unloaded is not None:  # from the imaged shape, not the stress-free one the solve started from
-        displacement = model.mesh.nodes + solution.displacement - mesh.nodes
+    # from the imaged shape, not the stress-free one a pre-stressed solve starts from
+    displacement = displacement_from_imaged(model, solution.displacement, mesh.nodes)
 
     report(0.8, "imaging the compressed breast")
     grid = _measured_grid(case, mesh.nodes + displacement)
@@ -210,7 +210,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
                                       for p, f in zip(model.loading.plates, solution.plate_tangential_forces)},
         "unloaded_state": None if unloaded is None else {
             "iterations": unloaded.iterations, "residual_mm": unloaded.residual_mm,
-            "largest_sag_mm": float(np.linalg.norm(unloaded.loaded_displacement, axis=1).max())},
+            "largest_sag_mm": unloaded.largest_sag_mm},
         "size_voxels": [int(n) for n in grid.size], "spacing_mm": [float(s) for s in grid.spacing],
         "seconds": round(time.perf_counter() - started, 2),
     }

@@ -370,7 +370,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         materials = [mat.long_term() for mat in materials]
     plate_sets = plate_sets_of_batch(model, B, plate_displacements, plates)
     P = len(model.loading.plates)
-    plate_displacements = [np.array([p.displacement for p in ps]).reshape(P, 3) for ps in plate_sets]
 
     nodes = model.mesh.nodes * MM
     tets = model.mesh.tets.astype(np.int32)
@@ -394,11 +393,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         constrained = max([np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
         extent = float(np.max(np.ptp(nodes, axis=0)))
         load_iterations = np.array([
-            relaxation.load_iterations_for(max(np.abs(np.asarray(d, float)).max(initial=0.0), constrained),
+            relaxation.load_iterations_for(max([np.abs(p.displacement).max() for p in ps] + [constrained]),
                                            float(np.max(np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.mu))),
                                            float(np.median(length)), model.safety,
                                            extent if any(p.friction > 0 for p in ps) else 0.0)
-            for d, m, ps in zip(plate_displacements, materials, plate_sets)])
+            for m, ps in zip(materials, plate_sets)])
         totals = load_iterations * dt
         n_steps = max(relaxation.max_iterations, 2 * int(load_iterations.max()))
         sample_every = relaxation.update_every
@@ -439,10 +438,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_prony_decay = arr(np.exp(-dt / prony_tau).reshape(-1) if K else np.zeros(1), float)
         visco_state = wp.zeros(max(B * M * K, 1), dtype=wp.mat33)
         d_x0 = arr(nodes, wp.vec3)
+        if model.prestate is not None:  # at rest in the pre-stressed state
+            initial_displacement = model.prestate.displacement
         u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.tile(
             np.asarray(initial_displacement, float).reshape(N, 3) * MM, (B, 1))
-        if model.prestate is not None:  # at rest in the pre-stressed state
-            u0 = np.tile(model.prestate.displacement * MM, (B, 1))
         # the state: displacement u (m), its float32 rounding remainder and the last increment
         u, low, du = arr(u0, wp.vec3), wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
         scratch = wp.zeros(B * N, dtype=wp.vec3)

@@ -40,6 +40,11 @@ class UnloadedShape:
     wall_time: float
     history: list[float] = field(default_factory=list)
 
+    @property
+    def largest_sag_mm(self) -> float:
+        """The largest node displacement (mm) from the stress-free to the imaged shape."""
+        return float(np.linalg.norm(self.loaded_displacement, axis=1).max())
+
 
 def _gravity_only(model: Model, nodes: np.ndarray, gravity: np.ndarray) -> Model:
     """``model``'s mesh moved to ``nodes``, with its constraints and supports and only gravity
@@ -126,6 +131,14 @@ def start_from_reference_state(model: Model, request, device=None, progress=None
                               device=device, progress=progress)
     figures = {"imaged_gravity": np.asarray(request.imaged_gravity, float).tolist(),
                "iterations": unloaded.iterations, "residual_mm": unloaded.residual_mm,
-               "wall_s": unloaded.wall_time,
-               "largest_sag_mm": float(np.linalg.norm(unloaded.loaded_displacement, axis=1).max())}
+               "wall_s": unloaded.wall_time, "largest_sag_mm": unloaded.largest_sag_mm}
     return prestressed_model(model, unloaded, model.loading.gravity), figures
+
+
+def displacement_from_imaged(model: Model, displacement: np.ndarray, imaged_nodes: np.ndarray) -> np.ndarray:
+    """A solve's ``displacement`` (N, 3) mm of ``model`` as displacement from the mesh as imaged
+    (``imaged_nodes``, LPS mm): for a pre-stressed model, whose mesh is the unloaded shape, its
+    final positions minus the imaged nodes; otherwise the displacement as it is."""
+    if model.prestate is None:
+        return displacement
+    return model.mesh.nodes + displacement - np.asarray(imaged_nodes, float)
