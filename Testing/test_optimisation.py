@@ -132,7 +132,8 @@ def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_ca
     copy without its truth (truth.json, the truth mesh): a fit never reads them."""
     import shutil
 
-    from BreastBiomechLib.cli import MODEL_CHOICES, OBJECTIVE_CHOICES, main
+    from BreastBiomechLib.cli import main
+    from BreastBiomechLib.cli.common import MODEL_CHOICES, OBJECTIVE_CHOICES
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
@@ -197,7 +198,7 @@ def test_one_free_parameter_is_searched_by_batched_bracketing():
 def test_the_demo_replaces_its_earlier_fit_and_nothing_else(tmp_path, capsys):
     """`make demo` twice: the second run remakes the case and mesh, so the first run's fit is
     removed, not resumed; a folder that holds no fit is refused, not deleted."""
-    from BreastBiomechLib.cli import clear_earlier_fit
+    from BreastBiomechLib.cli.demo import clear_earlier_fit
 
     fit = tmp_path / "fit"
     clear_earlier_fit(fit)  # nothing there yet

@@ -1,0 +1,47 @@
+"""Command line: ``breastbiomech phantom|segment|mesh|simulate|warp|compare|optimise|study|demo|bench``.
+
+Each sub-command is a thin layer over library functions; results go to files and a short report
+on standard output (``--json`` where a machine reads it). One module per command group, each
+with its parsers beside its commands (``add_parsers``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from BreastBiomechLib import __version__
+from BreastBiomechLib.cli import bench, demo, fit, images, mesh, phantom, segment, simulate
+from BreastBiomechLib.cli.common import end_progress
+
+
+GROUPS = (phantom, fit, segment, mesh, simulate, images, demo, bench)  # the order `--help` lists them in
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="breastbiomech", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for group in GROUPS:
+        group.add_parsers(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # as typed, for reports' provenance
+    if getattr(args, "json", False):  # standard output is for the one JSON line: no warp banner
+        import warp
+
+        warp.config.log_level = warp.LOG_WARNING
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
+        end_progress()
+        print(f"breastbiomech {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,389 @@
+"""``breastbiomech bench``: benchmark figures (one JSON line with ``--json``); see
+docs/benchmarks.md. Never asserts on time."""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+
+from BreastBiomechLib import __version__
+from BreastBiomechLib.cli.common import non_negative
+
+
+BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
+
+
+def _hemi_ellipsoid_spacing(tets: int) -> float:
+    """The grid spacing (mm) that gives the benchmarks' hemi-ellipsoid about ``tets`` elements."""
+    import numpy as np
+
+    return float((np.pi * 4 * np.prod(BENCH_RADII_MM) / tets) ** (1 / 3))
+
+
+def _bench_solver(args) -> dict:
+    """One forward solve (or a batch) of the hemi-ellipsoid compression case; figures as a dict."""
+    import numpy as np
+    import warp as wp
+
+    from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+
+    spacing = _hemi_ellipsoid_spacing(args.tets)
+    settle = 0.25 * args.total_time if args.settle_time is None else args.settle_time
+    model = hemi_ellipsoid_compression(spacing, compression=0.25, total_time=args.total_time, settle_time=settle)
+    for plate in model.loading.plates:
+        plate.friction = args.friction
+    wp.init()
+    device = wp.get_device(args.device)
+    rng = np.random.default_rng(0)
+    base = model.materials
+    variants = [base] + [type(base)(base.mu * f, base.kappa * f, base.eta, base.fibre, base.density)
+                         for f in rng.uniform(0.7, 1.3, args.batch - 1)]
+    warm = hemi_ellipsoid_compression(20.0, total_time=0.05, settle_time=0.0)
+    solve_batch(warm, [warm.materials], device=device)  # compile the kernels once, outside the timing
+    started = time.perf_counter()
+    load = {} if args.load_iterations is None else {"load_iterations": args.load_iterations}
+    relaxation = DynamicRelaxation(tolerance_mm=0.01, **load) if args.relaxation else None
+    solutions = solve_batch(model, variants, device=device, relaxation=relaxation,
+                            steady_state_mm=args.steady_state_mm)
+    wall = time.perf_counter() - started
+    s = solutions[0]
+    memory_mb = None
+    if device.is_cuda:  # device memory in use after the solve (warp's pool included)
+        memory_mb = round((device.total_memory - device.free_memory) / 2**20, 1)
+    n, m = len(model.mesh.nodes), len(model.mesh.tets)
+    bytes_per_step = args.batch * (324 * m + 70 * n)  # reads/writes/atomics per step, see docs
+    return {
+        "benchmark": "solver", "device": str(device), "device_name": getattr(device, "name", ""),
+        "nodes": n, "tets": m, "batch": args.batch, "formulation": model.formulation, "friction": args.friction,
+        "method": "dynamic relaxation" if args.relaxation else "physical time",
+        "load_iterations": relaxation.load_iterations if relaxation else None,
+        "estimated_error_mm": s.estimated_error_mm,
+        "steps": s.steps, "time_step_s": s.time_step, "simulated_s": s.steps * s.time_step,
+        "wall_s": round(wall, 4), "solve_wall_s": round(s.wall_time, 4),
+        "us_per_step": round(1e6 * s.wall_time / s.steps, 3),
+        "us_per_step_per_model": round(1e6 * s.wall_time / s.steps / args.batch, 3),
+        "bytes_per_step": bytes_per_step,
+        "floor_us_per_step_at_3350GBs": round(bytes_per_step / 3.35e9 * 1e6 / 1e3, 3),
+        "status": s.status, "message": s.message, "ke_ie_end_of_loading": s.ke_ie_at_end_of_loading,
+        "plate_force_N": float(np.linalg.norm(s.plate_forces[0])),
+        "max_displacement_mm": float(np.abs(s.displacement).max()),
+        "device_memory_in_use_mb": memory_mb,
+    }
+
+
+def _bench_unloaded(args) -> dict:
+    """The unloaded reference state of the hemi-ellipsoid breast of about ``--tets`` tets imaged
+    prone (gravity 9.81 m/s^2 anterior) with the seed's chest wall: iterations, residual, wall
+    time and the gravity sag."""
+    import warp as wp
+
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+    from BreastBiomechLib.solver.unloaded import unloaded_shape
+
+    spacing = _hemi_ellipsoid_spacing(args.tets)
+    model = hemi_ellipsoid_compression(spacing)
+    wp.init()
+    device = wp.get_device(args.device)
+    warm = hemi_ellipsoid_compression(20.0, total_time=0.05, settle_time=0.0)
+    unloaded_shape(warm, (0.0, -9.81, 0.0), tolerance_mm=0.5, device=device)  # compile outside the timing
+    tolerance = 0.02 if args.tolerance_mm is None else args.tolerance_mm
+    started = time.perf_counter()
+    unloaded = unloaded_shape(model, (0.0, -9.81, 0.0), tolerance_mm=tolerance, device=device)
+    wall = time.perf_counter() - started
+    return {"benchmark": "unloaded", "device": str(device), "device_name": getattr(device, "name", ""),
+            "nodes": len(model.mesh.nodes), "tets": len(model.mesh.tets), "gravity": [0.0, -9.81, 0.0],
+            "material": "E 10 kPa, nu 0.49", "tolerance_mm": tolerance, "iterations": unloaded.iterations,
+            "residual_mm": unloaded.residual_mm, "residual_history_mm": [round(r, 5) for r in unloaded.history],
+            "largest_sag_mm": unloaded.largest_sag_mm,
+            "wall_s": round(wall, 3)}
+
+
+EFFECT_SIZES = {"friction 0.5": {"friction": 0.5}, "gravity 9.81 m/s^2 prone": {"gravity": [0.0, -9.81, 0.0]},
+                "sliding chest wall": {"chest_wall": "sliding"}, "skin 50 kPa / 2 mm": {"skin": [50e3, 2.0]},
+                "tilt 0.5 deg": {"plate_tilt_deg": [[0.0, 0.5], [0.0, 0.0]]}}
+
+
+def _bench_effects(args) -> dict:
+    """How far the compressed landmarks of Table 1 case ``--cases[0]`` move when each effect the
+    seed's model leaves out is switched on alone at a realistic size (the truth simulation with
+    the effect vs without, one truth mesh of ``--truth-edge-mm``): the signal a discrepancy
+    diagnosis has to find. Landmark shifts in mm (17 landmarks), wall times in s."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.phantom import generate_phantom, table1_case
+    from BreastBiomechLib.phantom.compressed import compress_phantom, table1_truth
+
+    number = args.cases[0]
+    case = generate_phantom(table1_case(number))
+    truth = replace(table1_truth(number), edge_mm=args.truth_edge_mm)
+    started = time.perf_counter()
+    mesh = mesh_labels(case.labels, MeshSettings(edge_mm=truth.edge_mm), nipple_mm=case.landmarks.position("nipple")).mesh
+    figures = {"benchmark": "effects", "case": number, "truth_tets": len(mesh.tets), "truth_edge_mm": truth.edge_mm,
+               "mesh_s": round(time.perf_counter() - started, 1), "effects": {}}
+    started = time.perf_counter()
+    plain = compress_phantom(case, truth, device=args.device, mesh=mesh)
+    figures["seed_model"] = {"seconds": round(time.perf_counter() - started, 1),
+                             "landmark_displacement_mm": float(np.linalg.norm(
+                                 plain.landmarks.positions - case.landmarks.positions, axis=1).mean())}
+    for name, change in EFFECT_SIZES.items():
+        started = time.perf_counter()
+        try:
+            compressed = compress_phantom(case, replace(truth, **change), device=args.device, mesh=mesh)
+        except (RuntimeError, ValueError) as error:
+            figures["effects"][name] = {"error": str(error)}
+            continue
+        shift = np.linalg.norm(compressed.landmarks.positions - plain.landmarks.positions, axis=1)
+        figures["effects"][name] = {"landmark_shift_mean_mm": round(float(shift.mean()), 3),
+                                    "landmark_shift_max_mm": round(float(shift.max()), 3),
+                                    "seconds": round(time.perf_counter() - started, 1),
+                                    "solve": compressed.summary["solve_message"]}
+    return figures
+
+
+def _fit_grid(image, grid):
+    """``image`` padded (edge voxels repeated: the chest and the air continue) or cropped
+    symmetrically to ``grid`` voxels."""
+    import SimpleITK as sitk
+
+    change = [g - s for g, s in zip(grid, image.GetSize())]
+    grow = [max(c, 0) for c in change]
+    image = sitk.ZeroFluxNeumannPad(image, [g // 2 for g in grow], [g - g // 2 for g in grow])
+    shrink = [max(-c, 0) for c in change]
+    return sitk.Crop(image, [s // 2 for s in shrink], [s - s // 2 for s in shrink])
+
+
+def _bench_segment(args) -> dict:
+    """Segment a phantom (``--volume-cm3``, ``--tumour-mm``, ``--snr``, ``--bias``, ``--seed``)
+    from its written seed points, its volume padded or cropped to ``--grid`` when given; Dice
+    against the ground truth and the wall time (the phantom's generation is not timed)."""
+    import os
+
+    from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
+    from BreastBiomechLib.phantom.files import SEED_COUNTS
+    from BreastBiomechLib.phantom.seeds import seed_points
+    from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
+
+    params = PhantomParameters(seed=args.seed, volume_cm3=args.volume_cm3, tumour_diameter_mm=args.tumour_mm,
+                               snr=args.snr, bias_strength=args.bias)
+    case = generate_phantom(params)
+    image, labels = case.image, case.labels
+    if args.grid:
+        image, labels = _fit_grid(image, args.grid), _fit_grid(labels, args.grid)
+    muscle = seed_points(labels, "muscle", SEED_COUNTS["muscle"]).positions
+    tumour = seed_points(labels, "tumour", SEED_COUNTS["tumour"]).positions if args.tumour_mm > 0 else None
+    started = time.perf_counter()
+    result = segment_tissues(image, muscle, tumour)
+    wall = time.perf_counter() - started
+    return {"benchmark": "segment", "version": __version__, "machine": platform.machine(), "cores": os.cpu_count(),
+            "grid": list(image.GetSize()), "voxels": int(image.GetNumberOfPixels()),
+            "snr": args.snr, "bias": args.bias, "seed": args.seed, "tumour_mm": args.tumour_mm,
+            "wall_s": round(wall, 2), "stages_s": result.summary["seconds"],
+            "em_iterations": result.summary["em"]["iterations"],
+            "dice": {k: round(v, 4) for k, v in dice_per_tissue(result.labels, labels).items()}}
+
+
+def _bench_warp(args) -> dict:
+    """Warp a synthetic image through a 25 % compression of the hemi-ellipsoid mesh (``--tets``)
+    onto a ``--grid`` (default 256 x 256 x 100) covering it, and compare the result with the
+    image by NMI and NCC, ``--repeat`` times; median and best milliseconds per call after a
+    warm-up call (kernel compilation)."""
+    import numpy as np
+    import SimpleITK as sitk
+    import warp as wp
+
+    from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+    from BreastBiomechLib.similarity import Similarity
+    from BreastBiomechLib.warping import ImageWarper
+
+    spacing = _hemi_ellipsoid_spacing(args.tets)
+    mesh = hemi_ellipsoid_mesh(BENCH_RADII_MM, spacing)
+    grid = args.grid or (256, 256, 100)
+    low, high = mesh.nodes.min(axis=0) - 5.0, mesh.nodes.max(axis=0) + 5.0
+    voxel = (high - low) / (np.array(grid) - 1)
+    k, j, i = np.meshgrid(*[np.arange(n) for n in grid[::-1]], indexing="ij")
+    values = (500 + 300 * np.sin(i / 9.0) * np.cos(j / 13.0) + 150 * np.sin(k / 5.0)).astype(np.float32)
+    image = sitk.GetImageFromArray(values)
+    image.SetOrigin(tuple(low))
+    image.SetSpacing(tuple(voxel))
+    centre = mesh.nodes.mean(axis=0)
+    squeeze = np.diag([0.75, 1.0, 1.0 / 0.75])  # 25 % compression along x, volume kept
+    displacement = (mesh.nodes - centre) @ (squeeze - np.eye(3)).T
+    wp.init()
+    device = wp.get_device(args.device)
+    warper = ImageWarper(mesh, image, image, device=device)
+    similarity = Similarity(image, bins=64, device=device)
+
+    def timed(call):
+        call()
+        wp.synchronize_device(device)
+        times = []
+        for _ in range(args.repeat):
+            started = time.perf_counter()
+            call()
+            wp.synchronize_device(device)
+            times.append(1000 * (time.perf_counter() - started))
+        return round(float(np.median(times)), 3), round(float(np.min(times)), 3)
+
+    warp_ms = timed(lambda: warper.warp(displacement))
+    predicted = warper.warp(displacement)
+    nmi_ms = timed(lambda: similarity.nmi(predicted))
+    ncc_ms = timed(lambda: similarity.ncc(predicted))
+    inside = int(np.count_nonzero(sitk.GetArrayFromImage(warper.predict(displacement).inside)))
+    return {"benchmark": "warp", "version": __version__, "device": str(device),
+            "device_name": getattr(device, "name", ""), "nodes": len(mesh.nodes), "tets": len(mesh.tets),
+            "grid": list(grid), "voxels": int(np.prod(grid)), "inside_voxels": inside,
+            "warp_ms_median": warp_ms[0], "warp_ms_best": warp_ms[1],
+            "nmi_ms_median": nmi_ms[0], "nmi_ms_best": nmi_ms[1], "ncc_ms_median": ncc_ms[0],
+            "ncc_ms_best": ncc_ms[1], "nmi": round(similarity.nmi(predicted), 6), "repeat": args.repeat}
+
+
+def _bench_mesh(args) -> dict:
+    """Mesh a phantom of ``--volume-cm3`` breast tissue (seed 1 preset otherwise) at
+    ``--edge-mm``, its label map padded (edge voxels repeated: the chest continues) or cropped
+    to ``--grid`` voxels when given; figures as a dict (the phantom's generation is not timed)."""
+    import os
+
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
+
+    case = generate_phantom(PhantomParameters(volume_cm3=args.volume_cm3))
+    labels = _fit_grid(case.labels, args.grid) if args.grid else case.labels
+    started = time.perf_counter()
+    result = mesh_labels(labels, MeshSettings(edge_mm=args.edge_mm))
+    wall = time.perf_counter() - started
+    summary = result.summary()
+    return {"benchmark": "mesh", "version": __version__, "machine": platform.machine(), "cores": os.cpu_count(),
+            "breast_volume_cm3": round(case.summary["breast_volume_cm3"], 1), "grid": list(labels.GetSize()), "voxels": int(labels.GetNumberOfPixels()),
+            "edge_mm": args.edge_mm, "nodes": summary["nodes"], "tets": summary["elements"],
+            "wall_s": round(wall, 2), "stages_s": summary["seconds"],
+            "failing_elements": summary["quality"]["failing"]["any"]["count"],
+            "dihedral_min_deg": round(summary["quality"]["dihedral_min_deg"], 2),
+            "elements_per_tissue": summary["elements_per_tissue"],
+            "dice": {k: round(v["dice"], 4) for k, v in summary["tissue_representation"].items()}}
+
+
+BENCH_TRUTH = {"glandular.E": 25e3, "muscle.E": 80e3, "tumour.E": 120e3, "fat.nu": 0.495, "glandular.nu": 0.49,
+               "muscle.nu": 0.48, "tumour.nu": 0.495, "fat.eta": 4e3, "glandular.eta": 1e3, "muscle.eta": 2e4,
+               "tumour.eta": 1e3}  # bench optimise's truth: 4 tissues x (E, nu, eta), fat's E the reference
+
+
+def _bench_optimise(args) -> dict:
+    """An end-to-end aniso-hetero fit (4 tissues x E, nu, eta; fat's E the reference) of the
+    synthetic breast (optimisation.synthetic: ``--radii``, ``--element-mm``, ``--voxel-mm``)
+    whose measured image is the prediction at :data:`BENCH_TRUTH`, within ``--budget`` solves
+    by ``--optimiser``; the case's set-up is not timed."""
+    import numpy as np
+
+    from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace, optimise
+    from BreastBiomechLib.optimisation.synthetic import measured_at, synthetic_case
+    from BreastBiomechLib.solver import DynamicRelaxation
+
+    case = synthetic_case(tuple(args.radii), element_mm=args.element_mm, voxel_mm=tuple(args.voxel_mm),
+                          muscle_mm=10.0, tumour_mm=0.3 * args.radii[0])
+    space = ParameterSpace.for_model("aniso-hetero", ["fat", "glandular", "muscle", "tumour"])
+    relaxation = DynamicRelaxation(tolerance_mm=0.01 if args.tolerance_mm is None else args.tolerance_mm)
+    measured = measured_at(case, space, BENCH_TRUTH, relaxation, device=args.device)
+    problem = FittingProblem(space, case.mesh, case.undeformed, measured, case.planes, relaxation=relaxation,
+                             device=args.device)
+    started = time.perf_counter()
+    result = optimise(problem, args.optimiser, budget=args.budget, seed=args.seed, out_dir=args.out,
+                      population=args.population)
+    seconds = time.perf_counter() - started
+    truth = problem.evaluate(space.unit(BENCH_TRUTH))[0]
+    errors = {key: round(abs(value / BENCH_TRUTH[key] - 1.0), 4) for key, value in result.best.values.items()}
+    best_so_far = np.maximum.accumulate([e.nmi if e.status == "completed" else 0.0 for e in result.evaluations])
+    quarters = sorted({max(1, round(q * len(best_so_far))) for q in (0.25, 0.5, 0.75, 1.0)})
+    return {"benchmark": "optimise", "version": __version__, "device": str(problem.warper.device),
+            "optimiser": args.optimiser, "tets": len(case.mesh.tets), "nodes": len(case.mesh.nodes),
+            "voxels": int(measured.GetNumberOfPixels()), "free_parameters": space.dimension,
+            "budget": args.budget, "evaluations": len(result.evaluations), "stopped": result.stopped,
+            "failed": sum(e.status != "completed" for e in result.evaluations),
+            "seconds": round(seconds, 2), "seconds_per_evaluation": round(seconds / len(result.evaluations), 4),
+            "best_nmi": round(result.best.nmi, 5), "truth_nmi": round(truth.nmi, 5),
+            "best_nmi_after": {str(n): round(float(best_so_far[n - 1]), 5) for n in quarters},
+            "max_relative_error": max(errors.values()), "relative_errors": errors}
+
+
+def cmd_bench(args) -> int:
+    if args.what == "solver":
+        figures = _bench_solver(args)
+        if args.json:
+            print(json.dumps(figures))
+        else:
+            for key, value in figures.items():
+                print(f"{key:32s} {value}")
+        return 0
+    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects"):
+        figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp,
+                   "optimise": _bench_optimise, "unloaded": _bench_unloaded, "effects": _bench_effects}[args.what](args)
+        print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
+        return 0
+    if args.what == "phantom":
+        from BreastBiomechLib.phantom import generate_phantom, table1_case
+
+        figures = {"benchmark": "phantom", "version": __version__, "machine": platform.machine(),
+                   "python": platform.python_version(), "cases": {}}
+        for number in args.cases:
+            started = time.perf_counter()
+            case = generate_phantom(table1_case(number))
+            figures["cases"][number] = {
+                "seconds": round(time.perf_counter() - started, 2),
+                "breast_volume_cm3": round(case.summary["breast_volume_cm3"], 1),
+                "voxels": int(case.image.GetNumberOfPixels()),
+            }
+        if args.json:
+            print(json.dumps(figures))
+        else:
+            for number, f in figures["cases"].items():
+                print(f"case {number}: {f['seconds']:.1f} s, {f['voxels']} voxels, {f['breast_volume_cm3']} cm3")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """Register the ``bench`` command on ``sub`` (argparse sub-parsers)."""
+    p = sub.add_parser("bench", help="print benchmark figures")
+    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise"],
+                   help="what to time")
+    p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5],
+                   help="Table 1 cases (phantom; effects: the first)")
+    p.add_argument("--truth-edge-mm", type=float, default=3.0, help="effects: the truth mesh's element size (mm)")
+    p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
+    p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
+    p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
+    p.add_argument("--device", default=None, help="solver, warp: cuda, cpu or a warp device name (default: warp's)")
+    p.add_argument("--total-time", type=float, default=1.0, help="solver: loading time in s (+25%% settling)")
+    p.add_argument("--settle-time", type=float, default=None, help="solver: settling time in s (default 25%% of loading)")
+    p.add_argument("--steady-state-mm", type=float, default=None,
+                   help="solver, physical time: stop settling once this close to rest (mm)")
+    p.add_argument("--relaxation", action="store_true", help="solver: dynamic relaxation (tolerance 0.01 mm)")
+    p.add_argument("--friction", type=non_negative, default=0.0, help="solver: the plates' Coulomb friction mu")
+    p.add_argument("--load-iterations", type=int, default=None,
+                   help="solver, dynamic relaxation: iterations over which the load is applied, at least "
+                        "(default: DynamicRelaxation's)")
+    p.add_argument("--volume-cm3", type=float, default=1000.0, help="mesh, segment: phantom breast volume (cm^3)")
+    p.add_argument("--tumour-mm", type=float, default=20.0, help="segment: phantom tumour diameter (0: none)")
+    p.add_argument("--snr", type=float, default=30.0, help="segment: phantom fat signal / noise sigma")
+    p.add_argument("--bias", type=float, default=0.2, help="segment: phantom bias field amplitude")
+    p.add_argument("--seed", type=int, default=1, help="segment: phantom random seed")
+    p.add_argument("--edge-mm", type=float, default=3.0, help="mesh: element edge (mm)")
+    p.add_argument("--grid", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
+                   help="mesh, segment: pad or crop the phantom to this many voxels (e.g. 256 256 80); warp: the grid")
+    p.add_argument("--radii", type=float, nargs=3, default=[70.0, 60.0, 65.0], metavar=("LR", "AP", "SI"),
+                   help="optimise: synthetic breast radii (mm)")
+    p.add_argument("--element-mm", type=float, default=4.0, help="optimise: synthetic mesh cube size (mm)")
+    p.add_argument("--voxel-mm", type=float, nargs=3, default=[1.0, 1.0, 2.5], help="optimise: voxel size (mm)")
+    p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
+    p.add_argument("--budget", type=int, default=500, help="optimise: forward solves")
+    p.add_argument("--population", type=int, default=None, help="optimise: CMA-ES population (batch size)")
+    p.add_argument("--tolerance-mm", type=float, default=None,
+                   help="optimise: forward solves' relaxation tolerance (default 0.01); unloaded: largest node mismatch "
+                        "to reach (default 0.02 mm)")
+    p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
+                                 "parameters, objective and status; result.json)")
+    p.add_argument("--json", action="store_true", help="one JSON line of figures")
+    p.set_defaults(func=cmd_bench)

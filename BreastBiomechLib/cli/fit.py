@@ -1,0 +1,147 @@
+"""``breastbiomech optimise|study``: material fits of compressed cases, one case or the seed's
+four-model study."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+from BreastBiomechLib.cli.common import MODEL_CHOICES, OBJECTIVE_CHOICES
+
+
+def cmd_optimise(args) -> int:
+    """Fit material parameters to a compressed case (seed section 2.4)."""
+    from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
+
+    settings = FitSettings(model=args.model, free=tuple(args.free), fibre=tuple(args.fibre), edge_mm=args.edge_mm,
+                           optimiser=args.optimiser, budget=args.budget, seconds=args.seconds, seed=args.seed,
+                           objective=args.objective, bins=args.bins, tolerance_mm=args.tolerance_mm,
+                           population=args.population)
+    started = time.perf_counter()
+
+    def progress(done, budget, best, phase):
+        if not args.quiet:
+            width = 30
+            filled = int(width * done / budget)
+            print(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{budget} {phase:6s} best {best:.5f} "
+                  f"{time.perf_counter() - started:6.0f} s", end="", file=sys.stderr, flush=True)
+
+    fit = fit_compressed_case(args.case_dir, args.out, settings, labels=args.labels, mesh_path=args.mesh,
+                              resume=args.resume, device=args.device, progress=progress)
+    if not args.quiet:
+        print(file=sys.stderr)
+    summary = fit.result.summary()
+    if args.json:
+        print(json.dumps({**summary, "landmark_errors": fit.landmark_errors}))
+        return 0
+    best = fit.result.best
+    print(f"{settings.model} fit of {args.case_dir} ({settings.optimiser}, {summary['evaluations']} evaluations, "
+          f"{summary['replayed']} replayed, stopped: {summary['stopped']}, {summary['seconds']:.0f} s)")
+    print(f"  best objective {best.objective:.5f}: NMI {best.nmi:.4f}, NCC {best.ncc:.4f}")
+    for name, values in fit.result.materials.items():
+        print(f"  {name:10s} E {values['E']:10.0f} Pa  nu {values['nu']:.4f}  eta {values['eta']:10.1f} Pa")
+    if "fibre" in fit.result.geometry:
+        print("  fibre direction (LPS) " + " ".join(f"{v:.3f}" for v in fit.result.geometry["fibre"]))
+    if "plate_offsets_mm" in fit.result.geometry:
+        print("  plate offsets (mm, towards the tissue) " + " ".join(f"{v:.2f}" for v in fit.result.geometry["plate_offsets_mm"]))
+    if fit.landmark_errors:
+        e = fit.landmark_errors
+        print(f"  landmarks: displacement {e['displacement_mm']['mean']:.2f} ± {e['displacement_mm']['sd']:.2f} mm, "
+              f"error {e['error_mm']['mean']:.2f} ± {e['error_mm']['sd']:.2f} mm (max {e['error_mm']['max']:.2f})")
+    print(f"  results in {fit.folder}")
+    return 0
+
+
+def cmd_study(args) -> int:
+    """The four-model study of the seed's Tables 2 and 3 on compressed cases."""
+    import datetime
+
+    from BreastBiomechLib.optimisation.study import (StudySettings, provenance, run_study, study_markdown,
+                                                     write_report)
+
+    budgets = {}
+    for item in args.budget or []:
+        model, _, count = item.partition("=")
+        if model not in MODEL_CHOICES or not count.isdigit():
+            raise ValueError(f"--budget takes MODEL=SOLVES with MODEL one of {MODEL_CHOICES}, not {item!r}")
+        budgets[model] = int(count)
+    settings = StudySettings(models=tuple(args.models), optimisers=tuple(args.optimisers),
+                             budgets={**StudySettings().budgets, **budgets}, fibre=tuple(args.fibre),
+                             edge_mm=args.edge_mm, seed=args.seed, bins=args.bins, tolerance_mm=args.tolerance_mm)
+    started = time.perf_counter()
+
+    def progress(fit, done, budget, best, phase):
+        if not args.quiet:
+            print(f"\r  {fit}: {done}/{budget} {phase:6s} best {best:.5f} {time.perf_counter() - started:6.0f} s ",
+                  end="", file=sys.stderr, flush=True)
+
+    rows = run_study(args.case_dirs, args.out, settings, device=args.device, progress=progress)
+    if not args.quiet:
+        print(file=sys.stderr)
+    if args.report:
+        import warp as wp
+
+        wp.init()
+        device = wp.get_device(args.device) if args.device else wp.get_device()
+        info = provenance(f"{device.name} ({device.alias})", "breastbiomech " + " ".join(args.argv),
+                          datetime.date.today().isoformat())
+        write_report(args.report, study_markdown(rows, settings, info))
+        print(f"tables written to {args.report}")
+    for row in sorted(rows, key=lambda r: (r.case, r.model, r.optimiser)):
+        s = row.landmark_errors["error_mm"] if row.landmark_errors else None
+        print(f"{row.case:8s} {row.model:13s} {row.optimiser:7s} NMI {row.nmi:.4f} "
+              + (f"landmark error {s['mean']:.2f} ± {s['sd']:.2f} mm (max {s['max']:.1f})" if s else "")
+              + f" {row.evaluations} solves, {row.stopped}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """Register the ``optimise``, ``study`` commands on ``sub`` (argparse sub-parsers)."""
+    p = sub.add_parser("optimise", help="fit tissue material parameters to a compressed case by maximising NMI")
+    p.add_argument("case_dir", help="a case folder with its compressed/ part (`breastbiomech phantom --compressed`)")
+    p.add_argument("--out", required=True, help="output folder (results written as the fit goes)")
+    p.add_argument("--model", choices=MODEL_CHOICES, default="aniso-hetero", help="the seed's model variant")
+    p.add_argument("--free", nargs="+", choices=("E", "nu", "eta", "fibre", "offset"), default=["E", "nu", "eta"],
+                   help="parameters searched per material (fat's E is the reference, eta only for aniso models); "
+                        "fibre: the fibre direction's angles (aniso models); offset: each plate's position")
+    p.add_argument("--fibre", type=float, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
+                   help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
+    p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="hybrid",
+                   help="hybrid: annealing then L-BFGS-B (the seed's); cmaes: CMA-ES, one batch per generation")
+    p.add_argument("--budget", type=int, default=500, help="forward solves in all (default 500)")
+    p.add_argument("--seconds", type=float, help="wall-time limit of this run (s)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same run)")
+    p.add_argument("--population", type=int, help="CMA-ES population per generation (default 4 + 3 ln d)")
+    p.add_argument("--objective", choices=OBJECTIVE_CHOICES, default="nmi",
+                   help="nmi (the seed's), landmarks (mean error), surface (mean distance of the predicted breast "
+                        "skin to the measured body surface) or a weighted sum with NMI (default nmi)")
+    p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
+    p.add_argument("--mesh", help="fitting mesh (.vtu from `breastbiomech mesh`); default: made from the labels")
+    p.add_argument("--labels", help="label map to mesh (default: the case's labels.nrrd)")
+    p.add_argument("--edge-mm", type=float, default=4.0, help="fitting mesh element size (default 4 mm)")
+    p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
+    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--resume", action="store_true", help="continue a fit interrupted in --out")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_optimise)
+
+    p = sub.add_parser("study", help="the four model variants fitted to compressed cases (the seed's Tables 2, 3)")
+    p.add_argument("case_dirs", nargs="+", help="compressed case folders (`make table1-cases`: out/table1/case*)")
+    p.add_argument("--out", required=True, help="results folder (rerun to resume)")
+    p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=list(MODEL_CHOICES))
+    p.add_argument("--optimisers", nargs="+", choices=("hybrid", "cmaes"), default=["cmaes"])
+    p.add_argument("--budget", nargs="+", metavar="MODEL=SOLVES",
+                   help="forward solves per fit of a model (default iso-homo=24 aniso-homo=48 iso-hetero=160 "
+                        "aniso-hetero=240)")
+    p.add_argument("--fibre", type=float, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
+                   help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
+    p.add_argument("--edge-mm", type=float, default=4.0, help="fitting mesh element size (default 4 mm)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
+    p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
+    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--report", help="Markdown file whose study tables are (re)written, e.g. docs/validation.md")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=cmd_study)

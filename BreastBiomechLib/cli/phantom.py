@@ -1,0 +1,124 @@
+"""``breastbiomech phantom``: a synthetic breast MR case with ground truth, optionally its
+compressed "measured" scan made by a truth simulation with hidden effects."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from BreastBiomechLib.cli.common import non_negative
+
+
+def _phantom_parameters(args):
+    from BreastBiomechLib.phantom import PhantomParameters, table1_case
+
+    params = table1_case(args.case) if args.case else PhantomParameters()
+    overrides = {
+        "seed": args.seed, "volume_cm3": args.volume_cm3, "density": args.density,
+        "tumour_diameter_mm": args.tumour_mm, "snr": args.snr, "bias_strength": args.bias,
+        "spacing_mm": tuple(args.spacing) if args.spacing else None,
+        "skin_separate": True if args.skin_separate else None,
+    }
+    values = params.to_dict()
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return PhantomParameters.from_dict(values)
+
+
+def _add_phantom_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--case", type=int, choices=range(1, 6), metavar="1-5",
+                   help="start from the preset for case 1-5 of the seed paper's Table 1")
+    p.add_argument("--seed", type=int, help="random seed (same seed, same case)")
+    p.add_argument("--volume-cm3", type=float, help="breast volume, 400-1500 cm^3")
+    p.add_argument("--density", type=float, help="glandular volume fraction, 0.05-0.65")
+    p.add_argument("--tumour-mm", type=float, help="tumour diameter in mm (0: none)")
+    p.add_argument("--snr", type=float, help="fat signal / noise sigma")
+    p.add_argument("--bias", type=float, help="bias field amplitude (0.2 = +-20%%)")
+    p.add_argument("--spacing", type=float, nargs=3, metavar=("L", "P", "S"), help="voxel size in mm")
+    p.add_argument("--skin-separate", action="store_true", help="keep skin as its own label")
+
+
+def _truth_model(args):
+    """The truth of ``phantom --compressed``: the Table 1 preset of ``--case`` (else the
+    default truth), with ``--compression``, ``--axis`` and ``--truth-edge-mm`` applied."""
+    from dataclasses import replace
+
+    from BreastBiomechLib.phantom.compressed import TruthModel, table1_truth
+
+    truth = table1_truth(args.case) if args.case else TruthModel()
+    compression = truth.compression if args.compression is None else args.compression
+    tilt = None if args.plate_tilt is None else [list(args.plate_tilt), [0.0, 0.0]]
+    return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm,  # checked again
+                   friction=args.friction, gravity=args.gravity, compression_gravity=args.compression_gravity,
+                   chest_wall=args.chest_wall, chest_wall_stiffness=list(args.chest_wall_stiffness),
+                   plate_tilt_deg=tilt, skin=None if args.skin is None else list(args.skin))
+
+
+def cmd_phantom(args) -> int:
+    from BreastBiomechLib.phantom import generate_phantom, write_phantom
+
+    truth = _truth_model(args) if args.compressed else None
+    if not args.compressed and args.compression is not None:
+        raise ValueError("--compression applies to a compressed case: add --compressed")
+    effects = {"--friction": args.friction, "--gravity": args.gravity, "--compression-gravity": args.compression_gravity,
+               "--plate-tilt": args.plate_tilt, "--chest-wall": args.chest_wall != "fixed" or None,
+               "--skin": args.skin}
+    given = [name for name, value in effects.items() if value]
+    if given and not args.compressed:
+        raise ValueError(f"{', '.join(given)} change the truth simulation of a compressed case: add --compressed")
+    case = generate_phantom(_phantom_parameters(args))
+    paths = write_phantom(case, args.out, overview=not args.no_overview)
+    s = case.summary
+    print(f"phantom written to {args.out}: {s['breast_volume_cm3']:.0f} cm3 breast, "
+          f"density {s['glandular_density']:.1%}, grid {s['size_voxels']} at {s['spacing_mm']} mm, "
+          f"{len(case.landmarks)} landmarks, {s['seconds']:.1f} s")
+    for role, path in paths.items():
+        print(f"  {role:20s} {path}")
+    if truth is not None:
+        from BreastBiomechLib.phantom.compressed import compress_phantom
+        from BreastBiomechLib.phantom.compressed_files import write_compressed
+
+        compressed = compress_phantom(case, truth, device=args.device,
+                                      progress=lambda fraction, message: print(f"  [{fraction:4.0%}] {message}",
+                                                                                flush=True))
+        paths = write_compressed(compressed, args.out, overview=not args.no_overview)
+        c = compressed.summary
+        forces = ", ".join(f"{name} {force:.2f} N" for name, force in c["plate_forces_N"].items())
+        print(f"compressed case written to {Path(args.out) / 'compressed'}: {truth.compression:.1%} {truth.axis}, "
+              f"truth mesh {c['truth_tets']} tets ({truth.edge_mm:g} mm), {c['solve_message']}; plate forces "
+              f"{forces}; largest displacement {c['max_displacement_mm']:.1f} mm; {c['seconds']:.0f} s")
+        for role, path in paths.items():
+            print(f"  {role:20s} {path}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """Register the ``phantom`` command on ``sub`` (argparse sub-parsers)."""
+    p = sub.add_parser("phantom", help="generate a synthetic breast MR case with ground truth")
+    p.add_argument("--out", required=True, help="output folder")
+    _add_phantom_options(p)
+    p.add_argument("--no-overview", action="store_true", help="skip the PNG overview")
+    p.add_argument("--compressed", action="store_true",
+                   help="also write a compressed 'measured' case (OUT/compressed): a truth simulation with hidden "
+                        "materials, imaged like a second scan, its landmarks and plates")
+    p.add_argument("--compression", type=float,
+                   help="fraction of the breast's thickness the plates close (default: the seed's for --case, else 0.25)")
+    p.add_argument("--axis", choices=("LR", "SI"), default="LR", help="compression axis (default LR, as the seed)")
+    p.add_argument("--truth-edge-mm", type=float, default=2.0,
+                   help="element size of the truth mesh (default 2 mm: finer than any fitting mesh)")
+    p.add_argument("--device", help="warp device of the truth simulation (cuda, cpu; default: warp's)")
+    effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
+    effects.add_argument("--friction", type=non_negative, default=0.0, help="the plates' Coulomb friction mu")
+    effects.add_argument("--gravity", type=float, nargs=3, metavar=("GX", "GY", "GZ"),
+                         help="gravity the scan was imaged under (m/s^2, LPS; prone: 0 -9.81 0): the truth starts "
+                              "pre-stressed from its unloaded state")
+    effects.add_argument("--compression-gravity", type=float, nargs=3, metavar=("GX", "GY", "GZ"),
+                         help="gravity while the plates close (default: --gravity's)")
+    effects.add_argument("--chest-wall", choices=("fixed", "sliding", "elastic"), default="fixed",
+                         help="the chest wall's support (default fixed, as the seed)")
+    effects.add_argument("--chest-wall-stiffness", type=non_negative, nargs=2, default=[0.0, 0.0],
+                         metavar=("NORMAL", "TANGENTIAL"), help="elastic or sliding chest wall's springs (Pa/mm)")
+    effects.add_argument("--skin", type=float, nargs=2, metavar=("E_PA", "THICKNESS_MM"),
+                         help="a skin layer of this Young's modulus and thickness (partial-volume weighting)")
+    effects.add_argument("--plate-tilt", type=float, nargs=2, metavar=("DEG1", "DEG2"),
+                         help="the first plate's tilt about its two tilt axes (degrees, at most 10)")
+    p.set_defaults(func=cmd_phantom)
