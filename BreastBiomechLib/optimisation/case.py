@@ -10,6 +10,7 @@ Output folder (besides the optimisation's settings.json, evaluations.jsonl, resu
     predicted_landmarks.mrk.json  the landmarks moved by the best solution (LPS)
     deformed_mesh.vtu             the fitting mesh with the best solution's ``displacement`` (mm)
     landmark_errors.json          per landmark and summarised as the seed's Table 2 (mm)
+    case.json                     the case folder and the fingerprint of its measured image and plates
     convergence.png               objective and best-so-far against evaluations
 """
 
@@ -74,7 +75,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
     from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
     from BreastBiomechLib.mesh.tetmesh import TetMesh
-    from BreastBiomechLib.phantom.compressed_files import read_compressed
+    from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
 
     settings = settings or FitSettings()
     case = Path(case_dir)
@@ -83,6 +84,8 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     undeformed = read_image(case / "mr.nrrd")
     reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
     out.mkdir(parents=True, exist_ok=True)
+    (out / "case.json").write_text(json.dumps({"case_dir": str(case.resolve()),
+                                               "fingerprint": case_fingerprint(case)}, indent=2) + "\n")
     mesh_file = out / "fitting_mesh.vtu"
     if mesh_path is not None:
         mesh = read_vtu(mesh_path)

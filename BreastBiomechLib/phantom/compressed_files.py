@@ -16,6 +16,7 @@ What a fit may use: the undeformed case, ``mr.nrrd``, ``landmarks.mrk.json`` and
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,3 +92,16 @@ def read_compressed(case_dir: str | Path) -> MeasuredCompression:
             raise ValueError(f"{folder / 'plates.json'}: plate {plate.get('name')!r} has a zero normal")
     return MeasuredCompression(read_image(folder / "mr.nrrd"), read_markups(folder / "landmarks.mrk.json"),
                                document["plates"], document["axis"], float(document["compression"]), folder)
+
+
+def case_fingerprint(case_dir: str | Path) -> str:
+    """A SHA-256 of what a fit reads of the compressed case in ``case_dir`` (its measured image
+    and plates): a fit records it (case.json), and a diagnosis refuses a fit whose fingerprint
+    differs from the case's."""
+    folder = Path(case_dir)
+    if (folder / FOLDER).is_dir():
+        folder = folder / FOLDER
+    digest = hashlib.sha256()
+    for name in ("mr.nrrd", "plates.json"):
+        digest.update((folder / name).read_bytes())
+    return digest.hexdigest()

@@ -70,11 +70,16 @@ class SurfaceDistance:
     def distances(self, points_mm: np.ndarray) -> np.ndarray:
         """Distance (mm) of each point (N, 3) LPS to the body surface; NaN for points outside
         the image (where the surface is not seen)."""
+        return np.abs(self.signed_distances(points_mm))
+
+    def signed_distances(self, points_mm: np.ndarray) -> np.ndarray:
+        """Signed distance (mm) of each point (N, 3) LPS to the body surface along its outward
+        normal: > 0 outside the body, < 0 inside; NaN for points outside the image."""
         points = np.atleast_2d(np.asarray(points_mm, float))
         ijk = (points - self._origin) @ self._to_index.T
         inside = np.all((ijk >= -0.5) & (ijk <= self._size - 0.5), axis=1)
         out = np.full(len(points), np.nan)
         if inside.any():
             _, nearest = self._tree.query(points[inside])
-            out[inside] = np.abs(np.einsum("ij,ij->i", points[inside] - self._points[nearest], self._normals[nearest]))
+            out[inside] = np.einsum("ij,ij->i", points[inside] - self._points[nearest], self._normals[nearest])
         return out

@@ -1,0 +1,65 @@
+"""``breastbiomech diagnose``: name the physical effect a fitted model is missing, add it, refit,
+and report the gap before and after (:mod:`BreastBiomechLib.discrepancy`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from BreastBiomechLib.cli.common import non_negative
+
+
+def cmd_diagnose(args) -> int:
+    from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
+
+    noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
+                       surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels))
+    settings = DiagnosisSettings(alpha=args.alpha)
+
+    def progress(message):
+        if not args.quiet:
+            print(f"  {message}", file=sys.stderr, flush=True)
+
+    run = run_diagnosis(args.case_dir, args.fit, args.out, effects=args.effects, rounds=args.rounds, noise=noise,
+                        settings=settings, device=args.device, resume=args.resume, progress=progress)
+    if args.json:
+        print(json.dumps({"final": run.final["verdict"], "sentence": run.final["sentence"], "added": run.added,
+                          "rounds": len(run.rounds)}))
+        return 0
+    for record in run.rounds:
+        d = record["diagnosis"]
+        print(f"round {record['round']}: {d['sentence']}")
+        before = record["before"].get("landmark_error_mm")
+        after = (record.get("after") or {}).get("landmark_error_mm")
+        if before and after:
+            print(f"  landmark error {before['mean']:.2f} -> {after['mean']:.2f} mm (mean); NMI "
+                  f"{record['before']['nmi']:.4f} -> {record['after']['nmi']:.4f}")
+    print(f"report: {run.folder / 'report.md'}; every statistic: {run.folder / 'diagnosis.json'}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """Register the ``diagnose`` command on ``sub`` (argparse sub-parsers)."""
+    from BreastBiomechLib.discrepancy.effects import NAMES
+    from BreastBiomechLib.discrepancy.observations import CHANNELS
+
+    p = sub.add_parser("diagnose", help="name the effect a fitted model is missing, add it, refit, report")
+    p.add_argument("case_dir", help="the compressed case folder the fit was made on")
+    p.add_argument("--fit", required=True, help="the fit's folder (`breastbiomech optimise --out`)")
+    p.add_argument("--out", required=True, help="a new output folder (or an interrupted run's, with --resume)")
+    p.add_argument("--effects", nargs="+", choices=NAMES, help="candidate effects (default: the whole library)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of diagnose, add and refit at most (default 3)")
+    p.add_argument("--channels", nargs="+", choices=CHANNELS, default=list(CHANNELS),
+                   help="what is compared (default: landmarks and the body surface)")
+    p.add_argument("--landmark-sd-mm", type=non_negative, default=0.5,
+                   help="landmark localisation error per coordinate (mm, default 0.5)")
+    p.add_argument("--model-sd-mm", type=non_negative, default=0.5,
+                   help="model-error floor added to every feature's noise (mm, default 0.5)")
+    p.add_argument("--surface-spacing-mm", type=float, default=8.0,
+                   help="one surface feature per cube of this size (mm, default 8)")
+    p.add_argument("--alpha", type=float, default=0.01, help="family-wise significance level (default 0.01)")
+    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")
+    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+    p.set_defaults(func=cmd_diagnose)

@@ -1,0 +1,24 @@
+"""Model discrepancy: find where the fitted model and the measured case disagree, name the
+physical effect that is missing, add it, refit, and show the gap shrink.
+
+Steps, each usable alone from the Python console:
+
+- :func:`~BreastBiomechLib.discrepancy.fitted.load_fitted_case`: a case and its fit;
+- :func:`~BreastBiomechLib.discrepancy.observations.observations_of`: the features compared
+  (landmarks, the body surface) with their noise;
+- :func:`~BreastBiomechLib.discrepancy.effects.library`: the candidate effects;
+- :func:`~BreastBiomechLib.discrepancy.diagnosis.diagnose`: one round (sensitivities, score
+  tests, refits of the best, the verdict);
+- :func:`~BreastBiomechLib.discrepancy.workflow.run_diagnosis`: rounds until nothing
+  significant remains, with its report.
+"""
+
+from BreastBiomechLib.discrepancy.diagnosis import VERDICTS, Diagnosis, DiagnosisSettings, diagnose
+from BreastBiomechLib.discrepancy.effects import library
+from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
+from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
+from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.discrepancy.workflow import DiagnosisRun, run_diagnosis
+
+__all__ = ["VERDICTS", "Diagnosis", "DiagnosisRun", "DiagnosisSettings", "FittedCase", "ModelState", "NoiseModel",
+           "Observations", "diagnose", "library", "load_fitted_case", "observations_of", "run_diagnosis"]

@@ -1,0 +1,251 @@
+"""One round of the diagnosis: is there a significant discrepancy between the current model and
+the measured case, which candidate effect explains it, and is the answer clear.
+
+1. Sensitivities of every feature to the fitted parameters and to each candidate's
+   (:mod:`~BreastBiomechLib.discrepancy.sensitivity`, one batch of solves).
+2. The overall test of the residual and each candidate's score test
+   (:mod:`~BreastBiomechLib.discrepancy.statistics`); p-values Bonferroni-corrected over the
+   candidates tested.
+3. The significant candidates (at most ``refit_top``, by p-value) refitted
+   (:mod:`~BreastBiomechLib.discrepancy.refit`) and confirmed by the likelihood-ratio test, BIC
+   and a localisation check: the residual's excess over the noise must sit in the regions where
+   the candidate's signature sits (overlap of the two distributions over the regions).
+4. The verdict: **missing effect** (one confirmed candidate explains at least ``min_explained``
+   of the residual's excess over the noise), **ambiguous** (another confirmed candidate is
+   nearly as good by BIC and its signature correlates above ``ambiguity_correlation``),
+   **unexplained discrepancy** (significant, but no candidate confirmed or explains enough: the
+   answer when the missing effect is not in the library) or **no significant discrepancy**.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from BreastBiomechLib.discrepancy import statistics
+from BreastBiomechLib.discrepancy.effects import Effect
+from BreastBiomechLib.discrepancy.observations import Observations
+from BreastBiomechLib.discrepancy.refit import Refit, refit
+from BreastBiomechLib.discrepancy.regions import regions_of
+from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
+from BreastBiomechLib.discrepancy.state import ModelState
+
+VERDICTS = ("missing effect", "ambiguous", "unexplained discrepancy", "no significant discrepancy")
+
+
+@dataclass
+class DiagnosisSettings:
+    """Decision thresholds: ``alpha`` the family-wise significance level, ``refit_top`` how many
+    significant candidates are refitted, ``min_explained`` the share of the excess residual a
+    named effect must remove, ``bic_threshold`` the largest dBIC that confirms (-10: very strong
+    evidence, Kass and Raftery), ``ambiguity_correlation`` and ``ambiguity_bic`` when two
+    confirmed candidates cannot be told apart, ``min_localisation`` the overlap of residual and
+    signature over the regions a candidate needs."""
+
+    alpha: float = 0.01
+    refit_top: int = 3
+    min_explained: float = 0.5
+    bic_threshold: float = -10.0
+    ambiguity_correlation: float = 0.9
+    ambiguity_bic: float = 6.0
+    min_localisation: float = 0.5
+
+
+@dataclass
+class Candidate:
+    """One candidate's evidence: its score test (``statistic``, ``dof``, ``p_value``, the
+    Bonferroni-corrected ``p_adjusted``), the share of the residual its signature could explain
+    (``explained_fraction``), the linearised ``estimate`` and its ``sd``, where its signature
+    sits (``signature_regions``: share per region), the ``localisation`` overlap, and after a
+    refit the LR test, dBIC, the excess it explained and the values it refitted to; or the
+    reason it was ``skipped``."""
+
+    name: str
+    title: str
+    acts_in: str
+    statistic: float = float("nan")
+    dof: int = 0
+    p_value: float = float("nan")
+    p_adjusted: float = float("nan")
+    explained_fraction: float = float("nan")
+    estimate: list = field(default_factory=list)
+    sd: list = field(default_factory=list)
+    signature_regions: dict = field(default_factory=dict)
+    localisation: float = float("nan")
+    refit: dict | None = None
+    skipped: str = ""
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Diagnosis:
+    """A round's result: the ``verdict`` (one of :data:`VERDICTS`), the ``effect`` named (or the
+    alternatives of an ambiguous verdict), a ``sentence`` saying it with the evidence, the
+    ``overall`` test, the ``candidates`` ranked by p-value, the residual by ``regions``, their
+    ``correlations``, the chosen :class:`~BreastBiomechLib.discrepancy.refit.Refit` (``refitted``)
+    and the ``sensitivities`` (with the solution of the current model)."""
+
+    verdict: str
+    effect: str | None
+    alternatives: list[str]
+    sentence: str
+    overall: dict
+    candidates: list[Candidate]
+    regions: dict
+    correlations: dict
+    refitted: Refit | None
+    sensitivities: Sensitivities
+    feature_regions: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"verdict": self.verdict, "effect": self.effect, "alternatives": self.alternatives,
+                "sentence": self.sentence, "overall": self.overall,
+                "candidates": [c.to_dict() for c in self.candidates], "regions": self.regions,
+                "correlations": self.correlations, "solves": self.sensitivities.solves,
+                "skipped": self.sensitivities.skipped}
+
+
+def _shares(values: np.ndarray, regions: np.ndarray) -> dict[str, float]:
+    """The share of the positive ``values`` in each region."""
+    positive = np.maximum(values, 0.0)
+    total = positive.sum()
+    names = sorted(set(regions.tolist()))
+    if total <= 0:
+        return {name: 0.0 for name in names}
+    return {name: float(positive[regions == name].sum() / total) for name in names}
+
+
+def region_summary(observations: Observations, residual: np.ndarray, regions: np.ndarray) -> dict:
+    """Per region and channel: the features' count, RMS residual (mm) and mean squared whitened
+    residual (about 1 where the residual is noise)."""
+    out = {}
+    whitened = residual / observations.sigma
+    for name in sorted(set(regions.tolist())):
+        for channel in sorted(set(observations.channel.tolist())):
+            mask = (regions == name) & (observations.channel == channel)
+            if mask.any():
+                out.setdefault(name, {})[channel] = {
+                    "features": int(mask.sum()), "rms_mm": float(np.sqrt(np.mean(residual[mask] ** 2))),
+                    "mean_square_whitened": float(np.mean(whitened[mask] ** 2))}
+    return out
+
+
+def diagnose(state: ModelState, observations: Observations, candidates: list[Effect],
+             settings: DiagnosisSettings | None = None,
+             progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """One round of the diagnosis of ``state`` against ``observations`` over ``candidates``
+    (the library's effects; those already added or unavailable are reported as skipped)."""
+    settings = settings or DiagnosisSettings()
+    say = progress or (lambda message: None)
+    fitted = state.fitted
+    skipped = {}
+    testable = []
+    for effect in candidates:
+        reason = "already added" if effect.name in state.added else effect.unavailable(fitted)
+        if reason:
+            skipped[effect.name] = reason
+        else:
+            testable.append(effect)
+    sens = sensitivities(state, observations, testable, say)
+    sens.skipped = {**skipped, **sens.skipped}
+    weights = 1.0 / observations.sigma
+    residual = observations.measured - sens.features
+    whitened = weights * residual
+    q_theta = statistics.basis(weights[:, None] * sens.nuisance)
+    overall = statistics.overall(whitened, q_theta)
+    feature_regions = regions_of(fitted, observations.points, sens.displacement)
+    excess = whitened ** 2 - 1.0
+    residual_shares = _shares(excess, feature_regions)
+    tested = [e for e in testable if e.name in sens.effects]
+    m = max(len(tested), 1)
+    ranked: list[Candidate] = []
+    for effect in tested:
+        b = weights[:, None] * sens.effects[effect.name]
+        test = statistics.score_test(whitened, q_theta, b)
+        change = (b @ np.atleast_1d(test["estimate"])) ** 2
+        signature = _shares(change, feature_regions)
+        overlap = float(sum(min(signature.get(k, 0.0), residual_shares.get(k, 0.0)) for k in residual_shares))
+        ranked.append(Candidate(effect.name, effect.title, effect.acts_in, test["statistic"], test["dof"],
+                                test["p_value"], min(1.0, test["p_value"] * m), test["explained_fraction"],
+                                np.atleast_1d(test["estimate"]).tolist(), np.atleast_1d(test["sd"]).tolist(),
+                                signature, overlap))
+    ranked.sort(key=lambda c: (c.p_value, -c.statistic))
+    for name, reason in sens.skipped.items():
+        effect = next((e for e in candidates if e.name == name), None)
+        ranked.append(Candidate(name, effect.title if effect else name, effect.acts_in if effect else "",
+                                skipped=reason))
+    correlations = {}
+    for i, a in enumerate(tested):
+        for b in tested[i + 1:]:
+            correlations[f"{a.name}|{b.name}"] = statistics.canonical_correlation(
+                weights[:, None] * sens.effects[a.name], weights[:, None] * sens.effects[b.name], q_theta)
+    significant = overall["p_value"] < settings.alpha or any(c.p_adjusted < settings.alpha for c in ranked
+                                                            if not c.skipped)
+    regions = region_summary(observations, residual, feature_regions)
+    base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
+                sensitivities=sens, feature_regions=feature_regions)
+    if not significant:
+        return Diagnosis("no significant discrepancy", None, [],
+                         f"No significant discrepancy: the residual is what the noise model expects "
+                         f"(T = {overall['statistic']:.1f} on {overall['dof']} degrees of freedom, p = "
+                         f"{overall['p_value']:.3g}) and no candidate's score test is significant.", refitted=None,
+                         **base)
+    chosen = [c for c in ranked if not c.skipped and c.p_adjusted < settings.alpha][:settings.refit_top]
+    by_name = {e.name: e for e in tested}
+    say(f"refitting {', '.join(c.name for c in chosen) or 'no candidate'}")
+    refits = {r.effect.name: r for r in refit(state, observations, sens, [by_name[c.name] for c in chosen])}
+    n = len(observations)
+    confirmed = []
+    for candidate in chosen:
+        r = refits.get(candidate.name)
+        if r is None:
+            candidate.refit = {"status": "the refit could not be built"}
+            continue
+        k = len(r.effect.parameters)
+        lr = statistics.likelihood_ratio(r.rss_before, r.rss_after, k, n)
+        explained = statistics.excess_explained(r.rss_before, r.rss_after, overall["dof"], overall["dof"] - k)
+        candidate.refit = {"status": r.status, "values": r.values.tolist(), "sd": r.sd.tolist(),
+                           "described": r.effect.describe(r.values), "rss_before": r.rss_before,
+                           "rss_after": r.rss_after, "rss_linear": r.rss_linear, "lr": lr["statistic"],
+                           "lr_p_adjusted": min(1.0, lr["p_value"] * m), "delta_bic": lr["delta_bic"],
+                           "excess_explained": explained}
+        if (r.ok and lr["p_value"] * m < settings.alpha and lr["delta_bic"] <= settings.bic_threshold
+                and candidate.localisation >= settings.min_localisation):
+            confirmed.append(candidate)
+    if not confirmed:
+        tried = ", ".join(f"{c.name} (dBIC {c.refit.get('delta_bic', float('nan')):.1f}, localisation "
+                          f"{c.localisation:.2f})" for c in chosen if c.refit) or "none was significant alone"
+        return Diagnosis("unexplained discrepancy", None, [],
+                         f"Unexplained discrepancy: the residual is significant (T = {overall['statistic']:.1f} on "
+                         f"{overall['dof']} dof, p = {overall['p_value']:.3g}) but no candidate effect explains it "
+                         f"(refitted: {tried}).", refitted=None, **base)
+    confirmed.sort(key=lambda c: c.refit["delta_bic"])
+    best = confirmed[0]
+    if best.refit["excess_explained"] < settings.min_explained:
+        return Diagnosis("unexplained discrepancy", None, [best.name],
+                         f"Unexplained discrepancy: the best candidate, {best.title}, explains only "
+                         f"{best.refit['excess_explained']:.0%} of the residual's excess over the noise "
+                         f"(dBIC {best.refit['delta_bic']:.1f}); something the library does not hold is missing.",
+                         refitted=None, **base)
+    rivals = [c for c in confirmed[1:]
+              if c.refit["delta_bic"] - best.refit["delta_bic"] < settings.ambiguity_bic
+              and correlations.get(f"{best.name}|{c.name}", correlations.get(f"{c.name}|{best.name}", 0.0))
+              >= settings.ambiguity_correlation]
+    if rivals:
+        pair = " or ".join([best.title] + [c.title for c in rivals])
+        corr = max(correlations.get(f"{best.name}|{c.name}", correlations.get(f"{c.name}|{best.name}", 0.0))
+                   for c in rivals)
+        return Diagnosis("ambiguous", None, [best.name] + [c.name for c in rivals],
+                         f"Ambiguous: {pair}. Their signatures correlate {corr:.2f} after the fitted parameters are "
+                         f"profiled out, and their refits differ by {rivals[0].refit['delta_bic'] - best.refit['delta_bic']:.1f} "
+                         "in BIC; the data cannot tell them apart.", refitted=None, **base)
+    return Diagnosis("missing effect", best.name, [],
+                     f"Missing effect: {best.title} ({best.refit['described']}). Score test p = {best.p_adjusted:.2g} "
+                     f"(corrected), refit dBIC {best.refit['delta_bic']:.1f}, explaining "
+                     f"{best.refit['excess_explained']:.0%} of the residual's excess over the noise; its signature "
+                     f"and the residual overlap {best.localisation:.0%} over the regions ({best.acts_in}).",
+                     refitted=refits[best.name], **base)

@@ -1,0 +1,39 @@
+"""The candidate-effect library: each effect the fitted model may be missing is one class in
+one file of this package (parameters with ranges and "off" values, how it changes a model
+variant). Adding an effect is adding a file and a line to :func:`library`.
+"""
+
+from __future__ import annotations
+
+from BreastBiomechLib.discrepancy.effects.anisotropy import Anisotropy
+from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
+from BreastBiomechLib.discrepancy.effects.chest_wall import ChestWallSliding
+from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
+from BreastBiomechLib.discrepancy.effects.gravity import GravityPrestress
+from BreastBiomechLib.discrepancy.effects.heterogeneity import Heterogeneity
+from BreastBiomechLib.discrepancy.effects.plate_offset import PlateOffset
+from BreastBiomechLib.discrepancy.effects.plate_tilt import PlateTilt
+from BreastBiomechLib.discrepancy.effects.skin import SkinLayer
+from BreastBiomechLib.discrepancy.effects.tumour import TumourStiffness
+
+NAMES = ("friction", "gravity", "chest-wall", "skin", "anisotropy", "heterogeneity", "tumour", "plate-tilt",
+         "plate-offset")
+
+
+def library(fitted, names=None) -> list[Effect]:
+    """The candidate effects for ``fitted`` (a :class:`~BreastBiomechLib.discrepancy.fitted.FittedCase`),
+    those named in ``names`` (default all of :data:`NAMES`), sized to its plates and tissues."""
+    names = NAMES if names is None else tuple(names)
+    unknown = sorted(set(names) - set(NAMES))
+    if unknown:
+        raise ValueError(f"unknown effects {unknown}; the library has {list(NAMES)}")
+    plates = max(len(fitted.plates), 1)
+    made = {"friction": PlateFriction, "gravity": GravityPrestress, "chest-wall": ChestWallSliding,
+            "skin": SkinLayer, "anisotropy": Anisotropy, "heterogeneity": lambda: Heterogeneity.for_fit(fitted),
+            "tumour": TumourStiffness, "plate-tilt": lambda: PlateTilt(plates),
+            "plate-offset": lambda: PlateOffset(plates)}
+    return [made[name]() for name in NAMES if name in names]
+
+
+__all__ = ["Effect", "EffectParameter", "NAMES", "library", "Anisotropy", "ChestWallSliding", "PlateFriction",
+           "GravityPrestress", "Heterogeneity", "PlateOffset", "PlateTilt", "SkinLayer", "TumourStiffness"]

@@ -1,0 +1,127 @@
+"""What the diagnosis compares between the model and the measured case: features computed from
+the fitting mesh's nodal displacement, their measured values and their noise.
+
+Channels (each feature one number, mm):
+
+- ``landmarks``: the L, P, S coordinates of each landmark moved by the displacement, against the
+  landmarks marked in the compressed image;
+- ``surface``: the signed distance (> 0 outside) of breast-skin nodes, moved, to the body surface
+  of the measured image (the nodes thinned to one per ``surface_spacing_mm`` cell, so that
+  neighbouring features are not the same measurement twice; nodes on the field-of-view cut and
+  outside the image left out), against 0.
+
+The noise of a feature is what it would scatter by with nothing missing from the model: the
+landmarks' localisation error and, for the surface, the voxels' quantisation (largest spacing /
+sqrt(12)), each with a model-error floor (the fitting mesh's discretisation and the
+segmentation's error, which no effect explains) added in quadrature. Features are taken as
+independent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+CHANNELS = ("landmarks", "surface")
+
+
+@dataclass
+class NoiseModel:
+    """The noise the diagnosis assumes (mm, one standard deviation per coordinate):
+    ``landmark_sd_mm`` the landmarks' localisation error, ``model_sd_mm`` the model-error floor
+    added to every feature, ``surface_spacing_mm`` the thinning of the surface features, and
+    the ``channels`` used."""
+
+    landmark_sd_mm: float = 0.5
+    model_sd_mm: float = 0.5
+    surface_spacing_mm: float = 8.0
+    channels: tuple[str, ...] = CHANNELS
+
+    def __post_init__(self) -> None:
+        if not (self.landmark_sd_mm >= 0 and self.model_sd_mm >= 0 and self.surface_spacing_mm > 0):
+            raise ValueError("the noise model needs landmark_sd_mm >= 0, model_sd_mm >= 0, surface_spacing_mm > 0")
+        unknown = set(self.channels) - set(CHANNELS)
+        if unknown or not self.channels:
+            raise ValueError(f"channels are some of {CHANNELS}, not {sorted(unknown) or 'none'}")
+
+
+@dataclass
+class Observations:
+    """``n`` features: their ``labels``, ``channel`` names, ``measured`` values, noise ``sigma``
+    (mm) and reference ``points`` (N, 3) LPS mm (where in the undeformed breast each feature
+    sits, for the regions). :meth:`predicted` computes them from a displacement."""
+
+    labels: list[str]
+    channel: np.ndarray
+    measured: np.ndarray
+    sigma: np.ndarray
+    points: np.ndarray
+    _parts: list = field(default_factory=list, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.measured)
+
+    def predicted(self, displacement_mm: np.ndarray) -> np.ndarray:
+        """The features (n,) of nodal displacements (N, 3) mm of the fitting mesh."""
+        return np.concatenate([part(displacement_mm) for part in self._parts])
+
+    def residual(self, displacement_mm: np.ndarray) -> np.ndarray:
+        """Measured minus predicted features (n,), mm."""
+        return self.measured - self.predicted(displacement_mm)
+
+
+def thinned(points: np.ndarray, spacing_mm: float) -> np.ndarray:
+    """Indices of ``points`` keeping the first in each cube of ``spacing_mm``."""
+    cells = np.floor(np.asarray(points, float) / spacing_mm).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | None = None) -> Observations:
+    """The features of ``fitted`` (a :class:`~BreastBiomechLib.discrepancy.fitted.FittedCase`)
+    in the channels of ``noise``, the surface features chosen where the fit's solution
+    ``base_displacement`` (N, 3) mm puts them inside the measured image."""
+    from BreastBiomechLib.landmarks import LandmarkMapper
+    from BreastBiomechLib.similarity.surface import SurfaceDistance
+
+    noise = noise or NoiseModel()
+    mesh = fitted.mesh
+    labels, channel, measured, sigma, points, parts = [], [], [], [], [], []
+    if "landmarks" in noise.channels and fitted.reference is not None:
+        mapper = LandmarkMapper(mesh, fitted.reference)
+        for name in fitted.reference.labels:
+            labels += [f"{name} {axis}" for axis in "LPS"]
+        n = 3 * len(fitted.reference.labels)
+        channel += ["landmarks"] * n
+        measured.append(fitted.measured.positions.ravel())
+        sigma.append(np.full(n, np.hypot(noise.landmark_sd_mm, noise.model_sd_mm)))
+        points.append(np.repeat(fitted.reference.positions, 3, axis=0))
+        parts.append(lambda u: mapper.map(u).positions.ravel())
+    if "surface" in noise.channels:
+        surface = SurfaceDistance(fitted.measured_image)
+        skin = mesh.node_set("breast_skin")
+        if "fov_cut" in mesh.point_data:
+            skin = np.setdiff1d(skin, mesh.node_set("fov_cut"))
+        skin = skin[thinned(mesh.nodes[skin], noise.surface_spacing_mm)]
+        base = surface.signed_distances(mesh.nodes[skin] + base_displacement[skin])
+        keep = np.isfinite(base)
+        skin, base = skin[keep], base[keep]
+        if len(skin):
+            quantisation = max(fitted.measured_image.GetSpacing()) / np.sqrt(12.0)
+            labels += [f"skin node {i}" for i in skin]
+            channel += ["surface"] * len(skin)
+            measured.append(np.zeros(len(skin)))
+            sigma.append(np.full(len(skin), np.hypot(quantisation, noise.model_sd_mm)))
+            points.append(mesh.nodes[skin])
+
+            def signed(u, skin=skin, base=base):
+                values = surface.signed_distances(mesh.nodes[skin] + u[skin])
+                return np.where(np.isfinite(values), values, base)  # left the image: no information
+
+            parts.append(signed)
+    if not parts:
+        raise ValueError("no feature to compare: the case has no landmarks and no breast skin inside the measured "
+                         "image; add landmarks or check the fit's mesh and the measured image")
+    return Observations(labels, np.array(channel), np.concatenate(measured), np.concatenate(sigma),
+                        np.concatenate(points), parts)

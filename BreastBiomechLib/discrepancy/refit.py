@@ -1,0 +1,99 @@
+"""Adding a candidate effect and refitting: a bounded Gauss-Newton step of the nuisance and the
+effect's parameters together from their sensitivities (warm start at the current fit), checked
+by a forward solve at the step (halved while it does not lower the residual)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from BreastBiomechLib.discrepancy.effects import Effect
+from BreastBiomechLib.discrepancy.observations import Observations
+from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
+from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.discrepancy.variants import solve_variants
+
+HALVINGS = 3
+
+
+@dataclass
+class Refit:
+    """A refit with ``effect`` added: its ``values`` (effect units) and their standard deviations
+    ``sd`` (from the linearised information), the refitted ``state``, whitened residual sums of
+    squares ``rss_before`` and ``rss_after`` (solved) and ``rss_linear`` (predicted by the
+    linearisation), the ``displacement`` (N, 3) mm after, the features' ``residual_after`` (mm)
+    and the solver's ``status``."""
+
+    effect: Effect
+    values: np.ndarray
+    sd: np.ndarray
+    state: ModelState
+    rss_before: float
+    rss_after: float
+    rss_linear: float
+    displacement: np.ndarray
+    residual_after: np.ndarray
+    status: str
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "completed"
+
+
+def _step(state: ModelState, sens: Sensitivities, effect: Effect, weights: np.ndarray, residual: np.ndarray):
+    nuisance = state.nuisance()
+    a = weights[:, None] * sens.nuisance
+    b = weights[:, None] * sens.effects[effect.name]
+    design = np.hstack([a, b])
+    current = np.array([v for _, v, _, _ in nuisance] + list(effect.off))
+    lower = np.array([lo for _, _, lo, _ in nuisance] + list(effect.lower)) - current
+    upper = np.array([hi for _, _, _, hi in nuisance] + list(effect.upper)) - current
+    whitened = weights * residual
+    solution = lsq_linear(design, whitened, bounds=(lower, upper))
+    covariance = np.linalg.pinv(design.T @ design)
+    sd = np.sqrt(np.maximum(np.diag(covariance)[len(nuisance):], 0.0))
+    rss_linear = float(np.sum((whitened - design @ solution.x) ** 2))
+    return current, solution.x, sd, rss_linear, len(nuisance)
+
+
+def refit(state: ModelState, observations: Observations, sens: Sensitivities, effects: list[Effect]) -> list[Refit]:
+    """Refit ``state`` with each of ``effects`` added (their sensitivities in ``sens``); the trial
+    solves of all effects are made together, then halved one by one where needed."""
+    weights = 1.0 / observations.sigma
+    residual = observations.measured - sens.features
+    rss_before = float(np.sum((weights * residual) ** 2))
+    plans = [(effect, *_step(state, sens, effect, weights, residual)) for effect in effects]
+    fraction = {effect.name: 1.0 for effect in effects}
+    results: dict[str, Refit] = {}
+    fitted = state.fitted
+    for _ in range(HALVINGS + 1):
+        pending = [plan for plan in plans if plan[0].name not in results]
+        if not pending:
+            break
+        trials, variants = [], []
+        for effect, current, delta, sd, rss_linear, p in pending:
+            values = current + fraction[effect.name] * delta
+            trial = state.with_nuisance(values[:p]).with_effect(effect, values[p:])
+            try:
+                variants.append(trial.variant())
+            except ValueError:
+                fraction[effect.name] /= 2
+                continue
+            trials.append((effect, trial, values[p:], sd, rss_linear))
+        outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
+        for (effect, trial, values, sd, rss_linear), outcome in zip(trials, outcomes):
+            if outcome.ok:
+                after = observations.residual(outcome.displacement)
+                rss_after = float(np.sum((weights * after) ** 2))
+                if rss_after < rss_before or fraction[effect.name] <= 0.5 ** HALVINGS:
+                    results[effect.name] = Refit(effect, values, sd, trial, rss_before, rss_after, rss_linear,
+                                                 outcome.displacement, after, outcome.status)
+                    continue
+            elif fraction[effect.name] <= 0.5 ** HALVINGS:
+                results[effect.name] = Refit(effect, values, sd, trial, rss_before, float("inf"), rss_linear,
+                                             sens.displacement, residual, outcome.status)
+                continue
+            fraction[effect.name] /= 2
+    return [results[e.name] for e in effects if e.name in results]

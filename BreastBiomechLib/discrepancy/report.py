@@ -1,0 +1,80 @@
+"""The diagnosis report: Markdown with the verdict of each round, the ranked candidates with
+their statistics, the residual by region, and before/after figures of each added effect."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def _number(value, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        if value != value:
+            return "-"
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def _candidates_table(candidates: list[dict]) -> str:
+    rows = ["| rank | effect | score S (dof) | p (corrected) | could explain | localisation | refit | dBIC | "
+            "excess explained |", "|---|---|---|---|---|---|---|---|---|"]
+    rank = 0
+    for c in candidates:
+        if c["skipped"]:
+            continue
+        rank += 1
+        refit = c.get("refit") or {}
+        rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {_number(c['p_adjusted'], 2)} | "
+                    f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {refit.get('described', '-')} | "
+                    f"{_number(refit.get('delta_bic'), 3)} | "
+                    + (f"{refit['excess_explained']:.0%}" if "excess_explained" in refit else "-") + " |")
+    skipped = [f"{c['title']} ({c['skipped']})" for c in candidates if c["skipped"]]
+    return "\n".join(rows) + ("\n\nNot tested: " + "; ".join(skipped) + "." if skipped else "")
+
+
+def _regions_table(before: dict, after: dict | None) -> str:
+    rows = ["| region | channel | features | RMS residual before (mm) | after (mm) | mean z² before |",
+            "|---|---|---|---|---|---|"]
+    for region, channels in before["regions"].items():
+        for channel, figures in channels.items():
+            later = (after or {}).get("regions", {}).get(region, {}).get(channel)
+            rows.append(f"| {region} | {channel} | {figures['features']} | {figures['rms_mm']:.2f} | "
+                        f"{later['rms_mm']:.2f} |" if later else
+                        f"| {region} | {channel} | {figures['features']} | {figures['rms_mm']:.2f} | - |")
+            rows[-1] += f" {figures['mean_square_whitened']:.2f} |"
+    return "\n".join(rows)
+
+
+def _measures_line(name: str, m: dict) -> str:
+    landmark = m.get("landmark_error_mm")
+    text = f"{name}: NMI {m['nmi']:.4f}, RMS feature residual {m['residual_rms_mm']:.2f} mm"
+    if landmark:
+        text += f", landmark error {landmark['mean']:.2f} mm mean (max {landmark['max']:.2f})"
+    return text
+
+
+def write_report(run, path: Path) -> Path:
+    """Write the Markdown report of ``run`` (a :class:`~BreastBiomechLib.discrepancy.workflow.DiagnosisRun`)."""
+    parts = ["# Model-discrepancy diagnosis", "",
+             f"**Final verdict: {run.final['sentence']}**", ""]
+    if run.added:
+        parts += [f"Effects added: {', '.join(run.added)}.", ""]
+    for record in run.rounds:
+        d = record["diagnosis"]
+        o = d["overall"]
+        noise = record["noise"]
+        parts += [f"## Round {record['round']}: {d['verdict']}", "", d["sentence"], "",
+                  f"{record['features']['count']} features ({', '.join(f'{k} {v}' for k, v in record['features']['channels'].items())}); "
+                  f"noise: landmarks {noise['landmark_sd_mm']:g} mm, model-error floor {noise['model_sd_mm']:g} mm. "
+                  f"Overall test T = {o['statistic']:.1f} on {o['dof']} degrees of freedom (T/dof {o['per_dof']:.2f}, "
+                  f"p = {o['p_value']:.3g}); {d['solves']} forward solves; {record['seconds']:.0f} s.", "",
+                  "### Candidates", "", _candidates_table(d["candidates"]), "",
+                  "### Residual by region", "", _regions_table(record["before"], record.get("after")), "",
+                  _measures_line("Before", record["before"])]
+        if record.get("after"):
+            parts += ["", _measures_line(f"After adding {record['added']}", record["after"])]
+        parts += [""]
+    path = Path(path)
+    path.write_text("\n".join(parts) + "\n")
+    return path

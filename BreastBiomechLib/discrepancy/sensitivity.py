@@ -1,0 +1,102 @@
+"""How the features move with each parameter at the current model: the fitted (nuisance)
+parameters by a forward difference, each candidate effect's parameters by a secant from their
+off value to a realistic step (:class:`~BreastBiomechLib.discrepancy.effects.EffectParameter`).
+Every variant is built first and solved together: one batched launch for all that change only
+materials and plates, one per effect that changes the loading.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from BreastBiomechLib.discrepancy.effects import Effect
+from BreastBiomechLib.discrepancy.observations import Observations
+from BreastBiomechLib.discrepancy.state import FIT_STEP, ModelState
+from BreastBiomechLib.discrepancy.variants import solve_variants
+
+
+@dataclass
+class Sensitivities:
+    """At the current model: its solution ``displacement`` (N, 3) mm and ``features`` (n,);
+    ``nuisance`` (n, p) the features' change per unit of each nuisance parameter (keys
+    ``nuisance_keys``); ``effects`` {name: (n, k)} per unit of each candidate's parameters;
+    ``fields`` {name: (k, N, 3)} the nodal displacement change per unit of each; ``skipped``
+    {name: reason} the candidates that could not be evaluated; ``solves`` how many forward
+    solves it took."""
+
+    displacement: np.ndarray
+    features: np.ndarray
+    nuisance_keys: list[str]
+    nuisance: np.ndarray
+    effects: dict[str, np.ndarray] = field(default_factory=dict)
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    solves: int = 0
+
+
+def sensitivities(state: ModelState, observations: Observations, candidates: list[Effect],
+                  progress: Callable[[str], None] | None = None) -> Sensitivities:
+    """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects
+    not yet added, each available for this fit). Raises a RuntimeError when the current model or
+    a nuisance variant fails to solve."""
+    fitted = state.fitted
+    say = progress or (lambda message: None)
+    variants, roles = [state.variant()], [("base", None, None, 0.0)]
+    for key, value, lower, upper in state.nuisance():
+        if ":" in key:
+            name, index = key.split(":")
+            step = state.added[name][0].parameters[int(index)].step
+        else:
+            step = FIT_STEP * (upper - lower)
+        moved = value + step if value + step <= upper else value - step
+        z, values = state.moved(key, moved)
+        variants.append(state.variant(z, values))
+        roles.append(("nuisance", key, None, moved - value))
+    skipped = {}
+    for effect in candidates:
+        say(f"building the {effect.title} variants")
+        built = []
+        try:
+            for j, parameter in enumerate(effect.parameters):
+                values = effect.off.copy()
+                values[j] = parameter.stepped(parameter.off)
+                built.append((state.variant(values={effect.name: (effect, values)}), j, values[j] - parameter.off))
+        except ValueError as error:
+            skipped[effect.name] = f"could not be built: {error}"
+            continue
+        for variant, j, step in built:
+            variants.append(variant)
+            roles.append(("effect", effect.name, j, step))
+    say(f"solving {len(variants)} variants")
+    outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
+    base = outcomes[0]
+    if not base.ok:
+        raise RuntimeError(f"the current model does not solve ({base.status}: {base.message})")
+    features = observations.predicted(base.displacement)
+    keys = [key for kind, key, _, _ in roles if kind == "nuisance"]
+    nuisance = np.zeros((len(features), len(keys)))
+    effects: dict[str, np.ndarray] = {}
+    fields: dict[str, np.ndarray] = {}
+    sizes = {e.name: len(e.parameters) for e in candidates}
+    for (kind, key, j, step), outcome in zip(roles[1:], outcomes[1:]):
+        if kind == "nuisance":
+            if not outcome.ok:
+                raise RuntimeError(f"the current model with {key} moved does not solve ({outcome.status}: "
+                                   f"{outcome.message})")
+            nuisance[:, keys.index(key)] = (observations.predicted(outcome.displacement) - features) / step
+            continue
+        if key in skipped:
+            continue
+        if not outcome.ok:
+            skipped[key] = f"its variant did not solve ({outcome.status}: {outcome.message})"
+            effects.pop(key, None)
+            fields.pop(key, None)
+            continue
+        effects.setdefault(key, np.zeros((len(features), sizes[key])))
+        fields.setdefault(key, np.zeros((sizes[key], *base.displacement.shape)))
+        effects[key][:, j] = (observations.predicted(outcome.displacement) - features) / step
+        fields[key][j] = (outcome.displacement - base.displacement) / step
+    return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, skipped, len(variants))

@@ -1,0 +1,98 @@
+"""The statistics of the diagnosis, on whitened quantities (each feature divided by its noise).
+
+Linearised at the current model: residual r = J_theta d_theta + J_phi phi + noise, noise
+N(0, I) after whitening, theta the parameters already fitted (nuisance), phi a candidate
+effect's parameters (0 in the current model, the nested case).
+
+- Overall discrepancy: T = |P r|^2 with P the projection off span(J_theta); chi-square with
+  n - rank(J_theta) degrees of freedom when nothing is missing.
+- Rao's score (Lagrange-multiplier) test of a candidate: S = g' I^-1 g with g = B' P r and
+  I = B' B, B = P J_phi (the efficient information, theta profiled out): chi-square with rank(B)
+  degrees of freedom under "the effect is absent". Needs only the model at the current fit and
+  each candidate's sensitivity, so every candidate is tested from one batch of solves.
+- Likelihood-ratio test and BIC of a refit: with the noise known, -2 log L = |r|^2, so
+  LR = |r0|^2 - |r1|^2 (chi-square, k dof) and dBIC = |r1|^2 - |r0|^2 + k ln n.
+- How alike two candidates' signatures are: the largest canonical correlation of their
+  projected sensitivities (1: the data cannot tell them apart).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+RANK_TOLERANCE = 1e-8
+
+
+def basis(matrix: np.ndarray, scale: float | None = None) -> np.ndarray:
+    """An orthonormal basis (n, r) of the column space of ``matrix`` (n, k), leaving out
+    directions whose singular value is below :data:`RANK_TOLERANCE` times ``scale`` (default the
+    largest singular value; give the norm of what ``matrix`` was projected from, so that what
+    a projection left as round-off does not count)."""
+    if matrix.size == 0:
+        return np.zeros((matrix.shape[0], 0))
+    u, s, _ = np.linalg.svd(matrix, full_matrices=False)
+    reference = s.max(initial=0.0) if scale is None else scale
+    return u[:, s > RANK_TOLERANCE * max(reference, 1e-300)]
+
+
+def project_off(vectors: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``vectors`` (n,) or (n, k) with their components in the span of the orthonormal ``q`` removed."""
+    return vectors - q @ (q.T @ vectors)
+
+
+def overall(residual: np.ndarray, q_theta: np.ndarray) -> dict:
+    """The overall discrepancy test: T, degrees of freedom, p-value, and T per degree of freedom."""
+    t = float(np.sum(project_off(residual, q_theta) ** 2))
+    dof = max(len(residual) - q_theta.shape[1], 1)
+    return {"statistic": t, "dof": dof, "p_value": float(stats.chi2.sf(t, dof)), "per_dof": t / dof}
+
+
+def score_test(residual: np.ndarray, q_theta: np.ndarray, sensitivity: np.ndarray) -> dict:
+    """Rao's score test of a candidate with whitened ``sensitivity`` (n, k): the statistic, its
+    degrees of freedom (the rank of the projected sensitivity), p-value, the linearised estimate
+    of its parameters (k,) with their standard deviations, and the fraction of the projected
+    residual's squared norm it explains."""
+    r = project_off(residual, q_theta)
+    original = np.atleast_2d(sensitivity.T).T
+    b = project_off(original, q_theta)
+    q_b = basis(b, np.linalg.norm(original, 2))
+    dof = q_b.shape[1]
+    explained = q_b.T @ r
+    s = float(explained @ explained)
+    information = b.T @ b
+    covariance = np.linalg.pinv(information, rcond=1e-12) if dof else np.zeros_like(information)
+    estimate = covariance @ (b.T @ r)
+    total = float(r @ r)
+    return {"statistic": s, "dof": dof, "p_value": float(stats.chi2.sf(s, dof)) if dof else 1.0,
+            "estimate": estimate, "sd": np.sqrt(np.maximum(np.diag(covariance), 0.0)),
+            "explained_fraction": s / total if total > 0 else 0.0}
+
+
+def canonical_correlation(a: np.ndarray, b: np.ndarray, q_theta: np.ndarray) -> float:
+    """The largest canonical correlation between the projected column spaces of ``a`` and ``b``
+    (whitened sensitivities (n, ka), (n, kb)); 0 when either is empty."""
+    a, b = np.atleast_2d(a.T).T, np.atleast_2d(b.T).T
+    qa = basis(project_off(a, q_theta), np.linalg.norm(a, 2))
+    qb = basis(project_off(b, q_theta), np.linalg.norm(b, 2))
+    if qa.shape[1] == 0 or qb.shape[1] == 0:
+        return 0.0
+    return float(min(np.linalg.svd(qa.T @ qb, compute_uv=False).max(), 1.0))
+
+
+def likelihood_ratio(rss_before: float, rss_after: float, k: int, n: int) -> dict:
+    """LR statistic, its p-value (chi-square, ``k`` dof) and dBIC of a refit that adds ``k``
+    parameters and changes the whitened residual sum of squares from ``rss_before`` to
+    ``rss_after`` on ``n`` features."""
+    lr = rss_before - rss_after
+    return {"statistic": float(lr), "p_value": float(stats.chi2.sf(max(lr, 0.0), k)) if k else 1.0,
+            "delta_bic": float(rss_after - rss_before + k * np.log(n))}
+
+
+def excess_explained(rss_before: float, rss_after: float, dof_before: int, dof_after: int) -> float:
+    """The share of the residual's excess over its noise expectation that a refit removed:
+    1 - max(rss_after - dof_after, 0) / (rss_before - dof_before) (0 when there was no excess)."""
+    excess = rss_before - dof_before
+    if excess <= 0:
+        return 0.0
+    return float(np.clip(1.0 - max(rss_after - dof_after, 0.0) / excess, 0.0, 1.0))

@@ -1,0 +1,65 @@
+"""A model variant (one forward solve of the diagnosis) and the batched solve of many.
+
+A :class:`Variant` is what a solve needs beyond the mesh: the ``model`` (mesh, constraints,
+supports, gravity and reference state; its own materials and plates are not used), the
+per-element ``materials`` and the ``plates``. Variants that share one ``model`` object are
+solved in one batched launch (materials, plate poses, travel and friction may differ between
+them); an effect that changes the loading (gravity pre-stress, the chest-wall support) makes a
+model of its own. Displacements come back from the mesh as imaged (LPS mm), also for a
+pre-stressed model whose mesh is its unloaded shape.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from BreastBiomechLib.solver import DynamicRelaxation, Model
+from BreastBiomechLib.solver.materials import ElementMaterials
+from BreastBiomechLib.solver.model import Plate
+
+
+@dataclass
+class Variant:
+    """One model to solve: ``model`` (loading and mesh), ``materials`` per element, ``plates``
+    (the model's plates in number and order, with their contact nodes)."""
+
+    model: Model
+    materials: ElementMaterials
+    plates: list[Plate]
+
+
+@dataclass
+class Outcome:
+    """A variant's solve: ``displacement`` (N, 3) mm from the mesh as imaged, ``status`` and
+    ``message`` of the solver (``ok`` when it completed)."""
+
+    displacement: np.ndarray
+    status: str
+    message: str
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "completed"
+
+
+def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation: DynamicRelaxation,
+                   device=None) -> list[Outcome]:
+    """Solve every variant (one batched launch per distinct ``model``) to static equilibrium by
+    dynamic ``relaxation``; the outcomes in the variants' order."""
+    from BreastBiomechLib.solver import solve_batch
+    from BreastBiomechLib.solver.unloaded import displacement_from_imaged
+
+    outcomes: list[Outcome | None] = [None] * len(variants)
+    groups: dict[int, list[int]] = {}
+    for i, variant in enumerate(variants):
+        groups.setdefault(id(variant.model), []).append(i)
+    for members in groups.values():
+        model = variants[members[0]].model
+        solutions = solve_batch(model, [variants[i].materials for i in members], device=device,
+                                relaxation=relaxation, plates=[variants[i].plates for i in members])
+        for i, solution in zip(members, solutions):
+            outcomes[i] = Outcome(displacement_from_imaged(model, solution.displacement, imaged_nodes),
+                                  solution.status, solution.message)
+    return outcomes
