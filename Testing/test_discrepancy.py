@@ -1,0 +1,145 @@
+"""The model-discrepancy workflow on small CPU cases (conftest's compressed phantom, fitted with
+a coarse mesh of its labels and a few solves): the effects are nested in the fitted model, the
+inputs a diagnosis may not read or cannot use are refused, a case with hidden plate friction is
+diagnosed as missing friction and gets better when it is added, and the null case raises no
+alarm. The cases are copies without their truth files: the workflow never reads them."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+FIT = ["--model", "iso-hetero", "--free", "E", "--optimiser", "cmaes", "--budget", "12", "--population", "6",
+       "--tolerance-mm", "0.05", "--device", "cpu", "--quiet"]
+
+
+def _without_truth(case: Path, into: Path) -> Path:
+    copy = Path(shutil.copytree(case, into))
+    for name in ("truth.json", "truth_mesh.vtu"):
+        (copy / "compressed" / name).unlink()
+    return copy
+
+
+def _fit(case: Path, out: Path) -> Path:
+    from BreastBiomechLib.cli import main
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+
+    mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=10.0, refine_interfaces=False)).mesh
+    write_vtu(out.parent / f"{out.name}-mesh.vtu", mesh)
+    assert main(["optimise", str(case), "--out", str(out), "--mesh", str(out.parent / f"{out.name}-mesh.vtu"), *FIT]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def null_case(compressed_case_dir, tmp_path_factory):
+    """(case, fit): conftest's phantom (nothing hidden beyond heterogeneous materials, which the
+    iso-hetero fit has), without its truth, fitted."""
+    root = tmp_path_factory.mktemp("null")
+    case = _without_truth(compressed_case_dir, root / "case")
+    return case, _fit(case, root / "fit")
+
+
+@pytest.fixture(scope="module")
+def friction_case(tmp_path_factory):
+    """(case, fit): conftest's phantom compressed with plate friction mu = 1 hidden in its truth."""
+    from BreastBiomechLib.cli import main
+
+    root = tmp_path_factory.mktemp("friction")
+    made = root / "made"
+    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
+                 "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
+                 "--friction", "1.0", "--out", str(made)]) == 0
+    case = _without_truth(made, root / "case")
+    return case, _fit(case, root / "fit")
+
+
+def test_every_effect_at_its_off_values_is_the_fitted_model(null_case):
+    """The fitted model is the nested case: each effect applied at its off values leaves the
+    materials, plates and loading as they were."""
+    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case
+
+    fitted = load_fitted_case(*null_case, device="cpu")
+    state = ModelState(fitted, fitted.z)
+    base = state.variant()
+    for effect in library(fitted):
+        if effect.unavailable(fitted):
+            continue
+        variant = effect.apply(base, effect.off, fitted)
+        assert variant.model is base.model, effect.name
+        for name in ("mu", "kappa", "eta", "fibre", "density"):
+            np.testing.assert_array_equal(getattr(variant.materials, name), getattr(base.materials, name),
+                                          err_msg=f"{effect.name} {name}")
+        for a, b in zip(variant.plates, base.plates):
+            np.testing.assert_array_equal(a.point, b.point)
+            np.testing.assert_array_equal(a.normal, b.normal)
+            np.testing.assert_array_equal(a.displacement, b.displacement)
+            assert a.friction == b.friction
+        # and switched on, each changes something
+        on = effect.apply(base, np.array([p.stepped(p.off) for p in effect.parameters]), fitted)
+        changed = on.model is not base.model or any(
+            not np.array_equal(getattr(on.materials, n), getattr(base.materials, n)) for n in ("mu", "eta")) or any(
+            a.friction != b.friction or not np.allclose(a.point + a.displacement, b.point + b.displacement)
+            or not np.allclose(a.normal, b.normal) for a, b in zip(on.plates, base.plates))
+        assert changed, effect.name
+
+
+def test_inputs_the_diagnosis_cannot_use_are_refused(null_case, friction_case, tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+    from BreastBiomechLib.discrepancy import load_fitted_case
+
+    case, fit = null_case
+    # a fit of another case: its recorded fingerprint differs
+    with pytest.raises(ValueError, match="fit of another case"):
+        load_fitted_case(case, friction_case[1])
+    # a case with no measured image
+    bare = Path(shutil.copytree(case, tmp_path / "bare"))
+    (bare / "compressed" / "mr.nrrd").unlink()
+    assert main(["diagnose", str(bare), "--fit", str(fit), "--out", str(tmp_path / "out1")]) == 2
+    assert "no measured compressed image" in capsys.readouterr().err
+    # a folder that holds no finished fit
+    unfinished = Path(shutil.copytree(fit, tmp_path / "unfinished"))
+    (unfinished / "result.json").unlink()
+    assert main(["diagnose", str(case), "--fit", str(unfinished), "--out", str(tmp_path / "out2")]) == 2
+    assert "not a finished fit" in capsys.readouterr().err
+    # an output folder in use
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "x").write_text("")
+    assert main(["diagnose", str(case), "--fit", str(fit), "--out", str(tmp_path / "used")]) == 2
+    assert "resume it" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_hidden_friction_is_named_added_and_the_gap_shrinks(friction_case, tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+
+    case, fit = friction_case
+    out = tmp_path / "diagnosis"
+    assert main(["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--rounds", "2", "--device", "cpu",
+                 "--quiet", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    record = json.loads((out / "round-1.json").read_text())
+    assert record["diagnosis"]["verdict"] == "missing effect" and record["diagnosis"]["effect"] == "friction", \
+        record["diagnosis"]["sentence"]
+    assert summary["added"][0] == "friction"
+    before, after = record["before"]["landmark_error_mm"]["mean"], record["after"]["landmark_error_mm"]["mean"]
+    assert after < 0.7 * before
+    assert (out / "report.md").is_file() and "Missing effect: plate friction" in (out / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+
+    case, fit = null_case
+    out = tmp_path / "diagnosis"
+    assert main(["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--device", "cpu", "--quiet",
+                 "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["final"] == "no significant discrepancy", summary["sentence"]
+    assert summary["added"] == []
