@@ -1,8 +1,9 @@
-"""The model-discrepancy workflow on small CPU cases (conftest's compressed phantom, fitted with
-a coarse mesh of its labels and a few solves): the effects are nested in the fitted model, the
-inputs a diagnosis may not read or cannot use are refused, a case with hidden plate friction is
-diagnosed as missing friction and gets better when it is added, and the null case raises no
-alarm. The cases are copies without their truth files: the workflow never reads them."""
+"""The model-discrepancy workflow on conftest's small compressed phantom (CPU), fitted with a
+coarse mesh of its labels and a few solves: the effects are nested in the fitted model, the
+inputs a diagnosis cannot use are refused, and this null case (nothing hidden beyond what the
+iso-hetero fit has) raises no alarm. Cases are copies without their truth files: the workflow
+never reads them. Hidden friction: test_discrepancy_friction.py (a file of its own, so that the
+two run side by side)."""
 
 from __future__ import annotations
 
@@ -12,51 +13,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-FIT = ["--model", "iso-hetero", "--free", "E", "--optimiser", "cmaes", "--budget", "12", "--population", "6",
-       "--tolerance-mm", "0.05", "--device", "cpu", "--quiet"]
-
-
-def _without_truth(case: Path, into: Path) -> Path:
-    copy = Path(shutil.copytree(case, into))
-    for name in ("truth.json", "truth_mesh.vtu"):
-        (copy / "compressed" / name).unlink()
-    return copy
-
-
-def _fit(case: Path, out: Path) -> Path:
-    from BreastBiomechLib.cli import main
-    from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.meshes import write_vtu
-    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-
-    mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=10.0, refine_interfaces=False)).mesh
-    write_vtu(out.parent / f"{out.name}-mesh.vtu", mesh)
-    assert main(["optimise", str(case), "--out", str(out), "--mesh", str(out.parent / f"{out.name}-mesh.vtu"), *FIT]) == 0
-    return out
-
+from discrepancy_cases import fit_coarse, without_truth
 
 @pytest.fixture(scope="module")
 def null_case(compressed_case_dir, tmp_path_factory):
     """(case, fit): conftest's phantom (nothing hidden beyond heterogeneous materials, which the
     iso-hetero fit has), without its truth, fitted."""
     root = tmp_path_factory.mktemp("null")
-    case = _without_truth(compressed_case_dir, root / "case")
-    return case, _fit(case, root / "fit")
-
-
-@pytest.fixture(scope="module")
-def friction_case(tmp_path_factory):
-    """(case, fit): conftest's phantom compressed with plate friction mu = 1 hidden in its truth."""
-    from BreastBiomechLib.cli import main
-
-    root = tmp_path_factory.mktemp("friction")
-    made = root / "made"
-    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
-                 "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
-                 "--friction", "1.0", "--out", str(made)]) == 0
-    case = _without_truth(made, root / "case")
-    return case, _fit(case, root / "fit")
+    case = without_truth(compressed_case_dir, root / "case")
+    return case, fit_coarse(case, root / "fit")
 
 
 def test_every_effect_at_its_off_values_is_the_fitted_model(null_case):
@@ -89,14 +54,17 @@ def test_every_effect_at_its_off_values_is_the_fitted_model(null_case):
         assert changed, effect.name
 
 
-def test_inputs_the_diagnosis_cannot_use_are_refused(null_case, friction_case, tmp_path, capsys):
+def test_inputs_the_diagnosis_cannot_use_are_refused(null_case, tmp_path, capsys):
     from BreastBiomechLib.cli import main
     from BreastBiomechLib.discrepancy import load_fitted_case
 
     case, fit = null_case
-    # a fit of another case: its recorded fingerprint differs
+    # a fit of another case: its recorded fingerprint differs from the case's
+    other = Path(shutil.copytree(fit, tmp_path / "other"))
+    record = json.loads((other / "case.json").read_text())
+    (other / "case.json").write_text(json.dumps({**record, "fingerprint": "0" * 64}))
     with pytest.raises(ValueError, match="fit of another case"):
-        load_fitted_case(case, friction_case[1])
+        load_fitted_case(case, other)
     # a case with no measured image
     bare = Path(shutil.copytree(case, tmp_path / "bare"))
     (bare / "compressed" / "mr.nrrd").unlink()
@@ -112,24 +80,6 @@ def test_inputs_the_diagnosis_cannot_use_are_refused(null_case, friction_case, t
     (tmp_path / "used" / "x").write_text("")
     assert main(["diagnose", str(case), "--fit", str(fit), "--out", str(tmp_path / "used")]) == 2
     assert "resume it" in capsys.readouterr().err
-
-
-@pytest.mark.slow
-def test_hidden_friction_is_named_added_and_the_gap_shrinks(friction_case, tmp_path, capsys):
-    from BreastBiomechLib.cli import main
-
-    case, fit = friction_case
-    out = tmp_path / "diagnosis"
-    assert main(["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--rounds", "2", "--device", "cpu",
-                 "--quiet", "--json"]) == 0
-    summary = json.loads(capsys.readouterr().out)
-    record = json.loads((out / "round-1.json").read_text())
-    assert record["diagnosis"]["verdict"] == "missing effect" and record["diagnosis"]["effect"] == "friction", \
-        record["diagnosis"]["sentence"]
-    assert summary["added"][0] == "friction"
-    before, after = record["before"]["landmark_error_mm"]["mean"], record["after"]["landmark_error_mm"]["mean"]
-    assert after < 0.7 * before
-    assert (out / "report.md").is_file() and "Missing effect: plate friction" in (out / "report.md").read_text()
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ def cmd_diagnose(args) -> int:
 
     noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
                        surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels))
-    settings = DiagnosisSettings(alpha=args.alpha)
+    settings = DiagnosisSettings(alpha=args.alpha, refine_iterations=args.refine_iterations)
 
     def progress(message):
         if not args.quiet:
@@ -58,6 +58,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--surface-spacing-mm", type=float, default=8.0,
                    help="one surface feature per cube of this size (mm, default 8)")
     p.add_argument("--alpha", type=float, default=0.01, help="family-wise significance level (default 0.01)")
+    p.add_argument("--refine-iterations", type=int, default=2,
+                   help="Gauss-Newton iterations refining the refit of an added effect (default 2)")
     p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")

@@ -10,8 +10,9 @@ the measured case, which candidate effect explains it, and is the answer clear.
    (:mod:`~BreastBiomechLib.discrepancy.refit`) and confirmed by the likelihood-ratio test, BIC
    and a localisation check: the residual's excess over the noise must sit in the regions where
    the candidate's signature sits (overlap of the two distributions over the regions).
-4. The verdict: **missing effect** (one confirmed candidate explains at least ``min_explained``
-   of the residual's excess over the noise), **ambiguous** (another confirmed candidate is
+4. The verdict: **missing effect** (one confirmed candidate's refit removes at least
+   ``min_explained`` of the residual's sum of squares; its parameters are then refined by
+   Gauss-Newton iterations), **ambiguous** (another confirmed candidate is
    nearly as good by BIC and its signature correlates above ``ambiguity_correlation``),
    **unexplained discrepancy** (significant, but no candidate confirmed or explains enough: the
    answer when the missing effect is not in the library) or **no significant discrepancy**.
@@ -20,14 +21,14 @@ the measured case, which candidate effect explains it, and is the answer clear.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from BreastBiomechLib.discrepancy import statistics
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
-from BreastBiomechLib.discrepancy.refit import Refit, refit
+from BreastBiomechLib.discrepancy.refit import Refit, refine, refit
 from BreastBiomechLib.discrepancy.regions import regions_of
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
@@ -38,19 +39,21 @@ VERDICTS = ("missing effect", "ambiguous", "unexplained discrepancy", "no signif
 @dataclass
 class DiagnosisSettings:
     """Decision thresholds: ``alpha`` the family-wise significance level, ``refit_top`` how many
-    significant candidates are refitted, ``min_explained`` the share of the excess residual a
-    named effect must remove, ``bic_threshold`` the largest dBIC that confirms (-10: very strong
+    significant candidates are refitted, ``min_explained`` the share of the residual (whitened
+    sum of squares) a named effect's refit must remove, ``bic_threshold`` the largest dBIC that confirms (-10: very strong
     evidence, Kass and Raftery), ``ambiguity_correlation`` and ``ambiguity_bic`` when two
     confirmed candidates cannot be told apart, ``min_localisation`` the overlap of residual and
-    signature over the regions a candidate needs."""
+    signature over the regions a candidate needs; ``refine_iterations`` the Gauss-Newton
+    iterations of the refit of the effect that is added."""
 
     alpha: float = 0.01
     refit_top: int = 3
-    min_explained: float = 0.5
+    min_explained: float = 0.4
     bic_threshold: float = -10.0
     ambiguity_correlation: float = 0.9
     ambiguity_bic: float = 6.0
     min_localisation: float = 0.5
+    refine_iterations: int = 2
 
 
 @dataclass
@@ -59,7 +62,7 @@ class Candidate:
     Bonferroni-corrected ``p_adjusted``), the share of the residual its signature could explain
     (``explained_fraction``), the linearised ``estimate`` and its ``sd``, where its signature
     sits (``signature_regions``: share per region), the ``localisation`` overlap, and after a
-    refit the LR test, dBIC, the excess it explained and the values it refitted to; or the
+    refit the LR test, dBIC, the share of the residual it removed and the values it refitted to; or the
     reason it was ``skipped``."""
 
     name: str
@@ -100,6 +103,7 @@ class Diagnosis:
     refitted: Refit | None
     sensitivities: Sensitivities
     feature_regions: np.ndarray
+    refits: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "effect": self.effect, "alternatives": self.alternatives,
@@ -187,7 +191,7 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
                                                             if not c.skipped)
     regions = region_summary(observations, residual, feature_regions)
     base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
-                sensitivities=sens, feature_regions=feature_regions)
+                sensitivities=sens, feature_regions=feature_regions, refits={})
     if not significant:
         return Diagnosis("no significant discrepancy", None, [],
                          f"No significant discrepancy: the residual is what the noise model expects "
@@ -198,6 +202,7 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     by_name = {e.name: e for e in tested}
     say(f"refitting {', '.join(c.name for c in chosen) or 'no candidate'}")
     refits = {r.effect.name: r for r in refit(state, observations, sens, [by_name[c.name] for c in chosen])}
+    base["refits"] = refits
     n = len(observations)
     confirmed = []
     for candidate in chosen:
@@ -207,12 +212,13 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
             continue
         k = len(r.effect.parameters)
         lr = statistics.likelihood_ratio(r.rss_before, r.rss_after, k, n)
-        explained = statistics.excess_explained(r.rss_before, r.rss_after, overall["dof"], overall["dof"] - k)
         candidate.refit = {"status": r.status, "values": r.values.tolist(), "sd": r.sd.tolist(),
                            "described": r.effect.describe(r.values), "rss_before": r.rss_before,
                            "rss_after": r.rss_after, "rss_linear": r.rss_linear, "lr": lr["statistic"],
                            "lr_p_adjusted": min(1.0, lr["p_value"] * m), "delta_bic": lr["delta_bic"],
-                           "excess_explained": explained}
+                           "removed": max(r.rss_before - r.rss_after, 0.0) / r.rss_before if r.rss_before > 0 else 0.0,
+                           "excess_explained": statistics.excess_explained(r.rss_before, r.rss_after, overall["dof"],
+                                                                           overall["dof"] - k)}
         if (r.ok and lr["p_value"] * m < settings.alpha and lr["delta_bic"] <= settings.bic_threshold
                 and candidate.localisation >= settings.min_localisation):
             confirmed.append(candidate)
@@ -225,10 +231,10 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
                          f"(refitted: {tried}).", refitted=None, **base)
     confirmed.sort(key=lambda c: c.refit["delta_bic"])
     best = confirmed[0]
-    if best.refit["excess_explained"] < settings.min_explained:
+    if best.refit["removed"] < settings.min_explained:
         return Diagnosis("unexplained discrepancy", None, [best.name],
-                         f"Unexplained discrepancy: the best candidate, {best.title}, explains only "
-                         f"{best.refit['excess_explained']:.0%} of the residual's excess over the noise "
+                         f"Unexplained discrepancy: the best candidate, {best.title}, removes only "
+                         f"{best.refit['removed']:.0%} of the residual "
                          f"(dBIC {best.refit['delta_bic']:.1f}); something the library does not hold is missing.",
                          refitted=None, **base)
     rivals = [c for c in confirmed[1:]
@@ -243,9 +249,19 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
                          f"Ambiguous: {pair}. Their signatures correlate {corr:.2f} after the fitted parameters are "
                          f"profiled out, and their refits differ by {rivals[0].refit['delta_bic'] - best.refit['delta_bic']:.1f} "
                          "in BIC; the data cannot tell them apart.", refitted=None, **base)
+    chosen_refit = refits[best.name]
+    say(f"refining the refit with {best.name}")
+    refined, outcome = refine(chosen_refit.state, observations, settings.refine_iterations)
+    weights = 1.0 / observations.sigma
+    after = observations.residual(outcome.displacement)
+    values = refined.added[best.name][1]
+    chosen_refit = replace(chosen_refit, values=values, state=refined, displacement=outcome.displacement,
+                           residual_after=after, rss_after=float(np.sum((weights * after) ** 2)))
+    best.refit.update({"refined_values": values.tolist(), "refined_described": chosen_refit.effect.describe(values),
+                       "rss_refined": chosen_refit.rss_after})
     return Diagnosis("missing effect", best.name, [],
-                     f"Missing effect: {best.title} ({best.refit['described']}). Score test p = {best.p_adjusted:.2g} "
-                     f"(corrected), refit dBIC {best.refit['delta_bic']:.1f}, explaining "
-                     f"{best.refit['excess_explained']:.0%} of the residual's excess over the noise; its signature "
-                     f"and the residual overlap {best.localisation:.0%} over the regions ({best.acts_in}).",
-                     refitted=refits[best.name], **base)
+                     f"Missing effect: {best.title} ({best.refit['refined_described']}). Score test p = "
+                     f"{best.p_adjusted:.2g} (corrected), refit dBIC {best.refit['delta_bic']:.1f}, removing "
+                     f"{best.refit['removed']:.0%} of the residual; its signature and the residual overlap "
+                     f"{best.localisation:.0%} over the regions ({best.acts_in}).",
+                     refitted=chosen_refit, **base)

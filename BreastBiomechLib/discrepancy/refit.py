@@ -1,6 +1,8 @@
 """Adding a candidate effect and refitting: a bounded Gauss-Newton step of the nuisance and the
 effect's parameters together from their sensitivities (warm start at the current fit), checked
-by a forward solve at the step (halved while it does not lower the residual)."""
+by a forward solve at the step (halved while it does not lower the residual); then, for the
+effect that is added, further Gauss-Newton iterations from fresh sensitivities (:func:`refine`),
+since a secant from the off value is only the first guess of a nonlinear effect's size."""
 
 from __future__ import annotations
 
@@ -11,9 +13,9 @@ from scipy.optimize import lsq_linear
 
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
-from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
+from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
-from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants
 
 HALVINGS = 3
 
@@ -97,3 +99,35 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities, ef
                 continue
             fraction[effect.name] /= 2
     return [results[e.name] for e in effects if e.name in results]
+
+
+def refine(state: ModelState, observations: Observations, iterations: int = 1) -> tuple[ModelState, Outcome]:
+    """Gauss-Newton iterations of every fitted parameter of ``state`` (the fit's and the added
+    effects'), each from fresh sensitivities and checked by a forward solve (halved while it does
+    not lower the residual; stopped when it no longer does). Returns the state and its solve."""
+    fitted = state.fitted
+    weights = 1.0 / observations.sigma
+    current = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
+    if not current.ok:
+        raise RuntimeError(f"the model to refine does not solve ({current.status}: {current.message})")
+    rss = float(np.sum((weights * observations.residual(current.displacement)) ** 2))
+    for _ in range(iterations):
+        sens = sensitivities(state, observations, [])
+        nuisance = state.nuisance()
+        values = np.array([v for _, v, _, _ in nuisance])
+        lower = np.array([lo for _, _, lo, _ in nuisance]) - values
+        upper = np.array([hi for _, _, _, hi in nuisance]) - values
+        design = weights[:, None] * sens.nuisance
+        delta = lsq_linear(design, weights * (observations.measured - sens.features), bounds=(lower, upper)).x
+        improved = False
+        for halving in range(HALVINGS + 1):
+            trial = state.with_nuisance(values + delta / 2 ** halving)
+            outcome = solve_variants([trial.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
+            if outcome.ok:
+                trial_rss = float(np.sum((weights * observations.residual(outcome.displacement)) ** 2))
+                if trial_rss < rss:
+                    state, current, rss, improved = trial, outcome, trial_rss, True
+                    break
+        if not improved:
+            break
+    return state, current

@@ -18,7 +18,7 @@ def _number(value, digits: int = 3) -> str:
 
 def _candidates_table(candidates: list[dict]) -> str:
     rows = ["| rank | effect | score S (dof) | p (corrected) | could explain | localisation | refit | dBIC | "
-            "excess explained |", "|---|---|---|---|---|---|---|---|---|"]
+            "residual removed |", "|---|---|---|---|---|---|---|---|---|"]
     rank = 0
     for c in candidates:
         if c["skipped"]:
@@ -28,7 +28,7 @@ def _candidates_table(candidates: list[dict]) -> str:
         rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {_number(c['p_adjusted'], 2)} | "
                     f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {refit.get('described', '-')} | "
                     f"{_number(refit.get('delta_bic'), 3)} | "
-                    + (f"{refit['excess_explained']:.0%}" if "excess_explained" in refit else "-") + " |")
+                    + (f"{refit['removed']:.0%}" if "removed" in refit else "-") + " |")
     skipped = [f"{c['title']} ({c['skipped']})" for c in candidates if c["skipped"]]
     return "\n".join(rows) + ("\n\nNot tested: " + "; ".join(skipped) + "." if skipped else "")
 

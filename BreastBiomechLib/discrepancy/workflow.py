@@ -131,6 +131,8 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
                   "features": {"count": len(observations), "channels": {c: int(np.sum(observations.channel == c))
                                                                         for c in sorted(set(observations.channel))}},
                   "noise": noise.__dict__ | {"channels": list(noise.channels)}}
+        record["refits"] = {name: measures(fitted, observations, r.displacement, regions)
+                            for name, r in diagnosis.refits.items() if r.ok}
         if diagnosis.refitted is not None:
             state = diagnosis.refitted.state
             record["added"] = diagnosis.effect

@@ -1,0 +1,42 @@
+"""Hidden plate friction on a small CPU phantom (conftest's, compressed 40 % with mu = 1 in its
+truth): the diagnosis names friction, adds it, and the landmark error falls. The case is a copy
+without its truth files."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from discrepancy_cases import fit_coarse, without_truth
+
+
+@pytest.fixture(scope="module")
+def friction_case(tmp_path_factory):
+    """(case, fit): conftest's phantom compressed 40 % with plate friction mu = 1 hidden in its truth."""
+    from BreastBiomechLib.cli import main
+
+    root = tmp_path_factory.mktemp("friction")
+    made = root / "made"
+    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
+                 "--compression", "0.4", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
+                 "--friction", "1.0", "--out", str(made)]) == 0
+    case = without_truth(made, root / "case")
+    return case, fit_coarse(case, root / "fit")
+
+
+@pytest.mark.slow
+def test_hidden_friction_is_named_added_and_the_gap_shrinks(friction_case, tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+
+    case, fit = friction_case
+    out = tmp_path / "diagnosis"
+    assert main(["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--rounds", "1", "--refine-iterations", "1",
+                 "--device", "cpu", "--quiet", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    record = json.loads((out / "round-1.json").read_text())
+    assert record["diagnosis"]["verdict"] == "missing effect" and record["diagnosis"]["effect"] == "friction", \
+        record["diagnosis"]["sentence"]
+    assert summary["added"][0] == "friction"
+    before, after = record["before"]["landmark_error_mm"]["mean"], record["after"]["landmark_error_mm"]["mean"]
+    assert after < 0.7 * before
+    assert (out / "report.md").is_file() and "Missing effect: plate friction" in (out / "report.md").read_text()
