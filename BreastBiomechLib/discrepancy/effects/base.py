@@ -10,6 +10,7 @@ diagnosis reports that reason instead of testing it.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +42,7 @@ class EffectParameter:
         return value + self.step if value + self.step <= self.upper else value - self.step
 
 
-class Effect:
+class Effect(ABC):
     """A candidate physical effect the fitted model may be missing (subclass per effect: one file
     each in this package). ``name``: identifier (command line, JSON); ``title``: words for
     reports; ``acts_in``: where in the breast it acts; ``parameters``; ``own_model``: whether it
@@ -73,9 +74,9 @@ class Effect:
         or None when it can."""
         return None
 
+    @abstractmethod
     def apply(self, variant, values: np.ndarray, fitted):
         """The ``variant`` with this effect at parameter ``values`` (one per parameter)."""
-        raise NotImplementedError
 
     def describe(self, values) -> str:
         """The values in words, e.g. "mu 0.42"."""
