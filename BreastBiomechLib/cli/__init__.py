@@ -11,11 +11,11 @@ import argparse
 import sys
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli import bench, demo, diagnose, fit, images, mesh, phantom, segment, simulate
+from BreastBiomechLib.cli import bench, demo, diagnose, fit, images, mesh, phantom, segment, simulate, suite
 from BreastBiomechLib.cli.common import end_progress
 
 
-GROUPS = (phantom, fit, diagnose, segment, mesh, simulate, images, demo, bench)  # the order `--help` lists them in
+GROUPS = (phantom, fit, diagnose, suite, segment, mesh, simulate, images, demo, bench)  # the order `--help` lists them in
 
 
 def build_parser() -> argparse.ArgumentParser:

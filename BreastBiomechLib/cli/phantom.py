@@ -50,7 +50,9 @@ def _truth_model(args):
     return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm,  # checked again
                    friction=args.friction, gravity=args.gravity, compression_gravity=args.compression_gravity,
                    chest_wall=args.chest_wall, chest_wall_stiffness=list(args.chest_wall_stiffness),
-                   plate_tilt_deg=tilt, skin=None if args.skin is None else list(args.skin))
+                   plate_tilt_deg=tilt, skin=None if args.skin is None else list(args.skin),
+                   stiff_band=None if args.stiff_band is None else list(args.stiff_band),
+                   chest_wall_shift_mm=None if args.chest_wall_shift is None else list(args.chest_wall_shift))
 
 
 def cmd_phantom(args) -> int:
@@ -61,7 +63,7 @@ def cmd_phantom(args) -> int:
         raise ValueError("--compression applies to a compressed case: add --compressed")
     effects = {"--friction": args.friction, "--gravity": args.gravity, "--compression-gravity": args.compression_gravity,
                "--plate-tilt": args.plate_tilt, "--chest-wall": args.chest_wall != "fixed" or None,
-               "--skin": args.skin}
+               "--skin": args.skin, "--stiff-band": args.stiff_band, "--chest-wall-shift": args.chest_wall_shift}
     given = [name for name, value in effects.items() if value]
     if given and not args.compressed:
         raise ValueError(f"{', '.join(given)} change the truth simulation of a compressed case: add --compressed")
@@ -121,4 +123,10 @@ def add_parsers(sub) -> None:
                          help="a skin layer of this Young's modulus and thickness (partial-volume weighting)")
     effects.add_argument("--plate-tilt", type=float, nargs=2, metavar=("DEG1", "DEG2"),
                          help="the first plate's tilt about its two tilt axes (degrees, at most 10)")
+    effects.add_argument("--stiff-band", type=float, nargs=2, metavar=("FACTOR", "THICKNESS_MM"),
+                         help="a stiff sheet the MR does not show: moduli times FACTOR in an oblique band "
+                              "through the breast's centroid (not in the discrepancy library)")
+    effects.add_argument("--chest-wall-shift", type=float, nargs=3, metavar=("L", "P", "S"),
+                         help="the thorax moved by this (mm, LPS) between the scans (not in the discrepancy "
+                              "library)")
     p.set_defaults(func=cmd_phantom)

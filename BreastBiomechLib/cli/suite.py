@@ -1,0 +1,134 @@
+"""``breastbiomech discrepancy-suite``: the hidden-effect suite that proves the discrepancy
+workflow (:mod:`BreastBiomechLib.discrepancy.suite`), resumable, in shards side by side."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _shard(text: str) -> tuple[int, int]:
+    import argparse
+
+    try:
+        k, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--shard takes K/N (e.g. 0/4), not {text!r}") from None
+    if not (n >= 1 and 0 <= k < n):
+        raise argparse.ArgumentTypeError(f"--shard {text}: give K/N with 0 <= K < N")
+    return k, n
+
+
+def _run_shards(args, say) -> None:
+    """Run the suite as ``args.jobs`` shard processes side by side (this command with ``--shard
+    K/N``), spread over the GPUs when ``--device cuda``; each shard's log is
+    OUT/shard-K.log."""
+    import subprocess
+
+    if args.shard != (0, 1):
+        raise ValueError("give --jobs or --shard, not both")
+    argv = list(args.argv)
+    if "--jobs" in argv:
+        at = argv.index("--jobs")
+        del argv[at:at + 2]
+    argv = [a for a in argv if not a.startswith("--jobs=")]
+    gpus = 0
+    if args.device == "cuda":
+        import warp as wp
+
+        wp.init()
+        gpus = wp.get_cuda_device_count()
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    processes = []
+    for k in range(args.jobs):
+        device = ["--device", f"cuda:{k % gpus}"] if gpus > 1 else []
+        command = [sys.executable, "-c", "import sys; from BreastBiomechLib.cli import main; sys.exit(main())",
+                   *argv, "--shard", f"{k}/{args.jobs}", *device, "--quiet"]
+        log = open(Path(args.out) / f"shard-{k}.log", "a")
+        processes.append((subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT), log))
+        say(f"shard {k}/{args.jobs} started{' on ' + device[1] if device else ''}")
+    failed = 0
+    for k, (process, log) in enumerate(processes):
+        failed += process.wait() != 0
+        log.close()
+    if failed:
+        raise RuntimeError(f"{failed} of {args.jobs} shards failed: see {args.out}/shard-*.log")
+
+
+def cmd_suite(args) -> int:
+    from BreastBiomechLib.discrepancy.suite import (SuiteSettings, run_suite, scores_markdown, suite_cases,
+                                                    suite_scores)
+
+    out = Path(args.out)
+    cases = suite_cases(args.anatomies, args.hidden)
+    settings = SuiteSettings(compression=args.compression,
+                             spacing_mm=None if args.spacing is None else tuple(args.spacing),
+                             truth_edge_mm=args.truth_edge_mm, fit_edge_mm=args.fit_edge_mm,
+                             refine_interfaces=not args.no_refine, fit_blur_mm=args.fit_blur_mm, fit_budget=args.fit_budget,
+                             fit_population=args.fit_population, rounds=args.rounds)
+    started = time.perf_counter()
+
+    def say(message):
+        if not args.quiet:
+            print(f"  [{time.perf_counter() - started:6.0f} s] {message}", file=sys.stderr, flush=True)
+
+    if args.score_only:
+        pass
+    elif args.jobs > 1:
+        _run_shards(args, say)
+    else:
+        run_suite(out, cases, settings, device=args.device, shard=args.shard, say=say)
+    results = [json.loads((out / c.name / "result.json").read_text()) if (out / c.name / "result.json").is_file()
+               else json.loads((out / c.name / "error.json").read_text()) if (out / c.name / "error.json").is_file()
+               else None for c in cases]
+    finished = [r for r in results if r is not None]
+    scores = suite_scores(finished)
+    (out / "scores.json").write_text(json.dumps(scores, indent=1) + "\n")
+    (out / "scores.md").write_text(scores_markdown(scores, finished))
+    if args.json:
+        print(json.dumps({k: scores[k] for k in ("cases", "finished", "right_verdicts", "false_alarms",
+                                                  "landmark_error_fall", "nmi_gap_closed", "seconds_per_case")}))
+    else:
+        print(f"{len(finished)} of {len(cases)} cases done; scores: {out / 'scores.md'}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """Register the ``discrepancy-suite`` command on ``sub`` (argparse sub-parsers)."""
+    from BreastBiomechLib.discrepancy.suite import ANATOMIES, HIDDEN_EFFECTS, SuiteSettings
+
+    d = SuiteSettings()
+    p = sub.add_parser("discrepancy-suite", help="hidden-effect suite: make, fit and diagnose phantom cases "
+                                                 "hiding known, unknown or no effects; score the verdicts")
+    p.add_argument("--out", required=True, help="suite folder (a run resumes in it)")
+    p.add_argument("--anatomies", nargs="+", type=int, default=list(ANATOMIES), choices=ANATOMIES,
+                   help="Table 1 presets used as anatomies (default all five)")
+    p.add_argument("--hidden", nargs="+", choices=list(HIDDEN_EFFECTS),
+                   help="hidden effects (default all: " + ", ".join(HIDDEN_EFFECTS) + ")")
+    p.add_argument("--compression", type=float, default=d.compression,
+                   help=f"fraction of the breast thickness the plates close (default {d.compression})")
+    p.add_argument("--spacing", type=float, nargs=3, metavar=("L", "P", "S"),
+                   help="phantom voxel size in mm (default: the presets' 1 x 1 x 2.5)")
+    p.add_argument("--truth-edge-mm", type=float, default=d.truth_edge_mm,
+                   help=f"truth mesh element size (default {d.truth_edge_mm:g} mm)")
+    p.add_argument("--fit-edge-mm", type=float, default=d.fit_edge_mm,
+                   help=f"fitting mesh element size (default {d.fit_edge_mm:g} mm)")
+    p.add_argument("--fit-blur-mm", type=float, default=d.fit_blur_mm,
+                   help=f"smoothing of the segmentation's surface before the fitting mesh (default {d.fit_blur_mm:g} mm)")
+    p.add_argument("--no-refine", action="store_true", help="fitting meshes without interface refinement")
+    p.add_argument("--fit-budget", type=int, default=d.fit_budget,
+                   help=f"forward solves of each material fit (default {d.fit_budget})")
+    p.add_argument("--fit-population", type=int, default=d.fit_population,
+                   help=f"CMA-ES population (default {d.fit_population})")
+    p.add_argument("--rounds", type=int, default=d.rounds, help=f"diagnosis rounds at most (default {d.rounds})")
+    p.add_argument("--device", help="warp device (cuda, cuda:1, cpu; default: warp's)")
+    p.add_argument("--shard", type=_shard, default=(0, 1), metavar="K/N",
+                   help="run every N-th case from the K-th (shards may run side by side on one --out)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="run this many shards side by side (spread over the GPUs with --device cuda)")
+    p.add_argument("--score-only", action="store_true", help="score the finished cases, run nothing")
+    p.add_argument("--json", action="store_true", help="print the headline scores as one JSON line")
+    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+    p.set_defaults(func=cmd_suite)

@@ -1,0 +1,101 @@
+"""The hidden-effect suite's cases: which anatomies, which effect each truth hides, and the verdict
+that is right for it.
+
+An anatomy is a phantom of the seed's Table 1 presets (cases 1-5: 464-1364 cm³, glandular
+density 12-50 %, one with a tumour). Each hidden effect is a set of :class:`TruthModel` fields
+at a realistic size:
+
+==================  ==========================================================  =================
+hidden effect       in the truth                                                right verdict
+==================  ==========================================================  =================
+null                nothing beyond the fitted family                            no significant
+friction            Coulomb mu 0.6 on both plates (skin on polycarbonate)       friction
+gravity             imaged prone (0, -9.81, 0 m/s²) from the unloaded state     gravity
+chest-wall          the chest wall slides freely along itself                   chest-wall
+skin                a 2 mm skin layer of 100 kPa                                skin
+plate-tilt          the first plate tilted 4° about its first tilt axis         plate-tilt
+friction+plate-tilt both                                                        both, in rounds
+stiff-band          a 15 mm oblique band of 4x stiffer breast tissue the MR     unexplained
+                    does not show (not in the library)
+chest-wall-shift    the thorax 4 mm anterior at the compressed scan (breathing;  unexplained
+                    not in the library)
+==================  ==========================================================  =================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+NONE = "no significant discrepancy"
+UNEXPLAINED = "unexplained discrepancy"
+MISSING = "missing effect"
+
+
+@dataclass(frozen=True)
+class HiddenEffect:
+    """One kind of case: its ``name``, the :class:`~BreastBiomechLib.phantom.compressed.TruthModel`
+    fields that hide it (``truth``), the library effects a right diagnosis adds (``expected``,
+    empty for the null and the unknown effects) and whether the library holds it (``known``)."""
+
+    name: str
+    truth: dict = field(default_factory=dict)
+    expected: tuple[str, ...] = ()
+    known: bool = True
+
+    @property
+    def kind(self) -> str:
+        """"null", "single", "two" or "unknown"."""
+        if not self.known:
+            return "unknown"
+        return {0: "null", 1: "single"}.get(len(self.expected), "two")
+
+    @property
+    def right_verdict(self) -> str:
+        return {"null": NONE, "unknown": UNEXPLAINED}.get(self.kind, MISSING)
+
+
+HIDDEN_EFFECTS: dict[str, HiddenEffect] = {h.name: h for h in (
+    HiddenEffect("null"),
+    HiddenEffect("friction", {"friction": 0.6}, ("friction",)),
+    HiddenEffect("gravity", {"gravity": [0.0, -9.81, 0.0]}, ("gravity",)),
+    HiddenEffect("chest-wall", {"chest_wall": "sliding"}, ("chest-wall",)),
+    HiddenEffect("skin", {"skin": [100e3, 2.0]}, ("skin",)),
+    HiddenEffect("plate-tilt", {"plate_tilt_deg": [[4.0, 0.0], [0.0, 0.0]]}, ("plate-tilt",)),
+    HiddenEffect("friction+plate-tilt", {"friction": 0.6, "plate_tilt_deg": [[4.0, 0.0], [0.0, 0.0]]},
+                 ("friction", "plate-tilt")),
+    HiddenEffect("stiff-band", {"stiff_band": [4.0, 15.0]}, known=False),
+    HiddenEffect("chest-wall-shift", {"chest_wall_shift_mm": [0.0, -4.0, 0.0]}, known=False),
+)}
+
+ANATOMIES = (1, 2, 3, 4, 5)
+
+
+@dataclass(frozen=True)
+class SuiteCase:
+    """One case: the Table 1 ``anatomy`` (1-5) and the ``hidden`` effect; ``name`` its folder."""
+
+    anatomy: int
+    hidden: HiddenEffect
+
+    @property
+    def name(self) -> str:
+        return f"anatomy{self.anatomy}-{self.hidden.name}"
+
+    @property
+    def seed(self) -> int:
+        """The measured image's noise seed: its own per case."""
+        return 5000 + 100 * self.anatomy + list(HIDDEN_EFFECTS).index(self.hidden.name)
+
+
+def suite_cases(anatomies=ANATOMIES, effects=None) -> list[SuiteCase]:
+    """The cases of ``anatomies`` (Table 1 numbers) x ``effects`` (names of :data:`HIDDEN_EFFECTS`,
+    default all), hidden effect by hidden effect (so that shards running side by side start on
+    different anatomies)."""
+    names = list(HIDDEN_EFFECTS) if effects is None else list(effects)
+    unknown = sorted(set(names) - set(HIDDEN_EFFECTS))
+    if unknown:
+        raise ValueError(f"unknown hidden effects {unknown}; the suite has {list(HIDDEN_EFFECTS)}")
+    bad = sorted(set(anatomies) - set(ANATOMIES))
+    if bad:
+        raise ValueError(f"anatomies {bad}: the suite's anatomies are the Table 1 presets {list(ANATOMIES)}")
+    return [SuiteCase(a, HIDDEN_EFFECTS[n]) for n in names for a in anatomies]

@@ -1,0 +1,270 @@
+"""Running the hidden-effect suite: per anatomy a phantom, its truth mesh, the segmentation of its
+MR and the fitting mesh of that segmentation; per case a truth simulation with the hidden effect,
+a material fit and the diagnosis, on a copy of the case that holds only what a clinic would have.
+
+Folder layout (every stage is skipped when its output exists, so a run resumes)::
+
+    anatomy<N>/phantom/          the phantom with its truth (labels, fractions, signal)
+    anatomy<N>/truth_mesh.vtu    the truth mesh (of the truth labels; finer than the fitting mesh)
+    anatomy<N>/segmentation/     the segmentation of the MR from its seed points
+    anatomy<N>/fitting_mesh.vtu  the fitting mesh of the segmentation (never of the truth labels)
+    anatomy<N>/prepared.json     the anatomy's figures (Dice, mesh sizes, seconds)
+    <case>/truth/compressed/     the truth simulation's case with its truth files
+    <case>/measured/             what the fit and the diagnosis read: mr.nrrd, landmarks, seed
+                                 points, compressed/{mr.nrrd, landmarks.mrk.json, plates.json}
+    <case>/fit/                  ``breastbiomech optimise`` output
+    <case>/diagnosis/            ``breastbiomech diagnose`` output
+    <case>/result.json           the case's scores (:mod:`~BreastBiomechLib.discrepancy.suite.scores`)
+
+Frames and units as everywhere: LPS millimetres, pascal.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
+
+# what a clinic has of a compressed case: the fit and the diagnosis see nothing else
+MEASURED_FILES = ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json",
+                  "compressed/mr.nrrd", "compressed/landmarks.mrk.json", "compressed/plates.json")
+
+
+@dataclass
+class SuiteSettings:
+    """How the suite's cases are made and fitted: the plates close by ``compression`` of the
+    breast's thickness (LR); phantom voxels ``spacing_mm`` (None: the presets' 1 x 1 x 2.5 mm);
+    ``truth_edge_mm`` the truth mesh's element size, ``fit_edge_mm`` the fitting mesh's (of the
+    segmentation, its surface smoothed by ``fit_blur_mm``, tissue interfaces refined when
+    ``refine_interfaces``); the material fit
+    (iso-hetero, E per tissue, CMA-ES) has ``fit_budget`` forward solves in generations of
+    ``fit_population``; the diagnosis at most ``rounds`` rounds over the whole library."""
+
+    compression: float = 0.4
+    spacing_mm: tuple[float, float, float] | None = None
+    truth_edge_mm: float = 3.0
+    fit_edge_mm: float = 6.0
+    refine_interfaces: bool = True
+    fit_blur_mm: float = 0.8
+    fit_budget: int = 60
+    fit_population: int = 12
+    rounds: int = 3
+    effects: list[str] | None = field(default=None)
+
+
+def write_json(path: Path, document: dict) -> None:
+    """Write ``document`` to ``path`` atomically (a temporary file renamed over it)."""
+    temporary = path.with_name(path.name + ".partial")
+    temporary.write_text(json.dumps(document, indent=1, default=float) + "\n")
+    os.replace(temporary, path)
+
+
+class _Lock:
+    """A lock file made with O_EXCL, so that shards running side by side prepare an anatomy once."""
+
+    def __init__(self, path: Path, wait_s: float = 3600.0):
+        self.path, self.wait_s = path, wait_s
+
+    def __enter__(self):
+        started = time.monotonic()
+        while True:
+            try:
+                os.close(os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+                return self
+            except FileExistsError:
+                if time.monotonic() - started > self.wait_s:
+                    raise TimeoutError(f"{self.path} is held for over {self.wait_s:.0f} s: another suite run "
+                                       "died holding it? remove the file and run again") from None
+                time.sleep(2.0)
+
+    def __exit__(self, *exc):
+        self.path.unlink(missing_ok=True)
+
+
+def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None,
+                    say: Callable[[str], None] = lambda m: None) -> dict:
+    """The phantom of Table 1 preset ``number``, its truth mesh, the segmentation of its MR and
+    the fitting mesh of the segmentation, in ``out/anatomy<number>`` (made once; see the module)."""
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.markups import read_markups
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.io.segmentation import write_segmentation
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
+    from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
+
+    folder = out / f"anatomy{number}"
+    done = folder / "prepared.json"
+    folder.mkdir(parents=True, exist_ok=True)
+    with _Lock(folder / ".lock"):
+        if done.is_file():
+            return json.loads(done.read_text())
+        figures, started = {}, time.perf_counter()
+        say(f"anatomy {number}: phantom")
+        params = table1_case(number)
+        if settings.spacing_mm is not None:
+            params.spacing_mm = tuple(settings.spacing_mm)
+        case = generate_phantom(params)
+        write_phantom(case, folder / "phantom", overview=False)
+        figures["phantom"] = {"volume_cm3": case.summary["breast_volume_cm3"],
+                              "density": case.summary["glandular_density"], "seconds": time.perf_counter() - started}
+        say(f"anatomy {number}: truth mesh ({settings.truth_edge_mm:g} mm)")
+        t = time.perf_counter()
+        truth_mesh = mesh_labels(case.labels, MeshSettings(edge_mm=settings.truth_edge_mm),
+                                 nipple_mm=case.landmarks.position("nipple")).mesh
+        write_vtu(folder / "truth_mesh.vtu", truth_mesh)
+        figures["truth_mesh"] = {"tets": len(truth_mesh.tets), "seconds": time.perf_counter() - t}
+        say(f"anatomy {number}: segmentation of the MR")
+        t = time.perf_counter()
+        scan = folder / "phantom"
+        tumour_seeds = scan / "seeds_tumour.mrk.json"
+        result = segment_tissues(read_image(scan / "mr.nrrd"), read_markups(scan / "seeds_muscle.mrk.json").positions,
+                                 read_markups(tumour_seeds).positions if tumour_seeds.is_file() else None)
+        dice = dice_per_tissue(result.labels, case.labels)
+        write_segmentation(result, folder / "segmentation", {"dice_vs_truth": dice})
+        figures["segmentation"] = {"dice": dice, "seconds": time.perf_counter() - t}
+        say(f"anatomy {number}: fitting mesh of the segmentation ({settings.fit_edge_mm:g} mm)")
+        t = time.perf_counter()
+        mesh = mesh_labels(result.labels, MeshSettings(edge_mm=settings.fit_edge_mm,
+                                                       refine_interfaces=settings.refine_interfaces,
+                                                       blur_mm=settings.fit_blur_mm),
+                           nipple_mm=read_markups(scan / "landmarks.mrk.json").position("nipple"))
+        write_vtu(folder / "fitting_mesh.vtu", mesh.mesh)
+        figures["fitting_mesh"] = {"nodes": len(mesh.mesh.nodes), "tets": len(mesh.mesh.tets),
+                                   "seconds": time.perf_counter() - t}
+        write_json(done, figures)
+        return figures
+
+
+def measured_copy(case_dir: Path, into: Path) -> Path:
+    """Copy of the compressed case in ``case_dir`` holding only :data:`MEASURED_FILES` (what a
+    clinic would have: no labels, no truth), in ``into``."""
+    if into.exists():
+        shutil.rmtree(into)
+    for name in MEASURED_FILES:
+        source = case_dir / name
+        if source.is_file():
+            (into / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, into / name)
+    return into
+
+
+def truth_nmi(case_dir: Path, fit_dir: Path, device=None) -> float:
+    """The NMI against the measured image of the image the truth parameters predict: the
+    undeformed MR warped through the truth mesh's displacement (the ceiling of any fit), measured
+    as the fit measures its own (same mask, bins and ranges)."""
+    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.meshes import read_vtu
+    from BreastBiomechLib.warping import ImageWarper
+
+    fitted = load_fitted_case(case_dir / "measured", fit_dir, device=device)
+    truth = read_vtu(case_dir / "truth" / "compressed" / "truth_mesh.vtu")
+    warper = ImageWarper(truth, read_image(case_dir / "measured" / "mr.nrrd"),
+                         read_image(case_dir / "measured" / "compressed" / "mr.nrrd"), device=device)
+    return float(fitted.problem.similarity.nmi(warper.warp(truth.point_data["displacement"])))
+
+
+def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
+             say: Callable[[str], None] = lambda m: None) -> dict:
+    """Make, fit and diagnose one suite case in ``out/<case.name>``; returns (and writes) its
+    ``result.json`` (see :func:`~BreastBiomechLib.discrepancy.suite.scores.case_result`)."""
+    from BreastBiomechLib.discrepancy.suite.scores import case_result
+    from BreastBiomechLib.discrepancy.workflow import run_diagnosis
+    from BreastBiomechLib.io.meshes import read_vtu
+    from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
+    from BreastBiomechLib.phantom.compressed import TruthModel, compress_phantom
+    from BreastBiomechLib.phantom.compressed_files import write_compressed
+    from BreastBiomechLib.phantom.files import read_phantom
+
+    folder = out / case.name
+    result_path = folder / "result.json"
+    if result_path.is_file():
+        return json.loads(result_path.read_text())
+    anatomy = out / f"anatomy{case.anatomy}"
+    prepared = prepare_anatomy(case.anatomy, out, settings, device, say)
+    seconds = {}
+    truth_dir = folder / "truth"
+    if not (truth_dir / "compressed" / "truth.json").is_file():
+        say(f"{case.name}: truth simulation")
+        t = time.perf_counter()
+        phantom = read_phantom(anatomy / "phantom")
+        truth = TruthModel(compression=settings.compression, edge_mm=settings.truth_edge_mm, seed=case.seed,
+                           **case.hidden.truth)
+        compressed = compress_phantom(phantom, truth, device=device, mesh=read_vtu(anatomy / "truth_mesh.vtu"))
+        for name in ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json"):
+            if (anatomy / "phantom" / name).is_file():
+                truth_dir.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(anatomy / "phantom" / name, truth_dir / name)
+        write_compressed(compressed, truth_dir, overview=False)
+        seconds["truth"] = time.perf_counter() - t
+    measured = folder / "measured"
+    if not (measured / "compressed" / "plates.json").is_file():
+        measured_copy(truth_dir, measured)
+    fit_dir = folder / "fit"
+    if not (fit_dir / "result.json").is_file():
+        say(f"{case.name}: material fit ({settings.fit_budget} solves)")
+        t = time.perf_counter()
+        if fit_dir.exists():
+            shutil.rmtree(fit_dir)
+        fit = FitSettings(model="iso-hetero", free=("E",), edge_mm=settings.fit_edge_mm, optimiser="cmaes",
+                          budget=settings.fit_budget, population=settings.fit_population)
+        fit_compressed_case(measured, fit_dir, fit, mesh_path=anatomy / "fitting_mesh.vtu", device=device)
+        seconds["fit"] = time.perf_counter() - t
+    diagnosis_dir = folder / "diagnosis"
+    say(f"{case.name}: diagnosis")
+    t = time.perf_counter()
+    run = run_diagnosis(measured, fit_dir, diagnosis_dir, effects=settings.effects, rounds=settings.rounds,
+                        device=device, resume=diagnosis_dir.exists(),
+                        progress=lambda message: say(f"{case.name}: {message}"))
+    seconds["diagnosis"] = time.perf_counter() - t
+    say(f"{case.name}: truth-parameter NMI")
+    ceiling = truth_nmi(folder, fit_dir, device)
+    result = case_result(case, run.rounds, ceiling, prepared, seconds)
+    write_json(result_path, result)
+    return result
+
+
+def run_suite(out, cases: list[SuiteCase], settings: SuiteSettings | None = None, device=None,
+              shard: tuple[int, int] = (0, 1), say: Callable[[str], None] = lambda m: None) -> list[dict]:
+    """Run the ``cases`` of shard ``(k, n)`` (every n-th case from the k-th; shards may run side
+    by side on one folder) in ``out``; a case that fails is recorded with its error and the run
+    goes on. Returns the results of this shard's cases."""
+    settings = settings or SuiteSettings()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    k, n = shard
+    if not (n >= 1 and 0 <= k < n):
+        raise ValueError(f"shard {k}/{n}: give K/N with 0 <= K < N")
+    settings_path = out / "settings.json"
+    recorded = json.loads(settings_path.read_text()) if settings_path.is_file() else None
+    mine = asdict(settings) | {"spacing_mm": None if settings.spacing_mm is None else list(settings.spacing_mm)}
+    if recorded is not None and recorded != mine:
+        raise ValueError(f"{out} holds a suite run with other settings ({recorded}); use another --out")
+    if recorded is None:
+        write_json(settings_path, mine)
+    results = []
+    for index, case in enumerate(cases):
+        if index % n != k:
+            continue
+        started = time.perf_counter()
+        try:
+            result = run_case(case, out, settings, device, say)
+        except Exception as error:  # recorded, and the suite goes on with the next case
+            result = {"case": case.name, "error": f"{type(error).__name__}: {error}"}
+            if (out / case.name).is_dir():
+                write_json(out / case.name / "error.json", result)
+            say(f"{case.name}: FAILED: {result['error']}")
+        else:
+            say(f"{case.name}: {result['verdicts'][0]} ({'right' if result['correct'] else 'wrong'}; "
+                f"{time.perf_counter() - started:.0f} s)")
+        results.append(result)
+    return results

@@ -1,0 +1,122 @@
+"""The hidden-effect suite: its cases and their right verdicts, the effects outside the library
+hidden in the truth, the measured copy that holds no truth, and the scoring."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from BreastBiomechLib.discrepancy.suite import (HIDDEN_EFFECTS, MEASURED_FILES, SuiteCase, case_result,
+                                                measured_copy, scores_markdown, suite_cases, suite_scores)
+from BreastBiomechLib.phantom.compressed import TruthModel
+
+
+def test_the_suite_holds_null_single_two_and_unknown_effects_on_five_anatomies():
+    cases = suite_cases()
+    assert len(cases) == 5 * len(HIDDEN_EFFECTS)
+    assert len({c.name for c in cases}) == len({c.seed for c in cases}) == len(cases)
+    kinds = {h.name: h.kind for h in HIDDEN_EFFECTS.values()}
+    assert list(kinds.values()).count("unknown") >= 2 and "null" in kinds.values() and "two" in kinds.values()
+    assert HIDDEN_EFFECTS["stiff-band"].right_verdict == "unexplained discrepancy"
+    assert HIDDEN_EFFECTS["null"].right_verdict == "no significant discrepancy"
+    assert HIDDEN_EFFECTS["skin"].right_verdict == "missing effect"
+    for hidden in HIDDEN_EFFECTS.values():  # every hidden effect is a valid truth
+        TruthModel(**hidden.truth)
+    with pytest.raises(ValueError, match="unknown hidden effects"):
+        suite_cases(effects=["wind"])
+    with pytest.raises(ValueError, match="Table 1 presets"):
+        suite_cases(anatomies=[7])
+
+
+@pytest.fixture(scope="module")
+def truth_model(compressed_case_dir):
+    """The seed's compression of the conftest case's truth mesh, as the truth simulation builds it."""
+    from BreastBiomechLib.io.cases import case_from_dict, compression_case
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    mesh = read_vtu(compressed_case_dir / "compressed" / "truth_mesh.vtu")
+    spec = compression_case(mesh, "truth_mesh.vtu", "LR", 0.25)
+    return case_from_dict(spec, mesh)
+
+
+def test_the_unknown_effects_change_the_truth_where_they_say(truth_model):
+    from BreastBiomechLib.labels import MUSCLE
+    from BreastBiomechLib.phantom.compressed import _with_hidden_effects
+
+    model, settings = truth_model
+    plain, _ = _with_hidden_effects(model, TruthModel(), settings.relaxation, "cpu")
+    banded, _ = _with_hidden_effects(model, TruthModel(stiff_band=[4.0, 15.0]), settings.relaxation, "cpu")
+    ratio = banded.materials.mu / plain.materials.mu
+    stiff = np.isclose(ratio, 4.0)
+    assert np.all(stiff | np.isclose(ratio, 1.0)) and 0.05 < stiff.mean() < 0.5
+    np.testing.assert_allclose(banded.materials.kappa[stiff] / plain.materials.kappa[stiff], 4.0)
+    mesh = model.mesh
+    assert not np.any(stiff & (np.asarray(mesh.cell_data["tissue"]) == MUSCLE.label))
+    # the band is a slab: its elements' centroids lie within half its thickness of one plane
+    centroids = mesh.nodes[mesh.tets].mean(axis=1)
+    normal = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)
+    depth = centroids[stiff] @ normal
+    assert np.ptp(depth) <= 15.0 + 1e-9
+
+    shifted, _ = _with_hidden_effects(model, TruthModel(chest_wall_shift_mm=[0.0, -4.0, 0.0]),
+                                      settings.relaxation, "cpu")
+    assert shifted.loading.constraints
+    for before, after in zip(plain.loading.constraints, shifted.loading.constraints):
+        np.testing.assert_array_equal(before.nodes, after.nodes)
+        np.testing.assert_allclose(after.values[after.mask], np.broadcast_to([0.0, -4.0, 0.0], after.values.shape)[after.mask])
+    assert TruthModel(stiff_band=[4, 15], chest_wall_shift_mm=[0, -4, 0]).hidden_effects == [
+        "stiff band x4, 15 mm", "chest-wall shift [0.0, -4.0, 0.0] mm"]
+
+
+def test_bad_unknown_effects_are_refused():
+    with pytest.raises(ValueError, match="stiff_band"):
+        TruthModel(stiff_band=[4.0])
+    with pytest.raises(ValueError, match="stiff_band"):
+        TruthModel(stiff_band=[-1.0, 10.0])
+    with pytest.raises(ValueError, match="chest_wall_shift_mm"):
+        TruthModel(chest_wall_shift_mm=[0.0, float("nan"), 0.0])
+
+
+def test_the_measured_copy_holds_only_what_a_clinic_has(compressed_case_dir, tmp_path):
+    copy = measured_copy(compressed_case_dir, tmp_path / "measured")
+    held = {str(p.relative_to(copy)) for p in copy.rglob("*") if p.is_file()}
+    assert held <= set(MEASURED_FILES)
+    assert {"mr.nrrd", "compressed/mr.nrrd", "compressed/plates.json", "landmarks.mrk.json"} <= held
+    assert not any("truth" in name or "labels" in name or "signal" in name or "fraction" in name for name in held)
+
+
+def _round(verdict, effect=None, added=None, before=(2.0, 1.20), after=None):
+    record = {"diagnosis": {"verdict": verdict, "effect": effect, "overall": {"statistic": 50.0, "dof": 40,
+                                                                              "p_value": 0.1}},
+              "before": {"landmark_error_mm": {"mean": before[0]}, "nmi": before[1]}}
+    if added:
+        record["added"] = added
+        record["after"] = {"landmark_error_mm": {"mean": after[0]}, "nmi": after[1]}
+    return record
+
+
+def test_cases_are_scored_against_the_effect_their_truth_hides():
+    def result(hidden, rounds, truth_nmi=1.30):
+        return case_result(SuiteCase(1, HIDDEN_EFFECTS[hidden]), rounds, truth_nmi, {}, {"fit": 10.0})
+
+    none = _round("no significant discrepancy")
+    friction = _round("missing effect", "friction", "friction", after=(0.8, 1.26))
+    tilt = _round("missing effect", "plate-tilt", "plate-tilt", before=(0.8, 1.26), after=(0.5, 1.28))
+    unexplained = _round("unexplained discrepancy")
+    results = [result("null", [none]), result("null", [friction, none]), result("friction", [friction, none]),
+               result("friction", [unexplained]), result("friction+plate-tilt", [friction, tilt, none]),
+               result("stiff-band", [unexplained]), result("chest-wall-shift", [friction, none]),
+               {"case": "anatomy2-skin", "error": "RuntimeError: boom"}]
+    assert [r.get("correct") for r in results] == [True, False, True, False, True, True, False, None]
+    assert results[2]["landmark_error_fall"] == pytest.approx(0.6)
+    assert results[2]["nmi_gap_closed"] == pytest.approx(0.6)
+    assert results[4]["landmark_error_fall"] == pytest.approx(0.75)   # before the first round, after the last
+    scores = suite_scores(results)
+    assert scores["false_alarms"] == pytest.approx(0.5) and scores["null_cases"] == 2
+    assert scores["right_verdicts"] == pytest.approx(3 / 5) and scores["hidden_cases"] == 5
+    assert scores["right_by_kind"] == {"null": [1, 2], "single": [1, 2], "two": [1, 1], "unknown": [1, 2]}
+    assert scores["landmark_error_fall"] == pytest.approx((0.6 + 0.75) / 2)
+    assert scores["confusion"]["friction"] == {"friction": 1, "none": 0, "unexplained": 1}
+    assert scores["failed"] == [{"case": "anatomy2-skin", "error": "RuntimeError: boom"}]
+    text = scores_markdown(scores, results)
+    assert "| friction | 1 | 0 | 1 |" in text and "failed: RuntimeError: boom" in text
