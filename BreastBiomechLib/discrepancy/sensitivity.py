@@ -40,11 +40,13 @@ class Sensitivities:
 def sensitivities(state: ModelState, observations: Observations, candidates: list[Effect],
                   progress: Callable[[str], None] | None = None) -> Sensitivities:
     """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects
-    not yet added, each available for this fit). Raises a RuntimeError when the current model or
-    a nuisance variant fails to solve."""
+    not yet added, each available for this fit). A model that fails in the batch is solved again
+    alone, a nuisance difference that fails again or on the other side; raises a RuntimeError
+    when the current model or a nuisance variant still fails to solve."""
     fitted = state.fitted
     say = progress or (lambda message: None)
     variants, roles = [state.variant()], [("base", None, None, 0.0)]
+    bounds = {key: (value, lower, upper) for key, value, lower, upper in state.nuisance()}
     for key, value, lower, upper in state.nuisance():
         if ":" in key:
             name, index = key.split(":")
@@ -72,9 +74,15 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             roles.append(("effect", effect.name, j, step))
     say(f"solving {len(variants)} variants")
     outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
+    solves = len(variants)
+    if not outcomes[0].ok:  # a batch shares its time step: a marginal model may pass alone
+        say("the current model failed in the batch; solving it alone")
+        outcomes[0] = solve_variants(variants[:1], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
+        solves += 1
     base = outcomes[0]
     if not base.ok:
         raise RuntimeError(f"the current model does not solve ({base.status}: {base.message})")
+    solves += _retry_nuisance(state, variants, roles, outcomes, bounds, say)
     features = observations.predicted(base.displacement)
     keys = [key for kind, key, _, _ in roles if kind == "nuisance"]
     nuisance = np.zeros((len(features), len(keys)))
@@ -99,4 +107,31 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
         fields.setdefault(key, np.zeros((sizes[key], *base.displacement.shape)))
         effects[key][:, j] = (observations.predicted(outcome.displacement) - features) / step
         fields[key][j] = (outcome.displacement - base.displacement) / step
-    return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, skipped, len(variants))
+    return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, skipped, solves)
+
+
+def _retry_nuisance(state: ModelState, variants, roles, outcomes, bounds, say) -> int:
+    """Where a nuisance parameter's moved model failed to solve in the big batch (an element
+    inverted on the way; a batch shares its time step and damping, and a marginal model may pass
+    in another), it is solved again in a batch of its own together with the model moved to the
+    other side of its value (within its bounds); the first that solves is used. ``roles`` and
+    ``outcomes`` are updated in place. Returns the number of solves made."""
+    failed = [i for i, (kind, _, _, _) in enumerate(roles) if kind == "nuisance" and not outcomes[i].ok]
+    redo = []
+    for i in failed:
+        _, key, _, step = roles[i]
+        value, lower, upper = bounds[key]
+        redo.append((i, variants[i], step))
+        if lower <= value - step <= upper:
+            z, values = state.moved(key, value - step)
+            redo.append((i, state.variant(z, values), -step))
+    if not redo:
+        return 0
+    say(f"{len(failed)} nuisance difference(s) failed in the batch; solving them again")
+    fitted = state.fitted
+    retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
+    for (i, variant, step), outcome in zip(redo, retried):
+        if outcome.ok and not outcomes[i].ok:
+            variants[i], outcomes[i] = variant, outcome
+            roles[i] = (roles[i][0], roles[i][1], roles[i][2], step)
+    return len(redo)

@@ -29,8 +29,6 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
 
 # what a clinic has of a compressed case: the fit and the diagnosis see nothing else
