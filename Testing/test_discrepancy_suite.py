@@ -120,3 +120,21 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
     assert scores["failed"] == [{"case": "anatomy2-skin", "error": "RuntimeError: boom"}]
     text = scores_markdown(scores, results)
     assert "| friction | 1 | 0 | 1 |" in text and "failed: RuntimeError: boom" in text
+
+
+def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
+    """No inverse crime: every call of the fit, the diagnosis and the fitted-case loader in the
+    suite's runner takes the case folder ``measured`` (the copy of :func:`measured_copy`)."""
+    import ast
+    import inspect
+
+    from BreastBiomechLib.discrepancy.suite import runner
+
+    tree = ast.parse(inspect.getsource(runner))
+    calls = [node for node in ast.walk(tree) if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+             and node.func.id in ("fit_compressed_case", "run_diagnosis", "load_fitted_case")]
+    assert {c.func.id for c in calls} == {"fit_compressed_case", "run_diagnosis", "load_fitted_case"}
+    for call in calls:
+        case = call.args[0]
+        text = ast.unparse(case)
+        assert text in ("measured", "case_dir / 'measured'"), f"{call.func.id} reads {text}"
