@@ -54,6 +54,21 @@ def test_every_effect_at_its_off_values_is_the_fitted_model(null_case):
         assert changed, effect.name
 
 
+def test_the_gravity_effect_unloads_in_the_first_scan_s_posture_and_compresses_in_the_second(null_case):
+    """The case records the compressed scan's posture (plates.json ``gravity``; the phantoms are
+    prone); the gravity effect estimates the unloaded state under the undeformed scan's gravity
+    and compresses under the compressed scan's (here changed to upright: a posture change)."""
+    from BreastBiomechLib.discrepancy import ModelState, load_fitted_case
+    from BreastBiomechLib.discrepancy.effects.gravity import GravityPrestress
+
+    fitted = load_fitted_case(*null_case, device="cpu")
+    np.testing.assert_allclose(fitted.compressed_gravity, [0.0, -9.81, 0.0])
+    fitted.compressed_gravity = np.array([0.0, 0.0, -9.81])
+    variant = GravityPrestress().apply(ModelState(fitted, fitted.z).variant(), np.array([0.5]), fitted)
+    np.testing.assert_allclose(variant.model.prestate.gravity, [0.0, -0.5 * 9.81, 0.0])
+    np.testing.assert_allclose(variant.model.loading.gravity, [0.0, 0.0, -0.5 * 9.81])
+
+
 def test_inputs_the_diagnosis_cannot_use_are_refused(null_case, tmp_path, capsys):
     from BreastBiomechLib.cli import main
     from BreastBiomechLib.discrepancy import load_fitted_case

@@ -78,11 +78,53 @@ def test_bad_unknown_effects_are_refused():
 
 
 def test_the_measured_copy_holds_only_what_a_clinic_has(compressed_case_dir, tmp_path):
+    from BreastBiomechLib.io.markups import read_markups
+
     copy = measured_copy(compressed_case_dir, tmp_path / "measured")
     held = {str(p.relative_to(copy)) for p in copy.rglob("*") if p.is_file()}
     assert held <= set(MEASURED_FILES)
     assert {"mr.nrrd", "compressed/mr.nrrd", "compressed/plates.json", "landmarks.mrk.json"} <= held
     assert not any("truth" in name or "labels" in name or "signal" in name or "fraction" in name for name in held)
+    # landmarks as a person marks them: the truth's moved by a localisation error of the given sd
+    marked = measured_copy(compressed_case_dir, tmp_path / "marked", landmark_noise_mm=0.5, seed=3)
+    errors = []
+    for name in ("landmarks.mrk.json", "compressed/landmarks.mrk.json"):
+        exact, noisy = read_markups(compressed_case_dir / name), read_markups(marked / name)
+        assert noisy.labels == exact.labels
+        np.testing.assert_array_equal(read_markups(copy / name).positions, exact.positions)
+        errors.append(noisy.positions - exact.positions)
+    errors = np.concatenate(errors).ravel()
+    assert 0.3 < errors.std() < 0.7 and np.abs(errors.mean()) < 0.25
+    assert (marked / "compressed" / "plates.json").read_bytes() == (copy / "compressed" / "plates.json").read_bytes()
+    with pytest.raises(ValueError, match="localisation error"):
+        measured_copy(compressed_case_dir, tmp_path / "bad", landmark_noise_mm=-1.0)
+
+
+def test_a_hidden_plate_tilt_is_not_in_the_case_s_record(compressed_case_dir, tmp_path):
+    """The case records the plates' nominal poses (as the compression gives them), so a tilt in
+    the truth stays hidden from the fit; the truth's actual planes are in its summary. The
+    record also carries the compressed scan's posture, here a posture change to upright."""
+    from BreastBiomechLib.phantom.compressed import compress_phantom
+    from BreastBiomechLib.phantom.compressed_files import read_compressed, write_compressed
+    from BreastBiomechLib.phantom.files import read_phantom
+
+    truth = TruthModel(compression=0.25, edge_mm=6.0, plate_tilt_deg=[[3.0, 0.0], [0.0, 0.0]])
+    compressed = compress_phantom(read_phantom(compressed_case_dir), truth, device="cpu")
+    recorded = read_compressed(compressed_case_dir).plates
+    for mine, nominal in zip(compressed.plates, recorded):
+        np.testing.assert_allclose(mine["normal"], nominal["normal"], atol=1e-12)
+        np.testing.assert_allclose(mine["point"], nominal["point"], atol=1e-9)
+    actual = compressed.summary["plates"]
+    tilt = np.degrees(np.arccos(np.clip(np.dot(actual[0]["normal"], recorded[0]["normal"]), -1, 1)))
+    assert tilt == pytest.approx(3.0, abs=1e-6)
+    np.testing.assert_allclose(actual[1]["normal"], recorded[1]["normal"], atol=1e-12)
+    np.testing.assert_allclose(compressed.gravity, [0.0, -9.81, 0.0])
+
+    upright = TruthModel(gravity=[0.0, -9.81, 0.0], compression_gravity=[0.0, 0.0, -9.81])
+    assert upright.scan_gravity == [0.0, 0.0, -9.81]
+    compressed.gravity = upright.scan_gravity
+    write_compressed(compressed, tmp_path, overview=False)
+    np.testing.assert_allclose(read_compressed(tmp_path).gravity, [0.0, 0.0, -9.81])
 
 
 def _round(verdict, effect=None, added=None, before=(2.0, 1.20), after=None):
@@ -111,6 +153,11 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
     assert results[2]["landmark_error_fall"] == pytest.approx(0.6)
     assert results[2]["nmi_gap_closed"] == pytest.approx(0.6)
     assert results[4]["landmark_error_fall"] == pytest.approx(0.75)   # before the first round, after the last
+    # against the truth's exact landmarks where the suite gives them, the measured ones kept beside
+    scored = case_result(SuiteCase(1, HIDDEN_EFFECTS["friction"]), [friction, none], 1.3, {}, {},
+                         {"before": 1.0, "after": 0.2})
+    assert scored["landmark_error_fall"] == pytest.approx(0.8)
+    assert (scored["measured_landmark_error_before_mm"], scored["measured_landmark_error_after_mm"]) == (2.0, 0.8)
     scores = suite_scores(results)
     assert scores["false_alarms"] == pytest.approx(0.5) and scores["null_cases"] == 2
     assert scores["right_verdicts"] == pytest.approx(3 / 5) and scores["hidden_cases"] == 5
@@ -137,4 +184,4 @@ def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
     for call in calls:
         case = call.args[0]
         text = ast.unparse(case)
-        assert text in ("measured", "case_dir / 'measured'"), f"{call.func.id} reads {text}"
+        assert text in ("measured", "case_dir / 'measured'", "folder / 'measured'"), f"{call.func.id} reads {text}"

@@ -19,10 +19,10 @@ from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.forward import FittingProblem
 from BreastBiomechLib.optimisation.space import ParameterSpace
+from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 from BreastBiomechLib.solver.model import Plate
 
-PRONE = (0.0, -9.81, 0.0)  # m/s^2, LPS: gravity of a prone MR scan (anterior)
 FIT_FILES = ("settings.json", "result.json", "fitting_mesh.vtu")
 
 
@@ -31,9 +31,9 @@ class FittedCase:
     """The fit of one compressed case: its forward ``problem`` (with the fitting ``mesh``, the
     measured ``plates`` and images), the ``space`` searched and the best unit position ``z``,
     the ``reference`` and ``measured`` landmarks (None when the case has none), the
-    ``measured_image``, the imaging
-    posture's gravity ``imaged_gravity`` (m/s^2, LPS), the forward solves' ``relaxation`` and the
-    warp ``device``; the folders it came from."""
+    ``measured_image``, the undeformed scan's posture as gravity ``imaged_gravity`` and the
+    compressed scan's ``compressed_gravity`` (m/s^2, LPS; prone: anterior), the forward solves'
+    ``relaxation`` and the warp ``device``; the folders it came from."""
 
     problem: FittingProblem
     z: np.ndarray
@@ -42,7 +42,8 @@ class FittedCase:
     measured_image: sitk.Image
     case_dir: Path
     fit_dir: Path
-    imaged_gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE))
+    imaged_gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE_GRAVITY))
+    compressed_gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE_GRAVITY))
     relaxation: DynamicRelaxation = field(default_factory=DynamicRelaxation)
     device: object = None
     _skin: dict = field(default_factory=dict, repr=False)
@@ -78,7 +79,7 @@ class FittedCase:
 
 
 def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tolerance_mm: float = 0.01,
-                     imaged_gravity=PRONE) -> FittedCase:
+                     imaged_gravity=PRONE_GRAVITY) -> FittedCase:
     """The fit in ``fit_dir`` (``breastbiomech optimise``'s output folder) of the compressed case
     in ``case_dir``. Refuses, naming the problem: a case without its measured image, a folder
     that holds no finished fit, a fit made on another case (its recorded fingerprint, or its
@@ -132,4 +133,4 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
         raise ValueError(f"{fit}: the fit does not match {case}: {error}") from None
     return FittedCase(problem, z, reference, measured.landmarks if reference is not None else None, measured.image,
                       case, fit,
-                      np.asarray(imaged_gravity, float), relaxation, device)
+                      np.asarray(imaged_gravity, float), np.asarray(measured.gravity, float), relaxation, device)

@@ -41,7 +41,8 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
                   progress: Callable[[str], None] | None = None) -> Sensitivities:
     """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects
     not yet added, each available for this fit). A model that fails in the batch is solved again
-    alone, a nuisance difference that fails again or on the other side; raises a RuntimeError
+    alone, a nuisance difference that fails again or on the other side, an effect's secant again
+    or to half its step (a candidate still failing is skipped with the reason); raises a RuntimeError
     when the current model or a nuisance variant still fails to solve."""
     fitted = state.fitted
     say = progress or (lambda message: None)
@@ -83,6 +84,7 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
     if not base.ok:
         raise RuntimeError(f"the current model does not solve ({base.status}: {base.message})")
     solves += _retry_nuisance(state, variants, roles, outcomes, bounds, say)
+    solves += _retry_effects(state, {e.name: e for e in candidates}, variants, roles, outcomes, say)
     features = observations.predicted(base.displacement)
     keys = [key for kind, key, _, _ in roles if kind == "nuisance"]
     nuisance = np.zeros((len(features), len(keys)))
@@ -128,6 +130,32 @@ def _retry_nuisance(state: ModelState, variants, roles, outcomes, bounds, say) -
     if not redo:
         return 0
     say(f"{len(failed)} nuisance difference(s) failed in the batch; solving them again")
+    fitted = state.fitted
+    retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
+    for (i, variant, step), outcome in zip(redo, retried):
+        if outcome.ok and not outcomes[i].ok:
+            variants[i], outcomes[i] = variant, outcome
+            roles[i] = (roles[i][0], roles[i][1], roles[i][2], step)
+    return len(redo)
+
+
+def _retry_effects(state: ModelState, effects: dict[str, Effect], variants, roles, outcomes, say) -> int:
+    """Where a candidate's secant model failed to solve in the big batch (friction that sticks, a
+    stiff skin: an element inverted on the way), it is solved again in a batch of its own together
+    with the secant to half its step; the first that solves is used. ``variants``, ``roles`` and
+    ``outcomes`` are updated in place. Returns the number of solves made."""
+    redo = []
+    for i, (kind, name, j, step) in enumerate(roles):
+        if kind != "effect" or outcomes[i].ok:
+            continue
+        effect = effects[name]
+        half = effect.off.copy()
+        half[j] = effect.parameters[j].off + step / 2
+        redo.append((i, variants[i], step))
+        redo.append((i, state.variant(values={name: (effect, half)}), step / 2))
+    if not redo:
+        return 0
+    say(f"{len(redo) // 2} candidate secant(s) failed in the batch; solving them again and to half their step")
     fitted = state.fitted
     retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
     for (i, variant, step), outcome in zip(redo, retried):

@@ -18,7 +18,7 @@ import SimpleITK as sitk
 from BreastBiomechLib.landmarks import Landmarks, map_landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.phantom.generate import PhantomCase, _bias_field, _Grid
-from BreastBiomechLib.phantom.parameters import INTENSITY, TABLE1_COMPRESSION
+from BreastBiomechLib.phantom.parameters import INTENSITY, PRONE_GRAVITY, TABLE1_COMPRESSION
 
 # Hidden truth materials (ours; within the seed's bounds): E in Pa, nu, eta in Pa.
 DEFAULT_TRUTH_MATERIALS = {
@@ -128,6 +128,12 @@ class TruthModel:
                    (self.chest_wall_shift_mm is not None, lambda: f"chest-wall shift {self.chest_wall_shift_mm} mm")]
         return [name() for present, name in effects if present]
 
+    @property
+    def scan_gravity(self) -> list[float]:
+        """The compressed scan's posture as gravity (m/s^2, LPS): the compression's gravity, else
+        the imaged one, else prone (the phantoms are prone MR scans)."""
+        return list(self.compression_gravity or self.gravity or PRONE_GRAVITY)
+
     def to_dict(self) -> dict:
         return asdict(self)
 
@@ -147,9 +153,12 @@ def table1_truth(number: int) -> TruthModel:
 @dataclass
 class CompressedCase:
     """``image``: the measured compressed MR (float32, its own grid); ``landmarks``: the 17
-    landmarks moved by the truth displacement; ``plates``: final plate planes (name, point,
-    normal; LPS mm); ``truth``: the :class:`TruthModel`; ``mesh``: the truth mesh with its
-    ``displacement`` point array (mm); ``summary``: the solve's figures."""
+    landmarks moved by the truth displacement; ``plates``: the final plate planes as the
+    compression records them (name, point, normal; LPS mm): their nominal poses, so that a
+    tilt in the truth stays hidden (the truth's actual planes are in ``summary["plates"]``);
+    ``truth``: the :class:`TruthModel`; ``mesh``: the truth mesh with its ``displacement`` point
+    array (mm); ``summary``: the solve's figures; ``gravity``: the compressed scan's posture as
+    its record gives it (m/s^2, LPS; prone: anterior)."""
 
     image: sitk.Image
     landmarks: Landmarks
@@ -157,6 +166,7 @@ class CompressedCase:
     truth: TruthModel
     mesh: TetMesh
     summary: dict
+    gravity: list = field(default_factory=lambda: list(PRONE_GRAVITY))
 
 
 def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=None,
@@ -191,6 +201,8 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         raise ValueError(f"the truth gives no material for {sorted(missing)}")
     spec["materials"] = {name: dict(truth.materials[name]) for name in present}
     model, settings = case_from_dict(spec, mesh)
+    # the plates as the compression's record gives them (nominal poses): a tilt is hidden
+    recorded_plates = final_planes(model.loading.plates)
     model, unloaded = _with_hidden_effects(model, truth, settings.relaxation, device)
     solution = solve(model, device=device, relaxation=settings.relaxation)
     if not solution.ok:
@@ -228,6 +240,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         "max_displacement_mm": float(np.linalg.norm(displacement, axis=1).max()),
         "plate_gap_mm": float(abs((np.asarray(plates[0]["point"]) - plates[1]["point"]) @ model.loading.plates[0].normal))
         if len(plates) == 2 else None,
+        "plates": plates,
         "hidden_effects": truth.hidden_effects, "support": list(model.loading.notes),
         "plate_tangential_forces_N": {p.name: float(np.linalg.norm(f))
                                       for p, f in zip(model.loading.plates, solution.plate_tangential_forces)},
@@ -238,7 +251,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         "seconds": round(time.perf_counter() - started, 2),
     }
     report(1.0, "done")
-    return CompressedCase(image, landmarks, plates, truth, truth_mesh, summary)
+    return CompressedCase(image, landmarks, recorded_plates, truth, truth_mesh, summary, truth.scan_gravity)
 
 
 def _with_hidden_effects(model, truth: TruthModel, relaxation, device):

@@ -3,8 +3,10 @@ phantom case (:mod:`BreastBiomechLib.phantom.files`)::
 
     compressed/mr.nrrd              the measured compressed MR (float32; its own grid)
     compressed/landmarks.mrk.json   the 17 landmarks after compression (LPS)
-    compressed/plates.json          the final plate planes: name, point, normal (LPS mm, unit),
-                                    their rounded edge, the axis and compression
+    compressed/plates.json          the final plate planes as the compression records them
+                                    (nominal poses): name, point, normal (LPS mm, unit), their
+                                    rounded edge; the axis and compression; the scan's posture
+                                    as ``gravity`` (m/s^2, LPS; absent in older cases: prone)
     compressed/truth.json           the truth model (materials, mesh size, noise) and the truth
                                     solve's figures: for validation, hidden from the fitting
     compressed/truth_mesh.vtu       the truth mesh with its ``displacement`` (mm): validation only
@@ -18,7 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +30,7 @@ from BreastBiomechLib.io.images import read_image, write_image
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.phantom.compressed import CompressedCase
+from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 
 FOLDER = "compressed"
 
@@ -48,7 +51,8 @@ def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview:
         "truth_mesh": write_vtu(out / "truth_mesh.vtu", compressed.mesh),
     }
     paths["plates"].write_text(json.dumps({"axis": truth.axis, "compression": truth.compression,
-                                           "plates": compressed.plates}, indent=2) + "\n")
+                                           "plates": compressed.plates,
+                                           "gravity": [float(g) for g in compressed.gravity]}, indent=2) + "\n")
     paths["truth"].write_text(json.dumps({"truth": truth.to_dict(), "summary": compressed.summary}, indent=2) + "\n")
     if overview:
         from BreastBiomechLib.visualisation import save_overview
@@ -63,7 +67,8 @@ def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview:
 class MeasuredCompression:
     """What a fit may use of a compressed case: the measured ``image``, the compressed
     ``landmarks`` and the final ``plates`` (dicts: name, point, normal, optional edge; LPS mm),
-    the compression ``axis`` and ``compression`` fraction, and the ``folder``."""
+    the compression ``axis`` and ``compression`` fraction, the ``folder`` and the scan's posture
+    as ``gravity`` (m/s^2, LPS)."""
 
     image: sitk.Image
     landmarks: Landmarks
@@ -71,6 +76,7 @@ class MeasuredCompression:
     axis: str
     compression: float
     folder: Path
+    gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE_GRAVITY))
 
     def truth(self) -> dict:
         """The hidden truth (truth.json: the truth model and its solve's figures), for validation."""
@@ -90,8 +96,13 @@ def read_compressed(case_dir: str | Path) -> MeasuredCompression:
     for plate in document["plates"]:
         if np.linalg.norm(plate["normal"]) == 0:
             raise ValueError(f"{folder / 'plates.json'}: plate {plate.get('name')!r} has a zero normal")
+    gravity = np.asarray(document.get("gravity", PRONE_GRAVITY), float)
+    if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
+        raise ValueError(f"{folder / 'plates.json'}: gravity is the scan's posture as three finite numbers "
+                         f"(m/s^2, LPS; prone: [0, -9.81, 0]), not {document.get('gravity')!r}")
     return MeasuredCompression(read_image(folder / "mr.nrrd"), read_markups(folder / "landmarks.mrk.json"),
-                               document["plates"], document["axis"], float(document["compression"]), folder)
+                               document["plates"], document["axis"], float(document["compression"]), folder,
+                               gravity)
 
 
 def case_fingerprint(case_dir: str | Path) -> str:

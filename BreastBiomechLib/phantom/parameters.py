@@ -79,6 +79,7 @@ TABLE1_CASES: dict[int, PhantomParameters] = {
     5: PhantomParameters(seed=105, volume_cm3=716.0, density=0.28, ptosis=0.05),
 }
 TABLE1_COMPRESSION = {1: 0.319, 2: 0.389, 3: 0.400, 4: 0.504, 5: 0.194}
+PRONE_GRAVITY = (0.0, -9.81, 0.0)  # m/s^2, LPS: the phantoms' posture, a prone MR scan (gravity anterior)
 
 
 def table1_case(number: int) -> PhantomParameters:

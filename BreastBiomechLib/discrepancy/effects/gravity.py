@@ -16,10 +16,12 @@ STANDARD_GRAVITY = 9.81  # m/s^2
 class GravityPrestress(Effect):
     """The compression solved from the breast's gravity-loaded state: its stress-free shape
     estimated from the imaged one (:func:`~BreastBiomechLib.solver.unloaded.unloaded_shape`)
-    under s x 9.81 m/s^2 along the imaging posture's gravity (the fit's ``imaged_gravity``;
-    prone MR: anterior), gravity acting through the compression. The moduli are scaled to fat's
-    10 kPa reference, which the plates' prescribed motion cannot see but gravity can: s is
-    therefore also 10 kPa / E_fat, and s = 2 means a breast half as stiff as the reference."""
+    under s x 9.81 m/s^2 along the undeformed scan's posture (the fit's ``imaged_gravity``;
+    prone MR: anterior), then gravity along the compressed scan's posture (``compressed_gravity``,
+    recorded with the case: the same posture, or another one, e.g. upright for a mammogram) while
+    the plates close. The moduli are scaled to fat's 10 kPa reference, which the plates'
+    prescribed motion cannot see but gravity can: s is therefore also 10 kPa / E_fat, and s = 2
+    means a breast half as stiff as the reference."""
 
     name = "gravity"
     title = "gravity pre-stress (unloaded state)"
@@ -30,8 +32,8 @@ class GravityPrestress(Effect):
                                   "gravity, or fat's 10 kPa over its real modulus"),)
 
     def unavailable(self, fitted) -> str | None:
-        if not np.any(fitted.imaged_gravity):
-            return "the imaging posture's gravity is not known"
+        if not np.any(fitted.imaged_gravity) or not np.any(fitted.compressed_gravity):
+            return "the scans' postures (gravity) are not known"
         return None
 
     def apply(self, variant: Variant, values, fitted) -> Variant:
@@ -40,9 +42,14 @@ class GravityPrestress(Effect):
         s = float(values[0])
         if s <= 0.0:
             return variant
-        gravity = s * STANDARD_GRAVITY * np.asarray(fitted.imaged_gravity, float) / np.linalg.norm(fitted.imaged_gravity)
+        imaged = s * STANDARD_GRAVITY * _unit(fitted.imaged_gravity)
         model = replace(variant.model, materials=variant.materials,
                         loading=replace(variant.model.loading, plates=variant.plates))
-        unloaded = unloaded_shape(model, gravity, tolerance_mm=0.05, device=fitted.device, relaxation=fitted.relaxation)
-        loaded = prestressed_model(model, unloaded)
+        unloaded = unloaded_shape(model, imaged, tolerance_mm=0.05, device=fitted.device, relaxation=fitted.relaxation)
+        loaded = prestressed_model(model, unloaded, s * STANDARD_GRAVITY * _unit(fitted.compressed_gravity))
         return Variant(loaded, variant.materials, loaded.loading.plates)
+
+
+def _unit(gravity) -> np.ndarray:
+    gravity = np.asarray(gravity, float)
+    return gravity / np.linalg.norm(gravity)

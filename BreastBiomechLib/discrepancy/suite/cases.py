@@ -10,15 +10,17 @@ hidden effect       in the truth                                                
 ==================  ==========================================================  =================
 null                nothing beyond the fitted family                            no significant
 friction            Coulomb mu 0.6 on both plates (skin on polycarbonate)       friction
-gravity             imaged prone (0, -9.81, 0 m/s²) from the unloaded state     gravity
+gravity             prone MR, compressed upright (gravity inferior; the         gravity
+                    postures are in the case's record)
 chest-wall          the chest wall slides freely along itself                   chest-wall
 skin                a 2 mm skin layer of 100 kPa                                skin
-plate-tilt          the first plate tilted 4° about its first tilt axis         plate-tilt
+plate-tilt          the first plate tilted 4° about its first tilt axis (the    plate-tilt
+                    case records the nominal, parallel plates)
 friction+plate-tilt both                                                        both, in rounds
 stiff-band          a 15 mm oblique band of 4x stiffer breast tissue the MR     unexplained
                     does not show (not in the library)
-chest-wall-shift    the thorax 4 mm anterior at the compressed scan (breathing;  unexplained
-                    not in the library)
+chest-wall-shift    the thorax 4 mm anterior at the compressed scan             unexplained
+                    (breathing; not in the library)
 ==================  ==========================================================  =================
 """
 
@@ -57,7 +59,7 @@ class HiddenEffect:
 HIDDEN_EFFECTS: dict[str, HiddenEffect] = {h.name: h for h in (
     HiddenEffect("null"),
     HiddenEffect("friction", {"friction": 0.6}, ("friction",)),
-    HiddenEffect("gravity", {"gravity": [0.0, -9.81, 0.0]}, ("gravity",)),
+    HiddenEffect("gravity", {"gravity": [0.0, -9.81, 0.0], "compression_gravity": [0.0, 0.0, -9.81]}, ("gravity",)),
     HiddenEffect("chest-wall", {"chest_wall": "sliding"}, ("chest-wall",)),
     HiddenEffect("skin", {"skin": [100e3, 2.0]}, ("skin",)),
     HiddenEffect("plate-tilt", {"plate_tilt_deg": [[4.0, 0.0], [0.0, 0.0]]}, ("plate-tilt",)),

@@ -29,6 +29,8 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
 
 # what a clinic has of a compressed case: the fit and the diagnosis see nothing else
@@ -44,7 +46,10 @@ class SuiteSettings:
     segmentation, its surface smoothed by ``fit_blur_mm``, tissue interfaces refined when
     ``refine_interfaces``); the material fit
     (iso-hetero, E per tissue, CMA-ES) has ``fit_budget`` forward solves in generations of
-    ``fit_population``; the diagnosis at most ``rounds`` rounds over the whole library."""
+    ``fit_population``; the diagnosis at most ``rounds`` rounds over the whole library. The
+    measured landmarks of both images are the truth's moved by a localisation error of
+    ``landmark_noise_mm`` per coordinate (one sd; a person marking them), so that the fit and
+    the diagnosis meet landmarks as uncertain as a clinic's."""
 
     compression: float = 0.4
     spacing_mm: tuple[float, float, float] | None = None
@@ -55,6 +60,7 @@ class SuiteSettings:
     fit_budget: int = 60
     fit_population: int = 12
     rounds: int = 3
+    landmark_noise_mm: float = 0.35
     effects: list[str] | None = field(default=None)
 
 
@@ -142,15 +148,30 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
         return figures
 
 
-def measured_copy(case_dir: Path, into: Path) -> Path:
+def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, seed: int = 0) -> Path:
     """Copy of the compressed case in ``case_dir`` holding only :data:`MEASURED_FILES` (what a
-    clinic would have: no labels, no truth), in ``into``."""
+    clinic would have: no labels, no truth), in ``into``; its landmarks (undeformed and
+    compressed) moved by a localisation error drawn from N(0, ``landmark_noise_mm``²) per
+    coordinate (mm; random numbers from ``seed``)."""
+    from BreastBiomechLib.io.markups import read_markups, write_markups
+    from BreastBiomechLib.landmarks import Landmarks
+
+    if landmark_noise_mm < 0:
+        raise ValueError(f"the landmarks' localisation error is an sd in mm (>= 0), not {landmark_noise_mm}")
     if into.exists():
         shutil.rmtree(into)
+    rng = np.random.default_rng(seed)
     for name in MEASURED_FILES:
         source = case_dir / name
-        if source.is_file():
-            (into / name).parent.mkdir(parents=True, exist_ok=True)
+        if not source.is_file():
+            continue
+        (into / name).parent.mkdir(parents=True, exist_ok=True)
+        if name.endswith("landmarks.mrk.json") and landmark_noise_mm > 0:
+            exact = read_markups(source)
+            marked = exact.positions + landmark_noise_mm * rng.standard_normal(exact.positions.shape)
+            write_markups(into / name, Landmarks(marked, exact.labels, exact.descriptions),
+                          name="Compressed landmarks" if name.startswith("compressed/") else "Landmarks")
+        else:
             shutil.copy2(source, into / name)
     return into
 
@@ -169,6 +190,35 @@ def truth_nmi(case_dir: Path, fit_dir: Path, device=None) -> float:
     warper = ImageWarper(truth, read_image(case_dir / "measured" / "mr.nrrd"),
                          read_image(case_dir / "measured" / "compressed" / "mr.nrrd"), device=device)
     return float(fitted.problem.similarity.nmi(warper.warp(truth.point_data["displacement"])))
+
+
+def true_landmark_errors(folder: Path, fit_dir: Path, rounds: list[dict], device=None) -> dict:
+    """The mean landmark error (mm) of the fitted model before the first round and after the last
+    refit, scored against the truth: the exact undeformed landmarks moved by each model's
+    displacement against the exact compressed ones (the measured landmarks carry a localisation
+    error that would floor the figure). For scoring only: it reads the case's truth folder."""
+    from BreastBiomechLib.discrepancy.effects import library
+    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
+    from BreastBiomechLib.discrepancy.state import ModelState
+    from BreastBiomechLib.discrepancy.variants import solve_variants
+    from BreastBiomechLib.discrepancy.workflow import state_from_record
+    from BreastBiomechLib.io.markups import read_markups
+    from BreastBiomechLib.landmarks import map_landmarks
+
+    fitted = load_fitted_case(folder / "measured", fit_dir, device=device)
+    reference = read_markups(folder / "truth" / "landmarks.mrk.json")
+    compressed = read_markups(folder / "truth" / "compressed" / "landmarks.mrk.json")
+    states = {"before": ModelState(fitted, fitted.z)}
+    last = next((r for r in reversed(rounds) if r.get("added")), None)
+    if last is not None:
+        states["after"] = state_from_record(fitted, last, library(fitted, list(last["state_after"]["added"])))
+    outcomes = solve_variants([s.variant() for s in states.values()], fitted.mesh.nodes, fitted.relaxation, device)
+    errors = {}
+    for key, outcome in zip(states, outcomes):
+        if outcome.ok:
+            moved = map_landmarks(fitted.mesh, outcome.displacement, reference)
+            errors[key] = float(np.linalg.norm(moved.positions - compressed.positions, axis=1).mean())
+    return errors
 
 
 def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
@@ -206,7 +256,7 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
         seconds["truth"] = time.perf_counter() - t
     measured = folder / "measured"
     if not (measured / "compressed" / "plates.json").is_file():
-        measured_copy(truth_dir, measured)
+        measured_copy(truth_dir, measured, settings.landmark_noise_mm, case.seed)
     fit_dir = folder / "fit"
     if not (fit_dir / "result.json").is_file():
         say(f"{case.name}: material fit ({settings.fit_budget} solves)")
@@ -226,7 +276,8 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
     seconds["diagnosis"] = time.perf_counter() - t
     say(f"{case.name}: truth-parameter NMI")
     ceiling = truth_nmi(folder, fit_dir, device)
-    result = case_result(case, run.rounds, ceiling, prepared, seconds)
+    result = case_result(case, run.rounds, ceiling, prepared, seconds,
+                         true_landmark_errors(folder, fit_dir, run.rounds, device))
     write_json(result_path, result)
     return result
 
