@@ -185,3 +185,14 @@ def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
         case = call.args[0]
         text = ast.unparse(case)
         assert text in ("measured", "case_dir / 'measured'", "folder / 'measured'"), f"{call.func.id} reads {text}"
+
+
+def test_the_suite_command_refuses_bad_arguments(tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["discrepancy-suite", "--out", str(tmp_path / "s"), "--landmark-noise-mm", "-1"])
+    assert stop.value.code == 2 and "--landmark-noise-mm" in capsys.readouterr().err
+    assert main(["discrepancy-suite", "--out", str(tmp_path / "none"), "--score-only"]) == 2
+    assert "no suite run to score" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()

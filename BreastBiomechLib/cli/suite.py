@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+from BreastBiomechLib.cli.common import non_negative
+
 
 def _shard(text: str) -> tuple[int, int]:
     import argparse
@@ -67,7 +69,8 @@ def cmd_suite(args) -> int:
                              spacing_mm=None if args.spacing is None else tuple(args.spacing),
                              truth_edge_mm=args.truth_edge_mm, fit_edge_mm=args.fit_edge_mm,
                              refine_interfaces=not args.no_refine, fit_blur_mm=args.fit_blur_mm, fit_budget=args.fit_budget,
-                             fit_population=args.fit_population, rounds=args.rounds)
+                             fit_population=args.fit_population, rounds=args.rounds,
+                             landmark_noise_mm=args.landmark_noise_mm)
     started = time.perf_counter()
 
     def say(message):
@@ -75,7 +78,9 @@ def cmd_suite(args) -> int:
             print(f"  [{time.perf_counter() - started:6.0f} s] {message}", file=sys.stderr, flush=True)
 
     if args.score_only:
-        pass
+        if not (out / "settings.json").is_file():
+            raise FileNotFoundError(f"{out}: no suite run to score (no settings.json); run "
+                                    "`breastbiomech discrepancy-suite --out DIR` first, or give its folder")
     elif args.jobs > 1:
         _run_shards(args, say)
     else:
@@ -123,6 +128,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--fit-population", type=int, default=d.fit_population,
                    help=f"CMA-ES population (default {d.fit_population})")
     p.add_argument("--rounds", type=int, default=d.rounds, help=f"diagnosis rounds at most (default {d.rounds})")
+    p.add_argument("--landmark-noise-mm", type=non_negative, default=d.landmark_noise_mm,
+                   help="localisation error (sd per coordinate, mm) put on the measured landmarks of each image "
+                        f"(default {d.landmark_noise_mm:g})")
     p.add_argument("--device", help="warp device (cuda, cuda:1, cpu; default: warp's)")
     p.add_argument("--shard", type=_shard, default=(0, 1), metavar="K/N",
                    help="run every N-th case from the K-th (shards may run side by side on one --out)")
