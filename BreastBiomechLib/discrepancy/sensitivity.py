@@ -130,13 +130,7 @@ def _retry_nuisance(state: ModelState, variants, roles, outcomes, bounds, say) -
     if not redo:
         return 0
     say(f"{len(failed)} nuisance difference(s) failed in the batch; solving them again")
-    fitted = state.fitted
-    retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
-    for (i, variant, step), outcome in zip(redo, retried):
-        if outcome.ok and not outcomes[i].ok:
-            variants[i], outcomes[i] = variant, outcome
-            roles[i] = (roles[i][0], roles[i][1], roles[i][2], step)
-    return len(redo)
+    return _solve_again(state, redo, variants, roles, outcomes)
 
 
 def _retry_effects(state: ModelState, effects: dict[str, Effect], variants, roles, outcomes, say) -> int:
@@ -156,6 +150,13 @@ def _retry_effects(state: ModelState, effects: dict[str, Effect], variants, role
     if not redo:
         return 0
     say(f"{len(redo) // 2} candidate secant(s) failed in the batch; solving them again and to half their step")
+    return _solve_again(state, redo, variants, roles, outcomes)
+
+
+def _solve_again(state: ModelState, redo, variants, roles, outcomes) -> int:
+    """Solve the ``redo`` list of (index, variant, step) in one batch; where an index's model had
+    failed, the first of its retries that solves takes its place (variant, outcome and step in
+    ``variants``, ``outcomes`` and ``roles``). Returns the number of solves made."""
     fitted = state.fitted
     retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
     for (i, variant, step), outcome in zip(redo, retried):
