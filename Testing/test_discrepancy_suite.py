@@ -185,6 +185,10 @@ def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
         case = call.args[0]
         text = ast.unparse(case)
         assert text in ("measured", "case_dir / 'measured'", "folder / 'measured'"), f"{call.func.id} reads {text}"
+    # the truth is read for scoring only after the diagnosis has answered
+    run_case = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "run_case")
+    lines = {n.func.id: n.lineno for n in ast.walk(run_case) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+    assert lines["fit_compressed_case"] < lines["run_diagnosis"] < lines["scored_against_truth"]
 
 
 def test_the_suite_command_refuses_bad_arguments(tmp_path, capsys):

@@ -176,49 +176,49 @@ def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, se
     return into
 
 
-def truth_nmi(case_dir: Path, fit_dir: Path, device=None) -> float:
-    """The NMI against the measured image of the image the truth parameters predict: the
-    undeformed MR warped through the truth mesh's displacement (the ceiling of any fit), measured
-    as the fit measures its own (same mask, bins and ranges)."""
-    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
-    from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.meshes import read_vtu
-    from BreastBiomechLib.warping import ImageWarper
-
-    fitted = load_fitted_case(case_dir / "measured", fit_dir, device=device)
-    truth = read_vtu(case_dir / "truth" / "compressed" / "truth_mesh.vtu")
-    warper = ImageWarper(truth, read_image(case_dir / "measured" / "mr.nrrd"),
-                         read_image(case_dir / "measured" / "compressed" / "mr.nrrd"), device=device)
-    return float(fitted.problem.similarity.nmi(warper.warp(truth.point_data["displacement"])))
-
-
-def true_landmark_errors(folder: Path, fit_dir: Path, rounds: list[dict], device=None) -> dict:
-    """The mean landmark error (mm) of the fitted model before the first round and after the last
-    refit, scored against the truth: the exact undeformed landmarks moved by each model's
-    displacement against the exact compressed ones (the measured landmarks carry a localisation
-    error that would floor the figure). For scoring only: it reads the case's truth folder."""
+def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device=None) -> tuple[float, dict]:
+    """For scoring only (it reads the case's truth folder, after the diagnosis has answered):
+    the NMI against the measured image of the image the truth parameters predict (the undeformed
+    MR warped through the truth mesh's displacement: the ceiling of any fit, measured as the fit
+    measures its own), and the mean landmark error (mm) of the fitted model before the first
+    round and after the last refit against the truth's exact landmarks ({"before", "after"}: the
+    exact undeformed landmarks moved by each model's displacement against the exact compressed
+    ones; the measured landmarks carry a localisation error that would floor the figure)."""
     from BreastBiomechLib.discrepancy.effects import library
     from BreastBiomechLib.discrepancy.fitted import load_fitted_case
     from BreastBiomechLib.discrepancy.state import ModelState
     from BreastBiomechLib.discrepancy.variants import solve_variants
     from BreastBiomechLib.discrepancy.workflow import state_from_record
+    from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.markups import read_markups
+    from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.landmarks import map_landmarks
+    from BreastBiomechLib.warping import ImageWarper
 
     fitted = load_fitted_case(folder / "measured", fit_dir, device=device)
+    truth = read_vtu(folder / "truth" / "compressed" / "truth_mesh.vtu")
+    warper = ImageWarper(truth, read_image(folder / "measured" / "mr.nrrd"),
+                         read_image(folder / "measured" / "compressed" / "mr.nrrd"), device=device)
+    ceiling = float(fitted.problem.similarity.nmi(warper.warp(truth.point_data["displacement"])))
+
     reference = read_markups(folder / "truth" / "landmarks.mrk.json")
     compressed = read_markups(folder / "truth" / "compressed" / "landmarks.mrk.json")
-    states = {"before": ModelState(fitted, fitted.z)}
+    displacements = {}
+    if (fit_dir / "deformed_mesh.vtu").is_file():  # the fit's own solution, as the diagnosis starts from it
+        displacements["before"] = read_vtu(fit_dir / "deformed_mesh.vtu").point_data["displacement"]
+    states = {} if displacements else {"before": ModelState(fitted, fitted.z)}
     last = next((r for r in reversed(rounds) if r.get("added")), None)
     if last is not None:
         states["after"] = state_from_record(fitted, last, library(fitted, list(last["state_after"]["added"])))
-    outcomes = solve_variants([s.variant() for s in states.values()], fitted.mesh.nodes, fitted.relaxation, device)
+    if states:
+        outcomes = solve_variants([s.variant() for s in states.values()], fitted.mesh.nodes, fitted.relaxation,
+                                  device)
+        displacements |= {key: o.displacement for key, o in zip(states, outcomes) if o.ok}
     errors = {}
-    for key, outcome in zip(states, outcomes):
-        if outcome.ok:
-            moved = map_landmarks(fitted.mesh, outcome.displacement, reference)
-            errors[key] = float(np.linalg.norm(moved.positions - compressed.positions, axis=1).mean())
-    return errors
+    for key, displacement in displacements.items():
+        moved = map_landmarks(fitted.mesh, displacement, reference)
+        errors[key] = float(np.linalg.norm(moved.positions - compressed.positions, axis=1).mean())
+    return ceiling, errors
 
 
 def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
@@ -274,10 +274,9 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
                         device=device, resume=diagnosis_dir.exists(),
                         progress=lambda message: say(f"{case.name}: {message}"))
     seconds["diagnosis"] = time.perf_counter() - t
-    say(f"{case.name}: truth-parameter NMI")
-    ceiling = truth_nmi(folder, fit_dir, device)
-    result = case_result(case, run.rounds, ceiling, prepared, seconds,
-                         true_landmark_errors(folder, fit_dir, run.rounds, device))
+    say(f"{case.name}: scoring against the truth")
+    ceiling, true_errors = scored_against_truth(folder, fit_dir, run.rounds, device)
+    result = case_result(case, run.rounds, ceiling, prepared, seconds, true_errors)
     write_json(result_path, result)
     return result
 
