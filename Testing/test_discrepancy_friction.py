@@ -1,6 +1,6 @@
 """Hidden plate friction on a small CPU phantom (conftest's, compressed 40 % with mu = 1 in its
-truth): the diagnosis names friction, adds it, and the landmark error falls. The case is a copy
-without its truth files."""
+truth): the diagnosis names friction, adds it, and the landmark error and the residual
+displacement field fall. The case is a copy without its truth files."""
 
 from __future__ import annotations
 
@@ -39,4 +39,15 @@ def test_hidden_friction_is_named_added_and_the_gap_shrinks(friction_case, tmp_p
     assert summary["added"][0] == "friction"
     before, after = record["before"]["landmark_error_mm"]["mean"], record["after"]["landmark_error_mm"]["mean"]
     assert after < 0.7 * before
-    assert (out / "report.md").is_file() and "Missing effect: plate friction" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "Missing effect: plate friction" in report
+    # the residual displacement field, before and after adding friction: it shrinks in the
+    # contact bands under the plates, where friction acts; its accuracy is stated
+    fields = record["before"]["residual_field"], record["after"]["residual_field"]
+    for field in fields:
+        assert (out / field["file"]).is_file()
+        assert field["accuracy"]["known_rms_error_mm"] < field["accuracy"]["known_rms_mm"]
+    contact = [name for name in fields[0]["regions"] if name.startswith("contact")]
+    assert contact and all(fields[1]["regions"][name]["mean_mm"] < fields[0]["regions"][name]["mean_mm"]
+                           for name in contact)
+    assert (out / record["residual_picture"]).is_file() and record["residual_picture"] in report

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import platform
 import time
+from pathlib import Path
 
 from BreastBiomechLib import __version__
 from BreastBiomechLib.cli.common import non_negative
@@ -143,6 +144,43 @@ def _bench_effects(args) -> dict:
                                     "seconds": round(time.perf_counter() - started, 1),
                                     "solve": compressed.summary["solve_message"]}
     return figures
+
+
+def _bench_diagnose(args) -> dict:
+    """One hidden-effect suite case timed stage by stage: Table 1 anatomy ``--cases[0]`` with
+    ``--hidden`` hidden in its truth, segmented, meshed, fitted and diagnosed as the suite does it
+    (:func:`~BreastBiomechLib.discrepancy.suite.runner.run_case`), in ``--out`` (kept; a rerun
+    times only what is not done) or a temporary folder. Seconds per stage; the diagnosis's
+    rounds with their solves and seconds (no residual fields, as in the suite); the verdicts."""
+    import tempfile
+
+    from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings
+    from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
+    from BreastBiomechLib.discrepancy.suite.runner import run_case
+
+    settings = SuiteSettings(spacing_mm=tuple(args.voxel_mm), truth_edge_mm=args.truth_edge_mm,
+                             fit_edge_mm=args.fit_edge_mm, fit_budget=args.fit_budget,
+                             fit_population=min(12, args.fit_budget), rounds=args.rounds)
+    case = SuiteCase(args.cases[0], HIDDEN_EFFECTS[args.hidden])
+    with tempfile.TemporaryDirectory(prefix="bench-diagnose-") as scratch:
+        out = Path(args.out) if args.out else Path(scratch)
+        started = time.perf_counter()
+        result = run_case(case, out, settings, args.device)
+        wall = time.perf_counter() - started
+        rounds = json.loads((out / case.name / "diagnosis" / "diagnosis.json").read_text())["rounds"]
+    return {"benchmark": "diagnose", "version": __version__, "device": args.device or "default",
+            "case": case.name, "settings": {"voxel_mm": list(settings.spacing_mm),
+                                            "truth_edge_mm": settings.truth_edge_mm,
+                                            "fit_edge_mm": settings.fit_edge_mm, "fit_budget": settings.fit_budget,
+                                            "rounds": settings.rounds},
+            "truth_tets": result["anatomy_figures"]["truth_mesh"]["tets"],
+            "fitting_tets": result["anatomy_figures"]["fitting_mesh"]["tets"],
+            "anatomy_s": round(sum(f["seconds"] for f in result["anatomy_figures"].values()), 1),
+            "seconds": result["seconds"],
+            "rounds": [{"verdict": r["diagnosis"]["verdict"], "added": r.get("added"), "solves": r["diagnosis"]["solves"],
+                        "seconds": r["seconds"]} for r in rounds],
+            "right": result["correct"], "landmark_error_before_mm": result["landmark_error_before_mm"],
+            "landmark_error_after_mm": result.get("landmark_error_after_mm"), "wall_s": round(wall, 1)}
 
 
 def _fit_grid(image, grid):
@@ -318,9 +356,9 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
-    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects"):
-        figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp,
-                   "optimise": _bench_optimise, "unloaded": _bench_unloaded, "effects": _bench_effects}[args.what](args)
+    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "diagnose"):
+        figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp, "optimise": _bench_optimise,
+                   "unloaded": _bench_unloaded, "effects": _bench_effects, "diagnose": _bench_diagnose}[args.what](args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -346,12 +384,20 @@ def cmd_bench(args) -> int:
 
 def add_parsers(sub) -> None:
     """Register the ``bench`` command on ``sub`` (argparse sub-parsers)."""
+    from BreastBiomechLib.discrepancy.suite.cases import HIDDEN_EFFECTS as HIDDEN
+
     p = sub.add_parser("bench", help="print benchmark figures")
-    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise"],
-                   help="what to time")
+    p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise",
+                                    "diagnose"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5],
-                   help="Table 1 cases (phantom; effects: the first)")
-    p.add_argument("--truth-edge-mm", type=float, default=3.0, help="effects: the truth mesh's element size (mm)")
+                   help="Table 1 cases (phantom; effects, diagnose: the first)")
+    p.add_argument("--truth-edge-mm", type=float, default=3.0,
+                   help="effects, diagnose: the truth mesh's element size (mm)")
+    p.add_argument("--hidden", choices=sorted(HIDDEN), default="friction",
+                   help="diagnose: the effect hidden in the truth (a suite case's, default friction)")
+    p.add_argument("--fit-edge-mm", type=float, default=6.0, help="diagnose: the fitting mesh's element size (mm)")
+    p.add_argument("--fit-budget", type=int, default=60, help="diagnose: the material fit's forward solves")
+    p.add_argument("--rounds", type=int, default=3, help="diagnose: rounds at most")
     p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
     p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
     p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
@@ -376,7 +422,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--radii", type=float, nargs=3, default=[70.0, 60.0, 65.0], metavar=("LR", "AP", "SI"),
                    help="optimise: synthetic breast radii (mm)")
     p.add_argument("--element-mm", type=float, default=4.0, help="optimise: synthetic mesh cube size (mm)")
-    p.add_argument("--voxel-mm", type=float, nargs=3, default=[1.0, 1.0, 2.5], help="optimise: voxel size (mm)")
+    p.add_argument("--voxel-mm", type=float, nargs=3, default=[1.0, 1.0, 2.5],
+                   help="optimise, diagnose: voxel size (mm)")
     p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
     p.add_argument("--budget", type=int, default=500, help="optimise: forward solves")
     p.add_argument("--population", type=int, default=None, help="optimise: CMA-ES population (batch size)")
@@ -384,6 +431,7 @@ def add_parsers(sub) -> None:
                    help="optimise: forward solves' relaxation tolerance (default 0.01); unloaded: largest node mismatch "
                         "to reach (default 0.02 mm)")
     p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
-                                 "parameters, objective and status; result.json)")
+                                 "parameters, objective and status; result.json); diagnose: the case's folder (kept, "
+                                 "resumed; default a temporary one)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)

@@ -11,6 +11,7 @@ from BreastBiomechLib.cli.common import non_negative
 
 def cmd_diagnose(args) -> int:
     from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
+    from BreastBiomechLib.discrepancy.registration import RegistrationSettings
 
     noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
                        surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels))
@@ -21,7 +22,8 @@ def cmd_diagnose(args) -> int:
             print(f"  {message}", file=sys.stderr, flush=True)
 
     run = run_diagnosis(args.case_dir, args.fit, args.out, effects=args.effects, rounds=args.rounds, noise=noise,
-                        settings=settings, device=args.device, resume=args.resume, progress=progress)
+                        settings=settings, device=args.device, resume=args.resume, progress=progress,
+                        registration=None if args.no_residual_field else RegistrationSettings())
     if args.json:
         print(json.dumps({"final": run.final["verdict"], "sentence": run.final["sentence"], "added": run.added,
                           "rounds": len(run.rounds)}))
@@ -60,6 +62,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--alpha", type=float, default=0.01, help="family-wise significance level (default 0.01)")
     p.add_argument("--refine-iterations", type=int, default=2,
                    help="Gauss-Newton iterations refining the refit of an added effect (default 2)")
+    p.add_argument("--no-residual-field", action="store_true",
+                   help="skip the residual displacement field (the deformable registration of the predicted to the "
+                        "measured image, its maps and pictures; about 10-60 s per round)")
     p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")

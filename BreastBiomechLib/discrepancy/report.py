@@ -46,6 +46,40 @@ def _regions_table(before: dict, after: dict | None) -> str:
     return "\n".join(rows)
 
 
+def _field_section(record: dict) -> list[str]:
+    """The residual displacement field of a round: its accuracy, its magnitude by region before
+    and after, and the picture."""
+    before = record["before"].get("residual_field")
+    if not before:
+        return []
+    after = (record.get("after") or {}).get("residual_field")
+    accuracy = before["accuracy"]
+    lines = ["### Residual displacement field", "",
+             "From a deformable registration (demons) of the model's predicted image to the measured one: "
+             f"mean |r| {before['mean_mm']:.2f} mm (95th percentile {before['p95_mm']:.2f} mm)"
+             + (f", after the refit {after['mean_mm']:.2f} mm ({after['p95_mm']:.2f} mm)" if after else "") + "."]
+    said = []
+    if "known_rms_error_mm" in accuracy:
+        said.append(f"it recovers a known smooth displacement of {accuracy['known_rms_mm']:.2f} mm RMS to "
+                    f"{accuracy['known_rms_error_mm']:.2f} mm RMS")
+    if "landmark_rms_difference_mm" in accuracy:
+        said.append(f"at the {accuracy['landmarks']} landmarks it differs from their marked residuals "
+                    f"({accuracy['landmark_rms_residual_mm']:.2f} mm RMS) by {accuracy['landmark_rms_difference_mm']:.2f} "
+                    "mm RMS")
+    if said:
+        lines[-1] += " Its accuracy: " + "; ".join(said) + ". Sliding along a featureless surface (a plate's contact) " \
+                     "is invisible to it; it is evidence for where, not a test statistic."
+    rows = ["| region | nodes | mean residual before (mm) | after (mm) |", "|---|---|---|---|"]
+    for region, figures in before["regions"].items():
+        later = (after or {}).get("regions", {}).get(region)
+        rows.append(f"| {region} | {figures['nodes']} | {figures['mean_mm']:.2f} | "
+                    + (f"{later['mean_mm']:.2f} |" if later else "- |"))
+    lines += ["", "\n".join(rows)]
+    if record.get("residual_picture"):
+        lines += ["", f"![residual displacement field, round {record['round']}]({record['residual_picture']})"]
+    return lines + [""]
+
+
 def _measures_line(name: str, m: dict) -> str:
     landmark = m.get("landmark_error_mm")
     text = f"{name}: NMI {m['nmi']:.4f}, RMS feature residual {m['residual_rms_mm']:.2f} mm"
@@ -71,6 +105,7 @@ def write_report(run, path: Path) -> Path:
                   f"p = {o['p_value']:.3g}); {d['solves']} forward solves; {record['seconds']:.0f} s.", "",
                   "### Candidates", "", _candidates_table(d["candidates"]), "",
                   "### Residual by region", "", _regions_table(record["before"], record.get("after")), "",
+                  *_field_section(record),
                   _measures_line("Before", record["before"])]
         if record.get("after"):
             parts += ["", _measures_line(f"After adding {record['added']}", record["after"])]

@@ -8,6 +8,12 @@ Output folder::
                      after (fit parameters, effects added), landmark error, NMI and residual by
                      region before and after the refit
     diagnosis.json   all rounds and the final verdict
+    round-<N>-residual-{before,after}.nrrd
+                     the residual displacement field of the round's model before and after its refit
+                     (vector, LPS mm, on the measured image's grid; Slicer loads it as a transform
+                     or a vector volume)
+    round-<N>-residual.png
+                     its magnitude over the measured image, before and after, with the landmark residuals
     report.md        the report (:mod:`BreastBiomechLib.discrepancy.report`)
 """
 
@@ -26,6 +32,7 @@ from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings, diagnose, 
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
+from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
 from BreastBiomechLib.discrepancy.state import ModelState
 
 
@@ -54,6 +61,49 @@ def measures(fitted: FittedCase, observations: Observations, displacement: np.nd
     return out
 
 
+@dataclass
+class FieldRecorder:
+    """Makes, summarises and saves the residual displacement fields of a run's models (see
+    :mod:`~BreastBiomechLib.discrepancy.registration`): the measured body found once, the
+    fitting mesh's nodes labelled by region once."""
+
+    fitted: FittedCase
+    settings: RegistrationSettings
+    node_regions: np.ndarray
+    body: np.ndarray
+
+    @classmethod
+    def of(cls, fitted: FittedCase, base_displacement: np.ndarray, settings: RegistrationSettings) -> FieldRecorder:
+        import SimpleITK as sitk
+
+        from BreastBiomechLib.discrepancy.regions import regions_of
+        from BreastBiomechLib.segmentation.body import body_mask
+        from BreastBiomechLib.segmentation.volume import check_volume
+
+        body = body_mask(sitk.GetArrayFromImage(fitted.measured_image).astype(np.float32),
+                         check_volume(fitted.measured_image))
+        return cls(fitted, settings, regions_of(fitted, fitted.mesh.nodes, base_displacement), body)
+
+    def field(self, displacement: np.ndarray) -> ResidualField:
+        from BreastBiomechLib.discrepancy.registration import residual_field_of
+
+        return residual_field_of(self.fitted, displacement, self.body, self.settings)
+
+    def summary(self, field: ResidualField, displacement: np.ndarray, path: Path) -> dict:
+        """The figures of ``field`` (of the model whose solution is ``displacement``), saved to ``path``."""
+        import SimpleITK as sitk
+
+        from BreastBiomechLib.discrepancy.registration import field_by_region
+
+        image = sitk.Cast(field.image(), sitk.sitkVectorFloat32)
+        sitk.WriteImage(image, str(path.with_name(path.name + ".partial.nrrd")), useCompression=True)
+        os.replace(path.with_name(path.name + ".partial.nrrd"), path)
+        magnitude = field.magnitude[field.mask]
+        return {"file": path.name, "mean_mm": float(magnitude.mean()), "p95_mm": float(np.percentile(magnitude, 95)),
+                "accuracy": field.accuracy,
+                "regions": field_by_region(field, self.fitted.mesh.nodes, displacement, self.node_regions)}
+
+
 def state_from_record(fitted: FittedCase, record: dict, effects) -> ModelState:
     """The model after a recorded round."""
     by_name = {e.name: e for e in effects}
@@ -62,6 +112,31 @@ def state_from_record(fitted: FittedCase, record: dict, effects) -> ModelState:
     for name, values in after["added"].items():
         state = state.with_effect(by_name[name], values)
     return state
+
+
+def record_fields(recorder: FieldRecorder, record: dict, diagnosis, stem: Path) -> None:
+    """The residual fields of a round's model before (and after, when an effect was added) into
+    ``record`` and beside ``stem``: the fields (.nrrd) and their picture (.png)."""
+    from BreastBiomechLib.discrepancy.pictures import save_residual_maps
+
+    fitted = recorder.fitted
+    rows = []
+    for when, displacement in (("before", diagnosis.sensitivities.displacement),
+                               ("after", diagnosis.refitted.displacement if diagnosis.refitted is not None else None)):
+        if displacement is None:
+            continue
+        field = recorder.field(displacement)
+        record[when]["residual_field"] = recorder.summary(field, displacement,
+                                                          stem.with_name(f"{stem.name}-residual-{when}.nrrd"))
+        landmarks = None
+        if fitted.reference is not None:
+            from BreastBiomechLib.landmarks import map_landmarks
+
+            landmarks = (fitted.measured, map_landmarks(fitted.mesh, displacement, fitted.reference))
+        rows.append((when if when == "before" else f"after adding {record['added']}", field, landmarks))
+    picture = save_residual_maps(stem.with_name(f"{stem.name}-residual.png"), fitted.measured_image, rows,
+                                 title="residual displacement field (registration of the predicted to the measured image)")
+    record["residual_picture"] = picture.name
 
 
 @dataclass
@@ -82,10 +157,13 @@ class DiagnosisRun:
 
 def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noise: NoiseModel | None = None,
                   settings: DiagnosisSettings | None = None, device=None, resume: bool = False,
-                  progress: Callable[[str], None] | None = None) -> DiagnosisRun:
+                  progress: Callable[[str], None] | None = None,
+                  registration: RegistrationSettings | None = RegistrationSettings()) -> DiagnosisRun:
     """Diagnose the fit in ``fit_dir`` of the compressed case in ``case_dir`` over the candidate
     ``effects`` (names; default the whole library) for at most ``rounds`` rounds, writing to
-    ``out_dir`` (a new folder, or the folder of an interrupted run with ``resume``)."""
+    ``out_dir`` (a new folder, or the folder of an interrupted run with ``resume``). Each round's
+    models are also compared through the residual displacement field of a deformable
+    registration (``registration``; None: not made)."""
     from BreastBiomechLib.discrepancy.report import write_report
     from BreastBiomechLib.io.meshes import read_vtu
 
@@ -111,6 +189,7 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
                               device)[0].displacement
     observations = observations_of(fitted, base, noise)
     state = ModelState(fitted, fitted.z)
+    recorder = FieldRecorder.of(fitted, base, registration) if registration is not None else None
     records = []
     for number in range(1, rounds + 1):
         path = out / f"round-{number}.json"
@@ -137,6 +216,11 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
             state = diagnosis.refitted.state
             record["added"] = diagnosis.effect
             record["after"] = measures(fitted, observations, diagnosis.refitted.displacement, regions)
+        if recorder is not None:
+            say(f"round {number}: residual displacement field (deformable registration)")
+            field_started = time.perf_counter()
+            record_fields(recorder, record, diagnosis, out / f"round-{number}")
+            record["residual_field_seconds"] = round(time.perf_counter() - field_started, 1)
         record["state_after"] = state.to_dict()
         record["seconds"] = round(time.perf_counter() - started, 1)
         write_atomically(path, json.dumps(record, indent=1, default=float) + "\n")
