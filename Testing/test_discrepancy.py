@@ -108,3 +108,47 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert summary["final"] == "no significant discrepancy", summary["sentence"]
     assert summary["added"] == []
+
+
+def test_a_refit_whose_every_trial_fails_falls_back_on_the_solved_secant(null_case, monkeypatch):
+    """Friction sticking at a plate's rounded edge can invert an element in every Gauss-Newton
+    trial of its refit; the effect's secant model, solved for the sensitivities, then stands as
+    the refit (noted), provided it lowers the residual. Here the measurement is made to be that
+    secant model (the current solution shifted 1 mm posteriorly), and every trial solve fails."""
+    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case, observations_of
+    from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+    from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
+    from BreastBiomechLib.discrepancy.variants import Outcome
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    case, fit = null_case
+    fitted = load_fitted_case(case, fit, device="cpu")
+    state = ModelState(fitted, fitted.z)
+    base = read_vtu(fit / "deformed_mesh.vtu").point_data["displacement"]
+    observed = observations_of(fitted, base)
+    friction = next(e for e in library(fitted) if e.name == "friction")
+    step = 0.3
+    shift = np.tile([0.0, 1.0, 0.0], (len(base), 1))
+    secant_features = observed.predicted(base + shift)
+    features = observed.predicted(base)
+    sens = Sensitivities(base, features, [k for k, *_ in state.nuisance()],
+                         np.zeros((len(features), len(state.nuisance()))),
+                         {"friction": ((secant_features - features) / step)[:, None]},
+                         {"friction": (shift / step)[None]}, {"friction": np.array([step])})
+
+    def failing(variants, *args, **kwargs):
+        return [Outcome(base, "inverted elements", "an element inverted at step 900") for _ in variants]
+
+    monkeypatch.setattr(refit_module, "solve_variants", failing)
+    measured_as_secant = Observations(observed.labels, observed.channel, secant_features, observed.sigma,
+                                      observed.points, observed._parts)
+    [result] = refit_module.refit(state, measured_as_secant, sens, [friction])
+    assert result.ok and "secant" in result.note
+    np.testing.assert_allclose(result.values, [step])
+    assert result.rss_after < 1e-6 * result.rss_before
+    np.testing.assert_allclose(result.displacement, base + shift)
+    assert result.state.added["friction"][1][0] == pytest.approx(step)
+    # a secant that does not lower the residual is no refit: the failure stands
+    [failed] = refit_module.refit(state, observed, sens, [friction])
+    assert not failed.ok and failed.rss_after == float("inf") and not failed.note

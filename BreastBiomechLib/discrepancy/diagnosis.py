@@ -219,6 +219,8 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
                            "removed": max(r.rss_before - r.rss_after, 0.0) / r.rss_before if r.rss_before > 0 else 0.0,
                            "excess_explained": statistics.excess_explained(r.rss_before, r.rss_after, overall["dof"],
                                                                            overall["dof"] - k)}
+        if r.note:
+            candidate.refit["note"] = r.note
         if (r.ok and lr["p_value"] * m < settings.alpha and lr["delta_bic"] <= settings.bic_threshold
                 and candidate.localisation >= settings.min_localisation):
             confirmed.append(candidate)

@@ -26,7 +26,7 @@ class Refit:
     ``sd`` (from the linearised information), the refitted ``state``, whitened residual sums of
     squares ``rss_before`` and ``rss_after`` (solved) and ``rss_linear`` (predicted by the
     linearisation), the ``displacement`` (N, 3) mm after, the features' ``residual_after`` (mm)
-    and the solver's ``status``."""
+    the solver's ``status`` and a ``note`` on how it was made when not by the Gauss-Newton step."""
 
     effect: Effect
     values: np.ndarray
@@ -38,6 +38,7 @@ class Refit:
     displacement: np.ndarray
     residual_after: np.ndarray
     status: str
+    note: str = ""
 
     @property
     def ok(self) -> bool:
@@ -98,7 +99,32 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities, ef
                                              sens.displacement, residual, outcome.status)
                 continue
             fraction[effect.name] /= 2
+    for effect, _, _, sd, rss_linear, _ in plans:
+        if effect.name not in results or not results[effect.name].ok:
+            secant = _best_secant(state, sens, effect, observations, weights, rss_before, sd, rss_linear)
+            if secant is not None:
+                results[effect.name] = secant
     return [results[e.name] for e in effects if e.name in results]
+
+
+def _best_secant(state: ModelState, sens: Sensitivities, effect: Effect, observations: Observations,
+                 weights: np.ndarray, rss_before: float, sd: np.ndarray, rss_linear: float) -> Refit | None:
+    """The effect's secant model (one parameter at its sensitivity step, the rest and the fitted
+    parameters as they are) that lowers the residual most, as a refit; None when none lowers it."""
+    if effect.name not in sens.steps:
+        return None
+    best = None
+    for j, step in enumerate(sens.steps[effect.name]):
+        values = effect.off.copy()
+        values[j] += step
+        displacement = sens.displacement + sens.fields[effect.name][j] * step
+        after = observations.residual(displacement)
+        rss_after = float(np.sum((weights * after) ** 2))
+        if rss_after < rss_before and (best is None or rss_after < best.rss_after):
+            best = Refit(effect, values, sd, state.with_effect(effect, values), rss_before, rss_after, rss_linear,
+                         displacement, after, "completed",
+                         "every Gauss-Newton trial failed to solve; the secant model of the sensitivities stands")
+    return best
 
 
 def refine(state: ModelState, observations: Observations, iterations: int = 1) -> tuple[ModelState, Outcome]:

@@ -23,9 +23,11 @@ class Sensitivities:
     """At the current model: its solution ``displacement`` (N, 3) mm and ``features`` (n,);
     ``nuisance`` (n, p) the features' change per unit of each nuisance parameter (keys
     ``nuisance_keys``); ``effects`` {name: (n, k)} per unit of each candidate's parameters;
-    ``fields`` {name: (k, N, 3)} the nodal displacement change per unit of each; ``skipped``
-    {name: reason} the candidates that could not be evaluated; ``solves`` how many forward
-    solves it took."""
+    ``fields`` {name: (k, N, 3)} the nodal displacement change per unit of each; ``steps``
+    {name: (k,)} the secant step each was taken over from its off value (each secant model, the
+    current one with that one parameter moved by its step, solved: its displacement is
+    ``displacement + fields[name][j] * steps[name][j]``); ``skipped`` {name: reason} the
+    candidates that could not be evaluated; ``solves`` how many forward solves it took."""
 
     displacement: np.ndarray
     features: np.ndarray
@@ -33,6 +35,7 @@ class Sensitivities:
     nuisance: np.ndarray
     effects: dict[str, np.ndarray] = field(default_factory=dict)
     fields: dict[str, np.ndarray] = field(default_factory=dict)
+    steps: dict[str, np.ndarray] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     solves: int = 0
 
@@ -90,6 +93,7 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
     nuisance = np.zeros((len(features), len(keys)))
     effects: dict[str, np.ndarray] = {}
     fields: dict[str, np.ndarray] = {}
+    steps: dict[str, np.ndarray] = {}
     sizes = {e.name: len(e.parameters) for e in candidates}
     for (kind, key, j, step), outcome in zip(roles[1:], outcomes[1:]):
         if kind == "nuisance":
@@ -104,12 +108,14 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             skipped[key] = f"its variant did not solve ({outcome.status}: {outcome.message})"
             effects.pop(key, None)
             fields.pop(key, None)
+            steps.pop(key, None)
             continue
         effects.setdefault(key, np.zeros((len(features), sizes[key])))
         fields.setdefault(key, np.zeros((sizes[key], *base.displacement.shape)))
         effects[key][:, j] = (observations.predicted(outcome.displacement) - features) / step
         fields[key][j] = (outcome.displacement - base.displacement) / step
-    return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, skipped, solves)
+        steps.setdefault(key, np.zeros(sizes[key]))[j] = step
+    return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, steps, skipped, solves)
 
 
 def _retry_nuisance(state: ModelState, variants, roles, outcomes, bounds, say) -> int:
