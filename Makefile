@@ -1,6 +1,7 @@
 # BreastBiomech: the two set-up commands and the benchmarks.
 #   make demo   create .venv, install, run the whole pipeline on the built-in phantom: compressed
-#               scan, segmentation, mesh, fit, out/demo/report.md (about 6 min on 2 CPU cores)
+#               scan (plate friction hidden in its truth), segmentation, mesh, fit, the diagnosis
+#               that names the missing friction, out/demo/report.md (about 8 min on 2 CPU cores)
 #   make test   create .venv if missing, install, run the whole test suite
 #   make bench  print benchmark figures (see docs/benchmarks.md)
 #   make table1-cases  the five compressed phantom cases of the seed's Table 1 (out/table1/case<N>;

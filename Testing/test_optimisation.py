@@ -195,24 +195,33 @@ def test_one_free_parameter_is_searched_by_batched_bracketing():
         bracketing(EvaluationLog(evaluate, budget=10), population=2)
 
 
-def test_the_demo_replaces_its_earlier_fit_and_nothing_else(tmp_path, capsys):
-    """`make demo` twice: the second run remakes the case and mesh, so the first run's fit is
-    removed, not resumed; a folder that holds no fit is refused, not deleted."""
-    from BreastBiomechLib.cli.demo import clear_earlier_fit
+def test_the_demo_replaces_its_earlier_fit_and_diagnosis_and_nothing_else(tmp_path, capsys):
+    """`make demo` twice: the second run remakes the case and mesh, so the first run's fit and
+    diagnosis are removed, not resumed; a folder that holds neither is refused, not deleted."""
+    from BreastBiomechLib.cli.demo import clear_earlier_result
 
     fit = tmp_path / "fit"
-    clear_earlier_fit(fit)  # nothing there yet
+    clear_earlier_result(fit)  # nothing there yet
     fit.mkdir()
     (fit / "settings.json").write_text("{}")
     (fit / "evaluations.jsonl").write_text("{}\n")
-    clear_earlier_fit(fit)
+    clear_earlier_result(fit)
     assert not fit.exists() and "replacing" in capsys.readouterr().out
     other = tmp_path / "mine"
     other.mkdir()
     (other / "notes.txt").write_text("keep")
     with pytest.raises(FileExistsError, match="no earlier demo fit"):
-        clear_earlier_fit(other)
+        clear_earlier_result(other)
     assert (other / "notes.txt").read_text() == "keep"
+    # the same for the diagnosis that follows the fit: its folder is known by diagnosis.json
+    diagnosis = tmp_path / "diagnosis"
+    diagnosis.mkdir()
+    (diagnosis / "round-1.json").write_text("{}")
+    with pytest.raises(FileExistsError, match="no earlier demo diagnosis"):
+        clear_earlier_result(diagnosis, "diagnosis.json", "diagnosis")
+    (diagnosis / "diagnosis.json").write_text("{}")
+    clear_earlier_result(diagnosis, "diagnosis.json", "diagnosis")
+    assert not diagnosis.exists() and "earlier run's diagnosis" in capsys.readouterr().out
 
 
 
