@@ -55,12 +55,14 @@ class RegistrationSettings:
 class ResidualField:
     """``residual`` (z, y, x, 3) mm LPS on the measured grid (0 outside ``mask``), the ``mask``
     (z, y, x) bool where it is meaningful (inside both bodies, or between them), the grid
-    (``like``, the measured image) and the ``accuracy`` figures (mm)."""
+    (``like``, the measured image), the ``accuracy`` figures (mm) and the (measured, predicted)
+    ``landmarks`` it was checked against (None when there were none)."""
 
     residual: np.ndarray
     mask: np.ndarray
     like: sitk.Image
     accuracy: dict
+    landmarks: tuple | None = None
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -197,7 +199,7 @@ def residual_field(predicted: sitk.Image, inside: sitk.Image, measured: sitk.Ima
         error = np.linalg.norm(recovered - known, axis=-1)[inner]
         accuracy["known_rms_mm"] = float(np.sqrt(np.mean(np.sum(known[inner] ** 2, axis=-1))))
         accuracy["known_rms_error_mm"] = float(np.sqrt(np.mean(error ** 2)))
-    field = ResidualField(residual, mask, measured, accuracy)
+    field = ResidualField(residual, mask, measured, accuracy, landmarks)
     if landmarks is not None:
         measured_landmarks, predicted_landmarks = landmarks
         marked = measured_landmarks.positions - predicted_landmarks.positions

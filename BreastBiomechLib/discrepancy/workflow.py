@@ -128,12 +128,7 @@ def record_fields(recorder: FieldRecorder, record: dict, diagnosis, stem: Path) 
         field = recorder.field(displacement)
         record[when]["residual_field"] = recorder.summary(field, displacement,
                                                           stem.with_name(f"{stem.name}-residual-{when}.nrrd"))
-        landmarks = None
-        if fitted.reference is not None:
-            from BreastBiomechLib.landmarks import map_landmarks
-
-            landmarks = (fitted.measured, map_landmarks(fitted.mesh, displacement, fitted.reference))
-        rows.append((when if when == "before" else f"after adding {record['added']}", field, landmarks))
+        rows.append((when if when == "before" else f"after adding {record['added']}", field, field.landmarks))
     picture = save_residual_maps(stem.with_name(f"{stem.name}-residual.png"), fitted.measured_image, rows,
                                  title="residual displacement field (registration of the predicted to the measured image)")
     record["residual_picture"] = picture.name
