@@ -10,8 +10,8 @@ Output folder::
     diagnosis.json   all rounds and the final verdict
     round-<N>-residual-{before,after}.nrrd
                      the residual displacement field of the round's model before and after its refit
-                     (vector, LPS mm, on the measured image's grid; Slicer loads it as a transform
-                     or a vector volume)
+                     (vector, LPS mm, on the measured image's grid; Slicer loads it as a vector
+                     volume; it is a residual, measured minus model position, not a resampling transform)
     round-<N>-residual.png
                      its magnitude over the measured image, before and after, with the landmark residuals
     report.md        the report (:mod:`BreastBiomechLib.discrepancy.report`)
