@@ -20,6 +20,28 @@ def _axis_aligned(image: sitk.Image) -> sitk.Image:
     return sitk.DICOMOrient(image, "LPS")
 
 
+def image_bounds(image: sitk.Image) -> tuple[np.ndarray, np.ndarray]:
+    """The LPS corners (mm) of an axis-aligned image's voxel boxes: (lowest, highest)."""
+    origin, spacing, size = np.array(image.GetOrigin()), np.array(image.GetSpacing()), np.array(image.GetSize())
+    return origin - spacing / 2, origin + spacing * (size - 0.5)
+
+
+def orthogonal_views(image: sitk.Image, centre_mm) -> tuple[list, np.ndarray]:
+    """The axial, sagittal and coronal views of an axis-aligned image (:func:`_axis_aligned`)
+    through the voxel nearest ``centre_mm`` (LPS): per view (name, slice of a (z, y, x) array,
+    imshow extent in mm, imshow origin, the axis normal to the slice, the in-plane axes), and
+    the voxel index (i, j, k)."""
+    origin, spacing, size = np.array(image.GetOrigin()), np.array(image.GetSpacing()), np.array(image.GetSize())
+    lo, hi = image_bounds(image)
+    idx = np.clip(np.rint((np.asarray(centre_mm, float) - origin) / spacing).astype(int), 0, size - 1)
+    views = [
+        ("axial", lambda v: v[idx[2]], (lo[0], hi[0], hi[1], lo[1]), "upper", 2, (0, 1)),
+        ("sagittal", lambda v: v[:, :, idx[0]], (lo[1], hi[1], lo[2], hi[2]), "lower", 0, (1, 2)),
+        ("coronal", lambda v: v[:, idx[1], :], (lo[0], hi[0], lo[2], hi[2]), "lower", 1, (0, 2)),
+    ]
+    return views, idx
+
+
 def save_overview(path: str | Path, image: sitk.Image, label_image: sitk.Image | None = None,
                   landmarks: Landmarks | None = None, centre_mm=None, title: str = "",
                   landmark_slab_mm: float = 6.0) -> Path:
@@ -33,21 +55,16 @@ def save_overview(path: str | Path, image: sitk.Image, label_image: sitk.Image |
     image = _axis_aligned(image)
     volume = sitk.GetArrayFromImage(image).astype(np.float32)  # z, y, x
     label_volume = sitk.GetArrayFromImage(_axis_aligned(label_image)) if label_image is not None else None
-    origin, spacing, size = np.array(image.GetOrigin()), np.array(image.GetSpacing()), np.array(image.GetSize())
-    lo, hi = origin - spacing / 2, origin + spacing * (size - 0.5)
+    origin, spacing = np.array(image.GetOrigin()), np.array(image.GetSpacing())
+    lo, hi = image_bounds(image)
     if centre_mm is None:
         if landmarks is not None and "nipple" in landmarks.labels:
             centre_mm = landmarks.position("nipple") + np.array([0.0, 0.35 * (hi[1] - lo[1]), 0.0])
         else:
             centre_mm = (lo + hi) / 2
-    idx = np.clip(np.rint((np.asarray(centre_mm) - origin) / spacing).astype(int), 0, size - 1)
+    views, idx = orthogonal_views(image, centre_mm)
     vmax = float(np.percentile(volume, 99.5)) or 1.0
 
-    views = [  # name, 2D slice getter, extent, origin, axis of the slice normal, in-plane axes
-        ("axial", lambda v: v[idx[2]], (lo[0], hi[0], hi[1], lo[1]), "upper", 2, (0, 1)),
-        ("sagittal", lambda v: v[:, :, idx[0]], (lo[1], hi[1], lo[2], hi[2]), "lower", 0, (1, 2)),
-        ("coronal", lambda v: v[:, idx[1], :], (lo[0], hi[0], lo[2], hi[2]), "lower", 1, (0, 2)),
-    ]
     widths = [hi[a] - lo[a] for *_, (a, _b) in views]
     fig, axes = plt.subplots(1, 3, figsize=(15, 5.4), gridspec_kw={"width_ratios": widths})
     for ax, (name, take, extent, org, normal, (ia, ib)) in zip(axes, views):

@@ -14,6 +14,7 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from BreastBiomechLib.discrepancy.registration import ResidualField
+from BreastBiomechLib.visualisation import image_bounds, orthogonal_views
 
 SHOWN_FROM_MM = 0.25  # residual below this is drawn transparent
 
@@ -42,18 +43,12 @@ def save_residual_maps(path: str | Path, measured: sitk.Image, rows: list[tuple[
         raise ValueError("no residual field to draw")
     image = sitk.DICOMOrient(measured, "LPS")
     volume = sitk.GetArrayFromImage(image).astype(np.float32)
-    origin, spacing, size = np.array(image.GetOrigin()), np.array(image.GetSpacing()), np.array(image.GetSize())
-    lo, hi = origin - spacing / 2, origin + spacing * (size - 0.5)
+    lo, hi = image_bounds(image)
     centre = np.asarray(centre_mm if centre_mm is not None else hot_spot(rows[0][1]), float)
-    idx = np.clip(np.rint((centre - origin) / spacing).astype(int), 0, size - 1)
+    views, _ = orthogonal_views(image, centre)
     grey = float(np.percentile(volume, 99.5)) or 1.0
     first = rows[0][1]
     limit = limit_mm or max(float(np.percentile(first.magnitude[first.mask], 99)) if first.mask.any() else 1.0, 0.5)
-    views = [  # name, slice, extent, origin, normal axis, in-plane axes
-        ("axial", lambda v: v[idx[2]], (lo[0], hi[0], hi[1], lo[1]), "upper", 2, (0, 1)),
-        ("sagittal", lambda v: v[:, :, idx[0]], (lo[1], hi[1], lo[2], hi[2]), "lower", 0, (1, 2)),
-        ("coronal", lambda v: v[:, idx[1], :], (lo[0], hi[0], lo[2], hi[2]), "lower", 1, (0, 2)),
-    ]
     widths = [hi[a] - lo[a] for *_, (a, _b) in views]
     fig, axes = plt.subplots(len(rows), 3, figsize=(15, 4.6 * len(rows) + 0.6), squeeze=False,
                              layout="constrained", gridspec_kw={"width_ratios": widths})
