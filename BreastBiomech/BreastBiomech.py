@@ -2,7 +2,9 @@
 
 Generates a synthetic breast MR case (the built-in phantom) straight into the scene: the MR
 volume, the ground-truth tissue segmentation, the per-tissue fraction volumes and the 17
-landmarks. Also registers the "Breast phantom" sample data entry.
+landmarks. Also registers the "Breast phantom" sample data entry: a phantom shipped in
+``Resources/SampleData`` (MR, tissue segmentation, landmarks), loaded by Slicer's own readers,
+so ``SampleData.downloadSample("Breast phantom")`` works from a script as the button does.
 
 Module, Widget, Logic and Test classes follow Slicer's scripted-module template. The Logic holds
 no Qt and runs headless on the ``slicer-core`` wheel (see docs/developing.md).
@@ -12,25 +14,41 @@ from __future__ import annotations
 
 import logging
 import os
+import pathlib
 
 import slicer
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    SLICER_MODULES,
+    ModuleTestMixin,
     ParameterNodeLogic,
     ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
-    ensure_dependencies,
+    _,
+    dependencies_ready,
     ensure_library_importable,
     resource_path,
+    translate,
 )
 from slicer.util import VTKObservationMixin
 
 ensure_library_importable()
 
 CATEGORY = "Breast Biomechanics"
+DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib"]  # generating a phantom
 SAMPLE_NAME = "Breast phantom"
+# The shipped sample: Table 1 case 2 of the seed at 2 x 2 x 3 mm voxels (made by
+# BreastBiomechLogic.writeSampleData; the test in Testing/test_module_breastbiomech.py regenerates it)
+SAMPLE_CASE = 2
+SAMPLE_SPACING_MM = (2.0, 2.0, 3.0)
+SAMPLE_MR_SCALE = 1000.0  # the MR is stored as uint16: the phantom's signal x 1000
+SAMPLE_FILES = (  # file name, node name, Slicer file type
+    ("BreastPhantom_MR.nrrd", "BreastPhantom_MR", "VolumeFile"),
+    ("BreastPhantom_Tissues.seg.nrrd", "BreastPhantom_Tissues", "SegmentationFile"),
+    ("BreastPhantom_Landmarks.mrk.json", "BreastPhantom_Landmarks", "MarkupsFile"),
+)
 
 
 #
@@ -41,50 +59,47 @@ SAMPLE_NAME = "Breast phantom"
 class BreastBiomech(ScriptedLoadableModule):
     def __init__(self, parent):
         ScriptedLoadableModule.__init__(self, parent)
-        self.parent.title = "BreastBiomech"
-        self.parent.categories = [CATEGORY]
-        self.parent.dependencies = []
+        self.parent.title = _("BreastBiomech")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
+        self.parent.dependencies = SLICER_MODULES + ["SampleData"]
         self.parent.contributors = ["BreastBiomech contributors"]
-        self.parent.helpText = (
+        self.parent.helpText = _(
             "Patient-specific biomechanical breast models from MR. This home module generates the "
             "built-in breast phantom (MR, tissue labels, partial-volume fractions, 17 landmarks) "
             "and is the starting point of the pipeline. See the "
             "<a href='https://github.com/BreastBiomech/BreastBiomech'>project page</a>."
         )
-        self.parent.acknowledgementText = (
+        self.parent.acknowledgementText = _(
             "Method after Han et al. 2012, Phys. Med. Biol. 57:455 (patient-specific breast "
             "biomechanics with a GPU TLED solver and image-based material optimisation)."
         )
         slicer.app.connect("startupCompleted()", registerSampleData)
 
 
+def sampleDataArguments() -> dict:
+    """The "Breast phantom" entry for ``SampleData.SampleDataLogic.registerCustomSampleDataSource``:
+    the shipped files as ``file://`` URIs with their SHA-256 checksums, loaded by Slicer's readers
+    (MR volume, tissue segmentation, landmarks; the MR node is the first)."""
+    import hashlib
+
+    paths = [pathlib.Path(resource_path(f"SampleData/{name}")) for name, _node, _type in SAMPLE_FILES]
+    return {
+        "category": CATEGORY,
+        "sampleName": SAMPLE_NAME,
+        "uris": [path.resolve().as_uri() for path in paths],
+        "fileNames": [name for name, _node, _type in SAMPLE_FILES],
+        "nodeNames": [node for _name, node, _type in SAMPLE_FILES],
+        "loadFileType": [kind for _name, _node, kind in SAMPLE_FILES],
+        "checksums": [f"SHA256:{hashlib.sha256(path.read_bytes()).hexdigest()}" for path in paths],
+        "thumbnailFileName": resource_path("Icons/BreastPhantom.png"),
+    }
+
+
 def registerSampleData():
-    """Add "Breast phantom" to the Sample Data module: generated, not downloaded."""
+    """Add "Breast phantom" to the Sample Data module (its button and ``downloadSample``)."""
     import SampleData
 
-    SampleData.SampleDataLogic.registerCustomSampleDataSource(
-        category=CATEGORY,
-        sampleName=SAMPLE_NAME,
-        uris=[],
-        fileNames=[],
-        nodeNames=[],
-        loadFileType=[],
-        thumbnailFileName=resource_path("Icons/BreastPhantom.png"),
-        customDownloader=_loadSamplePhantom,
-    )
-
-
-def _loadSamplePhantom(source=None):
-    if not ensure_dependencies(["scipy", "SimpleITK", "matplotlib"]):
-        return []
-    from BreastBiomechLib.phantom import table1_case
-
-    logic = BreastBiomechLogic()
-    with slicer.util.tryWithErrorDisplay("Failed to generate the breast phantom.", waitCursor=True):
-        nodes = logic.loadPhantom(table1_case(2))
-        logic.showPhantom(nodes)
-        return [nodes["volume"]]
-    return []
+    SampleData.SampleDataLogic.registerCustomSampleDataSource(**sampleDataArguments())
 
 
 #
@@ -168,11 +183,11 @@ class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget
         self.logic.applyCasePreset(self._parameterNode, index)
 
     def onGenerateButton(self):
-        if not ensure_dependencies(["scipy", "SimpleITK", "matplotlib"]):
+        if not dependencies_ready(DEPENDENCIES, _("BreastBiomech")):
             return
-        with slicer.util.tryWithErrorDisplay("Failed to generate the breast phantom.", waitCursor=True):
+        with slicer.util.tryWithErrorDisplay(_("Failed to generate the breast phantom."), waitCursor=True):
             params = self.logic.phantomParameters(self._parameterNode)
-            progress = slicer.util.createProgressDialog(labelText="Generating the breast phantom...", maximum=100)
+            progress = slicer.util.createProgressDialog(labelText=_("Generating the breast phantom..."), maximum=100)
             try:
                 def report(fraction, message):
                     progress.labelText = message
@@ -186,8 +201,10 @@ class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget
             self.ui.summaryLabel.text = self.logic.summaryText(nodes["summary"])
 
     def onLoadFolderButton(self):
+        if not dependencies_ready(DEPENDENCIES, _("BreastBiomech")):
+            return
         folder = self.ui.caseFolderPathLineEdit.currentPath
-        with slicer.util.tryWithErrorDisplay("Failed to load the phantom case folder.", waitCursor=True):
+        with slicer.util.tryWithErrorDisplay(_("Failed to load the phantom case folder."), waitCursor=True):
             nodes = self.logic.loadPhantomFolder(folder)
             self.logic.showPhantom(nodes)
             self.ui.summaryLabel.text = self.logic.summaryText(nodes["summary"])
@@ -290,6 +307,37 @@ class BreastBiomechLogic(ParameterNodeLogic):
         if nipple >= 0:
             slicer.modules.markups.logic().JumpSlicesToNthPointInMarkup(nodes["landmarks"].GetID(), nipple, True)
 
+    def writeSampleData(self, folder: str) -> list[str]:
+        """Write the shipped "Breast phantom" sample (``SAMPLE_FILES``) into ``folder``: Table 1
+        case ``SAMPLE_CASE`` at ``SAMPLE_SPACING_MM``, the MR as uint16 (signal x
+        ``SAMPLE_MR_SCALE``), the true tissues as a Slicer segmentation, the 17 landmarks. Returns
+        the paths. Maintainers run it after changing the phantom generator (docs/developing.md)."""
+        import dataclasses
+
+        import SimpleITK as sitk
+
+        from BreastBiomechLib import mrml
+        from BreastBiomechLib.io.markups import write_markups
+        from BreastBiomechLib.phantom import generate_phantom, table1_case
+
+        out = pathlib.Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        case = generate_phantom(dataclasses.replace(table1_case(SAMPLE_CASE), spacing_mm=SAMPLE_SPACING_MM))
+        paths = [out / name for name, _node, _type in SAMPLE_FILES]
+        mr = sitk.Cast(sitk.Clamp(sitk.Round(case.image * SAMPLE_MR_SCALE), lowerBound=0, upperBound=65535),
+                       sitk.sitkUInt16)
+        sitk.WriteImage(mr, str(paths[0]), True)
+        segmentation = mrml.labels_to_segmentation_node(case.labels, self.scene, SAMPLE_FILES[1][1])
+        storage = self.scene.AddNewNodeByClass("vtkMRMLSegmentationStorageNode")
+        storage.SetFileName(str(paths[1]))
+        storage.SetUseCompression(True)
+        if not storage.WriteData(segmentation):
+            raise OSError(f"could not write {paths[1]}")
+        self.scene.RemoveNode(storage)
+        self.scene.RemoveNode(segmentation)
+        write_markups(paths[2], case.landmarks, name=SAMPLE_FILES[2][1])
+        return [str(path) for path in paths]
+
     @staticmethod
     def summaryText(summary: dict) -> str:
         volumes = ", ".join(f"{k} {v:.0f}" for k, v in summary["tissue_volumes_cm3"].items())
@@ -302,13 +350,17 @@ class BreastBiomechLogic(ParameterNodeLogic):
 #
 
 
-class BreastBiomechTest(ScriptedLoadableModuleTest):
-    def setUp(self):
-        slicer.mrmlScene.Clear()
+class BreastBiomechTest(ModuleTestMixin, ScriptedLoadableModuleTest):
+    REQUIRES = tuple(DEPENDENCIES)
 
-    def runTest(self):
-        self.setUp()
-        self.test_phantom_into_scene()
+    def test_sample_data_from_a_script(self):
+        import SampleData
+
+        registerSampleData()
+        nodes = SampleData.SampleDataLogic().downloadSamples(SAMPLE_NAME)
+        self.assertEqual([node.GetName() for node in nodes], [node for _name, node, _type in SAMPLE_FILES])
+        self.assertEqual(nodes[2].GetNumberOfControlPoints(), 17)
+        self.assertIsNotNone(nodes[1].GetSegmentation().GetSegment("glandular"))
 
     def test_phantom_into_scene(self):
         from BreastBiomechLib.phantom import PhantomParameters

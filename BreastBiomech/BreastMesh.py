@@ -19,21 +19,26 @@ import slicer
 import vtk
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    SLICER_MODULES,
+    ModuleTestMixin,
     ParameterNodeLogic,
     ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
-    ensure_dependencies,
+    _,
+    dependencies_ready,
     ensure_library_importable,
     resource_path,
+    translate,
 )
 from slicer.util import VTKObservationMixin
 
 ensure_library_importable()
 
 CATEGORY = "Breast Biomechanics"
-DEPENDENCIES = ["scipy", "SimpleITK", "tetgen"]
+DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "tetgen"]
+RED_SLICE = "vtkMRMLSliceNodeRed"  # the application's red slice node, where the mesh display is clipped
 
 #
 # Module
@@ -43,17 +48,21 @@ DEPENDENCIES = ["scipy", "SimpleITK", "tetgen"]
 class BreastMesh(ScriptedLoadableModule):
     def __init__(self, parent):
         ScriptedLoadableModule.__init__(self, parent)
-        self.parent.title = "Breast Mesh"
-        self.parent.categories = [CATEGORY]
-        self.parent.dependencies = []
+        self.parent.title = _("Breast Mesh")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
+        self.parent.dependencies = SLICER_MODULES
         self.parent.contributors = ["BreastBiomech contributors"]
-        self.parent.helpText = (
+        self.parent.helpText = _(
             "Tetrahedral finite-element mesh of the breast from a tissue segmentation: body surface, "
             "TetGen mesh refined by points of each tissue surface, tissue per element by voxel majority, "
             "the seed's ABAQUS quality criteria and the loading node sets (chest wall, skin, nipple). "
             "See docs/meshing.md of the <a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
+            "<p><b>Licence of TetGen</b>: meshing uses TetGen through the tetgen Python package, which is "
+            "licensed under the GNU Affero General Public License (AGPL v3). The first <i>Apply</i> offers to "
+            "install it into Slicer's Python; by installing it you accept its licence. BreastBiomech itself "
+            "is BSD-licensed and does not bundle TetGen.</p>"
         )
-        self.parent.acknowledgementText = (
+        self.parent.acknowledgementText = _(
             "Method after Han et al. 2012, Phys. Med. Biol. 57:455; meshing by TetGen (Si 2015) through the "
             "tetgen Python package; surfaces by VTK."
         )
@@ -141,7 +150,7 @@ class BreastMeshWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, V
             self.logic.applyClipping(self._parameterNode)
 
     def onApplyButton(self):
-        if not ensure_dependencies(DEPENDENCIES):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Mesh")):
             return
         self.ui.applyButton.enabled = False
         self.ui.progressBar.value = 0
@@ -152,7 +161,7 @@ class BreastMeshWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, V
             slicer.app.processEvents()
 
         try:
-            with slicer.util.tryWithErrorDisplay("Meshing failed.", waitCursor=True):
+            with slicer.util.tryWithErrorDisplay(_("Meshing failed."), waitCursor=True):
                 result = self.logic.run(self._parameterNode, progress=report)
                 self.ui.statusLabel.text = self.logic.summaryText(result)
                 self.logic.showResults(self._parameterNode)
@@ -295,7 +304,8 @@ class BreastMeshLogic(ParameterNodeLogic):
 
     def applyClipping(self, parameterNode) -> None:
         """Clip the mesh display at the red slice (``clip``), keeping whole cells so the elements
-        inside can be inspected; the clip node is made on first use."""
+        inside can be inspected; the clip node (clipping by the red slice node, negative side) is
+        made on first use."""
         node = parameterNode.reference("outputMesh")
         if node is None or node.GetDisplayNode() is None:
             return
@@ -303,7 +313,8 @@ class BreastMeshLogic(ParameterNodeLogic):
         if clip is None:
             clip = self.scene.AddNewNodeByClass("vtkMRMLClipNode", self.scene.GenerateUniqueName("MeshClip"))
             clip.SetClippingMethod(clip.WholeCells)
-            clip.SetRedSliceClipState(clip.ClipNegativeSpace)
+            clip.AddAndObserveClippingNodeID(RED_SLICE)
+            clip.SetClippingNodeState(RED_SLICE, clip.ClipNegativeSpace)
             parameterNode.set_reference("clipNode", clip)
         display = node.GetDisplayNode()
         display.SetAndObserveClipNodeID(clip.GetID())
@@ -370,13 +381,8 @@ class BreastMeshLogic(ParameterNodeLogic):
 #
 
 
-class BreastMeshTest(ScriptedLoadableModuleTest):
-    def setUp(self):
-        slicer.mrmlScene.Clear()
-
-    def runTest(self):
-        self.setUp()
-        self.test_mesh_phantom()
+class BreastMeshTest(ModuleTestMixin, ScriptedLoadableModuleTest):
+    REQUIRES = tuple(DEPENDENCIES)
 
     def test_mesh_phantom(self):
         from BreastBiomechLib.mrml import labels_to_segmentation_node

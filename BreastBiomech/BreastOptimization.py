@@ -23,22 +23,27 @@ import slicer
 import vtk
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    SLICER_MODULES,
+    ModuleTestMixin,
     ParameterNodeLogic,
     ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
-    ensure_dependencies,
+    _,
+    dependencies_ready,
     ensure_library_importable,
     resolve_device,
     resource_path,
+    translate,
 )
 from slicer.util import VTKObservationMixin
 
 ensure_library_importable()
 
 CATEGORY = "Breast Biomechanics"
-DEPENDENCIES = ["scipy", "warp", "cma"]
+CASE_DEPENDENCIES = ["numpy", "scipy", "SimpleITK"]  # reading a compressed case into the scene
+DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib", "warp", "cma"]  # fitting
 EDGE_ATTRIBUTE = "BreastBiomech.PlateEdge"  # a measured plate's rounded edge (JSON, LPS mm), as in plates.json
 NAME_ATTRIBUTE = "BreastBiomech.PlateName"  # its name in plates.json
 
@@ -50,17 +55,17 @@ NAME_ATTRIBUTE = "BreastBiomech.PlateName"  # its name in plates.json
 class BreastOptimization(ScriptedLoadableModule):
     def __init__(self, parent):
         ScriptedLoadableModule.__init__(self, parent)
-        self.parent.title = "Breast Optimization"
-        self.parent.categories = [CATEGORY]
-        self.parent.dependencies = []
+        self.parent.title = _("Breast Optimization")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
+        self.parent.dependencies = SLICER_MODULES
         self.parent.contributors = ["BreastBiomech contributors"]
-        self.parent.helpText = (
+        self.parent.helpText = _(
             "Fit the tissues' Young's moduli, Poisson's ratios and fibre stiffness so that the FE-predicted "
             "compressed MR image matches the measured one (maximum NMI), with the seed's hybrid search or "
             "CMA-ES, batched on the GPU. Pause and resume lose nothing. See docs/optimisation.md of the "
             "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
         )
-        self.parent.acknowledgementText = "Method after Han et al. 2012, Phys. Med. Biol. 57:455, section 2.4."
+        self.parent.acknowledgementText = _("Method after Han et al. 2012, Phys. Med. Biol. 57:455, section 2.4.")
 
 
 #
@@ -103,7 +108,7 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
                         self.ui.populationSpinBox, self.ui.binsSpinBox, self.ui.toleranceSpinBox,
                         self.ui.fibreRSpinBox, self.ui.fibreASpinBox, self.ui.fibreSSpinBox):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.outputDirectoryButton.directoryChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.outputPathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.loadCaseButton.clicked.connect(self.onLoadCaseButton)
         self.ui.runButton.clicked.connect(lambda: self.onRunButton(resume=False))
         self.ui.resumeButton.clicked.connect(lambda: self.onRunButton(resume=True))
@@ -144,7 +149,7 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
                                   (self.ui.fibreRSpinBox, "fibreR"), (self.ui.fibreASpinBox, "fibreA"),
                                   (self.ui.fibreSSpinBox, "fibreS")):
                 spinBox.value = p[name]
-            self.ui.outputDirectoryButton.directory = p["outputDirectory"]
+            self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
             plates = p.references("plates")
             self.ui.platesLabel.text = ", ".join(n.GetName() for n in plates) if plates else "none: load a case"
             self.ui.landmarkErrorsTableView.setMRMLTableNode(p.reference("landmarkErrorsTable"))
@@ -180,12 +185,14 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["fibreR"] = self.ui.fibreRSpinBox.value
         p["fibreA"] = self.ui.fibreASpinBox.value
         p["fibreS"] = self.ui.fibreSSpinBox.value
-        p["outputDirectory"] = self.ui.outputDirectoryButton.directory
+        p["outputDirectory"] = self.ui.outputPathLineEdit.currentPath
         p.node.EndModify(wasModifying)
 
     def onLoadCaseButton(self):
-        folder = self.ui.caseDirectoryButton.directory
-        with slicer.util.tryWithErrorDisplay("Failed to load the compressed case.", waitCursor=True):
+        if not dependencies_ready(CASE_DEPENDENCIES, _("Breast Optimization")):
+            return
+        folder = self.ui.casePathLineEdit.currentPath
+        with slicer.util.tryWithErrorDisplay(_("Failed to load the compressed case."), waitCursor=True):
             self.logic.loadCompressedCase(self._parameterNode, folder)
             self.logic.showComparison(self._parameterNode)
 
@@ -199,7 +206,7 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         self.ui.cancelButton.enabled = running
 
     def onRunButton(self, resume):
-        if not ensure_dependencies(DEPENDENCIES):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Optimization")):
             return
         self._stopRequest = None
         self._setRunning(True)
@@ -212,7 +219,7 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             return self._stopRequest is None
 
         try:
-            with slicer.util.tryWithErrorDisplay("Optimisation failed.", waitCursor=True):
+            with slicer.util.tryWithErrorDisplay(_("Optimisation failed."), waitCursor=True):
                 outcome = self.logic.run(self._parameterNode, progress=report, resume=resume,
                                          showBest=lambda: self._stopRequest != "pause")
                 self.ui.statusLabel.text = outcome["summary"]
@@ -257,9 +264,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         from BreastBiomechLib.mrml import image_to_volume_node, landmarks_to_markups_node
         from BreastBiomechLib.phantom.compressed_files import read_compressed
 
-        if not caseDir:
-            raise ValueError("choose the case folder (it holds mr.nrrd and compressed/)")
-        folder = Path(caseDir)
+        folder = Path(self.chosenFolder(caseDir, "the case folder (it holds mr.nrrd and compressed/)"))
         measured = read_compressed(folder)
         if not (folder / "mr.nrrd").is_file():
             raise FileNotFoundError(f"{folder}: no undeformed mr.nrrd beside compressed/")
@@ -278,6 +283,20 @@ class BreastOptimizationLogic(ParameterNodeLogic):
             from BreastBiomechLib.mrml import tetmesh_to_model_node
 
             p.set_reference("inputMesh", tetmesh_to_model_node(read_vtu(meshPath), self.scene, "Fitting mesh"))
+
+    @staticmethod
+    def chosenFolder(path: str, what: str) -> str:
+        """``path`` as chosen in a folder field: refused when nothing was chosen ("" or ".", what an
+        empty folder widget reports) or when relative (it would resolve against Slicer's working
+        folder, which the user never chose)."""
+        import os
+
+        if not path or path.strip() in (".", "./"):
+            raise ValueError(f"choose {what}")
+        if not os.path.isabs(path):
+            raise ValueError(f"{what.split(' (')[0]} must be an absolute path, not {path!r} (a relative path would "
+                             "point into Slicer's working folder)")
+        return path
 
     def _planeNode(self, plate: dict):
         """A markups plane at a measured final plate (plates.json dict: name, point, normal LPS)."""
@@ -385,8 +404,8 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         from BreastBiomechLib.optimisation import optimise
 
         p = parameterNode
-        if not p["outputDirectory"]:
-            raise ValueError("choose an output folder: every evaluation is kept there, so a run can be resumed")
+        output = self.chosenFolder(p["outputDirectory"], "an output folder: every evaluation is kept there, so a run "
+                                                        "can be resumed")
         problem = self.problem(p)
         done, best = [], []
 
@@ -397,7 +416,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
             return None if progress is None else progress(count, budget, objective, phase)
 
         result = optimise(problem, p["optimiser"], p["budget"], p["seconds"] or None, p["seed"],
-                          p["outputDirectory"], resume, report, population=p["population"] or None)
+                          output, resume, report, population=p["population"] or None)
         summary = (f"{result.stopped}: best objective {result.best.objective:.5f} (NMI {result.best.nmi:.4f}) after "
                    f"{len(result.evaluations)} solves ({result.replayed} replayed, "
                    f"{sum(e.status != 'completed' for e in result.evaluations)} failed), {result.seconds:.0f} s")
@@ -514,13 +533,8 @@ class BreastOptimizationLogic(ParameterNodeLogic):
 #
 
 
-class BreastOptimizationTest(ScriptedLoadableModuleTest):
-    def setUp(self):
-        slicer.mrmlScene.Clear()
-
-    def runTest(self):
-        self.setUp()
-        self.test_fit_a_small_compressed_phantom()
+class BreastOptimizationTest(ModuleTestMixin, ScriptedLoadableModuleTest):
+    REQUIRES = tuple(DEPENDENCIES + ["tetgen"])
 
     def test_fit_a_small_compressed_phantom(self):
         import tempfile

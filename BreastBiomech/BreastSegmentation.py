@@ -19,21 +19,29 @@ import numpy as np
 import slicer
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    SLICER_MODULES,
+    ModuleTestMixin,
     ParameterNodeLogic,
     ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
-    ensure_dependencies,
+    _,
+    dependencies_ready,
     ensure_library_importable,
     resource_path,
+    translate,
 )
 from slicer.util import VTKObservationMixin
 
 ensure_library_importable()
 
 CATEGORY = "Breast Biomechanics"
-DEPENDENCIES = ["scipy", "SimpleITK"]
+DEPENDENCIES = ["numpy", "scipy", "SimpleITK"]
+
+
+class StepCancelled(Exception):
+    """The user stopped a segmentation step; the scene is as it was before the step."""
 
 #
 # Module
@@ -43,18 +51,18 @@ DEPENDENCIES = ["scipy", "SimpleITK"]
 class BreastSegmentation(ScriptedLoadableModule):
     def __init__(self, parent):
         ScriptedLoadableModule.__init__(self, parent)
-        self.parent.title = "Breast Segmentation"
-        self.parent.categories = [CATEGORY]
-        self.parent.dependencies = []
+        self.parent.title = _("Breast Segmentation")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
+        self.parent.dependencies = SLICER_MODULES
         self.parent.contributors = ["BreastBiomech contributors"]
-        self.parent.helpText = (
+        self.parent.helpText = _(
             "Tissue classification of a breast MR volume: pectoral muscle and tumour grown from seed points, "
             "fat and fibroglandular tissue by expectation-maximisation with a Markov-random-field prior, "
             "bias-field correction and a partial-volume class; probabilities per tissue. Edit the segments "
             "in the Segment Editor between steps. See docs/segmentation.md of the "
             "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
         )
-        self.parent.acknowledgementText = (
+        self.parent.acknowledgementText = _(
             "Method after Han et al. 2012, Phys. Med. Biol. 57:455, whose fat/glandular step used NiftySeg's EM "
             "(Cardoso et al. 2011); partial-volume and bias models after Van Leemput et al. 1999 and 2003."
         )
@@ -74,6 +82,8 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         self.logic = None
         self._parameterNode = None
         self._updatingGUI = False
+        self._running = False
+        self._cancelRequested = False
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -97,6 +107,7 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         self.ui.tumourButton.clicked.connect(lambda: self.onStep(self.logic.segmentTumour, "Tumour segmentation failed."))
         self.ui.tissuesButton.clicked.connect(lambda: self.onStep(self.logic.classifyTissues, "Classification failed."))
         self.ui.allButton.clicked.connect(lambda: self.onStep(self.logic.runAll, "Segmentation failed."))
+        self.ui.cancelButton.clicked.connect(self.onCancelButton)
         self.initializeParameterNode()
 
     def updateGUIFromParameterNode(self, caller=None, event=None):
@@ -116,12 +127,14 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             self.ui.skinSpinBox.value = p["skinMm"]
             self.ui.keepSkinCheckBox.checked = p["keepSkin"]
             self.ui.volumesTableView.setMRMLTableNode(p.reference("volumesTable"))
-            haveVolume = p.reference("inputVolume") is not None
+            # a step runs alone: while one runs (it processes events) the others wait, Cancel stops it
+            ready = p.reference("inputVolume") is not None and not self._running
             haveMuscleSeeds = p.reference("muscleSeeds") is not None
-            self.ui.muscleButton.enabled = haveVolume and haveMuscleSeeds
-            self.ui.tumourButton.enabled = haveVolume and p.reference("tumourSeeds") is not None
-            self.ui.tissuesButton.enabled = haveVolume and p.reference("outputSegmentation") is not None
-            self.ui.allButton.enabled = haveVolume and haveMuscleSeeds
+            self.ui.muscleButton.enabled = ready and haveMuscleSeeds
+            self.ui.tumourButton.enabled = ready and p.reference("tumourSeeds") is not None
+            self.ui.tissuesButton.enabled = ready and p.reference("outputSegmentation") is not None
+            self.ui.allButton.enabled = ready and haveMuscleSeeds
+            self.ui.cancelButton.enabled = self._running
         finally:
             self._updatingGUI = False
 
@@ -142,19 +155,36 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["keepSkin"] = self.ui.keepSkinCheckBox.checked
         p.node.EndModify(wasModifying)
 
+    def onCancelButton(self):
+        self._cancelRequested = True
+
+    def _setRunning(self, running):
+        self._running = running
+        self.updateGUIFromParameterNode()
+
     def onStep(self, step, errorMessage):
-        if not ensure_dependencies(DEPENDENCIES):
+        if self._running or not dependencies_ready(DEPENDENCIES, _("Breast Segmentation")):
             return
+        self._cancelRequested = False
+        self._setRunning(True)
         self.ui.progressBar.value = 0
 
         def report(fraction, message):
             self.ui.progressBar.value = int(100 * fraction)
             self.ui.progressBar.setFormat(f"{message} (%p%)")
             slicer.app.processEvents()
+            return not self._cancelRequested
 
-        with slicer.util.tryWithErrorDisplay(errorMessage, waitCursor=True):
-            self.ui.statusLabel.text = step(self._parameterNode, progress=report)
-            self.logic.showResults(self._parameterNode)
+        try:
+            with slicer.util.tryWithErrorDisplay(_(errorMessage), waitCursor=True):
+                try:
+                    self.ui.statusLabel.text = step(self._parameterNode, progress=report)
+                except StepCancelled as cancelled:
+                    self.ui.statusLabel.text = str(cancelled)
+                    return
+                self.logic.showResults(self._parameterNode)
+        finally:
+            self._setRunning(False)
 
 
 #
@@ -167,7 +197,8 @@ class BreastSegmentationLogic(ParameterNodeLogic):
     (segments named and coloured by the label table), probability and bias-field volume nodes,
     and a volumes table. No Qt: runs in Slicer and headless (slicer-core wheel).
 
-    Each step returns a one-paragraph summary for the panel. Seeds are read in world coordinates
+    Each step returns a one-paragraph summary for the panel. ``progress(fraction, message)``
+    answering False stops a step (:class:`StepCancelled`) before it writes anything. Seeds are read in world coordinates
     (RAS, parent transforms applied) and handed to the library in LPS. ``scene`` defaults to
     ``slicer.mrmlScene``."""
 
@@ -246,19 +277,30 @@ class BreastSegmentationLogic(ParameterNodeLogic):
 
     # -- steps -----------------------------------------------------------------------------------
 
+    @staticmethod
+    def _reporter(progress, step: str):
+        """The progress callback handed to the library: passes ``progress`` on, and raises
+        :class:`StepCancelled` where it answers False (the library calls it between stages, before
+        the Logic writes anything to the scene)."""
+        def report(fraction, message):
+            if progress is not None and progress(fraction, message) is False:
+                raise StepCancelled(f"{step} cancelled at {100 * fraction:.0f} % ({message}); the segmentation "
+                                    "is as it was before the step")
+        return report
+
     def segmentMuscle(self, parameterNode, progress=None) -> str:
         """Step 1: grow the pectoral muscle from its seeds into the ``muscle`` segment (replaced;
         other segments kept) and its probability volume."""
         from BreastBiomechLib.segmentation import segment_muscle
 
-        report = progress or (lambda fraction, message: None)
+        report = self._reporter(progress, "Pectoral muscle segmentation")
         p = parameterNode
         image = self.inputImage(p)
         seeds = self.seedPositions(p, "muscleSeeds", required=True)
         report(0.0, "pectoral muscle from seeds")
         muscle = segment_muscle(image, seeds, self.settings(p))
+        report(0.9, "writing the muscle segment")
         self._writeStructure(p, "muscle", muscle)
-        report(1.0, "done")
         return f"Pectoral muscle: {self._volume_cm3(muscle.mask):.0f} cm³ from {len(seeds)} seeds. " \
                "Check it (and edit it in the Segment Editor) before the next steps: it delimits the breast."
 
@@ -267,15 +309,15 @@ class BreastSegmentationLogic(ParameterNodeLogic):
         ``muscle`` segment delimits; into the ``tumour`` segment and its probability volume."""
         from BreastBiomechLib.segmentation import segment_tumour
 
-        report = progress or (lambda fraction, message: None)
+        report = self._reporter(progress, "Tumour segmentation")
         p = parameterNode
         image = self.inputImage(p)
         seeds = self.seedPositions(p, "tumourSeeds", required=True)
         muscle = self._requireMuscle(p, image)
         report(0.0, "tumour from seeds")
         tumour = segment_tumour(image, muscle, seeds, self.settings(p))
+        report(0.9, "writing the tumour segment")
         self._writeStructure(p, "tumour", tumour)
-        report(1.0, "done")
         volume = self._volume_cm3(tumour.mask)
         diameter = (6 * volume * 1000 / np.pi) ** (1 / 3)
         return f"Tumour: {volume:.2f} cm³ (equivalent diameter {diameter:.1f} mm) from {len(seeds)} seeds."
@@ -291,7 +333,8 @@ class BreastSegmentationLogic(ParameterNodeLogic):
         image = self.inputImage(p)
         muscle = self._requireMuscle(p, image)
         tumour = self.segmentMask(p, "tumour", image)
-        result = classify_tissues(image, muscle, tumour, self.settings(p), progress=progress)
+        result = classify_tissues(image, muscle, tumour, self.settings(p),
+                                  progress=self._reporter(progress, "Fat / glandular classification"))
         self.writeResults(p, result)
         return self.summaryText(result)
 
@@ -304,7 +347,7 @@ class BreastSegmentationLogic(ParameterNodeLogic):
         image = self.inputImage(p)
         muscle = self.seedPositions(p, "muscleSeeds", required=True)
         tumour = self.seedPositions(p, "tumourSeeds", required=False)
-        result = segment_tissues(image, muscle, tumour, self.settings(p), progress=progress)
+        result = segment_tissues(image, muscle, tumour, self.settings(p), progress=self._reporter(progress, "Segmentation"))
         self.writeResults(p, result)
         logging.info("BreastSegmentation: %s", self.summaryText(result))
         return self.summaryText(result)
@@ -398,13 +441,8 @@ class BreastSegmentationLogic(ParameterNodeLogic):
 #
 
 
-class BreastSegmentationTest(ScriptedLoadableModuleTest):
-    def setUp(self):
-        slicer.mrmlScene.Clear()
-
-    def runTest(self):
-        self.setUp()
-        self.test_segment_phantom()
+class BreastSegmentationTest(ModuleTestMixin, ScriptedLoadableModuleTest):
+    REQUIRES = tuple(DEPENDENCIES)
 
     def test_segment_phantom(self):
         from BreastBiomechLib.mrml import image_to_volume_node, landmarks_to_markups_node

@@ -18,22 +18,28 @@ import slicer
 import vtk
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
+    SLICER_MODULES,
+    ModuleTestMixin,
     ParameterNodeLogic,
     ParameterNodeWidgetMixin,
     ScriptedLoadableModule,
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
-    ensure_dependencies,
+    _,
+    dependencies_ready,
     ensure_library_importable,
     resolve_device,
     resource_path,
+    translate,
+    unmet_requirements,
 )
 from slicer.util import VTKObservationMixin
 
 ensure_library_importable()
 
 CATEGORY = "Breast Biomechanics"
-DEPENDENCIES = ["scipy", "warp"]
+MODEL_DEPENDENCIES = ["numpy"]  # building the model: materials, plates, node sets
+DEPENDENCIES = ["numpy", "scipy", "warp"]  # solving it
 
 #
 # Module
@@ -43,18 +49,18 @@ DEPENDENCIES = ["scipy", "warp"]
 class BreastSimulation(ScriptedLoadableModule):
     def __init__(self, parent):
         ScriptedLoadableModule.__init__(self, parent)
-        self.parent.title = "Breast Simulation"
-        self.parent.categories = [CATEGORY]
-        self.parent.dependencies = []
+        self.parent.title = _("Breast Simulation")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
+        self.parent.dependencies = SLICER_MODULES
         self.parent.contributors = ["BreastBiomech contributors"]
-        self.parent.helpText = (
+        self.parent.helpText = _(
             "Nonlinear finite-element simulation of breast compression between rigid plates (TLED: "
             "explicit dynamics on the GPU with NVIDIA warp, or dynamic relaxation to the static "
             "solution). Choose the tetrahedral mesh, the tissue materials, the plates and the fixed "
             "chest-wall nodes, then Run. See docs/solver.md of the "
             "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
         )
-        self.parent.acknowledgementText = (
+        self.parent.acknowledgementText = _(
             "Solver after NiftySim (Taylor et al. 2008) and Han et al. 2012, Phys. Med. Biol. 57:455; "
             "dynamic relaxation after Joldes, Wittek and Miller."
         )
@@ -108,7 +114,9 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         self.ui.runButton.clicked.connect(self.onRunButton)
         self.ui.cancelButton.clicked.connect(self.onCancelButton)
         self.ui.cancelButton.enabled = False
-        self.ui.deviceLabel.text = self.logic.deviceDescription() if ensure_dependencies(["warp"]) else "warp missing"
+        # Nothing is installed when the panel opens: warp comes with the first Run
+        self.ui.deviceLabel.text = (_("warp is not installed yet: the first Run offers to install it")
+                                    if unmet_requirements(["warp"]) else self.logic.deviceDescription())
         self.initializeParameterNode()
 
     @staticmethod
@@ -227,19 +235,24 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
             self.logic.chooseDefaultNodeSets(self._parameterNode)
 
     def onDefaultMaterialsButton(self):
-        with slicer.util.tryWithErrorDisplay("Failed to make the materials table.", waitCursor=True):
+        if not dependencies_ready(MODEL_DEPENDENCIES, _("Breast Simulation")):
+            return
+        with slicer.util.tryWithErrorDisplay(_("Failed to make the materials table."), waitCursor=True):
             self.logic.createDefaultMaterials(self._parameterNode)
 
     def onPlacePlatesButton(self):
-        with slicer.util.tryWithErrorDisplay("Failed to place the plates.", waitCursor=True):
+        if not dependencies_ready(MODEL_DEPENDENCIES, _("Breast Simulation")):
+            return
+        with slicer.util.tryWithErrorDisplay(_("Failed to place the plates."), waitCursor=True):
             self.logic.createCompressionPlates(self._parameterNode)
 
     def onCancelButton(self):
         self._cancelRequested = True
 
     def onRunButton(self):
-        if not ensure_dependencies(DEPENDENCIES):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Simulation")):
             return
+        self.ui.deviceLabel.text = self.logic.deviceDescription()
         self._cancelRequested = False
         self.ui.runButton.enabled = False
         self.ui.cancelButton.enabled = True
@@ -252,7 +265,7 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
             return not self._cancelRequested
 
         try:
-            with slicer.util.tryWithErrorDisplay("Simulation failed.", waitCursor=True):
+            with slicer.util.tryWithErrorDisplay(_("Simulation failed."), waitCursor=True):
                 result = self.logic.run(self._parameterNode, progress=report)
                 self.ui.statusLabel.text = result["summary"]
                 self.logic.showResults(self._parameterNode)
@@ -681,13 +694,8 @@ class BreastSimulationLogic(ParameterNodeLogic):
 #
 
 
-class BreastSimulationTest(ScriptedLoadableModuleTest):
-    def setUp(self):
-        slicer.mrmlScene.Clear()
-
-    def runTest(self):
-        self.setUp()
-        self.test_compress_hemi_ellipsoid()
+class BreastSimulationTest(ModuleTestMixin, ScriptedLoadableModuleTest):
+    REQUIRES = tuple(DEPENDENCIES)
 
     def test_compress_hemi_ellipsoid(self):
         from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -107,3 +109,63 @@ def test_load_generated_phantom_and_case_folder(scene, case, tmp_path):
         logic.loadPhantomFolder("")
     with pytest.raises(FileNotFoundError, match="not a phantom case folder"):
         logic.loadPhantomFolder(str(tmp_path))
+
+
+def test_breast_phantom_sample_loads_from_a_script_with_slicers_readers(scene, tmp_path):
+    """``SampleData.downloadSample("Breast phantom")`` fetches each URI with urllib into the cache
+    (checking its SHA-256) and loads it with the file type's reader: the same steps here with
+    slicer-core's storage nodes."""
+    import hashlib
+    import urllib.request
+
+    import slicer
+
+    args = BreastBiomech.sampleDataArguments()
+    count = len(args["uris"])
+    assert count == 3 and all(len(args[key]) == count for key in ("fileNames", "nodeNames", "loadFileType", "checksums"))
+    assert args["sampleName"] == BreastBiomech.SAMPLE_NAME and os.path.isfile(args["thumbnailFileName"])
+    readers = {"VolumeFile": ("vtkMRMLScalarVolumeNode", "vtkMRMLVolumeArchetypeStorageNode"),
+               "SegmentationFile": ("vtkMRMLSegmentationNode", "vtkMRMLSegmentationStorageNode"),
+               "MarkupsFile": ("vtkMRMLMarkupsFiducialNode", "vtkMRMLMarkupsJsonStorageNode")}
+    nodes = []
+    for uri, name, node_name, kind, checksum in zip(args["uris"], args["fileNames"], args["nodeNames"],
+                                                    args["loadFileType"], args["checksums"]):
+        assert uri.startswith("file://")
+        fetched = tmp_path / name
+        urllib.request.urlretrieve(uri, fetched)
+        assert checksum == "SHA256:" + hashlib.sha256(fetched.read_bytes()).hexdigest()
+        node_class, storage_class = readers[kind]
+        node = scene.AddNewNodeByClass(node_class, node_name)
+        storage = scene.AddNode(getattr(slicer, storage_class)())  # headless, not every reader is registered
+        storage.SetFileName(str(fetched))
+        assert storage.ReadData(node), f"{name} did not load as a {kind}"
+        nodes.append(node)
+    volume, segmentation, landmarks = nodes
+    assert volume.GetImageData().GetDimensions()[0] > 50
+    assert slicer.util.arrayFromVolume(volume).max() > 100  # the signal x 1000 as uint16
+    names = {segmentation.GetSegmentation().GetNthSegment(i).GetName()
+             for i in range(segmentation.GetSegmentation().GetNumberOfSegments())}
+    assert {"fat", "glandular", "muscle"} <= names
+    assert landmarks.GetNumberOfControlPoints() == 17
+
+
+def test_shipped_sample_is_what_the_generator_makes(scene, tmp_path):
+    shipped = BreastBiomech.sampleDataArguments()["uris"]
+    made = BreastBiomech.BreastBiomechLogic(scene).writeSampleData(str(tmp_path))
+    paths = [urllib_path(uri) for uri in shipped]
+    mr_shipped, mr_made = (sitk.GetArrayFromImage(sitk.ReadImage(str(p))).astype(int) for p in (paths[0], made[0]))
+    assert mr_shipped.shape == mr_made.shape and np.mean(np.abs(mr_shipped - mr_made) <= 1) > 0.999
+    seg_shipped, seg_made = (sitk.GetArrayFromImage(sitk.ReadImage(str(p))) for p in (paths[1], made[1]))
+    assert seg_shipped.shape == seg_made.shape and np.mean(seg_shipped == seg_made) > 0.999
+    from BreastBiomechLib.io.markups import read_markups
+
+    a, b = read_markups(paths[2]), read_markups(made[2])
+    assert a.labels == b.labels
+    np.testing.assert_allclose(a.positions, b.positions, atol=0.05)
+
+
+def urllib_path(uri: str) -> str:
+    import urllib.parse
+    import urllib.request
+
+    return urllib.request.url2pathname(urllib.parse.urlparse(uri).path)

@@ -119,6 +119,9 @@ def test_mesh_from_segmentation(scene, labels):
     logic.applyClipping(p)
     clip = display.GetClipNode()
     assert display.GetClipping() and clip.GetClippingMethod() == clip.WholeCells
+    # by the red slice node through the clipping-node API (not the deprecated red-slice state)
+    assert clip.GetClippingNodeState(BreastMesh.RED_SLICE) == clip.ClipNegativeSpace
+    assert clip.GetNumberOfClippingNodes() == 1
 
     # the simulation module takes the mesh with its node sets: fixed chest wall, plates placed
     # against the breast skin and touching the skin between them beyond the chest clearance

@@ -63,6 +63,14 @@ def test_refusals_name_what_is_missing(scene, compressed_case_dir, fitting_mesh,
     p = logic.getParameterNode()
     with pytest.raises(ValueError, match="output folder"):
         logic.run(p)
+    # what an empty folder widget reports, and relative paths (Slicer's working folder), are refused
+    for unset in (".", "./", "fit", "out/fit"):
+        p["outputDirectory"] = unset
+        with pytest.raises(ValueError, match="choose an output folder|must be an absolute path"):
+            logic.run(p)
+    for unset in ("", "."):
+        with pytest.raises(ValueError, match="choose the case folder"):
+            logic.loadCompressedCase(p, unset)
     p["outputDirectory"] = str(tmp_path)
     with pytest.raises(ValueError, match="fitting mesh"):
         logic.run(p)

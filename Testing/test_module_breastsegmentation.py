@@ -129,3 +129,26 @@ def test_missing_inputs_are_named(scene, case):
     p.set_reference("inputVolume", None)
     with pytest.raises(ValueError, match="choose the MR volume"):
         logic.segmentMuscle(p)
+
+
+def test_a_cancelled_step_leaves_the_scene_as_it_was(scene, case):
+    """The panel's Cancel answers False to the progress callback: the step stops with
+    StepCancelled and writes nothing (the panel keeps its other steps disabled meanwhile)."""
+    logic, p = _set_up(scene, case)
+    with pytest.raises(BreastSegmentation.StepCancelled, match="Pectoral muscle segmentation cancelled at 0 %"):
+        logic.segmentMuscle(p, progress=lambda fraction, message: False)
+    assert p.reference("outputSegmentation") is None
+    logic.segmentMuscle(p)
+    segmentation = p.reference("outputSegmentation").GetSegmentation()
+    before = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
+    calls = []
+
+    def cancel_on_third(fraction, message):
+        calls.append(message)
+        return len(calls) < 3
+
+    with pytest.raises(BreastSegmentation.StepCancelled, match="Segmentation cancelled"):
+        logic.runAll(p, progress=cancel_on_third)
+    assert len(calls) == 3
+    assert [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())] == before
+    assert p.reference("volumesTable") is None

@@ -186,6 +186,14 @@ def test_parameter_node_typed_values_and_references(scene, oblique_geometry):
     again = mrml.ParameterNode(scene, "BreastBiomech", defaults, roles=("volume",))
     assert again.node is params.node
     assert again["seed"] == 7 and again["tumour"] is False and again.reference("volume") is volume
+    # as Slicer's ScriptedLoadableModuleLogic and parameterNodeWrapper store them: the module's
+    # name in the "ModuleName" attribute (restored after a scene close drops it), booleans "True"/"False"
+    assert params.node.GetAttribute("ModuleName") == "BreastBiomech"
+    assert params.node.GetParameter("tumour") == "False"
+    params.node.RemoveAttribute("ModuleName")
+    assert mrml.ParameterNode(scene, "BreastBiomech", defaults).node.GetAttribute("ModuleName") == "BreastBiomech"
+    params.node.SetParameter("tumour", "true")  # what earlier versions wrote is still read
+    assert params["tumour"] is True
     with pytest.raises(KeyError, match="unknown parameter"):
         again["nope"]
     with pytest.raises(ValueError):

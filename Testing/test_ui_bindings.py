@@ -36,8 +36,8 @@ def test_there_are_modules():
 
 @pytest.mark.parametrize("module", MODULES)
 def test_module_has_panel_and_icon(module):
-    assert (ROOT / "Resources" / "UI" / f"{module}.ui").is_file()
-    assert (ROOT / "Resources" / "Icons" / f"{module}.png").is_file()
+    assert (ROOT / "BreastBiomech" / "Resources" / "UI" / f"{module}.ui").is_file()
+    assert (ROOT / "BreastBiomech" / "Resources" / "Icons" / f"{module}.png").is_file()
 
 
 @pytest.mark.parametrize("module", MODULES)
@@ -45,7 +45,7 @@ def test_ui_loads_and_holds_every_widget_the_code_uses(module, qt_app):
     from PySide6.QtUiTools import QUiLoader
     from PySide6.QtWidgets import QWidget
 
-    path = ROOT / "Resources" / "UI" / f"{module}.ui"
+    path = ROOT / "BreastBiomech" / "Resources" / "UI" / f"{module}.ui"
     widget = QUiLoader().load(str(path))
     assert widget is not None, f"{path} did not load"
     present = {w.objectName() for w in widget.findChildren(QWidget)}

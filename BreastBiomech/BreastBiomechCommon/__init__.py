@@ -3,18 +3,21 @@ the ``*.py`` files directly in this folder as modules).
 
 - the Slicer framework base classes, or a stand-in where only the ``slicer-core`` wheel is present
   (headless: Logic classes work; Module, Widget and Test classes refuse to be instantiated);
-- finding ``BreastBiomechLib`` and the shared ``Resources/`` both in a built extension (copied
-  beside the module scripts) and in a source checkout (one folder up);
-- installing missing Python dependencies on first use, after asking the user;
-- the parameter-node lifecycle shared by the module Widgets, and the Logic base that owns the
-  scene and the module's parameter node.
+- Slicer's translation functions (``_``, ``translate``), identity functions headless;
+- finding ``BreastBiomechLib`` (copied beside the module scripts in a built extension, one folder
+  up in a source checkout) and the modules' ``Resources/`` (beside the module scripts in both);
+- the parameter-node lifecycle shared by the module Widgets, the Logic base that owns the scene
+  and the module's parameter node, and the self-test base that skips without its packages;
+- (``dependencies``) checking and installing the Python packages on the first action that needs them.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import logging
 import os
 import sys
+import unittest
 
 _HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the module scripts' folder
 _SOURCE_ROOT = os.path.dirname(_HERE)                                 # a source checkout's root
@@ -38,6 +41,28 @@ except ImportError:  # the slicer-core wheel: MRML and module logic only, no app
 
     ScriptedLoadableModule = ScriptedLoadableModuleWidget = ScriptedLoadableModuleTest = _ApplicationOnly
     IN_SLICER_APPLICATION = False
+
+try:  # Slicer 5.4 and newer: strings shown to the user are translatable
+    from slicer.i18n import tr as _  # noqa: F401
+    from slicer.i18n import translate  # noqa: F401
+except ImportError:  # the slicer-core wheel has no translations
+    def _(text: str) -> str:
+        return text
+
+    def translate(context: str, text: str) -> str:
+        return text
+
+from BreastBiomechCommon.dependencies import (  # noqa: E402,F401  (re-exported for the modules)
+    MissingDependencies,
+    dependencies_ready,
+    ensure_dependencies,
+    skip_message,
+    unmet_requirements,
+)
+
+# The Slicer modules the BreastBiomech modules use (``parent.dependencies``)
+SLICER_MODULES = ["Volumes", "Segmentations", "Markups", "Models", "Tables", "Plots"]
+
 
 class ParameterNodeWidgetMixin:
     """The parameter-node lifecycle every module Widget shares (Slicer's scripted-module template):
@@ -75,6 +100,33 @@ class ParameterNodeWidgetMixin:
         self.updateGUIFromParameterNode()
 
 
+class ModuleTestMixin:
+    """Base of the module self-tests (mix in before ``ScriptedLoadableModuleTest``): ``REQUIRES``
+    names the packages (import names) the tests need; where one is missing or too old, the test
+    is skipped with the reason and how to install it, not failed with an ImportError. ``runTest``
+    (what ``slicer.selfTests[module]()`` and Reload and Test call) runs every ``test_*`` method."""
+
+    REQUIRES: tuple = ()
+
+    def setUp(self):
+        unmet = unmet_requirements(self.REQUIRES)
+        if unmet:
+            self.skipTest(skip_message(unmet))
+        import slicer
+
+        slicer.mrmlScene.Clear()
+
+    def runTest(self):
+        for name in sorted(n for n in dir(self) if n.startswith("test_")):
+            try:
+                self.setUp()
+            except unittest.SkipTest as skipped:
+                logging.warning("%s skipped: %s", type(self).__name__, skipped)
+                self.delayDisplay(f"{type(self).__name__} skipped: {skipped}")
+                return
+            getattr(self, name)()
+
+
 class ParameterNodeLogic:
     """Base of the module Logics: holds the scene (``slicer.mrmlScene`` by default) and gives the
     module's parameter node. Subclasses set ``MODULE_NAME``, ``DEFAULTS`` (names -> default
@@ -97,11 +149,6 @@ class ParameterNodeLogic:
         return ParameterNode(self.scene, self.MODULE_NAME, self.DEFAULTS, self.ROLES)
 
 
-# Python packages the library needs that a Slicer installation may lack: import name -> pip name
-DEPENDENCIES = {"scipy": "scipy", "SimpleITK": "SimpleITK", "matplotlib": "matplotlib",
-                "tetgen": "tetgen", "warp": "warp-lang", "cma": "cma"}
-
-
 def resolve_device(choice: str) -> str:
     """The warp device for a panel's choice: "cuda" or "cpu" for "auto" (the GPU when present),
     "cuda" (refused without a GPU) or "cpu"."""
@@ -117,40 +164,18 @@ def resolve_device(choice: str) -> str:
 
 
 def ensure_library_importable() -> None:
-    """Make ``import BreastBiomechLib`` work when the modules run from a source checkout."""
+    """Make ``import BreastBiomechLib`` work when the modules run from a source checkout (the
+    checkout's root is appended to ``sys.path``, so it never shadows an installed package)."""
     if importlib.util.find_spec("BreastBiomechLib") is None and os.path.isdir(
             os.path.join(_SOURCE_ROOT, "BreastBiomechLib")):
-        sys.path.insert(0, _SOURCE_ROOT)
+        sys.path.append(_SOURCE_ROOT)
 
 
 def resource_path(relative: str) -> str:
-    """Absolute path of a shared resource, e.g. ``resource_path("UI/BreastBiomech.ui")``."""
-    for root in (_HERE, _SOURCE_ROOT):
-        candidate = os.path.join(root, "Resources", relative)
-        if os.path.exists(candidate):
-            return candidate
-    raise FileNotFoundError(f"BreastBiomech resource {relative!r} not found beside {_HERE} or in {_SOURCE_ROOT}")
-
-
-def missing_dependencies(names) -> list[str]:
-    """pip names of the dependencies among ``names`` (import names) that cannot be imported."""
-    return [DEPENDENCIES[n] for n in names if importlib.util.find_spec(n) is None]
-
-
-def ensure_dependencies(names) -> bool:
-    """Inside Slicer: offer to pip-install what is missing; True when everything is importable."""
-    missing = missing_dependencies(names)
-    if not missing:
-        return True
-    if not IN_SLICER_APPLICATION:
-        raise ImportError(f"missing Python packages {missing}: pip install {' '.join(missing)}")
-    import slicer
-
-    if not slicer.util.confirmOkCancelDisplay(
-            f"BreastBiomech needs these Python packages: {', '.join(missing)}.\n"
-            "Install them now into Slicer's Python (this downloads them)?",
-            "BreastBiomech dependencies"):
-        return False
-    slicer.util.pip_install(" ".join(missing))
-    importlib.invalidate_caches()
-    return not missing_dependencies(names)
+    """Absolute path of a module resource, e.g. ``resource_path("UI/BreastBiomech.ui")``: the
+    ``Resources/`` folder beside the module scripts, where Slicer also looks for the icons and
+    the developer section's "Edit UI" for the panels, in a source checkout and a built extension."""
+    candidate = os.path.join(_HERE, "Resources", relative)
+    if not os.path.exists(candidate):
+        raise FileNotFoundError(f"BreastBiomech resource {relative!r} not found in {os.path.join(_HERE, 'Resources')}")
+    return candidate

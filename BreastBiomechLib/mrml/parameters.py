@@ -24,6 +24,10 @@ class ParameterNode:
             node.SetModuleName(module_name)
             node.SetName(f"{module_name} parameters")
             node = scene.AddNode(node)
+        # Slicer's ScriptedLoadableModuleLogic and parameterNodeWrapper find a module's parameter
+        # node by this attribute (a scene close can drop it: set it again)
+        if node.GetAttribute("ModuleName") != module_name:
+            node.SetAttribute("ModuleName", module_name)
         self.node = node
         for name, value in self.defaults.items():
             if not node.GetParameter(name):
@@ -31,7 +35,8 @@ class ParameterNode:
 
     @staticmethod
     def _to_text(value) -> str:
-        return str(bool(value)).lower() if isinstance(value, bool) else repr(value) if isinstance(value, float) else str(value)
+        """Booleans as "True"/"False" (as Slicer's parameterNodeWrapper writes them), floats by repr."""
+        return str(bool(value)) if isinstance(value, bool) else repr(value) if isinstance(value, float) else str(value)
 
     def _check(self, name: str) -> None:
         if name not in self.defaults:

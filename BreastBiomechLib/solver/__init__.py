@@ -1,10 +1,23 @@
 """GPU explicit nonlinear finite elements (TLED) on NVIDIA warp: four-node tets with average
 nodal pressure, neo-Hookean and transversely isotropic neo-Hookean materials, rigid-plate
-frictionless contact, prescribed displacements, gravity, batched solves."""
+frictionless contact, prescribed displacements, gravity, batched solves.
+
+Building a model (materials, plates, constraints, loading) needs numpy only; warp is imported on
+first use of the solver itself (``solve``, ``solve_batch``, ``DynamicRelaxation``, ``Solution``),
+so a Slicer panel can build and show a model before warp is installed."""
 
 from BreastBiomechLib.solver.materials import ElementMaterials, Material, fibre_direction, lame_from_young
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
-from BreastBiomechLib.solver.tled import DynamicRelaxation, Solution, solve, solve_batch
+
+_SOLVER_NAMES = ("DynamicRelaxation", "Solution", "solve", "solve_batch")
 
 __all__ = ["Constraint", "DynamicRelaxation", "ElementMaterials", "Loading", "Material", "Model", "Plate", "Solution",
            "fibre_direction", "lame_from_young", "solve", "solve_batch"]
+
+
+def __getattr__(name: str):
+    if name in _SOLVER_NAMES:
+        from BreastBiomechLib.solver import tled
+
+        return getattr(tled, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
