@@ -2,7 +2,8 @@
 #   make demo   create .venv, install, run the whole pipeline on the built-in phantom: compressed
 #               scan (plate friction hidden in its truth), segmentation, mesh, fit, the diagnosis
 #               that names the missing friction, out/demo/report.md (about 8 min on 2 CPU cores)
-#   make test   create .venv if missing, install, run the whole test suite
+#   make test   create .venv if missing, install, run the whole test suite, then the library tests
+#               again on Slicer 5.10's own versions of numpy, scipy, SimpleITK and VTK (test-slicer-stack)
 #   make bench  print benchmark figures (see docs/benchmarks.md)
 #   make table1-cases  the five compressed phantom cases of the seed's Table 1 (out/table1/case<N>;
 #               2 mm truth meshes; DEVICE=cuda on a GPU: under a minute per case
@@ -13,7 +14,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench table1-cases clean
+.PHONY: demo test test-slicer-stack bench table1-cases clean
 
 DEVICE ?=
 
@@ -29,6 +30,34 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist loadfile
+	$(MAKE) test-slicer-stack
+
+# Slicer 5.10's Python stack (Python 3.12 there; the Python CI has here): the library must not use an
+# API newer than the copies Slicer ships. The MRML tests need slicer-core, which is built against
+# VTK 9.6.2, so they stay in the main run; the slow solver studies too (their APIs are covered here).
+SLICER_STACK_VENV := .venv-slicer-stack
+SLICER_STACK := numpy==2.0.2 scipy==1.13.1 SimpleITK==2.5.2 vtk==9.5.2
+SLICER_STACK_STAMP := $(SLICER_STACK_VENV)/.installed
+# the library tests that exercise those packages' APIs (images, surfaces, meshes, registration,
+# readers and writers); about 3 min on 2 cores
+SLICER_STACK_TESTS := Testing/test_phantom.py Testing/test_segmentation.py Testing/test_meshing.py \
+  Testing/test_warping.py Testing/test_similarity.py Testing/test_landmark_mapping.py \
+  Testing/test_discrepancy_registration.py Testing/test_io_properties.py Testing/test_niftysim.py \
+  Testing/test_slicer_app_fidelity.py
+
+$(SLICER_STACK_STAMP): pyproject.toml BreastBiomech/Resources/requirements.txt
+	$(PYTHON) -m venv $(SLICER_STACK_VENV)
+	$(SLICER_STACK_VENV)/bin/python -m pip install --quiet $(SLICER_STACK) -r BreastBiomech/Resources/requirements.txt \
+	  pytest hypothesis pytest-xdist jsonschema
+	$(SLICER_STACK_VENV)/bin/python -m pip install --quiet --no-deps -e .
+	touch $(SLICER_STACK_STAMP)
+
+test-slicer-stack: $(SLICER_STACK_STAMP)
+	$(SLICER_STACK_VENV)/bin/python -c "import numpy, scipy, SimpleITK, vtk; \
+	  assert (numpy.__version__, scipy.__version__, vtk.vtkVersion.GetVTKVersion()) == ('2.0.2', '1.13.1', '9.5.2'), 'not the Slicer 5.10 stack'; \
+	  print('Slicer 5.10 stack: numpy', numpy.__version__, 'scipy', scipy.__version__, 'SimpleITK', SimpleITK.Version_VersionString(), 'VTK', vtk.vtkVersion.GetVTKVersion())"
+	QT_QPA_PLATFORM=offscreen $(SLICER_STACK_VENV)/bin/python -m pytest -n 2 --dist loadfile -p no:cacheprovider \
+	  -m "not slow and not mrml" $(SLICER_STACK_TESTS)
 
 bench: $(STAMP)
 	$(BIN)/breastbiomech bench phantom --json
@@ -43,4 +72,4 @@ table1-cases: $(STAMP)
 	done
 
 clean:
-	rm -rf out .pytest_cache
+	rm -rf out .pytest_cache $(SLICER_STACK_VENV)

@@ -291,3 +291,21 @@ def test_extensions_index_entry_validates_and_matches_the_extension():
         url = re.search(rf'set\({variable} "([^"]+)"\)', top).group(1)
         relative = url.split("/BreastBiomech/BreastBiomech/main/", 1)[1]
         assert (ROOT / relative).is_file(), f"{variable} points at {relative}, which is not in the repository"
+
+
+def test_command_line_without_vtk_names_the_headless_extra():
+    """VTK is only in the headless extra (Slicer brings its own): a plain install says so."""
+    script = textwrap.dedent("""
+        import sys
+        class Block:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] == "vtk":
+                    raise ImportError("vtk is blocked for this test")
+        sys.meta_path.insert(0, Block())
+        from BreastBiomechLib.cli import main
+        sys.exit(main(["phantom", "--out", "unused"]))
+        """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert done.returncode == 2
+    assert "pip install 'breastbiomech[headless]'" in done.stderr

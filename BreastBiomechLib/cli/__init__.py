@@ -8,6 +8,7 @@ with its parsers beside its commands (``add_parsers``).
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 
 from BreastBiomechLib import __version__
@@ -27,10 +28,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _vtk_missing() -> bool:
+    try:
+        return importlib.util.find_spec("vtk") is None
+    except ImportError:
+        return True
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # as typed, for reports' provenance
+    if _vtk_missing():  # Slicer brings VTK; outside it the headless extra does
+        print(f"breastbiomech {args.command}: error: VTK is not installed; outside Slicer install the library with "
+              "its headless extra: pip install 'breastbiomech[headless]'", file=sys.stderr)
+        return 2
     if getattr(args, "json", False):  # standard output is for the one JSON line: no warp banner
         import warp
 

@@ -123,8 +123,15 @@ def mask_surface(mask: np.ndarray, geometry: sitk.Image, name: str, settings: Su
     nets.SetBackgroundLabel(0)
     nets.SetOutputMeshTypeToTriangles()
     nets.SetNumberOfIterations(settings.smoothing_iterations)
-    nets.Update()
-    surface = TriSurface.from_vtk(nets.GetOutput(), name)
+    # VTK 9.5's surface nets (the VTK of Slicer 5.10) winds some triangles against their
+    # neighbours (VTK 9.6's does not): make the winding consistent, points untouched
+    consistent = vtk.vtkPolyDataNormals()
+    consistent.SetInputConnection(nets.GetOutputPort())
+    consistent.SplittingOff()
+    consistent.ConsistencyOn()
+    consistent.AutoOrientNormalsOff()
+    consistent.Update()
+    surface = TriSurface.from_vtk(consistent.GetOutput(), name)
     if len(surface.triangles) == 0:
         raise ValueError(f"{name}: no surface at a {edge:g} mm spacing; use a smaller edge")
     ijk = _relaxed_onto_level((wide, fine), surface, max_move=step)
