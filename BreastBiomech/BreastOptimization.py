@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 
 import numpy as np
 import slicer
@@ -289,8 +290,6 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         """``path`` as chosen in a folder field: refused when nothing was chosen ("" or ".", what an
         empty folder widget reports) or when relative (it would resolve against Slicer's working
         folder, which the user never chose)."""
-        import os
-
         if not path or path.strip() in (".", "./"):
             raise ValueError(f"choose {what}")
         if not os.path.isabs(path):

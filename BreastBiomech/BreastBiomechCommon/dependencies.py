@@ -114,6 +114,11 @@ def install_command(unmet: list[Unmet]) -> str:
     return "pip install " + " ".join(f"'{u.requirement}'" for u in unmet)
 
 
+def console_install_command(unmet: list[Unmet]) -> str:
+    """The line for Slicer's Python console that installs what is unmet."""
+    return f"slicer.util.pip_install({[str(u.requirement) for u in unmet]!r})"
+
+
 def _pip_ensure():
     """Slicer's own ``pip_ensure`` (Slicer 5.12 and newer), or None on older Slicer."""
     for module in ("slicer.packaging", "slicer.pydeps"):
@@ -147,7 +152,7 @@ def ensure_dependencies(import_names, requester: str = "BreastBiomech") -> bool:
     if slicer.app.testingEnabled():
         raise MissingDependencies(
             f"{requester} needs {listing}; Slicer runs in testing mode, where BreastBiomech installs nothing. "
-            f"Install them first from Slicer's Python console: slicer.util.pip_install({[str(u.requirement) for u in unmet]!r})")
+            f"Install them first from Slicer's Python console: {console_install_command(unmet)}")
     ensure = _pip_ensure()
     if ensure is not None:
         from packaging.requirements import Requirement as PipRequirement
@@ -178,7 +183,7 @@ def ensure_dependencies(import_names, requester: str = "BreastBiomech") -> bool:
         raise MissingDependencies(
             f"{requester} still lacks {', '.join(str(u) for u in still)} after installing. If an older version was "
             "already loaded, restart Slicer; otherwise install from Slicer's Python console: "
-            f"slicer.util.pip_install({[str(u.requirement) for u in still]!r})")
+            f"{console_install_command(still)}")
     logging.info("%s: installed %s", requester, listing)
     return True
 
@@ -196,4 +201,4 @@ def dependencies_ready(import_names, requester: str = "BreastBiomech") -> bool:
 def skip_message(unmet: list[Unmet]) -> str:
     """Why a module self-test is skipped, and how to run it."""
     return (f"needs {', '.join(str(u) for u in unmet)}; install them (Slicer's Python console: "
-            f"slicer.util.pip_install({[str(u.requirement) for u in unmet]!r})) and run the test again")
+            f"{console_install_command(unmet)}) and run the test again")
