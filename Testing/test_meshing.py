@@ -240,7 +240,7 @@ def test_small_tissue_is_reported_not_meshed():
     assert any("tumour: 1 voxels" in note for note in result.notes)
 
 
-def test_cli_mesh_writes_mesh_case_and_niftysim(tmp_path, labels):
+def test_cli_mesh_writes_mesh_case_and_niftysim(tmp_path, labels, capsys):
     from BreastBiomechLib.cli import main
     from BreastBiomechLib.io.cases import read_case
     from BreastBiomechLib.io.images import write_image
@@ -248,9 +248,12 @@ def test_cli_mesh_writes_mesh_case_and_niftysim(tmp_path, labels):
     from BreastBiomechLib.io.niftysim import read_niftysim
 
     write_image(tmp_path / "labels.nrrd", labels)
-    with pytest.warns(UserWarning, match="NiftySim plates are flat rectangles"):  # the plates' rounded edges
-        assert main(["mesh", str(tmp_path / "labels.nrrd"), "--out", str(tmp_path / "out"), "--edge-mm", "4",
-                     "--compression", "0.3", "--quiet"]) == 0
+    assert main(["mesh", str(tmp_path / "labels.nrrd"), "--out", str(tmp_path / "out"), "--edge-mm", "4",
+                 "--compression", "0.3", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    # how model.xml differs from case.json, said every time: rounded edges, settling, ANP
+    for difference in ("NiftySim plates are flat rectangles", "settling phase", "across materials"):
+        assert "model.xml: " in printed and difference in printed, difference
     out = tmp_path / "out"
     mesh = read_vtu(out / "mesh.vtu")
     assert {"tissue", "fraction_glandular", "quality_min_dihedral_deg"} <= set(mesh.cell_data)
@@ -289,6 +292,7 @@ def test_cli_mesh_writes_mesh_case_and_niftysim(tmp_path, labels):
 
     nifty = read_niftysim(out / "model.xml")
     assert len(nifty.mesh.tets) == len(mesh.tets) and len(nifty.loading.plates) == 2
+    assert nifty.anp_across_materials and "settling phase" in (out / "model.xml").read_text().split("-->")[0]
     for name in ("body", "glandular", "muscle", "tumour"):
         assert (out / "surfaces" / f"{name}.vtp").is_file()
     assert main(["mesh", str(tmp_path / "missing.nrrd"), "--out", str(out)]) == 2

@@ -1,4 +1,4 @@
-"""Command line: ``breastbiomech phantom|segment|mesh|simulate|warp|compare|optimise|study|diagnose|demo|bench``.
+"""Command line: ``breastbiomech phantom|segment|mesh|simulate|niftysim|warp|compare|optimise|study|diagnose|demo|bench``.
 
 Each sub-command is a thin layer over library functions; results go to files and a short report
 on standard output (``--json`` where a machine reads it). One module per command group, each
@@ -12,11 +12,11 @@ import importlib.util
 import sys
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli import bench, demo, diagnose, fit, images, mesh, phantom, segment, simulate, suite
+from BreastBiomechLib.cli import bench, demo, diagnose, fit, images, mesh, niftysim, phantom, segment, simulate, suite
 from BreastBiomechLib.cli.common import end_progress
 
 
-GROUPS = (phantom, fit, diagnose, suite, segment, mesh, simulate, images, demo, bench)  # the order `--help` lists them in
+GROUPS = (phantom, fit, diagnose, suite, segment, mesh, simulate, niftysim, images, demo, bench)  # the order `--help` lists them in
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -15,7 +15,7 @@ def cmd_mesh(args) -> int:
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import write_surface, write_vtu
-    from BreastBiomechLib.io.niftysim import write_niftysim
+    from BreastBiomechLib.cli.niftysim import export_for_niftysim
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
     labels = read_image(args.labels)
@@ -40,7 +40,7 @@ def cmd_mesh(args) -> int:
     paths["case"] = out / "case.json"
     paths["case"].write_text(json.dumps(case, indent=1) + "\n")
     model, _ = case_from_dict(case, result.mesh, paths["case"])
-    paths["niftysim"] = write_niftysim(out / "model.xml", model, drop_settling=True)
+    paths["niftysim"], niftysim_notes = export_for_niftysim(out / "model.xml", model)
     paths["report"] = out / "mesh_report.json"
     paths["report"].write_text(json.dumps(summary, indent=1) + "\n")
     failing = summary["quality"]["failing"]["any"]
@@ -53,6 +53,8 @@ def cmd_mesh(args) -> int:
         f"{k} {v['dice']:.3f}" for k, v in summary["tissue_representation"].items()))
     for note in summary["notes"]:
         print(f"  note: {note}")
+    for note in niftysim_notes:
+        print(f"  model.xml: {note}")
     for role, path in paths.items():
         print(f"  {role:20s} {path}")
     return 0

@@ -258,6 +258,12 @@ def _element_materials(mesh: TetMesh, spec: dict, path: Path) -> ElementMaterial
     return ElementMaterials.from_tissues(np.asarray(mesh.cell_data["tissue"]).astype(int), table)
 
 
+def _flag(value, name: str, path: Path) -> bool:
+    if not isinstance(value, bool):
+        raise ValueError(f"{path}: {name} must be true or false, not {value!r}")
+    return value
+
+
 def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tuple[Model, SolverSettings]:
     """Build the model and solver settings of a case dictionary (the JSON content) on ``mesh``."""
     constraints = []
@@ -265,7 +271,8 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
         nodes = _node_set(mesh, c["nodes"], f"constraint {i}", path)
         mask = np.array(_components(c.get("components", "xyz"), path))
         values = np.zeros(3) if c.get("displacement") is None else np.asarray(c["displacement"], float)
-        constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1))))
+        constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1)),
+                                      load_shape=c.get("load_shape")))
     plates = [_plate(mesh, p, i, path) for i, p in enumerate(data.get("plates", []))]
     supports, notes = [], []
     for i, spec in enumerate(data.get("supports", [])):
@@ -283,7 +290,8 @@ def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tu
         loading.notes.append(note)
     model = Model(mesh, materials, loading,
                   formulation=data.get("formulation", "T4ANP"), damping=float(data.get("damping", 50.0)),
-                  time_step=data.get("time_step"), safety=float(data.get("safety", 0.8)))
+                  time_step=data.get("time_step"), safety=float(data.get("safety", 0.8)),
+                  anp_across_materials=_flag(data.get("anp_across_materials", False), "anp_across_materials", path))
     solver = dict(data.get("solver", {}))
     method = solver.pop("method", "relaxation")
     device = solver.pop("device", None)

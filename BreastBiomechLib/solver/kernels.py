@@ -9,16 +9,27 @@ from __future__ import annotations
 
 import warp as wp
 
+# load curves, numbered as in model.LOAD_SHAPES (NiftySim's shapes)
 LOAD_POLY345 = 0
 LOAD_RAMP = 1
+LOAD_STEP = 2
+LOAD_RAMPHOLD = 3
+LOAD_HILLY = 4
 
 
 @wp.func
 def load_factor(t: float, total: float, shape: int) -> float:
-    """Relative load at time t: POLY345 (10r^3 - 15r^4 + 6r^5) or RAMP (r), r = t/total in [0, 1]."""
+    """Relative load at time t, r = t/total clamped to [0, 1]: POLY345 10r^3 - 15r^4 + 6r^5, RAMP r,
+    STEP 1, RAMPHOLD min(r / 0.1, 1), HILLY r exp(cos(4 pi r) - 1) (NiftySim's curves)."""
     r = wp.clamp(t / total, 0.0, 1.0)
     if shape == LOAD_RAMP:
         return r
+    if shape == LOAD_STEP:
+        return 1.0
+    if shape == LOAD_RAMPHOLD:
+        return wp.min(r / 0.1, 1.0)
+    if shape == LOAD_HILLY:
+        return r * wp.exp(wp.cos(4.0 * wp.pi * r) - 1.0)
     return r * r * r * (10.0 + r * (-15.0 + 6.0 * r))
 
 
@@ -208,11 +219,12 @@ def set_component(x: wp.vec3, mask: wp.vec3, value: wp.vec3) -> wp.vec3:
 @wp.kernel
 def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                       nodes: wp.array(dtype=int), mask: wp.array(dtype=wp.vec3),
-                      value: wp.array(dtype=wp.vec3), n_nodes: int, n_constrained: int,
-                      dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
+                      value: wp.array(dtype=wp.vec3), shapes: wp.array(dtype=wp.vec3i), n_nodes: int,
+                      n_constrained: int, dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float),
                       inverted: wp.array(dtype=int)):
-    """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m); their
-    increment becomes the change from the previous step and their compensation zero."""
+    """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m), each
+    component with its own load curve (``shapes``); their increment becomes the change from the
+    previous step and their compensation zero."""
     tid = wp.tid()
     b = tid // n_constrained
     if inverted[4 * b] != 0:
@@ -220,7 +232,11 @@ def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), 
     k = tid - b * n_constrained
     i = b * n_nodes + nodes[k]
     m = mask[k]
-    target = load_factor(float(step[0] + 1) * dt, t_total[b], load_shape) * value[tid]
+    t = float(step[0] + 1) * dt
+    shape = shapes[k]
+    v = value[tid]
+    target = wp.vec3(load_factor(t, t_total[b], shape[0]) * v[0], load_factor(t, t_total[b], shape[1]) * v[1],
+                     load_factor(t, t_total[b], shape[2]) * v[2])
     previous = u[i] - du[i]
     u[i] = set_component(u[i], m, target)
     du[i] = set_component(du[i], m, target - previous)

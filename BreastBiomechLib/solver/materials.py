@@ -6,7 +6,8 @@ seed's eq. (8):
     NH: W = mu/2 (I1bar - 3) + kappa/2 (J - 1)^2
     TI: W = NH + eta/2 (I4bar - 1)^2,   I4bar = a . Cbar a,  a the unit fibre direction
 
-Parameters in pascal; mu = E / (2 (1 + nu)), kappa = E / (3 (1 - 2 nu)).
+Parameters in pascal; mu = E / (2 (1 + nu)), kappa = E / (3 (1 - 2 nu)). eta is eq. (8)'s;
+NiftySim's code takes 2 eta for the same fibre stress (see :mod:`BreastBiomechLib.io.niftysim`).
 
 Visco-hyperelastic variants (NiftySim's NHV/TIV) relax the isochoric stress with a Prony series
 g(t) = g_inf + sum_i g_i exp(-t / tau_i), g_inf = 1 - sum_i g_i: the instantaneous response is

@@ -14,7 +14,7 @@ from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.materials import ElementMaterials
 
 FORMULATIONS = ("T4ANP", "T4")
-LOAD_SHAPES = ("POLY345", "RAMP")
+LOAD_SHAPES = ("POLY345", "RAMP", "STEP", "RAMPHOLD", "HILLY")  # NiftySim's load curves, see kernels.load_factor
 PENETRATION_TOLERANCE_MM = 1e-3  # slave nodes may start this far behind a plate (round-off)
 
 
@@ -115,17 +115,23 @@ class Plate:
 @dataclass
 class Constraint:
     """Prescribed displacement components: node ids, a (K, 3) mask of constrained components and
-    their final values (mm, applied with the load curve; zeros = fixed)."""
+    their final values (mm, applied with the load curve; zeros = fixed). ``load_shape``: this
+    constraint's own load curve (one of ``LOAD_SHAPES``, as NiftySim's per-constraint
+    ``LoadShape``); None: the loading's."""
 
     nodes: np.ndarray
     mask: np.ndarray
     values: np.ndarray | None = None
+    load_shape: str | None = None
 
     def __post_init__(self) -> None:
         self.nodes = np.asarray(self.nodes, dtype=np.int64).ravel()
         self.mask = np.broadcast_to(np.asarray(self.mask, bool), (len(self.nodes), 3)).copy()
         values = np.zeros((len(self.nodes), 3)) if self.values is None else self.values
         self.values = np.broadcast_to(np.asarray(values, float), (len(self.nodes), 3)).copy()
+        if self.load_shape is not None and self.load_shape not in LOAD_SHAPES:
+            raise ValueError(f"a constraint's load_shape must be one of {LOAD_SHAPES} (or None: the loading's), "
+                             f"not {self.load_shape!r}")
 
     @classmethod
     def fixed(cls, nodes, components=(True, True, True)) -> "Constraint":
@@ -230,7 +236,10 @@ class Model:
     ``damping`` is the mass-proportional damping coefficient alpha (1/s) of seed eq. (15);
     ``time_step`` None picks ``safety`` x the critical step. ``prestate``: a pre-stressed start
     (:class:`ReferenceState`; the mesh is then the stress-free shape), None: the mesh's shape is
-    stress-free and the tissue starts at rest there."""
+    stress-free and the tissue starts at rest there. ``anp_across_materials`` (T4ANP): False
+    averages each node's pressure over the elements of one material at a time (this project's
+    default, see :func:`~BreastBiomechLib.solver.tled.anp_slots`); True over all its elements, as
+    NiftySim's T4ANP does (what a NiftySim model means; read NiftySim files come back so)."""
 
     mesh: TetMesh
     materials: ElementMaterials
@@ -240,6 +249,7 @@ class Model:
     time_step: float | None = None
     safety: float = 0.8
     prestate: ReferenceState | None = None
+    anp_across_materials: bool = False
 
     @property
     def start_positions(self) -> np.ndarray:

@@ -51,7 +51,7 @@ class Discretisation:
         self.anp = model.formulation == "T4ANP"
         self.dhdx, self.vol = shape_derivatives(model.mesh.nodes * MM, self.tets)
         mat = model.materials.long_term()
-        self.slots, self.slot_volume = anp_slots(self.tets, [mat], self.vol)
+        self.slots, self.slot_volume = anp_slots(self.tets, [mat], self.vol, model.anp_across_materials)
         self.mu, self.kappa, self.eta, self.fibre = mat.mu, mat.kappa, mat.eta, mat.fibre
         self.mass = np.bincount(self.tets.ravel(), weights=np.repeat(mat.density * self.vol / 4.0, 4),
                                 minlength=self.n_nodes)

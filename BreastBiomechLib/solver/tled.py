@@ -21,7 +21,7 @@ import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.materials import ElementMaterials
-from BreastBiomechLib.solver.model import Model, Plate
+from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.stability import StableStepMonitor
 
 MM = 1e-3  # metres per millimetre
@@ -175,13 +175,20 @@ def characteristic_lengths(nodes_m: np.ndarray, tets: np.ndarray, vol: np.ndarra
     return 3.0 * vol / areas.max(axis=1)
 
 
+def wave_modulus(mat: ElementMaterials) -> np.ndarray:
+    """Per element, the largest small-strain longitudinal (P-wave) modulus (Pa):
+    kappa + 4 mu / 3 + 16 eta / 9. The fibre term eta/2 (I4bar - 1)^2 stiffens a uniaxial strain
+    e along the fibre by 16 eta / 9 (I4bar - 1 = 4 e / 3 there); along other directions by less."""
+    return mat.kappa + 4.0 * mat.mu / 3.0 + 16.0 * mat.eta / 9.0
+
+
 def critical_time_step(model: Model, materials: list[ElementMaterials], length_m: np.ndarray | None = None) -> float:
-    """min over elements and batch of L_e / c_d, c_d = sqrt((kappa + 4 mu / 3) / rho) (s);
-    ``length_m`` the element altitudes if already computed."""
+    """min over elements and batch of L_e / c_d, c_d = sqrt(wave_modulus / rho) (s), the fibres
+    counted; ``length_m`` the element altitudes if already computed."""
     if length_m is None:
         nodes = model.mesh.nodes * MM
         length_m = characteristic_lengths(nodes, model.mesh.tets, shape_derivatives(nodes, model.mesh.tets)[1])
-    return float(min(np.min(length_m / np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.density)) for m in materials))
+    return float(min(np.min(length_m / np.sqrt(wave_modulus(m) / m.density)) for m in materials))
 
 
 def merged_constraints(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -210,16 +217,44 @@ def merged_constraints(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return unique, mask, merged
 
 
-def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def constraint_load_shapes(model: Model, nodes: np.ndarray) -> np.ndarray:
+    """The load curve of each component of the merged constraint rows (``nodes`` from
+    :func:`merged_constraints`), as (K, 3) indices into ``LOAD_SHAPES``: a constraint's own shape,
+    else the loading's. Two shapes for one non-zero component of one node are an error (a fixed
+    component, value 0, is 0 under any curve)."""
+    default = LOAD_SHAPES.index(model.loading.load_shape)
+    shapes = np.full((len(nodes), 3), default, np.int32)
+    chosen = np.zeros((len(nodes), 3), bool)
+    for c in model.loading.constraints:
+        if c.load_shape is None or not len(c.nodes):
+            continue
+        rows = np.searchsorted(nodes, c.nodes)
+        moving = c.mask & (c.values != 0)
+        code = LOAD_SHAPES.index(c.load_shape)
+        clash = moving & chosen[rows] & (shapes[rows] != code)
+        if np.any(clash):
+            bad = c.nodes[np.any(clash, axis=1)][:5]
+            raise ValueError(f"nodes {bad.tolist()} are given two load shapes for the same displaced component")
+        shapes[rows] = np.where(moving, code, shapes[rows])
+        chosen[rows] |= moving
+    return shapes
+
+
+def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarray,
+              across_materials: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """ANP's averaging slots: one per node and material, so that the nodal pressure is averaged
     over the elements of one material only (materials told apart by their bulk moduli, in every
     parameter set of the batch). Averaging across materials would divide a stiff neighbour's
     pressure by a soft element's bulk modulus, amplifying it by their ratio (10 from fat to
-    muscle), and collapse thin soft layers. Returns the slot of each element node (M, 4) and each
-    slot's volume (S,) (sum of its elements' volumes, the units of ``vol``)."""
-    kappas = np.stack([np.asarray(m.kappa, np.float64) for m in materials], axis=1)
-    _, group = np.unique(kappas, axis=0, return_inverse=True)
-    group = group.ravel().astype(np.int64)
+    muscle), and collapse thin soft layers. ``across_materials``: one slot per node, as
+    NiftySim's T4ANP (``Model.anp_across_materials``). Returns the slot of each element node
+    (M, 4) and each slot's volume (S,) (sum of its elements' volumes, the units of ``vol``)."""
+    if across_materials:
+        group = np.zeros(len(tets), np.int64)
+    else:
+        kappas = np.stack([np.asarray(m.kappa, np.float64) for m in materials], axis=1)
+        _, group = np.unique(kappas, axis=0, return_inverse=True)
+        group = group.ravel().astype(np.int64)
     pairs = tets.astype(np.int64) * (int(group.max()) + 1) + group[:, None]
     unique_pairs, slots = np.unique(pairs.ravel(), return_inverse=True)
     slots = slots.reshape(tets.shape).astype(np.int32)
@@ -269,7 +304,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
     N, M = len(nodes), len(model.mesh.tets)
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
     mat = model.materials.long_term()
-    slots, slot_volume = anp_slots(model.mesh.tets, [mat], vol)
+    slots, slot_volume = anp_slots(model.mesh.tets, [mat], vol, model.anp_across_materials)
     f32 = np.float32
     with wp.ScopedDevice(_device(device)):
         u = wp.array(np.asarray(displacement_mm, f32) * f32(MM), dtype=wp.vec3)
@@ -374,13 +409,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     nodes = model.mesh.nodes * MM
     tets = model.mesh.tets.astype(np.int32)
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
-    slots, slot_volume = anp_slots(tets, materials, vol)
+    slots, slot_volume = anp_slots(tets, materials, vol, model.anp_across_materials)
     S = len(slot_volume)
     length = characteristic_lengths(nodes, model.mesh.tets, vol)
     if scaled:  # mass scaling: every element's stable step becomes dt / safety
-        dt = model.safety * float(np.median(length / np.sqrt((materials[0].kappa + 4 * materials[0].mu / 3)
-                                                              / materials[0].density)))
-        densities = [(mat.kappa + 4.0 * mat.mu / 3.0) * (dt / (model.safety * length)) ** 2 for mat in materials]
+        dt = model.safety * float(np.median(length / np.sqrt(wave_modulus(materials[0]) / materials[0].density)))
+        densities = [wave_modulus(mat) * (dt / (model.safety * length)) ** 2 for mat in materials]
         if relaxation is None:  # physical time: only add mass, where elements are below the step
             densities = [np.maximum(rho, mat.density) for rho, mat in zip(densities, materials)]
     else:
@@ -394,7 +428,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         extent = float(np.max(np.ptp(nodes, axis=0)))
         load_iterations = np.array([
             relaxation.load_iterations_for(max([np.abs(p.displacement).max() for p in ps] + [constrained]),
-                                           float(np.max(np.sqrt((m.kappa + 4.0 * m.mu / 3.0) / m.mu))),
+                                           float(np.max(np.sqrt(wave_modulus(m) / m.mu))),
                                            float(np.median(length)), model.safety,
                                            extent if any(p.friction > 0 for p in ps) else 0.0)
             for m, ps in zip(materials, plate_sets)])
@@ -411,7 +445,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     weight = lumped([m.density for m in materials])  # physical masses: gravity acts on these
     if np.any(mass <= 0):
         raise ValueError("some nodes belong to no element (zero mass); remove unused nodes")
-    load_shape = {"POLY345": k.LOAD_POLY345, "RAMP": k.LOAD_RAMP}[model.loading.load_shape]
+    load_shape = LOAD_SHAPES.index(model.loading.load_shape)  # plates and gravity; constraints per component
 
     f32 = np.float32
     with wp.ScopedDevice(device):
@@ -469,6 +503,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_cnodes = arr(c_nodes, int)
         d_cmask = arr(c_mask.astype(f32), wp.vec3)
         d_cvals = arr(np.tile(c_vals, (B, 1)), wp.vec3)
+        d_cshapes = wp.array(constraint_load_shapes(model, c_nodes).reshape(-1, 3), dtype=wp.vec3i)
 
         # one contact launch per plate: a node may be a slave of several plates, and the kernel
         # writes its displacement (threads of one launch must not touch the same node); the
@@ -530,9 +565,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 if sliding and n_sup:
                     wp.launch(k.slide_on_surface, B * n_sup, [u, low, du, d_snodes, d_snormals, N, n_sup, inverted])
             if n_con:
-                wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, N, n_con,
-                                                            float(dt), step, d_totals, load_shape,
-                                                            inverted])
+                wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, d_cshapes, N,
+                                                            n_con, float(dt), step, d_totals, inverted])
             for p, d_sl in enumerate(d_slaves):
                 if d_sl.shape[0]:
                     wp.launch(k.plate_contact, B * d_sl.shape[0], [u, low, du, d_x0, d_sl, p, d_ppoint, d_pnormal,
