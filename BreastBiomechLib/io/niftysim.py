@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh, _signed_volumes, boundary_faces
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Constraint, Loading, Model, Plate, PlateEdge
 from BreastBiomechLib.solver.tled import constraint_load_shapes, critical_time_step, merged_constraints
@@ -426,7 +426,7 @@ def _read_mesh(r: _Reader, root: ET.Element) -> tuple[np.ndarray, np.ndarray, st
         raise r.fail("<Elements> lists no elements")
     if tets.min() < 0 or tets.max() >= len(nodes):
         raise r.fail(f"<Elements> refers to nodes outside 0..{len(nodes) - 1}")
-    volume = _signed_volumes(nodes, tets)
+    volume = TetMesh(nodes, tets).volumes
     flat = np.flatnonzero(np.abs(volume) <= 1e-12 * max(float(np.ptp(nodes)), 1.0) ** 3)
     if len(flat):
         raise r.fail(f"elements {flat[:10].tolist()} have zero volume; NiftySim cannot solve them either")
