@@ -14,15 +14,13 @@ def export_for_niftysim(path: Path, model, solved_displacement=None, formulation
     model of several materials written as NiftySim's T4ANP (pressure averaged across materials),
     ``formulation`` (T4/T4ANP) if given; returns the path and the notes saying how the file
     differs from the model (also in the file's first comment)."""
-    import numpy as np
-
-    from BreastBiomechLib.io.niftysim import NiftySimExportWarning, write_niftysim
+    from BreastBiomechLib.io.niftysim import NiftySimExportWarning, differs_in_niftysim_anp, write_niftysim
 
     notes = []
     if formulation is not None and formulation != model.formulation:
         notes.append(f"formulation {formulation} instead of the case's {model.formulation}")
         model = replace(model, formulation=formulation)
-    if model.formulation == "T4ANP" and not model.anp_across_materials and len(np.unique(model.materials.kappa)) > 1:
+    if differs_in_niftysim_anp(model):
         notes.append("NiftySim's T4ANP averages nodal pressure across materials, the case per material: this file is "
                      "NiftySim's model, which can invert at stiff/soft interfaces where the case's does not (run it "
                      "here first with `breastbiomech niftysim run`, or export with --formulation T4)")

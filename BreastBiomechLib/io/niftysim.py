@@ -92,6 +92,13 @@ def _material_sets(mat: ElementMaterials) -> tuple[np.ndarray, np.ndarray]:
     return np.unique(table, axis=0, return_inverse=True)
 
 
+def differs_in_niftysim_anp(model: Model) -> bool:
+    """True when NiftySim's T4ANP (pressure averaged across materials) would be another model than
+    ``model``: T4ANP averaged per material over more than one bulk modulus."""
+    return (model.formulation == "T4ANP" and not model.anp_across_materials
+            and len(np.unique(model.materials.kappa)) > 1)
+
+
 def _solved_holds(model: Model, solved_mm: np.ndarray) -> Constraint | None:
     """The plates' and supports' work as prescribed displacements: every plate's slave node within
     ``CONTACT_TOLERANCE_MM`` of its moved plate at the end and every supported node takes its solved
@@ -146,7 +153,7 @@ def write_niftysim(path: str | Path, model: Model, drop_settling: bool = False,
                                       "after loading; pass drop_settling=True to export the loading only")
         note(f"the settling phase ({loading.settle_time:g} s at full load) is dropped: NiftySim stops at the end of "
              "the loading, so its result is the state at that time, not the settled one")
-    if model.formulation == "T4ANP" and not model.anp_across_materials and len(np.unique(model.materials.kappa)) > 1:
+    if differs_in_niftysim_anp(model):
         raise NiftySimFormatError(
             "NiftySim's T4ANP averages nodal pressure across materials, this model per material (its default, "
             f"{len(np.unique(model.materials.kappa))} bulk moduli here): the file would be a different model. Export "
