@@ -67,9 +67,7 @@ bench: $(STAMP)
 	$(BIN)/breastbiomech bench solver --tets 20000 --relaxation --json
 
 table1-cases: $(STAMP)
-	for n in 1 2 3 4 5; do \
-	  $(BIN)/breastbiomech phantom --case $$n --compressed $(if $(DEVICE),--device $(DEVICE)) --out out/table1/case$$n || exit 1; \
-	done
+	$(BIN)/breastbiomech table1-cases $(if $(DEVICE),--device $(DEVICE)) --out out/table1
 
 clean:
 	rm -rf out .pytest_cache $(SLICER_STACK_VENV)

@@ -110,6 +110,15 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
                         self.ui.fibreRSpinBox, self.ui.fibreASpinBox, self.ui.fibreSSpinBox):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.outputPathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.studyCasesPathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.studyOutputPathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.schedulerLineEdit.editingFinished.connect(self.updateParameterNodeFromGUI)
+        self.ui.studyBudgetsLineEdit.editingFinished.connect(self.updateParameterNodeFromGUI)
+        self.ui.studyEdgeSpinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
+        for checkBox in self._studyModelCheckBoxes().values():
+            checkBox.toggled.connect(self.updateParameterNodeFromGUI)
+        self.ui.runStudyButton.clicked.connect(self.onRunStudyButton)
+        self.ui.cancelStudyButton.clicked.connect(lambda: self._requestStop("cancel"))
         self.ui.loadCaseButton.clicked.connect(self.onLoadCaseButton)
         self.ui.runButton.clicked.connect(lambda: self.onRunButton(resume=False))
         self.ui.resumeButton.clicked.connect(lambda: self.onRunButton(resume=True))
@@ -117,6 +126,10 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         self.ui.cancelButton.clicked.connect(lambda: self._requestStop("cancel"))
         self._setRunning(False)
         self.initializeParameterNode()
+
+    def _studyModelCheckBoxes(self):
+        return {"iso-homo": self.ui.studyIsoHomoCheckBox, "aniso-homo": self.ui.studyAnisoHomoCheckBox,
+                "iso-hetero": self.ui.studyIsoHeteroCheckBox, "aniso-hetero": self.ui.studyAnisoHeteroCheckBox}
 
     @staticmethod
     def _setComboText(comboBox, text):
@@ -151,6 +164,15 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
                                   (self.ui.fibreSSpinBox, "fibreS")):
                 spinBox.value = p[name]
             self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
+            self.ui.studyCasesPathLineEdit.currentPath = p["studyCasesDirectory"]
+            self.ui.studyOutputPathLineEdit.currentPath = p["studyOutputDirectory"]
+            self.ui.schedulerLineEdit.text = p["scheduler"]
+            self.ui.studyBudgetsLineEdit.text = p["studyBudgets"]
+            self.ui.studyEdgeSpinBox.value = p["studyEdgeMm"]
+            chosen = {m.strip() for m in p["studyModels"].split(",")}
+            for model, checkBox in self._studyModelCheckBoxes().items():
+                checkBox.checked = model in chosen
+            self.ui.studyTableView.setMRMLTableNode(p.reference("studyTable"))
             plates = p.references("plates")
             self.ui.platesLabel.text = ", ".join(n.GetName() for n in plates) if plates else "none: load a case"
             self.ui.landmarkErrorsTableView.setMRMLTableNode(p.reference("landmarkErrorsTable"))
@@ -187,6 +209,12 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["fibreA"] = self.ui.fibreASpinBox.value
         p["fibreS"] = self.ui.fibreSSpinBox.value
         p["outputDirectory"] = self.ui.outputPathLineEdit.currentPath
+        p["studyCasesDirectory"] = self.ui.studyCasesPathLineEdit.currentPath
+        p["studyOutputDirectory"] = self.ui.studyOutputPathLineEdit.currentPath
+        p["scheduler"] = self.ui.schedulerLineEdit.text.strip()
+        p["studyBudgets"] = self.ui.studyBudgetsLineEdit.text.strip()
+        p["studyEdgeMm"] = self.ui.studyEdgeSpinBox.value
+        p["studyModels"] = ",".join(m for m, box in self._studyModelCheckBoxes().items() if box.checked)
         p.node.EndModify(wasModifying)
 
     def onLoadCaseButton(self):
@@ -197,6 +225,34 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             self.logic.loadCompressedCase(self._parameterNode, folder)
             self.logic.showComparison(self._parameterNode)
 
+    def onRunStudyButton(self):
+        if not dependencies_ready(DEPENDENCIES + ["distributed"], _("Breast Optimization")):
+            return
+        self._stopRequest = None
+        self._setRunning(True)
+        self.ui.studyProgressBar.value = 0
+
+        def report(state):
+            self.ui.studyProgressBar.value = int(100 * state.done / max(state.total, 1))
+            self.ui.studyProgressBar.setFormat(f"{state.done}/{state.total} tasks")
+            self.ui.studyStatusLabel.text = "\n".join(f"{label}: {line}" for label, line in sorted(state.running.items()))
+            slicer.app.processEvents()
+            return self._stopRequest is None
+
+        from BreastBiomechLib.cohort import CohortCancelled
+
+        try:
+            with slicer.util.tryWithErrorDisplay(_("Study failed."), waitCursor=True):
+                try:
+                    run = self.logic.runStudy(self._parameterNode, progress=report)
+                except CohortCancelled as cancelled:
+                    self.ui.studyStatusLabel.text = f"{cancelled}: Run study continues it"
+                else:
+                    self.ui.studyStatusLabel.text = (f"{len(run.rows)} fits in the study folder" + "".join(
+                        f"\nFAILED {o.label}: {o.error}" for o in run.failed))
+        finally:
+            self._setRunning(False)
+
     def _requestStop(self, what):
         self._stopRequest = what
 
@@ -205,6 +261,8 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         self.ui.resumeButton.enabled = not running
         self.ui.pauseButton.enabled = running
         self.ui.cancelButton.enabled = running
+        self.ui.runStudyButton.enabled = not running
+        self.ui.cancelStudyButton.enabled = running
 
     def onRunButton(self, resume):
         if not dependencies_ready(DEPENDENCIES, _("Breast Optimization")):
@@ -247,10 +305,12 @@ class BreastOptimizationLogic(ParameterNodeLogic):
                 "freeOffset": False,
                 "fibreR": 0.0, "fibreA": 0.0, "fibreS": 1.0, "optimiser": "cmaes", "budget": 200, "seconds": 0.0,
                 "seed": 0, "population": 0, "objective": "nmi", "bins": 64, "toleranceMm": 0.01, "device": "auto",
-                "outputDirectory": ""}
+                "outputDirectory": "", "studyCasesDirectory": "", "studyOutputDirectory": "",
+                "studyModels": "iso-homo,aniso-homo,iso-hetero,aniso-hetero", "studyBudgets": "", "studyEdgeMm": 4.0,
+                "scheduler": ""}
     ROLES = ("undeformedVolume", "measuredVolume", "inputMesh", "referenceLandmarks", "measuredLandmarks", "plates",
              "predictedVolume", "predictedLandmarks", "errorLines", "landmarkErrorsTable", "parametersTable",
-             "convergenceTable", "convergenceChart")
+             "convergenceTable", "convergenceChart", "studyTable")
 
     # -- inputs ----------------------------------------------------------------------------------
 
@@ -512,6 +572,86 @@ class BreastOptimizationLogic(ParameterNodeLogic):
             display.SetScalarVisibility(True)
             display.SetLineWidth(3.0)
         return node
+
+    # -- cohort study --------------------------------------------------------------------------
+
+    def studyCases(self, parameterNode) -> list:
+        """The compressed case folders of the study: the subfolders of the cases folder that hold
+        a compressed/ part, in name order."""
+        from pathlib import Path
+
+        folder = Path(self.chosenFolder(parameterNode["studyCasesDirectory"],
+                                        "a cases folder (its subfolders holding compressed/ are the cases)"))
+        if not folder.is_dir():
+            raise FileNotFoundError(f"the cases folder {folder} does not exist")
+        cases = sorted(p for p in folder.iterdir() if (p / "compressed").is_dir())
+        if not cases:
+            raise ValueError(f"{folder} holds no compressed case (a subfolder with compressed/, as "
+                             "`breastbiomech table1-cases` makes)")
+        return cases
+
+    def studyPlacement(self, parameterNode):
+        """Where the study's fits run: the Dask cluster at the "scheduler" address, else this
+        process (local worker processes are not started from inside Slicer: Slicer's
+        ``sys.executable`` launcher cannot start them, Slicer/Slicer#7445; start a local cluster
+        with `dask scheduler` and `dask worker` or run `breastbiomech study` outside Slicer)."""
+        from BreastBiomechLib.cohort import place
+
+        p = parameterNode
+        if p["scheduler"].strip():
+            return place(p["scheduler"].strip(), None, self.resolveDevice(p["device"]))
+        return place(None, 0, self.resolveDevice(p["device"]))
+
+    def runStudy(self, parameterNode, progress=None):
+        """The four-model study (:func:`BreastBiomechLib.optimisation.study.run_study`) of the
+        cases folder's compressed cases with the models of "studyModels" (comma-separated), their
+        forward-solve budgets ("studyBudgets": MODEL=SOLVES items; the others keep the study's
+        defaults), fitting meshes of "studyEdgeMm" (mm), and this panel's optimiser, seed, bins,
+        tolerance and fibre direction, written to the study output
+        folder (a rerun resumes), its fits run where :meth:`studyPlacement` says.
+        ``progress(CohortProgress)`` returning False cancels. The rows go to the study table node
+        (landmark errors in mm). Returns the :class:`~BreastBiomechLib.optimisation.study.StudyRun`."""
+        from BreastBiomechLib.optimisation.study import DEFAULT_BUDGETS, StudySettings, run_study
+
+        p = parameterNode
+        cases = self.studyCases(p)
+        output = self.chosenFolder(p["studyOutputDirectory"], "a study output folder (finished fits are kept there "
+                                                             "and a rerun resumes)")
+        models = tuple(m.strip() for m in p["studyModels"].split(",") if m.strip())
+        budgets = dict(DEFAULT_BUDGETS)
+        for item in p["studyBudgets"].replace(",", " ").split():
+            model, _, count = item.partition("=")
+            if model not in DEFAULT_BUDGETS or not count.isdigit():
+                raise ValueError(f"budgets are MODEL=SOLVES with MODEL one of {tuple(DEFAULT_BUDGETS)}, not {item!r}")
+            budgets[model] = int(count)
+        settings = StudySettings(models=models, optimisers=(p["optimiser"],), budgets=budgets, fibre=self.fibre(p),
+                                 edge_mm=p["studyEdgeMm"], seed=p["seed"], bins=p["bins"], tolerance_mm=p["toleranceMm"])
+        run = run_study(cases, output, settings, placement=self.studyPlacement(p), progress=progress)
+        self.studyTable(p, run.rows)
+        logging.info("BreastOptimization: study of %d cases in %s: %d fits, %d failed tasks", len(cases), output,
+                     len(run.rows), len(run.failed))
+        return run
+
+    def studyTable(self, parameterNode, rows) -> None:
+        """The study's rows as the study table node: case, model, optimiser, NMI, landmark error
+        mean and max (mm), forward solves, why the fit stopped, the device that solved it."""
+        from BreastBiomechLib.mrml import columns_to_table_node
+
+        def error(row, key):
+            return row.landmark_errors["error_mm"][key] if row.landmark_errors else float("nan")
+
+        columns = {"case": np.array([r.case for r in rows], dtype=object),
+                   "model": np.array([r.model for r in rows], dtype=object),
+                   "optimiser": np.array([r.optimiser for r in rows], dtype=object),
+                   "NMI": np.array([r.nmi for r in rows], float),
+                   "landmark error mean (mm)": np.array([error(r, "mean") for r in rows], float),
+                   "landmark error max (mm)": np.array([error(r, "max") for r in rows], float),
+                   "solves": np.array([r.evaluations for r in rows], float),
+                   "stopped": np.array([r.stopped for r in rows], dtype=object),
+                   "device": np.array([r.device for r in rows], dtype=object)}
+        p = parameterNode
+        p.set_reference("studyTable", columns_to_table_node(columns, self.scene, "Study fits",
+                                                            node=p.reference("studyTable")))
 
     def showComparison(self, parameterNode) -> None:
         """Slice views: the measured volume with the predicted one faded over it (application

@@ -153,3 +153,45 @@ def test_fibre_plates_and_surface_choices(scene, compressed_case_dir, fitting_me
     assert len(result.evaluations) == 2 and all(0 < e.surface_mm < 20 for e in result.evaluations)
     assert result.best.objective == pytest.approx(result.best.surface_mm)
     assert f"{plates[0].GetName()} {result.geometry['plate_offsets_mm'][0]:+.2f}" in outcome["summary"]
+
+
+def test_a_cohort_study_sent_to_a_dask_scheduler(scene, compressed_case_dir, tmp_path):
+    """The study of a cases folder sent to a running Dask cluster by its scheduler's address (a
+    local cluster of two CPU worker processes here): progress while it runs, the study table node
+    with a row per fit, a broken case reported without stopping the others, refusals named."""
+    import shutil
+
+    from distributed import LocalCluster
+
+    cases = tmp_path / "cases"
+    shutil.copytree(compressed_case_dir, cases / "caseA")
+    shutil.copytree(compressed_case_dir, cases / "broken")
+    (cases / "broken" / "labels.nrrd").unlink()
+    (cases / "notes").mkdir()  # not a case: no compressed/
+    logic = BreastOptimization.BreastOptimizationLogic(scene)
+    p = logic.getParameterNode()
+    p["studyCasesDirectory"], p["studyOutputDirectory"] = str(cases), str(tmp_path / "study")
+    p["studyModels"], p["studyBudgets"], p["studyEdgeMm"] = "iso-homo", "iso-homo=1", 12.0
+    p["device"], p["toleranceMm"] = "cpu", 0.05
+    assert [c.name for c in logic.studyCases(p)] == ["broken", "caseA"]
+    p["studyBudgets"] = "iso-homo=two"
+    with pytest.raises(ValueError, match="MODEL=SOLVES"):
+        logic.runStudy(p)
+    p["studyBudgets"] = "iso-homo=1"
+    assert logic.studyPlacement(p).describe() == "this process, one task after another"
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        p["scheduler"] = cluster.scheduler_address
+        assert logic.studyPlacement(p).describe() == f"the Dask cluster at {cluster.scheduler_address}"
+        states = []
+        run = logic.runStudy(p, progress=lambda state: states.append((state.done, state.total, dict(state.running))))
+    assert states[-1][:2] == (4, 4) and any("caseA iso-homo cmaes" in running for _, _, running in states)
+    assert [o.key for o in run.failed] == ["mesh/broken", "fit/broken/iso-homo-cmaes"] or \
+        sorted(o.key for o in run.failed) == ["fit/broken/iso-homo-cmaes", "mesh/broken"]
+    table = p.reference("studyTable").GetTable()
+    assert table.GetNumberOfRows() == 1 and table.GetValueByName(0, "case").ToString() == "caseA"
+    assert table.GetValueByName(0, "solves").ToDouble() == 1
+    assert 1.0 < table.GetValueByName(0, "NMI").ToDouble() < 2.0
+    p["studyCasesDirectory"] = str(tmp_path / "study")
+    with pytest.raises(ValueError, match="holds no compressed case"):
+        logic.studyCases(p)

@@ -117,12 +117,12 @@ def test_the_command_fits_resumes_and_reports(compressed_case_dir, tmp_path, cap
     report.write_text("# Validation\n\nProse that stays.\n")
     out = tmp_path / "study"
     arguments = ["study", str(compressed_case_dir), "--out", str(out), "--models", "iso-homo", "--budget",
-                 "iso-homo=3", "--edge-mm", "10", "--device", "cpu", "--tolerance-mm", "0.05", "--report",
+                 "iso-homo=2", "--edge-mm", "10", "--device", "cpu", "--tolerance-mm", "0.05", "--report",
                  str(report), "--quiet"]
     assert main(arguments) == 0
     rows = json.loads((out / "study.json").read_text())["fits"]
     assert [(r["case"], r["model"], r["optimiser"], r["evaluations"]) for r in rows] == [
-        ("case", "iso-homo", "cmaes", 3)]
+        ("case", "iso-homo", "cmaes", 2)]
     assert rows[0]["in_family"] is False and 1.0 < rows[0]["nmi"] < 2.0
     assert rows[0]["landmark_errors"]["error_mm"]["mean"] > 0
     assert rows[0]["device"] == device_name("cpu")

@@ -47,8 +47,15 @@ def main(argv: list[str] | None = None) -> int:
         import warp
 
         warp.config.log_level = warp.LOG_WARNING
+    from BreastBiomechLib.cohort import CohortCancelled
+
     try:
         return args.func(args)
+    except (CohortCancelled, KeyboardInterrupt) as exc:
+        end_progress()
+        print(f"breastbiomech {args.command}: cancelled{': ' + str(exc) if str(exc) else ''}; what finished is kept, "
+              "and the same command resumes", file=sys.stderr)
+        return 130
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
         end_progress()
         print(f"breastbiomech {args.command}: error: {exc}", file=sys.stderr)

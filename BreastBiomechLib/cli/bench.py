@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import non_negative
+from BreastBiomechLib.cli.common import MODEL_CHOICES, non_negative
 
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
@@ -347,6 +347,61 @@ def _bench_optimise(args) -> dict:
             "max_relative_error": max(errors.values()), "relative_errors": errors}
 
 
+def _bench_cohort(args) -> dict:
+    """The study of ``--case-dirs`` (``--models``, ``--budget`` solves per fit, fitting meshes of
+    ``--fit-edge-mm``) run each way of ``--modes`` into a fresh folder: "serial" (every task in
+    this process), "dask" (a local cluster of ``--workers``, default one per GPU or core),
+    "processes" (one ``breastbiomech study CASE --workers 0`` process per case, side by side: how
+    the study ran before it had Dask). Wall seconds, fits per hour, and whether every mode's rows
+    equal the first mode's (NMI, objective, materials, solves)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from BreastBiomechLib.cohort import place
+    from BreastBiomechLib.optimisation.study import StudySettings, read_study, run_study
+
+    budgets = {model: args.budget for model in args.models}
+    settings = StudySettings(models=tuple(args.models), budgets=budgets, edge_mm=args.fit_edge_mm)
+    base = Path(args.out or tempfile.mkdtemp(prefix="bench-cohort-"))
+    figures = {"benchmark": "cohort", "version": __version__, "cases": len(args.case_dirs),
+               "models": list(args.models), "budget": args.budget, "fit_edge_mm": args.fit_edge_mm, "modes": {}}
+    reference = None
+    for mode in args.modes:
+        out = base / mode
+        if out.exists():
+            raise FileExistsError(f"{out} exists: give a new --out (the benchmark times fits from scratch)")
+        started = time.perf_counter()
+        if mode == "processes":
+            device = ["--device", args.device] if args.device else []
+            runs = [subprocess.Popen([sys.executable, "-c", "import sys; from BreastBiomechLib.cli import main; "
+                                      "sys.exit(main())", "study", str(case), "--out", str(out), "--models",
+                                      *args.models, "--budget", *(f"{m}={args.budget}" for m in args.models),
+                                      "--edge-mm", str(args.fit_edge_mm), "--workers", "0", "--quiet", *device],
+                                     stdout=subprocess.DEVNULL) for case in args.case_dirs]
+            if any(run.wait() != 0 for run in runs):
+                raise RuntimeError(f"a study process failed (mode processes, {out})")
+            where = f"{len(runs)} processes side by side"
+        else:
+            placement = place(None, 0 if mode == "serial" else args.workers, args.device)
+            run = run_study(args.case_dirs, out, settings, placement=placement)
+            if run.failed:
+                raise RuntimeError(f"{mode}: {run.failed[0].key} failed: {run.failed[0].error}")
+            where = placement.describe()
+        seconds = time.perf_counter() - started
+        rows = sorted((r.case, r.model, r.evaluations, r.nmi, r.objective, json.dumps(r.materials, sort_keys=True))
+                      for r in read_study(out))
+        reference = rows if reference is None else reference
+        figures["modes"][mode] = {"where": where, "fits": len(rows), "seconds": round(seconds, 1),
+                                  "fits_per_hour": round(3600 * len(rows) / seconds, 1),
+                                  "rows_equal_first_mode": rows == reference}
+    first = figures["modes"][args.modes[0]]["seconds"]
+    for mode, entry in figures["modes"].items():
+        entry["seconds_over_first_mode"] = round(entry["seconds"] / first, 3)
+    figures["device"] = args.device or "default"
+    return figures
+
+
 def cmd_bench(args) -> int:
     if args.what == "solver":
         figures = _bench_solver(args)
@@ -356,9 +411,10 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
-    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "diagnose"):
+    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "diagnose", "cohort"):
         figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp, "optimise": _bench_optimise,
-                   "unloaded": _bench_unloaded, "effects": _bench_effects, "diagnose": _bench_diagnose}[args.what](args)
+                   "unloaded": _bench_unloaded, "effects": _bench_effects, "diagnose": _bench_diagnose,
+                   "cohort": _bench_cohort}[args.what](args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -388,14 +444,15 @@ def add_parsers(sub) -> None:
 
     p = sub.add_parser("bench", help="print benchmark figures")
     p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise",
-                                    "diagnose"], help="what to time")
+                                    "diagnose", "cohort"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5],
                    help="Table 1 cases (phantom; effects, diagnose: the first)")
     p.add_argument("--truth-edge-mm", type=float, default=3.0,
                    help="effects, diagnose: the truth mesh's element size (mm)")
     p.add_argument("--hidden", choices=sorted(HIDDEN), default="friction",
                    help="diagnose: the effect hidden in the truth (a suite case's, default friction)")
-    p.add_argument("--fit-edge-mm", type=float, default=6.0, help="diagnose: the fitting mesh's element size (mm)")
+    p.add_argument("--fit-edge-mm", type=float, default=6.0,
+                   help="diagnose, cohort: the fitting mesh's element size (mm)")
     p.add_argument("--fit-budget", type=int, default=60, help="diagnose: the material fit's forward solves")
     p.add_argument("--rounds", type=int, default=3, help="diagnose: rounds at most")
     p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
@@ -425,13 +482,18 @@ def add_parsers(sub) -> None:
     p.add_argument("--voxel-mm", type=float, nargs=3, default=[1.0, 1.0, 2.5],
                    help="optimise, diagnose: voxel size (mm)")
     p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
-    p.add_argument("--budget", type=int, default=500, help="optimise: forward solves")
+    p.add_argument("--budget", type=int, default=500, help="optimise: forward solves; cohort: per fit")
     p.add_argument("--population", type=int, default=None, help="optimise: CMA-ES population (batch size)")
     p.add_argument("--tolerance-mm", type=float, default=None,
                    help="optimise: forward solves' relaxation tolerance (default 0.01); unloaded: largest node mismatch "
                         "to reach (default 0.02 mm)")
     p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
                                  "parameters, objective and status; result.json); diagnose: the case's folder (kept, "
-                                 "resumed; default a temporary one)")
+                                 "resumed; default a temporary one); cohort: a new folder for the studies")
+    p.add_argument("--case-dirs", nargs="+", default=[], help="cohort: compressed case folders (table1-cases)")
+    p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=["iso-homo"], help="cohort: models fitted")
+    p.add_argument("--modes", nargs="+", choices=("serial", "dask", "processes"), default=["serial", "dask"],
+                   help="cohort: how the study runs (the first is the reference)")
+    p.add_argument("--workers", type=int, help="cohort: the dask mode's local workers (default one per GPU or core)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)

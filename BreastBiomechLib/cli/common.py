@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 
 
@@ -34,3 +35,43 @@ def non_negative(text: str) -> float:
     if not (value >= 0 and value < float("inf")):
         raise argparse.ArgumentTypeError(f"must be a finite number >= 0, not {text}")
     return value
+
+
+def add_cluster_options(p: argparse.ArgumentParser) -> None:
+    """``--scheduler`` and ``--workers``: where a cohort command's tasks run
+    (:func:`BreastBiomechLib.cohort.place`)."""
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="an existing Dask cluster's scheduler (tcp://HOST:PORT; default: the environment's "
+                        "BREASTBIOMECH_SCHEDULER, else a local cluster made for the run)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="local cluster's worker processes (default: one per GPU, or one per core without a GPU; "
+                        "several may share a GPU; 0: run every task in this process)")
+
+
+def cohort_progress(quiet: bool):
+    """A progress callback for :func:`BreastBiomechLib.cohort.run_tasks`: says once where the tasks
+    run (and the dashboard's address), then redraws a bar over the tasks on standard error."""
+    said = {"where": False, "width": 0}
+
+    def report(state):
+        if quiet:
+            return
+        if not said["where"]:
+            said["where"] = True
+            print(f"  tasks run on {state.where}" + (f"; dashboard {state.dashboard}" if state.dashboard else ""),
+                  file=sys.stderr, flush=True)
+        text = state.line()[: shutil.get_terminal_size((120, 20)).columns - 3]
+        print("\r  " + text.ljust(said["width"]), end="", file=sys.stderr, flush=True)  # blank what was longer
+        said["width"] = len(text)
+        _line["open"] = True
+    return report
+
+
+def report_failures(failed, log_path) -> None:
+    """One line per failed task on standard error, and where their tracebacks are."""
+    end_progress()
+    for outcome in failed:
+        print(f"  FAILED {outcome.label}: {outcome.error}", file=sys.stderr)
+    if failed:
+        print(f"  {len(failed)} task{'s' * (len(failed) != 1)} failed; tracebacks in {log_path}; the others finished, "
+              "and a rerun tries the failed ones again", file=sys.stderr)

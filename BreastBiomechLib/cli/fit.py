@@ -6,8 +6,10 @@ from __future__ import annotations
 import json
 import sys
 import time
+from pathlib import Path
 
-from BreastBiomechLib.cli.common import MODEL_CHOICES, OBJECTIVE_CHOICES
+from BreastBiomechLib.cli.common import (MODEL_CHOICES, OBJECTIVE_CHOICES, add_cluster_options, cohort_progress,
+                                         end_progress, report_failures)
 
 
 def cmd_optimise(args) -> int:
@@ -57,6 +59,7 @@ def cmd_study(args) -> int:
     """The four-model study of the seed's Tables 2 and 3 on compressed cases."""
     import datetime
 
+    from BreastBiomechLib.cohort import place
     from BreastBiomechLib.optimisation.study import (StudySettings, provenance, run_study, study_markdown,
                                                      write_report)
 
@@ -69,16 +72,10 @@ def cmd_study(args) -> int:
     settings = StudySettings(models=tuple(args.models), optimisers=tuple(args.optimisers),
                              budgets={**StudySettings().budgets, **budgets}, fibre=tuple(args.fibre),
                              edge_mm=args.edge_mm, seed=args.seed, bins=args.bins, tolerance_mm=args.tolerance_mm)
-    started = time.perf_counter()
-
-    def progress(fit, done, budget, best, phase):
-        if not args.quiet:
-            print(f"\r  {fit}: {done}/{budget} {phase:6s} best {best:.5f} {time.perf_counter() - started:6.0f} s ",
-                  end="", file=sys.stderr, flush=True)
-
-    rows = run_study(args.case_dirs, args.out, settings, device=args.device, progress=progress)
-    if not args.quiet:
-        print(file=sys.stderr)
+    placement = place(args.scheduler, args.workers, args.device)
+    run = run_study(args.case_dirs, args.out, settings, placement=placement, progress=cohort_progress(args.quiet))
+    end_progress()
+    rows = run.rows
     if args.report:
         import warp as wp
 
@@ -93,7 +90,8 @@ def cmd_study(args) -> int:
         print(f"{row.case:8s} {row.model:13s} {row.optimiser:7s} NMI {row.nmi:.4f} "
               + (f"landmark error {s['mean']:.2f} ± {s['sd']:.2f} mm (max {s['max']:.1f})" if s else "")
               + f" {row.evaluations} solves, {row.stopped}")
-    return 0
+    report_failures(run.failed, Path(args.out) / "failures.log")
+    return 1 if run.failed else 0
 
 
 def add_parsers(sub) -> None:
@@ -141,7 +139,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
     p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
-    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--device", help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
+    add_cluster_options(p)
     p.add_argument("--report", help="Markdown file whose study tables are (re)written, e.g. docs/validation.md")
-    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_study)

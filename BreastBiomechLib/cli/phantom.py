@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import non_negative
+from BreastBiomechLib.cli.common import add_cluster_options, cohort_progress, non_negative, report_failures
 
 
 def _phantom_parameters(args):
@@ -93,8 +93,29 @@ def cmd_phantom(args) -> int:
     return 0
 
 
+def cmd_table1_cases(args) -> int:
+    """The compressed cases of the seed's Table 1, one cohort task per case (a rerun makes only
+    the missing ones)."""
+    from BreastBiomechLib.cohort import place, run_tasks
+    from BreastBiomechLib.optimisation.study import log_failure
+    from BreastBiomechLib.phantom.table1_cases import table1_tasks
+
+    tasks = table1_tasks(args.out, args.cases, truth_edge_mm=args.truth_edge_mm, overview=not args.no_overview)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    outcomes = run_tasks(tasks, place(args.scheduler, args.workers, args.device), progress=cohort_progress(args.quiet),
+                         on_outcome=lambda o: None if o.ok else log_failure(Path(args.out) / "failures.log", o))
+    failed = [o for o in outcomes if not o.ok]
+    report_failures(failed, Path(args.out) / "failures.log")
+    print(f"{len(args.cases) - len(tasks)} case(s) already in {args.out}, {len(outcomes) - len(failed)} made, "
+          f"{len(failed)} failed")
+    return 1 if failed else 0
+
+
 def add_parsers(sub) -> None:
-    """Register the ``phantom`` command on ``sub`` (argparse sub-parsers)."""
+    """Register the ``phantom`` and ``table1-cases`` commands on ``sub`` (argparse sub-parsers)."""
+    from BreastBiomechLib.phantom.parameters import TABLE1_CASES
+
+
     p = sub.add_parser("phantom", help="generate a synthetic breast MR case with ground truth")
     p.add_argument("--out", required=True, help="output folder")
     _add_phantom_options(p)
@@ -130,3 +151,15 @@ def add_parsers(sub) -> None:
                          help="the thorax moved by this (mm, LPS) between the scans (not in the discrepancy "
                               "library)")
     p.set_defaults(func=cmd_phantom)
+
+    p = sub.add_parser("table1-cases", help="the compressed phantom cases of the seed's Table 1, as cohort tasks "
+                                            "(OUT/case<N>; a rerun makes only the missing ones)")
+    p.add_argument("--out", required=True, help="output folder (one case<N> folder per case)")
+    p.add_argument("--cases", nargs="+", type=int, choices=sorted(TABLE1_CASES), default=sorted(TABLE1_CASES),
+                   help="which cases (default all)")
+    p.add_argument("--truth-edge-mm", type=float, default=2.0, help="element size of the truth meshes (default 2 mm)")
+    p.add_argument("--no-overview", action="store_true", help="skip the PNG overviews")
+    p.add_argument("--device", help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
+    add_cluster_options(p)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_table1_cases)

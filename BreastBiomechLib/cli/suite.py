@@ -1,65 +1,16 @@
 """``breastbiomech discrepancy-suite``: the hidden-effect suite that proves the discrepancy
-workflow (:mod:`BreastBiomechLib.discrepancy.suite`), resumable, in shards side by side."""
+workflow (:mod:`BreastBiomechLib.discrepancy.suite`), resumable, its cases as cohort tasks on Dask."""
 
 from __future__ import annotations
 
 import json
-import sys
-import time
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import non_negative
-
-
-def _shard(text: str) -> tuple[int, int]:
-    import argparse
-
-    try:
-        k, n = (int(v) for v in text.split("/"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--shard takes K/N (e.g. 0/4), not {text!r}") from None
-    if not (n >= 1 and 0 <= k < n):
-        raise argparse.ArgumentTypeError(f"--shard {text}: give K/N with 0 <= K < N")
-    return k, n
-
-
-def _run_shards(args, say) -> None:
-    """Run the suite as ``args.jobs`` shard processes side by side (this command with ``--shard
-    K/N``), spread over the GPUs when ``--device cuda``; each shard's log is
-    OUT/shard-K.log."""
-    import subprocess
-
-    if args.shard != (0, 1):
-        raise ValueError("give --jobs or --shard, not both")
-    argv = list(args.argv)
-    if "--jobs" in argv:
-        at = argv.index("--jobs")
-        del argv[at:at + 2]
-    argv = [a for a in argv if not a.startswith("--jobs=")]
-    gpus = 0
-    if args.device == "cuda":
-        import warp as wp
-
-        wp.init()
-        gpus = wp.get_cuda_device_count()
-    Path(args.out).mkdir(parents=True, exist_ok=True)
-    processes = []
-    for k in range(args.jobs):
-        device = ["--device", f"cuda:{k % gpus}"] if gpus > 1 else []
-        command = [sys.executable, "-c", "import sys; from BreastBiomechLib.cli import main; sys.exit(main())",
-                   *argv, "--shard", f"{k}/{args.jobs}", *device, "--quiet"]
-        log = open(Path(args.out) / f"shard-{k}.log", "a")
-        processes.append((subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT), log))
-        say(f"shard {k}/{args.jobs} started{' on ' + device[1] if device else ''}")
-    failed = 0
-    for k, (process, log) in enumerate(processes):
-        failed += process.wait() != 0
-        log.close()
-    if failed:
-        raise RuntimeError(f"{failed} of {args.jobs} shards failed: see {args.out}/shard-*.log")
+from BreastBiomechLib.cli.common import add_cluster_options, cohort_progress, non_negative, report_failures
 
 
 def cmd_suite(args) -> int:
+    from BreastBiomechLib.cohort import place
     from BreastBiomechLib.discrepancy.suite import (SuiteSettings, run_suite, scores_markdown, suite_cases,
                                                     suite_scores)
 
@@ -71,20 +22,15 @@ def cmd_suite(args) -> int:
                              refine_interfaces=not args.no_refine, fit_blur_mm=args.fit_blur_mm, fit_budget=args.fit_budget,
                              fit_population=args.fit_population, rounds=args.rounds,
                              landmark_noise_mm=args.landmark_noise_mm)
-    started = time.perf_counter()
-
-    def say(message):
-        if not args.quiet:
-            print(f"  [{time.perf_counter() - started:6.0f} s] {message}", file=sys.stderr, flush=True)
-
     if args.score_only:
         if not (out / "settings.json").is_file():
             raise FileNotFoundError(f"{out}: no suite run to score (no settings.json); run "
                                     "`breastbiomech discrepancy-suite --out DIR` first, or give its folder")
-    elif args.jobs > 1:
-        _run_shards(args, say)
     else:
-        run_suite(out, cases, settings, device=args.device, shard=args.shard, say=say)
+        placement = place(args.scheduler, args.workers, args.device)
+        failed = [o for o in run_suite(out, cases, settings, placement, progress=cohort_progress(args.quiet))
+                  if not o.ok]
+        report_failures(failed, out / "failures.log")
     results = [json.loads((out / c.name / "result.json").read_text()) if (out / c.name / "result.json").is_file()
                else json.loads((out / c.name / "error.json").read_text()) if (out / c.name / "error.json").is_file()
                else None for c in cases]
@@ -131,11 +77,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--landmark-noise-mm", type=non_negative, default=d.landmark_noise_mm,
                    help="localisation error (sd per coordinate, mm) put on the measured landmarks of each image "
                         f"(default {d.landmark_noise_mm:g})")
-    p.add_argument("--device", help="warp device (cuda, cuda:1, cpu; default: warp's)")
-    p.add_argument("--shard", type=_shard, default=(0, 1), metavar="K/N",
-                   help="run every N-th case from the K-th (shards may run side by side on one --out)")
-    p.add_argument("--jobs", type=int, default=1,
-                   help="run this many shards side by side (spread over the GPUs with --device cuda)")
+    p.add_argument("--device", help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
+    add_cluster_options(p)
     p.add_argument("--score-only", action="store_true", help="score the finished cases, run nothing")
     p.add_argument("--json", action="store_true", help="print the headline scores as one JSON line")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")

@@ -388,7 +388,7 @@ def read_niftysim(path: str | Path) -> Model:
                      "meshes must be inline Nodes/Elements of T4 or T4ANP, contact only rigid ContactPlates); "
                      "remove it or convert it, knowing the model changes")
     nodes, tets, formulation = _read_mesh(r, root)
-    N, M = len(nodes), len(tets)
+    M = len(tets)
     system = _read_system(r, root)
     materials, material_set = _read_element_sets(r, root, M, system["Density"])
     constraints, gravity, gravity_shape = _read_constraints(r, root, nodes, tets)

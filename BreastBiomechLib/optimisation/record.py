@@ -3,7 +3,8 @@ is made, the evaluation budget (count and wall time), progress and cancel, and r
 
 Resume replays: the optimisers are deterministic for a given seed, so a rerun with the same
 settings asks for the same positions in the same order, and those already in the results file
-are answered from it without a solve. An interruption loses at most the batch in flight.
+are answered from it without a solve. An interruption loses at most the batch in flight (a
+record cut short by a kill mid-write is dropped on resume).
 """
 
 from __future__ import annotations
@@ -56,7 +57,11 @@ class EvaluationLog:
             if self.path.exists() and not resume:
                 raise FileExistsError(f"{self.path} exists: resume it (--resume) or choose another output folder")
             if resume and self.path.exists():
-                for line in self.path.read_text().splitlines():
+                text = self.path.read_text()
+                if text and not text.endswith("\n"):  # a run killed mid-line: drop the half-written record
+                    text = text[: text.rfind("\n") + 1]
+                    self.path.write_text(text)
+                for line in text.splitlines():
                     if line.strip():
                         record = json.loads(line)
                         record.pop("index", None)

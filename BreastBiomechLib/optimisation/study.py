@@ -9,10 +9,11 @@ one continues)::
     <case>/<model>-<optimiser>/     one fit (:func:`BreastBiomechLib.optimisation.case.fit_compressed_case`)
                    study_row.json   its row of the tables, written when it ends
     study.json                      the settings and every fit's row, rewritten after each fit
+    failures.log                    the tasks that failed, with their errors and tracebacks
 
-A fit whose row shows its budget spent (or converged) is not run again, so several processes
-can fit different cases into one folder at once (e.g. one per case on one GPU) and a last run
-over all cases writes the report.
+The fits run as tasks on Dask (:mod:`BreastBiomechLib.cohort`): a local cluster with a
+worker per GPU by default, or an existing cluster. A fit whose row shows its budget spent (or
+converged) is not run again; a worker lost mid-fit costs only that fit's batch in flight.
 
 Units: landmark errors and displacements in mm (LPS), moduli in Pa.
 """
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import json
 import platform
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -123,21 +123,26 @@ def truth_in_family(truth: dict, model: str, fibre) -> bool:
     return True
 
 
-def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = None, device=None,
-              progress: Callable[[str, int, int, float, str], bool | None] | None = None) -> list[StudyFit]:
-    """Fit every model of ``settings`` with every optimiser to every compressed case in
-    ``case_dirs`` (phantom case folders with their ``compressed/`` part); results in
-    ``out_dir`` (see the module notes; an existing folder is resumed). ``progress(fit,
-    done, budget, best objective, phase)`` is called after every batch; returning False cancels
-    (the fits so far are kept and a rerun resumes). Returns every fit's row, also those of
-    earlier runs into ``out_dir`` that this one did not redo."""
-    from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.markups import read_markups
-    from BreastBiomechLib.io.meshes import write_vtu
-    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-    from BreastBiomechLib.phantom.compressed_files import read_compressed
+@dataclass
+class StudyRun:
+    """What a study run leaves: every fit's ``rows`` (also those of earlier runs into the
+    folder) and the tasks of this run that ``failed`` (:class:`~BreastBiomechLib.cohort.TaskOutcome`,
+    with their errors; their tracebacks are in the folder's failures.log)."""
 
-    settings = settings or StudySettings()
+    rows: list[StudyFit]
+    failed: list
+
+
+def _fit_done(folder: Path, budget: int) -> bool:
+    row = _read_row(folder)
+    return row is not None and (row.evaluations >= budget or row.stopped == "converged")
+
+
+def study_tasks(case_dirs, out_dir: str | Path, settings: StudySettings) -> list:
+    """The study's tasks (:class:`~BreastBiomechLib.cohort.Task`) not yet done in ``out_dir``: a
+    fitting mesh per case, then every (model, optimiser) fit of the case, which needs it."""
+    from BreastBiomechLib.cohort import Task
+
     cases = [Path(c) for c in case_dirs]
     if not cases:
         raise ValueError("give at least one compressed case folder (`breastbiomech phantom --case N --compressed`)")
@@ -145,42 +150,112 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
     if len(set(names)) != len(names):
         raise ValueError(f"the case folders' names must differ (they name the result folders): {names}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    tasks = []
     for case in cases:
-        truth = read_compressed(case).truth()["truth"]["materials"]
         mesh_file = out / case.name / "fitting_mesh.vtu"
         if not mesh_file.is_file():
-            reference = read_markups(case / "landmarks.mrk.json")
-            nipple = reference.position("nipple") if "nipple" in reference.labels else None
-            mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
-                               nipple_mm=nipple).mesh
-            write_vtu(mesh_file, mesh)
+            tasks.append(Task(f"mesh/{case.name}", make_fitting_mesh, {"case_dir": str(case), "mesh_file": str(mesh_file),
+                                                                       "edge_mm": settings.edge_mm},
+                              label=f"{case.name} fitting mesh"))
         for model in settings.models:
             for optimiser in settings.optimisers:
-                label = f"{case.name} {model} {optimiser}"
                 folder = out / case.name / f"{model}-{optimiser}"
-                done = _read_row(folder)
-                if done is not None and (done.evaluations >= settings.budget(model) or done.stopped == "converged"):
+                if _fit_done(folder, settings.budget(model)):
                     continue
-                report = None
-                if progress is not None:
-                    def report(done, budget, best, phase, label=label):
-                        return progress(label, done, budget, best, phase)
-                fit = fit_compressed_case(case, folder, settings.fit_settings(model, optimiser), mesh_path=mesh_file,
-                                          resume=(folder / "evaluations.jsonl").exists(), device=device,
-                                          progress=report)
-                summary = fit.result.summary()
-                earlier = done.seconds if done is not None else 0.0
-                row = StudyFit(case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
-                               summary["evaluations"], summary["failed"], earlier + summary["seconds"],
-                               summary["stopped"], fit.landmark_errors, fit.result.materials, truth,
-                               truth_in_family(truth, model, settings.fibre), device_name(device))
-                _write_json(folder / ROW_FILE, row.to_dict())
-                _write_json(out / "study.json", {"settings": asdict(settings),
-                                                 "fits": [r.to_dict() for r in read_study(out)]})
-                if fit.result.stopped == "cancelled":
-                    return read_study(out)
-    return read_study(out)
+                tasks.append(Task(f"fit/{case.name}/{model}-{optimiser}", fit_study_case,
+                                  {"case_dir": str(case), "folder": str(folder), "mesh_file": str(mesh_file),
+                                   "settings": settings, "model": model, "optimiser": optimiser},
+                                  needs=(f"mesh/{case.name}",), label=f"{case.name} {model} {optimiser}"))
+    return tasks
+
+
+def make_fitting_mesh(case_dir: str, mesh_file: str, edge_mm: float, device=None, progress=None) -> dict:
+    """A study task: the fitting mesh of the case's labels at ``edge_mm`` (nipple-aware), written
+    to ``mesh_file`` through a temporary file renamed into place. Returns its size."""
+    import os
+
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.markups import read_markups
+    from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+
+    case, target = Path(case_dir), Path(mesh_file)
+    reference = read_markups(case / "landmarks.mrk.json")
+    nipple = reference.position("nipple") if "nipple" in reference.labels else None
+    mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=edge_mm), nipple_mm=nipple).mesh
+    target.parent.mkdir(parents=True, exist_ok=True)
+    temporary = target.with_name(f".{target.stem}.{os.getpid()}.partial.vtu")
+    write_vtu(temporary, mesh)
+    os.replace(temporary, target)
+    return {"nodes": len(mesh.nodes), "tets": len(mesh.tets)}
+
+
+def fit_study_case(case_dir: str, folder: str, mesh_file: str, settings: StudySettings, model: str, optimiser: str,
+                   device=None, progress=None) -> dict:
+    """A study task: fit ``model`` with ``optimiser`` to the compressed case on its fitting mesh
+    (resuming a fit interrupted in ``folder``) and write its row (:data:`ROW_FILE`, atomically).
+    ``progress(message)`` returning False stops the fit after its batch (the row then says
+    "cancelled" and a rerun continues). Returns the row."""
+    from BreastBiomechLib.cohort import write_json_atomically
+    from BreastBiomechLib.phantom.compressed_files import read_compressed
+
+    case, folder = Path(case_dir), Path(folder)
+    truth = read_compressed(case).truth()["truth"]["materials"]
+    earlier = _read_row(folder)
+    def report(done, budget, best, phase):
+        return None if progress is None else progress(f"{done}/{budget} solves, best {best:.4f}")
+
+    fit = fit_compressed_case(case, folder, settings.fit_settings(model, optimiser), mesh_path=mesh_file,
+                              resume=(folder / "evaluations.jsonl").exists(), device=device, progress=report)
+    summary = fit.result.summary()
+    row = StudyFit(case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
+                   summary["evaluations"], summary["failed"], (earlier.seconds if earlier else 0.0) + summary["seconds"],
+                   summary["stopped"], fit.landmark_errors, fit.result.materials, truth,
+                   truth_in_family(truth, model, settings.fibre), device_name(device))
+    write_json_atomically(folder / ROW_FILE, row.to_dict())
+    return row.to_dict()
+
+
+def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = None, device=None,
+              placement=None, progress=None) -> StudyRun:
+    """Fit every model of ``settings`` with every optimiser to every compressed case in
+    ``case_dirs`` (phantom case folders with their ``compressed/`` part); results in
+    ``out_dir`` (see the module notes; an existing folder is resumed: done fits are skipped,
+    interrupted ones continue). The tasks (:func:`study_tasks`) run at ``placement``
+    (:func:`BreastBiomechLib.cohort.place`; None: a local cluster for ``device``);
+    ``progress(CohortProgress)`` returning False cancels (raises
+    :class:`~BreastBiomechLib.cohort.CohortCancelled`; what finished is kept). study.json is
+    rewritten as each fit ends; failed tasks are listed in failures.log with their tracebacks
+    and do not stop the others."""
+    from BreastBiomechLib.cohort import place, run_tasks, write_json_atomically
+
+    settings = settings or StudySettings()
+    out = Path(out_dir)
+    tasks = study_tasks(case_dirs, out, settings)
+    out.mkdir(parents=True, exist_ok=True)
+    placement = placement or place(device=device)
+
+    def summarise() -> None:
+        write_json_atomically(out / "study.json", {"settings": asdict(settings),
+                                                   "fits": [r.to_dict() for r in read_study(out)]})
+
+    def ended(outcome) -> None:
+        if not outcome.ok:
+            log_failure(out / "failures.log", outcome)
+        summarise()
+
+    outcomes = run_tasks(tasks, placement, progress=progress, on_outcome=ended)
+    summarise()
+    return StudyRun(read_study(out), [o for o in outcomes if not o.ok])
+
+
+def log_failure(path: Path, outcome) -> None:
+    """Append a failed task's key, error and traceback to the log file ``path``."""
+    import datetime
+
+    with open(path, "a") as stream:
+        stream.write(f"--- {datetime.datetime.now().isoformat(timespec='seconds')} {outcome.key}: {outcome.error}\n"
+                     f"{outcome.traceback}\n")
 
 
 ROW_FILE = "study_row.json"
@@ -192,12 +267,6 @@ def device_name(device=None) -> str:
 
     wp.init()
     return (wp.get_device(device) if device is not None else wp.get_device()).name
-
-
-def _write_json(path: Path, document: dict) -> None:
-    temporary = path.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(document, indent=2) + "\n")
-    temporary.replace(path)
 
 
 def _read_row(folder: Path) -> StudyFit | None:

@@ -91,7 +91,7 @@ class SuiteCase:
 
 def suite_cases(anatomies=ANATOMIES, effects=None) -> list[SuiteCase]:
     """The cases of ``anatomies`` (Table 1 numbers) x ``effects`` (names of :data:`HIDDEN_EFFECTS`,
-    default all), hidden effect by hidden effect (so that shards running side by side start on
+    default all), hidden effect by hidden effect (so that workers running side by side start on
     different anatomies)."""
     names = list(HIDDEN_EFFECTS) if effects is None else list(effects)
     unknown = sorted(set(names) - set(HIDDEN_EFFECTS))

@@ -2,7 +2,9 @@
 MR and the fitting mesh of that segmentation; per case a truth simulation with the hidden effect,
 a material fit and the diagnosis, on a copy of the case that holds only what a clinic would have.
 
-Folder layout (every stage is skipped when its output exists, so a run resumes)::
+The anatomies and the cases run as cohort tasks (:mod:`BreastBiomechLib.cohort`: a local Dask
+cluster by default, one worker per GPU, or an existing cluster). Folder layout (every stage is
+skipped when its output exists, so a run resumes)::
 
     anatomy<N>/phantom/          the phantom with its truth (labels, fractions, signal)
     anatomy<N>/truth_mesh.vtu    the truth mesh (of the truth labels; finer than the fitting mesh)
@@ -15,6 +17,8 @@ Folder layout (every stage is skipped when its output exists, so a run resumes):
     <case>/fit/                  ``breastbiomech optimise`` output
     <case>/diagnosis/            ``breastbiomech diagnose`` output
     <case>/result.json           the case's scores (:mod:`~BreastBiomechLib.discrepancy.suite.scores`)
+    <case>/error.json            the error of a case that failed (a rerun tries it again)
+    failures.log                 the failed tasks' tracebacks
 
 Frames and units as everywhere: LPS millimetres, pascal.
 """
@@ -72,7 +76,7 @@ def write_json(path: Path, document: dict) -> None:
 
 
 class _Lock:
-    """A lock file made with O_EXCL, so that shards running side by side prepare an anatomy once."""
+    """A lock file made with O_EXCL, so that suite runs side by side on one folder prepare an anatomy once."""
 
     def __init__(self, path: Path, wait_s: float = 3600.0):
         self.path, self.wait_s = path, wait_s
@@ -283,17 +287,49 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
     return result
 
 
-def run_suite(out, cases: list[SuiteCase], settings: SuiteSettings | None = None, device=None,
-              shard: tuple[int, int] = (0, 1), say: Callable[[str], None] = lambda m: None) -> list[dict]:
-    """Run the ``cases`` of shard ``(k, n)`` (every n-th case from the k-th; shards may run side
-    by side on one folder) in ``out``; a case that fails is recorded with its error and the run
-    goes on. Returns the results of this shard's cases."""
+def suite_tasks(out: Path, cases: list[SuiteCase], settings: SuiteSettings) -> list:
+    """The suite's tasks (:class:`~BreastBiomechLib.cohort.Task`) not yet done in ``out``: each
+    anatomy its cases need, then each case (made, fitted, diagnosed, scored), which needs it."""
+    from BreastBiomechLib.cohort import Task
+
+    todo = [case for case in cases if not (out / case.name / "result.json").is_file()]
+    tasks = [Task(f"anatomy/{number}", prepare_anatomy_task, {"number": number, "out": str(out), "settings": settings},
+                  label=f"anatomy {number}")
+             for number in sorted({case.anatomy for case in todo})
+             if not (out / f"anatomy{number}" / "prepared.json").is_file()]
+    tasks += [Task(f"case/{case.name}", run_case_task, {"case": case, "out": str(out), "settings": settings},
+                   needs=(f"anatomy/{case.anatomy}",), label=case.name) for case in todo]
+    return tasks
+
+
+def prepare_anatomy_task(number: int, out: str, settings: SuiteSettings, device=None, progress=None) -> dict:
+    """A suite task: :func:`prepare_anatomy`."""
+    return prepare_anatomy(number, Path(out), settings, device, progress or (lambda message: None))
+
+
+def run_case_task(case: SuiteCase, out: str, settings: SuiteSettings, device=None, progress=None) -> dict:
+    """A suite task: :func:`run_case`; a case that fails leaves its error.json beside its files."""
+    try:
+        return run_case(case, Path(out), settings, device, progress or (lambda message: None))
+    except Exception as error:
+        if (Path(out) / case.name).is_dir():
+            write_json(Path(out) / case.name / "error.json", {"case": case.name,
+                                                               "error": f"{type(error).__name__}: {error}"})
+        raise
+
+
+def run_suite(out, cases: list[SuiteCase], settings: SuiteSettings | None = None, placement=None,
+              progress=None) -> list:
+    """Run the suite's ``cases`` in ``out`` as tasks (:func:`suite_tasks`) at ``placement``
+    (:func:`BreastBiomechLib.cohort.place`; None: a local cluster); a case that fails is
+    recorded with its error (error.json, failures.log) and the others go on; a rerun does what is
+    missing. ``progress(CohortProgress)`` returning False cancels. Returns the tasks' outcomes."""
+    from BreastBiomechLib.cohort import place, run_tasks
+    from BreastBiomechLib.optimisation.study import log_failure
+
     settings = settings or SuiteSettings()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    k, n = shard
-    if not (n >= 1 and 0 <= k < n):
-        raise ValueError(f"shard {k}/{n}: give K/N with 0 <= K < N")
     settings_path = out / "settings.json"
     recorded = json.loads(settings_path.read_text()) if settings_path.is_file() else None
     mine = asdict(settings) | {"spacing_mm": None if settings.spacing_mm is None else list(settings.spacing_mm)}
@@ -301,20 +337,5 @@ def run_suite(out, cases: list[SuiteCase], settings: SuiteSettings | None = None
         raise ValueError(f"{out} holds a suite run with other settings ({recorded}); use another --out")
     if recorded is None:
         write_json(settings_path, mine)
-    results = []
-    for index, case in enumerate(cases):
-        if index % n != k:
-            continue
-        started = time.perf_counter()
-        try:
-            result = run_case(case, out, settings, device, say)
-        except Exception as error:  # recorded, and the suite goes on with the next case
-            result = {"case": case.name, "error": f"{type(error).__name__}: {error}"}
-            if (out / case.name).is_dir():
-                write_json(out / case.name / "error.json", result)
-            say(f"{case.name}: FAILED: {result['error']}")
-        else:
-            say(f"{case.name}: {result['verdicts'][0]} ({'right' if result['correct'] else 'wrong'}; "
-                f"{time.perf_counter() - started:.0f} s)")
-        results.append(result)
-    return results
+    return run_tasks(suite_tasks(out, cases, settings), placement or place(), progress=progress,
+                     on_outcome=lambda o: None if o.ok else log_failure(out / "failures.log", o))

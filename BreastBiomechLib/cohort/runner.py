@@ -1,0 +1,220 @@
+"""Run a cohort's tasks where :func:`~BreastBiomechLib.cohort.cluster.place` says: submit them
+(each after the tasks it needs), follow their progress, report each outcome as it comes, and
+cancel cleanly.
+
+- A task that raises is reported with its error; the others go on (those that need it are
+  reported as not run).
+- A worker lost mid-task (killed, out of memory) costs that task: Dask runs it again on another
+  worker, where it resumes from what it wrote (fits replay their evaluations file); a task whose
+  workers keep dying is reported after Dask's allowed failures (3 by default).
+- Cancel (the progress callback returns False, or Ctrl-C): running tasks are asked to stop at
+  their next progress report (a fit after its batch, keeping every evaluation), tasks not
+  started are dropped, and :class:`CohortCancelled` is raised; a rerun resumes.
+- Progress: workers send each task's progress lines to the client as Dask events (at most one
+  a second per task), so the command line and the Slicer module show what every worker does.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from BreastBiomechLib.cohort.cluster import Placement, cohort_client, dashboard_link
+from BreastBiomechLib.cohort.tasks import Task, TaskOutcome, ordered
+
+PROGRESS_TOPIC = "breastbiomech-progress"
+REPORT_EVERY_S = 1.0  # a task's progress lines reach the client at most this often
+
+
+class CohortCancelled(Exception):
+    """The run was cancelled; what finished is on disk and a rerun resumes."""
+
+
+@dataclass
+class CohortProgress:
+    """Where a run stands: ``total`` tasks, how many ``finished`` and ``failed``, the latest
+    progress line of each ``running`` task (by label), where the run goes (``where``) and the
+    cluster's ``dashboard`` link (None: none)."""
+
+    total: int
+    where: str
+    finished: int = 0
+    failed: int = 0
+    running: dict[str, str] = field(default_factory=dict)
+    dashboard: str | None = None
+
+    @property
+    def done(self) -> int:
+        return self.finished + self.failed
+
+    def line(self, width: int = 24) -> str:
+        """One line for a terminal: a bar over the tasks, the counts and the running tasks."""
+        filled = int(width * self.done / max(self.total, 1))
+        text = f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} tasks"
+        if self.failed:
+            text += f", {self.failed} failed"
+        if self.running:
+            text += "; " + "; ".join(f"{label}: {message}" for label, message in sorted(self.running.items()))
+        return text
+
+
+def run_tasks(tasks: list[Task], placement: Placement,
+              progress: Callable[[CohortProgress], bool | None] | None = None,
+              on_outcome: Callable[[TaskOutcome], None] | None = None,
+              dashboard: str | None = ":8787", poll_s: float = 0.25) -> list[TaskOutcome]:
+    """Run ``tasks`` at ``placement``; returns their outcomes in the order they ended.
+    ``progress(state)`` is called as things change (returning False cancels); ``on_outcome(o)``
+    as each task ends (in this process and thread, e.g. to rewrite a summary file)."""
+    tasks = ordered(list(tasks))
+    state = CohortProgress(len(tasks), placement.describe())
+    if not tasks:
+        return []
+    if placement.workers == 0 and not placement.scheduler:
+        return _run_here(tasks, placement.task_device, state, progress, on_outcome)
+    with cohort_client(placement, dashboard) as client:
+        return _run_on(client, tasks, placement.task_device, state, progress, on_outcome, poll_s)
+
+
+def _record(outcome: TaskOutcome, state: CohortProgress, outcomes: list, on_outcome) -> None:
+    state.running.pop(outcome.label, None)
+    if outcome.ok:
+        state.finished += 1
+    else:
+        state.failed += 1
+    outcomes.append(outcome)
+    if on_outcome is not None:
+        on_outcome(outcome)
+
+
+def _run_here(tasks, device, state, progress, on_outcome) -> list[TaskOutcome]:
+    """Every task in this process, one after another."""
+    outcomes: list[TaskOutcome] = []
+    failed: set[str] = set()
+    cancelled = [False]
+    for task in tasks:
+        missing = [k for k in task.needs if k in failed]
+        if missing:
+            failed.add(task.key)
+            _record(TaskOutcome(task.key, task.name, False, error=f"not run: it needs {', '.join(missing)}, which "
+                                "failed"), state, outcomes, on_outcome)
+        else:
+            def report(message, label=task.name):
+                state.running[label] = message
+                if progress is not None and progress(state) is False:
+                    cancelled[0] = True
+                return not cancelled[0]
+
+            report("started")
+            started = time.perf_counter()
+            try:
+                result = task.function(**task.kwargs, device=device, progress=report)
+            except Exception as error:  # noqa: BLE001 - reported, and the run goes on
+                failed.add(task.key)
+                _record(TaskOutcome(task.key, task.name, False, error=f"{type(error).__name__}: {error}",
+                                    seconds=time.perf_counter() - started, traceback=traceback.format_exc()),
+                        state, outcomes, on_outcome)
+            else:
+                _record(TaskOutcome(task.key, task.name, True, result, seconds=time.perf_counter() - started),
+                        state, outcomes, on_outcome)
+        if progress is not None and progress(state) is False:
+            cancelled[0] = True
+        if cancelled[0]:
+            raise CohortCancelled(f"cancelled after {state.done} of {state.total} tasks; rerun to resume")
+    return outcomes
+
+
+def _execute(label: str, function, kwargs: dict, device, cancel_name: str, *needed) -> dict:
+    """In a worker: run one task, sending its progress lines as events and stopping it when the
+    run's cancel event is set (``needed``: the results of the tasks it needs, only waited for)."""
+    from distributed import Event, get_worker
+
+    worker = get_worker()
+    cancel = Event(cancel_name)
+    last = [-REPORT_EVERY_S]
+    stop = [False]
+
+    def report(message: str) -> bool:
+        now = time.monotonic()
+        if now - last[0] >= REPORT_EVERY_S:
+            last[0] = now
+            worker.log_event(PROGRESS_TOPIC, {"run": cancel_name, "label": label, "message": message})
+            stop[0] = stop[0] or cancel.is_set()
+        return not stop[0]
+
+    report("started")
+    started = time.perf_counter()
+    result = function(**kwargs, device=device, progress=report)
+    worker.log_event(PROGRESS_TOPIC, {"run": cancel_name, "label": label, "message": None})
+    return {"result": result, "seconds": time.perf_counter() - started}
+
+
+def _failure(error: BaseException) -> str:
+    from distributed import KilledWorker
+
+    if isinstance(error, KilledWorker):
+        return ("KilledWorker: the workers running it died each time (killed, or out of memory: see the worker logs "
+                "or the dashboard); rerun to try again")
+    return f"{type(error).__name__}: {error}"
+
+
+def _run_on(client, tasks, device, state, progress, on_outcome, poll_s) -> list[TaskOutcome]:
+    """Submit every task to ``client``'s cluster and follow them to the end (or the cancel)."""
+    from distributed import Event, as_completed
+
+    state.dashboard = dashboard_link(client)
+    token = uuid.uuid4().hex[:8]  # keys of this run, apart from any other run on a shared scheduler
+    cancel = Event(f"breastbiomech-cancel-{token}", client=client)
+    by_future, futures = {}, {}
+
+    def on_event(event) -> None:
+        _, message = event
+        if message.get("run") != cancel.name:  # another run's task on a shared scheduler
+            return
+        if message["message"] is None:
+            state.running.pop(message["label"], None)
+        else:
+            state.running[message["label"]] = message["message"]
+
+    client.subscribe_topic(PROGRESS_TOPIC, on_event)
+    for task in tasks:
+        needed = [futures[k] for k in task.needs if k in futures]
+        future = client.submit(_execute, task.name, task.function, task.kwargs, device, cancel.name,
+                               *needed, key=f"{task.key}@{token}", pure=False)
+        futures[task.key] = future
+        by_future[future.key] = task
+    outcomes: list[TaskOutcome] = []
+    finished = as_completed(list(futures.values()))
+    try:
+        while state.done < state.total:
+            for future in finished.next_batch(block=False):
+                task = by_future[future.key]
+                if future.status not in ("finished", "error"):  # lost with its worker: Dask runs it again
+                    finished.add(future)
+                    continue
+                if future.status == "finished":
+                    value = future.result()
+                    _record(TaskOutcome(task.key, task.name, True, value["result"], seconds=value["seconds"]),
+                            state, outcomes, on_outcome)
+                    continue
+                missing = [k for k in task.needs if k in futures and futures[k].status == "error"]
+                if missing:
+                    outcome = TaskOutcome(task.key, task.name, False, error=f"not run: it needs {', '.join(missing)}, "
+                                                                            "which failed")
+                else:
+                    outcome = TaskOutcome(task.key, task.name, False, error=_failure(future.exception()),
+                                          traceback="".join(traceback.format_tb(future.traceback())))
+                _record(outcome, state, outcomes, on_outcome)
+            if progress is not None and progress(state) is False:
+                raise CohortCancelled(f"cancelled after {state.done} of {state.total} tasks; rerun to resume")
+            if state.done < state.total:
+                time.sleep(poll_s)
+    except (CohortCancelled, KeyboardInterrupt):
+        cancel.set()  # running tasks stop at their next progress report, keeping what they wrote
+        client.cancel(list(futures.values()))
+        raise
+    finally:
+        client.unsubscribe_topic(PROGRESS_TOPIC)
+    return outcomes

@@ -1,0 +1,94 @@
+"""A cohort's unit of work: a :class:`Task` (a fit, a phantom case, a diagnosis) whose inputs and
+result live on disk, and what became of it (:class:`TaskOutcome`).
+
+A task's function is a module-level function (Dask ships it to a worker by reference) called as
+``function(**kwargs, device=..., progress=...)``: ``device`` is the warp device it solves on in
+that worker, ``progress(message)`` reports where it is (a short line; returning False asks it to
+stop at the next chance, keeping what it has written) and its return value is a small JSON-able
+summary. The function writes its result beside its inputs with :func:`write_json_atomically`
+(or renames a finished folder into place), so that a file that exists is complete: a rerun skips
+the tasks whose results exist, and a worker lost mid-task costs that one task.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of a cohort: ``key`` (unique and stable across runs, e.g. "fit/case1/iso-homo-cmaes"),
+    the ``function`` and its ``kwargs`` (paths as strings, numbers, small dicts: they travel to
+    the worker), the keys of the tasks it ``needs`` done first (keys not in the run are taken as
+    done earlier), and a ``label`` for progress lines (default: the key)."""
+
+    key: str
+    function: Callable
+    kwargs: dict = field(default_factory=dict)
+    needs: tuple[str, ...] = ()
+    label: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.label or self.key
+
+
+@dataclass
+class TaskOutcome:
+    """What became of a task: ``ok`` with the function's ``result``, or its ``error`` ("Type:
+    message") and where it was raised (``traceback``, for a log file); ``seconds`` of wall time in
+    the worker (0 where it never started)."""
+
+    key: str
+    label: str
+    ok: bool
+    result: dict | None = None
+    error: str = ""
+    seconds: float = 0.0
+    traceback: str = ""
+
+
+def write_json_atomically(path: str | Path, document: dict) -> Path:
+    """Write ``document`` as JSON to ``path`` through a temporary file beside it renamed over it,
+    so that a reader never meets a half-written file (the rename is atomic on one file system)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    with open(temporary, "w") as stream:
+        stream.write(json.dumps(document, indent=2, default=float) + "\n")
+        stream.flush()
+        os.fsync(stream.fileno())
+    os.replace(temporary, path)
+    return path
+
+
+def ordered(tasks: list[Task]) -> list[Task]:
+    """``tasks`` in an order that runs each after the tasks it needs (stable otherwise). Refuses
+    repeated keys and cycles, naming them."""
+    keys = [t.key for t in tasks]
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:
+        raise ValueError(f"task keys must be unique; repeated: {repeated}")
+    by_key = {t.key: t for t in tasks}
+    result: list[Task] = []
+    state: dict[str, str] = {}
+
+    def visit(task: Task, path: tuple[str, ...]) -> None:
+        if state.get(task.key) == "done":
+            return
+        if state.get(task.key) == "visiting":
+            raise ValueError("tasks need each other in a cycle: " + " -> ".join(path + (task.key,)))
+        state[task.key] = "visiting"
+        for need in task.needs:
+            if need in by_key:
+                visit(by_key[need], path + (task.key,))
+        state[task.key] = "done"
+        result.append(task)
+
+    for task in tasks:
+        visit(task, ())
+    return result

@@ -1,0 +1,37 @@
+"""Task functions for the cohort tests (module level, so that Dask workers import them by name)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+
+def square(x: int, out: str, device=None, progress=None) -> dict:
+    """Write x² to ``out/<x>.json`` (atomically) after three progress lines; x = 3 raises."""
+    from BreastBiomechLib.cohort import write_json_atomically
+
+    for step in range(3):
+        if progress("step %d" % step) is False:
+            return {"x": x, "stopped": True}
+        time.sleep(0.3)
+    if x == 3:
+        raise ValueError("three is refused")
+    write_json_atomically(Path(out) / f"{x}.json", {"x": x, "square": x * x})
+    return {"x": x, "square": x * x, "device": device}
+
+
+def dies_once(out: str, device=None, progress=None) -> dict:
+    """Kill its own worker process on its first attempt (a worker lost mid-task); then succeed."""
+    marker = Path(out) / "died-once"
+    if not marker.exists():
+        marker.write_text(str(os.getpid()))
+        os.kill(os.getpid(), signal.SIGKILL)
+    return {"pid": os.getpid(), "first": int(marker.read_text())}
+
+
+def total(out: str, device=None, progress=None) -> dict:
+    """Sum the squares written by :func:`square` (a task that needs them)."""
+    return {"total": sum(json.loads(p.read_text())["square"] for p in sorted(Path(out).glob("[0-9]*.json")))}

@@ -1,0 +1,175 @@
+"""Cohorts on Dask (BreastBiomechLib.cohort): task order, placement choices, and real local
+clusters of two CPU worker processes: failures reported while the others finish, a worker killed
+mid-task costing only that task, cancel and resume; the four-model study through the cluster equal
+to the in-process run, with a worker killed mid-fit and a broken case beside the good ones."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+import cohort_tasks
+from BreastBiomechLib.cohort import CohortCancelled, Placement, Task, ordered, place, run_tasks
+
+TWO_CPU_WORKERS = Placement(None, 2, (), "cpu")
+HERE = Placement(None, 0, (), "cpu")
+
+
+def test_tasks_run_after_what_they_need_and_cycles_are_refused():
+    first, second, third = (Task("a", cohort_tasks.total), Task("b", cohort_tasks.total, needs=("c",)),
+                            Task("c", cohort_tasks.total, needs=("a", "done-earlier")))
+    assert [t.key for t in ordered([second, third, first])] == ["a", "c", "b"]
+    with pytest.raises(ValueError, match="cycle: b -> c -> b"):
+        ordered([Task("b", cohort_tasks.total, needs=("c",)), Task("c", cohort_tasks.total, needs=("b",))])
+    with pytest.raises(ValueError, match=r"unique; repeated: \['a'\]"):
+        ordered([first, first])
+
+
+def test_placement_choices(monkeypatch):
+    monkeypatch.delenv("BREASTBIOMECH_SCHEDULER", raising=False)
+    assert place(workers=0) == Placement(None, 0, (), None)
+    assert place(workers=3, device="cpu") == Placement(None, 3, (), "cpu")
+    assert place(device="cpu").workers >= 1  # one per core
+    assert place("tcp://10.0.0.1:8786").describe() == "the Dask cluster at tcp://10.0.0.1:8786"
+    monkeypatch.setenv("BREASTBIOMECH_SCHEDULER", "tcp://10.0.0.2:8786")
+    assert place(device="cuda").scheduler == "tcp://10.0.0.2:8786"  # the cluster's workers own the GPUs
+    with pytest.raises(ValueError, match="--workers sizes a local cluster"):
+        place(workers=2)
+    monkeypatch.delenv("BREASTBIOMECH_SCHEDULER")
+    with pytest.raises(ValueError, match="0 .this process. or more"):
+        place(workers=-1)
+    with pytest.raises(ValueError, match="tcp://HOST:PORT"):
+        place("nowhere")
+    with pytest.raises(ValueError, match="cpu, cuda or cuda:K"):
+        place(device="gpu")
+    import warp as wp
+
+    wp.init()
+    if wp.get_cuda_device_count() == 0:
+        with pytest.raises(ValueError, match="no CUDA device; use --device cpu"):
+            place(device="cuda")
+        assert place().gpus == () and place().task_device == "cpu"
+
+
+def _square_tasks(out):
+    return [Task(f"square/{x}", cohort_tasks.square, {"x": x, "out": str(out)}) for x in range(5)] + [
+        Task("total", cohort_tasks.total, {"out": str(out)}, needs=tuple(f"square/{x}" for x in range(5) if x != 3)),
+        Task("after-three", cohort_tasks.total, {"out": str(out)}, needs=("square/3",))]
+
+
+@pytest.mark.parametrize("placement", [HERE, TWO_CPU_WORKERS], ids=["in-process", "two-workers"])
+def test_a_failing_task_is_reported_and_the_others_finish(placement, tmp_path):
+    seen, lines = [], []
+    outcomes = run_tasks(_square_tasks(tmp_path), placement, progress=lambda s: lines.append(s.line()),
+                         on_outcome=seen.append, dashboard=None)
+    by_key = {o.key: o for o in outcomes}
+    assert [o.key for o in seen] == [o.key for o in outcomes] and len(outcomes) == 7
+    assert by_key["square/3"].error == "ValueError: three is refused" and "cohort_tasks.py" in by_key["square/3"].traceback
+    assert by_key["after-three"].error == "not run: it needs square/3, which failed"
+    assert by_key["total"].ok and by_key["total"].result == {"total": 0 + 1 + 4 + 16}
+    assert all(by_key[f"square/{x}"].result["device"] == "cpu" for x in (0, 1, 2, 4))
+    assert lines[-1].startswith("[########################] 7/7 tasks, 2 failed")
+    assert any("square/1: " in line for line in lines)  # the tasks' own progress lines reached the client
+
+
+def test_a_worker_lost_mid_task_costs_only_that_task(tmp_path):
+    tasks = _square_tasks(tmp_path)[:3] + [Task("dies-once", cohort_tasks.dies_once, {"out": str(tmp_path)})]
+    outcomes = {o.key: o for o in run_tasks(tasks, TWO_CPU_WORKERS, dashboard=None)}
+    assert all(o.ok for o in outcomes.values())
+    assert outcomes["dies-once"].result["pid"] != outcomes["dies-once"].result["first"]  # ran again elsewhere
+    assert sorted(p.name for p in tmp_path.glob("[0-9].json")) == ["0.json", "1.json", "2.json"]
+
+
+@pytest.mark.parametrize("placement", [HERE, TWO_CPU_WORKERS], ids=["in-process", "two-workers"])
+def test_cancel_keeps_what_finished_and_a_rerun_resumes(placement, tmp_path):
+    tasks = [t for t in _square_tasks(tmp_path) if t.key != "square/3" and "three" not in t.key]
+    with pytest.raises(CohortCancelled, match="rerun to resume"):
+        run_tasks(tasks, placement, progress=lambda s: s.finished < 1, dashboard=None)
+    finished = {p.name for p in tmp_path.glob("[0-9].json")}  # (tasks already on a worker may finish too)
+    assert finished
+    # the rerun runs only what is missing (as the study and the suite build their task lists)
+    rest = [t for t in tasks if t.key == "total" or f"{t.kwargs['x']}.json" not in finished]
+    outcomes = {o.key: o for o in run_tasks(rest, placement, dashboard=None)}
+    assert outcomes["total"].result == {"total": 0 + 1 + 4 + 16}
+
+
+@pytest.mark.slow
+def test_the_study_on_two_workers_equals_the_in_process_one(compressed_case_dir, tmp_path, capsys):
+    """The study of 2 models on a local cluster of two CPU workers, one of them killed mid-run, for
+    two copies of the test case and a broken third: each copy's rows equal the in-process run's of
+    the case; the broken case fails alone, reported with its error; a rerun has only it left."""
+    import psutil
+
+    from BreastBiomechLib.cli import main
+    from BreastBiomechLib.optimisation.study import StudySettings, read_study, run_study
+
+    cases = []
+    for name in ("caseA", "caseB"):
+        shutil.copytree(compressed_case_dir, tmp_path / name)
+        cases.append(tmp_path / name)
+    broken = tmp_path / "broken"
+    shutil.copytree(compressed_case_dir, broken)
+    (broken / "labels.nrrd").unlink()
+    settings = StudySettings(models=("iso-homo", "aniso-homo"), budgets={"iso-homo": 1, "aniso-homo": 1},
+                             edge_mm=12.0, tolerance_mm=0.05)
+    serial = run_study(cases[:1], tmp_path / "serial", settings, placement=HERE)
+    assert not serial.failed and len(serial.rows) == 2
+
+    killed = []
+
+    def kill_a_worker_mid_fit(state):
+        if not killed and any("solves" in line for line in state.running.values()):  # a fit past its first batch
+            workers = [p for p in psutil.Process().children(recursive=True) if "spawn_main" in " ".join(p.cmdline())]
+            if workers:
+                workers[-1].kill()
+                killed.append(workers[-1].pid)
+
+    run = run_study(cases + [broken], tmp_path / "dask", settings, placement=TWO_CPU_WORKERS,
+                    progress=kill_a_worker_mid_fit)
+    assert killed, "no worker was killed: the test did not test the loss of one"
+    assert sorted(o.key for o in run.failed) == ["fit/broken/aniso-homo-cmaes", "fit/broken/iso-homo-cmaes",
+                                                 "mesh/broken"]
+    assert "labels.nrrd" in next(o.error for o in run.failed if o.key == "mesh/broken")
+    assert "mesh/broken" in (tmp_path / "dask" / "failures.log").read_text()
+
+    def comparable(rows, case):
+        return sorted((r.model, r.evaluations, r.nmi, r.objective, json.dumps(r.materials, sort_keys=True), r.stopped)
+                      for r in rows if r.case == case)
+
+    for case in ("caseA", "caseB"):
+        assert comparable(run.rows, case) == comparable(serial.rows, "caseA")
+    assert len(read_study(tmp_path / "dask")) == 4
+
+    # the command: a rerun has nothing left but the broken case, which fails again (exit 1, one line each)
+    assert main(["study", *map(str, cases + [broken]), "--out", str(tmp_path / "dask"), "--models", "iso-homo",
+                 "aniso-homo", "--budget", "iso-homo=1", "aniso-homo=1", "--edge-mm", "12", "--tolerance-mm", "0.05",
+                 "--device", "cpu", "--workers", "0", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "FAILED broken fitting mesh: FileNotFoundError" in err and "3 tasks failed" in err
+
+
+def test_reruns_build_only_the_missing_tasks(tmp_path):
+    """The suite and the Table 1 cases: finished results are not tasks again; a case needs its anatomy
+    only while the anatomy is not prepared."""
+    from BreastBiomechLib.discrepancy.suite import SuiteSettings, suite_cases
+    from BreastBiomechLib.discrepancy.suite.runner import suite_tasks
+    from BreastBiomechLib.phantom.table1_cases import table1_tasks
+
+    cases = suite_cases([1, 2], ["null", "friction"])
+    (tmp_path / cases[0].name).mkdir()
+    (tmp_path / cases[0].name / "result.json").write_text("{}")
+    (tmp_path / "anatomy2").mkdir()
+    (tmp_path / "anatomy2" / "prepared.json").write_text("{}")
+    tasks = suite_tasks(tmp_path, cases, SuiteSettings())
+    assert [t.key for t in tasks] == ["anatomy/1"] + [f"case/{c.name}" for c in cases[1:]]
+    assert [t.needs for t in tasks[1:]] == [(f"anatomy/{c.anatomy}",) for c in cases[1:]]
+    assert [t.key for t in ordered(tasks)][0] == "anatomy/1"
+
+    (tmp_path / "t1" / "case2" / "compressed").mkdir(parents=True)
+    (tmp_path / "t1" / "case2" / "compressed" / "truth.json").write_text("{}")
+    (tmp_path / "t1" / "case3").mkdir()  # a folder without its truth is not a finished case
+    assert [t.key for t in table1_tasks(tmp_path / "t1", [1, 2, 3])] == ["table1/case1", "table1/case3"]
+    with pytest.raises(ValueError, match="Table 1 has cases"):
+        table1_tasks(tmp_path / "t1", [6])
