@@ -5,7 +5,7 @@
 #   make test   create .venv if missing, install, run the whole test suite, then the library tests
 #               again on Slicer 5.10's own versions of numpy, scipy, SimpleITK and VTK (test-slicer-stack)
 #   make bench  print benchmark figures (see docs/benchmarks.md)
-#   make table1-cases  the five compressed phantom cases of the seed's Table 1 (out/table1/case<N>;
+#   make table1-cases  the five compressed phantom cases of the seed's Table 1 as cohort tasks (out/table1/case<N>;
 #               2 mm truth meshes; DEVICE=cuda on a GPU: under a minute per case
 #               on an H100; far slower on a CPU)
 

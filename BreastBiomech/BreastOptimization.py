@@ -7,7 +7,9 @@ model variant and its free parameters, the optimiser and its budget; run, pause 
 (every evaluation is kept in the output folder), or cancel and see the best so far. A live
 convergence chart follows the run; at the end the predicted volume lies over the measured one
 in the slice views, the landmark errors are a table and lines from predicted to measured
-landmarks, and the fitted parameters are a table.
+landmarks, and the fitted parameters are a table. The cohort study section fits the chosen model
+variants to every compressed case of a folder (the seed's Tables 2 and 3) in Slicer, or sends
+the fits to a Dask cluster by its scheduler's address, with progress and a table of the fits.
 
 Module, Widget, Logic and Test classes follow Slicer's scripted-module template. The Logic holds
 no Qt and runs headless on the ``slicer-core`` wheel (see docs/developing.md).
@@ -63,7 +65,9 @@ class BreastOptimization(ScriptedLoadableModule):
         self.parent.helpText = _(
             "Fit the tissues' Young's moduli, Poisson's ratios and fibre stiffness so that the FE-predicted "
             "compressed MR image matches the measured one (maximum NMI), with the seed's hybrid search or "
-            "CMA-ES, batched on the GPU. Pause and resume lose nothing. See docs/optimisation.md of the "
+            "CMA-ES, batched on the GPU. Pause and resume lose nothing. Cohort study: the model variants fitted to "
+            "every case of a folder, in Slicer or on a Dask cluster given by its scheduler address (docs/cohorts.md). "
+            "See docs/optimisation.md of the "
             "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
         )
         self.parent.acknowledgementText = _("Method after Han et al. 2012, Phys. Med. Biol. 57:455, section 2.4.")

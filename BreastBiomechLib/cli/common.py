@@ -61,6 +61,9 @@ def cohort_progress(quiet: bool):
             print(f"  tasks run on {state.where}" + (f"; dashboard {state.dashboard}" if state.dashboard else ""),
                   file=sys.stderr, flush=True)
         text = state.line()[: shutil.get_terminal_size((120, 20)).columns - 3]
+        if text == said.get("text"):
+            return
+        said["text"] = text
         print("\r  " + text.ljust(said["width"]), end="", file=sys.stderr, flush=True)  # blank what was longer
         said["width"] = len(text)
         _line["open"] = True
