@@ -143,3 +143,21 @@ def test_the_command_fits_resumes_and_reports(compressed_case_dir, tmp_path, cap
 
     assert main(arguments[:-1] + ["--budget", "iso-homo=lots"]) == 2
     assert "MODEL=SOLVES" in capsys.readouterr().err
+
+
+def test_a_study_fit_reads_the_truth_only_after_the_fit():
+    """No inverse crime: the study task reads the case's truth (for the report's truth columns)
+    only after fit_compressed_case has returned; the fit itself runs on a case without its truth
+    (test_optimisation)."""
+    import ast
+    import inspect
+
+    from BreastBiomechLib.optimisation import study
+
+    tree = ast.parse(inspect.getsource(study.fit_study_case))
+    calls = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            name = node.func.id if isinstance(node.func, ast.Name) else getattr(node.func, "attr", "")
+            calls.setdefault(name, node.lineno)
+    assert calls["truth"] > calls["fit_compressed_case"]

@@ -200,7 +200,6 @@ def fit_study_case(case_dir: str, folder: str, mesh_file: str, settings: StudySe
     from BreastBiomechLib.phantom.compressed_files import read_compressed
 
     case, folder = Path(case_dir), Path(folder)
-    truth = read_compressed(case).truth()["truth"]["materials"]
     earlier = _read_row(folder)
     def report(done, budget, best, phase):
         return None if progress is None else progress(f"{done}/{budget} solves, best {best:.4f}")
@@ -208,6 +207,8 @@ def fit_study_case(case_dir: str, folder: str, mesh_file: str, settings: StudySe
     fit = fit_compressed_case(case, folder, settings.fit_settings(model, optimiser), mesh_path=mesh_file,
                               resume=(folder / "evaluations.jsonl").exists(), device=device, progress=report)
     summary = fit.result.summary()
+    # scoring only, after the fit has answered: the truth columns of the report's tables
+    truth = read_compressed(case).truth()["truth"]["materials"]
     row = StudyFit(case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
                    summary["evaluations"], summary["failed"], (earlier.seconds if earlier else 0.0) + summary["seconds"],
                    summary["stopped"], fit.landmark_errors, fit.result.materials, truth,
