@@ -309,7 +309,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
                 "freeOffset": False,
                 "fibreR": 0.0, "fibreA": 0.0, "fibreS": 1.0, "optimiser": "cmaes", "budget": 200, "seconds": 0.0,
                 "seed": 0, "population": 0, "objective": "nmi", "bins": 64, "toleranceMm": 0.01, "device": "auto",
-                "outputDirectory": "", "studyCasesDirectory": "", "studyOutputDirectory": "",
+                "outputDirectory": "", "caseDirectory": "", "studyCasesDirectory": "", "studyOutputDirectory": "",
                 "studyModels": "iso-homo,aniso-homo,iso-hetero,aniso-hetero", "studyBudgets": "", "studyEdgeMm": 4.0,
                 "scheduler": ""}
     ROLES = ("undeformedVolume", "measuredVolume", "inputMesh", "referenceLandmarks", "measuredLandmarks", "plates",
@@ -343,6 +343,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         p.set_reference("measuredLandmarks", landmarks_to_markups_node(measured.landmarks, self.scene,
                                                                        "Measured landmarks"))
         p.set_references("plates", [self._planeNode(plate) for plate in measured.plates])
+        p["caseDirectory"] = str(folder)
         if meshPath:
             from BreastBiomechLib.io.meshes import read_vtu
             from BreastBiomechLib.mrml import tetmesh_to_model_node
@@ -513,8 +514,17 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         """The results at the best parameters as nodes: the predicted compressed volume (on the
         measured grid), the fitted parameters table, and with landmarks the predicted landmarks,
         the landmark errors table (mm) and the error lines (predicted to measured, coloured by
-        error). Returns a line summarising the landmark errors."""
+        error). The output folder becomes a complete fit folder, as ``breastbiomech optimise``
+        writes it (the fitting mesh, its solution, the predicted image, and the case folder when
+        the case was loaded with :meth:`loadCompressedCase`), which Breast Discrepancy diagnoses.
+        Returns a line summarising the landmark errors."""
+        import json
+        from pathlib import Path
+
+        from BreastBiomechLib.io.images import write_image
+        from BreastBiomechLib.io.meshes import write_vtu
         from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
+        from BreastBiomechLib.mesh.tetmesh import TetMesh
         from BreastBiomechLib.mrml import (columns_to_table_node, image_to_volume_node,
                                            landmarks_from_markups_node, landmarks_to_markups_node)
 
@@ -522,8 +532,21 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         best = problem.solve_alone(result.best.z)
         if not best.ok:
             raise RuntimeError(f"the best parameters do not solve alone ({best.message})")
+        out, mesh = Path(p["outputDirectory"]), problem.mesh
+        write_vtu(out / "fitting_mesh.vtu", mesh)
+        write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
+                                                                              "displacement": best.displacement},
+                                                     dict(mesh.cell_data)))
+        predicted = problem.predict(best.displacement).image
+        write_image(out / "predicted.nrrd", predicted)
+        if p["caseDirectory"]:
+            from BreastBiomechLib.phantom.compressed_files import case_fingerprint
+
+            (out / "case.json").write_text(json.dumps({"case_dir": p["caseDirectory"],
+                                                       "fingerprint": case_fingerprint(p["caseDirectory"])}, indent=2)
+                                           + "\n")
         p.set_reference("predictedVolume", image_to_volume_node(
-            problem.predict(best.displacement).image, self.scene, "Predicted compressed MR",
+            predicted, self.scene, "Predicted compressed MR",
             node=p.reference("predictedVolume")))
         names = list(result.materials)
         p.set_reference("parametersTable", columns_to_table_node(

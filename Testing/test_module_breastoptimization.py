@@ -130,6 +130,16 @@ def test_pause_resume_and_results(scene, compressed_case_dir, fitting_mesh, tmp_
         assert error == pytest.approx(np.linalg.norm(np.subtract(a, b)), abs=1e-6)  # RAS distance = LPS distance
         assert lines_node.GetCellData().GetArray("error_mm").GetValue(row) == pytest.approx(error)
     assert "landmark error" in outcome["summary"]
+    # the output folder is a complete fit folder of the loaded case: Breast Discrepancy takes it
+    from BreastBiomechLib.discrepancy import load_fitted_case
+    import BreastDiscrepancy
+
+    fitted = load_fitted_case(compressed_case_dir, tmp_path, device="cpu")
+    np.testing.assert_allclose(fitted.z, result.best.z)
+    discrepancy = BreastDiscrepancy.BreastDiscrepancyLogic(scene)
+    q = discrepancy.getParameterNode()
+    discrepancy.useOptimizationFit(q)
+    assert (q["caseDirectory"], q["fitDirectory"]) == (str(compressed_case_dir), str(tmp_path))
 
 
 def test_fibre_plates_and_surface_choices(scene, compressed_case_dir, fitting_mesh, tmp_path):

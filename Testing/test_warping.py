@@ -76,6 +76,25 @@ def test_the_displacement_field_resamples_like_the_prediction(mesh, image):
     np.testing.assert_array_equal(sitk.GetArrayFromImage(again.image), sitk.GetArrayFromImage(predicted.image))
 
 
+def test_a_linear_nodal_field_is_interpolated_exactly_in_the_deformed_body(mesh, image):
+    """Linear shape functions reproduce a field linear in the reference position: at each voxel
+    centre inside the deformed body the nodal field equals that function of the voxel's
+    reference position (the displacement field gives it); 0 outside."""
+    matrix = np.array([[1.05, 0.0, 0.02], [0.01, 0.9, 0.0], [0.0, 0.03, 1.0]])
+    displacement = _affine(mesh, matrix, (0.5, -1.0, 1.5))
+    gradient, offset = np.array([[0.1, -0.2, 0.05], [0.0, 0.3, 0.1], [-0.04, 0.0, 0.2]]), np.array([1.0, -2.0, 0.5])
+    warper = ImageWarper(mesh, image, image, device="cpu")
+    field = sitk.GetArrayFromImage(warper.nodal_field(displacement, mesh.nodes @ gradient.T + offset))
+    inside = sitk.GetArrayFromImage(warper.predict(displacement).inside).astype(bool)
+    k, j, i = np.nonzero(inside)
+    centres = np.array([image.TransformIndexToPhysicalPoint((int(a), int(b), int(c))) for a, b, c in zip(i, j, k)])
+    reference = centres + sitk.GetArrayFromImage(displacement_field(mesh, displacement, image, device="cpu"))[inside]
+    np.testing.assert_allclose(field[inside], reference @ gradient.T + offset, atol=2e-3)
+    assert np.all(field[~inside] == 0)
+    with pytest.raises(ValueError, match="one 3-vector per node"):
+        warper.nodal_field(displacement, np.zeros((3, 3)))
+
+
 def test_bad_displacements_are_refused(mesh, image):
     warper = ImageWarper(mesh, image, image, device="cpu")
     with pytest.raises(ValueError, match="one 3-vector per node"):

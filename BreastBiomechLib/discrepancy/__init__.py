@@ -9,6 +9,8 @@ Steps, each usable alone from the Python console:
 - :func:`~BreastBiomechLib.discrepancy.effects.library`: the candidate effects;
 - :func:`~BreastBiomechLib.discrepancy.diagnosis.diagnose`: one round (sensitivities, score
   tests, refits of the best, the verdict);
+- :class:`~BreastBiomechLib.discrepancy.session.DiagnosisSession`: the rounds one step at a
+  time (diagnose, add a candidate with its refit, or reject it), each written as it finishes;
 - :func:`~BreastBiomechLib.discrepancy.workflow.run_diagnosis`: rounds until nothing
   significant remains, with its report.
 """
@@ -17,8 +19,9 @@ from BreastBiomechLib.discrepancy.diagnosis import VERDICTS, Diagnosis, Diagnosi
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
+from BreastBiomechLib.discrepancy.session import DiagnosisCancelled, DiagnosisSession
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.workflow import DiagnosisRun, run_diagnosis
 
-__all__ = ["VERDICTS", "Diagnosis", "DiagnosisRun", "DiagnosisSettings", "FittedCase", "ModelState", "NoiseModel",
+__all__ = ["VERDICTS", "Diagnosis", "DiagnosisCancelled", "DiagnosisRun", "DiagnosisSession", "DiagnosisSettings", "FittedCase", "ModelState", "NoiseModel",
            "Observations", "diagnose", "library", "load_fitted_case", "observations_of", "run_diagnosis"]

@@ -138,18 +138,53 @@ def region_summary(observations: Observations, residual: np.ndarray, regions: np
     return out
 
 
+def adopt(state: ModelState, observations: Observations, sens: Sensitivities, candidate: Candidate, effect: Effect,
+          refits: dict[str, Refit], iterations: int, progress: Callable[[str], None] | None = None) -> Refit:
+    """The refit of ``state`` with ``candidate``'s ``effect`` added, refined by ``iterations``
+    Gauss-Newton iterations of every fitted parameter (warm start: its confirmation refit in
+    ``refits``, else one made now from the round's sensitivities ``sens``). Records the refined
+    values in ``candidate.refit``; 0 iterations keep the confirmation refit as it is."""
+    say = progress or (lambda message: None)
+    chosen = refits.get(candidate.name)
+    if chosen is None:
+        say(f"refitting with {candidate.name}")
+        made = refit(state, observations, sens, [effect])
+        if not made or not made[0].ok:
+            raise RuntimeError(f"{candidate.title}: no refit with it solves ({made[0].status if made else 'not built'}); "
+                               "it cannot be added to this model")
+        chosen = refits[candidate.name] = made[0]
+    if iterations > 0:
+        say(f"refining the refit with {candidate.name}")
+        refined, outcome = refine(chosen.state, observations, iterations, say)
+        weights = 1.0 / observations.sigma
+        after = observations.residual(outcome.displacement)
+        chosen = replace(chosen, values=refined.added[candidate.name][1], state=refined,
+                         displacement=outcome.displacement, residual_after=after,
+                         rss_after=float(np.sum((weights * after) ** 2)))
+    candidate.refit = candidate.refit or {"status": chosen.status, "values": chosen.values.tolist(),
+                                          "sd": chosen.sd.tolist(), "described": chosen.effect.describe(chosen.values),
+                                          "rss_before": chosen.rss_before, "rss_after": chosen.rss_after}
+    candidate.refit.update({"refined_values": chosen.values.tolist(),
+                            "refined_described": chosen.effect.describe(chosen.values),
+                            "rss_refined": chosen.rss_after,
+                            "refine_iterations": candidate.refit.get("refine_iterations", 0) + iterations})
+    return chosen
+
+
 def diagnose(state: ModelState, observations: Observations, candidates: list[Effect],
              settings: DiagnosisSettings | None = None,
-             progress: Callable[[str], None] | None = None) -> Diagnosis:
+             progress: Callable[[str], None] | None = None, excluded: dict[str, str] | None = None) -> Diagnosis:
     """One round of the diagnosis of ``state`` against ``observations`` over ``candidates``
-    (the library's effects; those already added or unavailable are reported as skipped)."""
+    (the library's effects; those already added, unavailable or ``excluded`` ({name: reason},
+    e.g. rejected by the user) are reported as skipped)."""
     settings = settings or DiagnosisSettings()
     say = progress or (lambda message: None)
     fitted = state.fitted
     skipped = {}
     testable = []
     for effect in candidates:
-        reason = "already added" if effect.name in state.added else effect.unavailable(fitted)
+        reason = ("already added" if effect.name in state.added else (excluded or {}).get(effect.name)
+                  or effect.unavailable(fitted))
         if reason:
             skipped[effect.name] = reason
         else:
@@ -251,16 +286,7 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
                          f"Ambiguous: {pair}. Their signatures correlate {corr:.2f} after the fitted parameters are "
                          f"profiled out, and their refits differ by {rivals[0].refit['delta_bic'] - best.refit['delta_bic']:.1f} "
                          "in BIC; the data cannot tell them apart.", refitted=None, **base)
-    chosen_refit = refits[best.name]
-    say(f"refining the refit with {best.name}")
-    refined, outcome = refine(chosen_refit.state, observations, settings.refine_iterations)
-    weights = 1.0 / observations.sigma
-    after = observations.residual(outcome.displacement)
-    values = refined.added[best.name][1]
-    chosen_refit = replace(chosen_refit, values=values, state=refined, displacement=outcome.displacement,
-                           residual_after=after, rss_after=float(np.sum((weights * after) ** 2)))
-    best.refit.update({"refined_values": values.tolist(), "refined_described": chosen_refit.effect.describe(values),
-                       "rss_refined": chosen_refit.rss_after})
+    chosen_refit = adopt(state, observations, sens, best, by_name[best.name], refits, settings.refine_iterations, say)
     return Diagnosis("missing effect", best.name, [],
                      f"Missing effect: {best.title} ({best.refit['refined_described']}). Score test p = "
                      f"{best.p_adjusted:.2g} (corrected), refit dBIC {best.refit['delta_bic']:.1f}, removing "

@@ -6,6 +6,7 @@ since a secant from the off value is only the first guess of a nonlinear effect'
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,18 +128,22 @@ def _best_secant(state: ModelState, sens: Sensitivities, effect: Effect, observa
     return best
 
 
-def refine(state: ModelState, observations: Observations, iterations: int = 1) -> tuple[ModelState, Outcome]:
+def refine(state: ModelState, observations: Observations, iterations: int = 1,
+           progress: Callable[[str], None] | None = None) -> tuple[ModelState, Outcome]:
     """Gauss-Newton iterations of every fitted parameter of ``state`` (the fit's and the added
     effects'), each from fresh sensitivities and checked by a forward solve (halved while it does
-    not lower the residual; stopped when it no longer does). Returns the state and its solve."""
+    not lower the residual; stopped when it no longer does). Returns the state and its solve.
+    ``progress(message)`` is called before each batch of solves."""
+    say = progress or (lambda message: None)
     fitted = state.fitted
     weights = 1.0 / observations.sigma
     current = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
     if not current.ok:
         raise RuntimeError(f"the model to refine does not solve ({current.status}: {current.message})")
     rss = float(np.sum((weights * observations.residual(current.displacement)) ** 2))
-    for _ in range(iterations):
-        sens = sensitivities(state, observations, [])
+    for iteration in range(iterations):
+        say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: sensitivities")
+        sens = sensitivities(state, observations, [], say)
         nuisance = state.nuisance()
         values = np.array([v for _, v, _, _ in nuisance])
         lower = np.array([lo for _, _, lo, _ in nuisance]) - values
@@ -147,6 +152,7 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1) -
         delta = lsq_linear(design, weights * (observations.measured - sens.features), bounds=(lower, upper)).x
         improved = False
         for halving in range(HALVINGS + 1):
+            say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: trial step" + (f" / {2 ** halving}" if halving else ""))
             trial = state.with_nuisance(values + delta / 2 ** halving)
             outcome = solve_variants([trial.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
             if outcome.ok:

@@ -88,8 +88,9 @@ def _measures_line(name: str, m: dict) -> str:
     return text
 
 
-def write_report(run, path: Path) -> Path:
-    """Write the Markdown report of ``run`` (a :class:`~BreastBiomechLib.discrepancy.workflow.DiagnosisRun`)."""
+def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
+    """Write the Markdown report of ``run`` (a :class:`~BreastBiomechLib.discrepancy.workflow.DiagnosisRun`)
+    with ``pictures`` ((caption, file name beside the report) each, e.g. Slicer's slice views) at its end."""
     parts = ["# Model-discrepancy diagnosis", "",
              f"**Final verdict: {run.final['sentence']}**", ""]
     if run.added:
@@ -110,6 +111,8 @@ def write_report(run, path: Path) -> Path:
         if record.get("after"):
             parts += ["", _measures_line(f"After adding {record['added']}", record["after"])]
         parts += [""]
+    if pictures:
+        parts += ["## Views", ""] + [f"![{caption}]({name})\n" for caption, name in pictures]
     path = Path(path)
     path.write_text("\n".join(parts) + "\n")
     return path

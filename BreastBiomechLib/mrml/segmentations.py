@@ -35,6 +35,16 @@ def labels_to_segmentation_node(label_image: sitk.Image, scene, name: str = "Tis
     if unknown:
         raise ValueError(f"label values {unknown} are not in the tissue label table "
                          f"({', '.join(f'{t.label}={t.name}' for t in lt.TISSUES)})")
+    return named_labels_to_segmentation_node(label_image, {t.label: (t.name, t.color) for t in lt.TISSUES}, scene,
+                                             name, node, closed_surface)
+
+
+def named_labels_to_segmentation_node(label_image: sitk.Image, segments: dict[int, tuple[str, tuple]], scene,
+                                      name: str, node=None, closed_surface: bool = False):
+    """Make (or refill) a segmentation node with one segment per value of ``segments`` ({label
+    value: (name, RGB colour 0-1)}) present in ``label_image`` (LPS); other values are background.
+    Segment IDs are the names."""
+    values = np.unique(sitk.GetArrayViewFromImage(label_image))
     register_segmentation_converters()
     if node is None:
         node = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
@@ -47,10 +57,10 @@ def labels_to_segmentation_node(label_image: sitk.Image, scene, name: str = "Tis
         node.SetReferenceImageGeometryParameterFromVolumeNode(labelmap)
         updated = vtk.vtkStringArray()
         for value in range(1, int(values.max()) + 1 if values.size else 1):
-            tissue = lt.BY_LABEL.get(value)
-            if tissue is not None and value in values:
-                segmentation.AddEmptySegment(tissue.name, tissue.name, list(tissue.color))
-                updated.InsertNextValue(tissue.name)
+            if value in segments and value in values:
+                segment_name, colour = segments[value]
+                segmentation.AddEmptySegment(segment_name, segment_name, list(colour))
+                updated.InsertNextValue(segment_name)
             else:
                 updated.InsertNextValue("")
         if updated.GetNumberOfValues() and not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(

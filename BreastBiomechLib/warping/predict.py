@@ -122,6 +122,29 @@ class ImageWarper:
         image.CopyInformation(self.like)
         return image
 
+    def nodal_field(self, displacement_mm: np.ndarray, values: np.ndarray) -> sitk.Image:
+        """Nodal vectors ``values`` (N, 3) (any quantity, e.g. a change of displacement in mm)
+        interpolated through the shape functions at every output voxel centre inside the body
+        deformed by ``displacement_mm`` (N, 3) mm; 0 outside. A vector float64 image on the
+        output grid."""
+        values = np.asarray(values, dtype=np.float64)
+        if values.shape != self.mesh.nodes.shape:
+            raise ValueError(f"nodal values must be one 3-vector per node, shape {self.mesh.nodes.shape}; "
+                             f"got {values.shape}")
+        self.locate(displacement_mm)
+        origin, to_lps, to_index = self._out_grid
+        nx, ny, nz = self.size
+        with wp.ScopedDevice(self.device):
+            nodal = wp.array(values.astype(np.float32), dtype=wp.vec3)
+            out = wp.zeros(self.voxels, dtype=wp.vec3)
+            inside = wp.zeros(self.voxels, dtype=wp.int32)
+            wp.launch(kernels.locate_in_tets, len(self.mesh.tets),
+                      [self._deformed, nodal, self._tets, origin, to_lps, to_index, nx, ny, nz, out, inside])
+        field = np.where(inside.numpy().astype(bool)[:, None], out.numpy().astype(np.float64), 0.0)
+        image = sitk.GetImageFromArray(field.reshape(*self.size[::-1], 3), isVector=True)
+        image.CopyInformation(self.like)
+        return image
+
     def _image_like(self, array: np.ndarray) -> sitk.Image:
         image = sitk.GetImageFromArray(array)
         image.CopyInformation(self.like)

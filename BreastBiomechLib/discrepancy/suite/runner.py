@@ -192,7 +192,7 @@ def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device
     from BreastBiomechLib.discrepancy.fitted import load_fitted_case
     from BreastBiomechLib.discrepancy.state import ModelState
     from BreastBiomechLib.discrepancy.variants import solve_variants
-    from BreastBiomechLib.discrepancy.workflow import state_from_record
+    from BreastBiomechLib.discrepancy.session import state_from_record
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import read_vtu

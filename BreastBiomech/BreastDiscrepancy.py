@@ -1,0 +1,784 @@
+"""BreastDiscrepancy: see where the fitted model and the measured compressed scan disagree, which
+candidate physical effect explains it with what evidence, accept one, refit, and watch the gap
+shrink (docs/discrepancy.md).
+
+Choose a compressed case folder and a fit folder (``breastbiomech optimise``'s, or the Breast
+Optimization result in the scene) and an output folder. *Diagnose* runs a round: the ranked
+candidates go to a table, the residual displacement magnitude lies over the measured volume in
+colour with a legend, the residual field can be shown as glyphs, the landmark residuals are
+lines from predicted to measured positions, the model's skin is coloured by its signed distance
+to the measured body, and the regions are segments. Selecting a candidate shows the residual it
+predicts beside the measured one. *Refit with effect* adds the chosen candidate (warm start) with
+progress and cancel; before/after plots and overlays follow. Every round keeps its nodes in a
+subject-hierarchy folder; *Save report* writes the Markdown report with the slice views.
+
+Module, Widget, Logic and Test classes follow Slicer's scripted-module template. The Logic holds
+no Qt and runs headless on the ``slicer-core`` wheel (see docs/developing.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+import slicer
+from BreastBiomechCommon import (
+    IN_SLICER_APPLICATION,
+    SLICER_MODULES,
+    ModuleTestMixin,
+    ParameterNodeLogic,
+    ParameterNodeWidgetMixin,
+    ScriptedLoadableModule,
+    ScriptedLoadableModuleTest,
+    ScriptedLoadableModuleWidget,
+    _,
+    dependencies_ready,
+    ensure_library_importable,
+    resolve_device,
+    resource_path,
+    translate,
+)
+from slicer.util import VTKObservationMixin
+
+ensure_library_importable()
+
+CATEGORY = "Breast Biomechanics"
+DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib", "warp"]
+ROUND_ATTRIBUTE = "BreastDiscrepancy.Round"  # the round a node belongs to
+KIND_ATTRIBUTE = "BreastDiscrepancy.Kind"    # what it shows, e.g. "residual-before"
+FOLDER_ATTRIBUTE = "BreastDiscrepancy.Folder"  # the output folder of its diagnosis
+SHOWN_FROM_MM = 0.25                        # residual magnitude drawn transparent below this
+
+#
+# Module
+#
+
+
+class BreastDiscrepancy(ScriptedLoadableModule):
+    def __init__(self, parent):
+        ScriptedLoadableModule.__init__(self, parent)
+        self.parent.title = _("Breast Discrepancy")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
+        self.parent.dependencies = SLICER_MODULES + ["SubjectHierarchy"]
+        self.parent.contributors = ["BreastBiomech contributors"]
+        self.parent.helpText = _(
+            "Find where a fitted breast model and the measured compressed scan disagree, which physical effect "
+            "(plate friction, gravity and the unloaded state, chest-wall sliding, skin, anisotropy, heterogeneity, "
+            "tumour stiffness, plate tilt or offset) is missing, with the evidence on the images; accept it, refit "
+            "and see the gap shrink. Each round stays in the scene. From the Python console: "
+            "logic = slicer.util.getModuleLogic('BreastDiscrepancy'), then logic.diagnose(p), "
+            "logic.showCandidate(p, name), logic.accept(p, name), logic.reject(p, name), logic.saveReport(p). "
+            "See docs/discrepancy.md of the <a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
+        )
+        self.parent.acknowledgementText = _("Builds on the method of Han et al. 2012, Phys. Med. Biol. 57:455.")
+
+
+#
+# Widget
+#
+
+
+class BreastDiscrepancyWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
+    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
+
+    def __init__(self, parent=None):
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        VTKObservationMixin.__init__(self)
+        self.logic = None
+        self._parameterNode = None
+        self._updatingGUI = False
+        self._cancelRequested = False
+
+    def setup(self):
+        ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(resource_path("UI/BreastDiscrepancy.ui"))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+        self.logic = BreastDiscrepancyLogic()
+
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+
+        for pathLineEdit in (self.ui.casePathLineEdit, self.ui.fitPathLineEdit, self.ui.outputPathLineEdit):
+            pathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.effectsLineEdit.editingFinished.connect(self.updateParameterNodeFromGUI)
+        for spinBox in (self.ui.iterationsSpinBox, self.ui.roundsSpinBox, self.ui.landmarkSdSpinBox,
+                        self.ui.modelSdSpinBox, self.ui.alphaSpinBox):
+            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.deviceComboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
+        self.ui.residualFieldCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
+        self.ui.glyphsCheckBox.toggled.connect(self.onGlyphsToggled)
+        self.ui.regionsCheckBox.toggled.connect(self.onRegionsToggled)
+        self.ui.roundComboBox.activated.connect(self.onRoundChosen)
+        self.ui.useOptimizationButton.clicked.connect(self.onUseOptimizationButton)
+        self.ui.diagnoseButton.clicked.connect(self.onDiagnoseButton)
+        self.ui.acceptButton.clicked.connect(self.onAcceptButton)
+        self.ui.rejectButton.clicked.connect(self.onRejectButton)
+        self.ui.cancelButton.clicked.connect(self.onCancelButton)
+        self.ui.saveReportButton.clicked.connect(self.onSaveReportButton)
+        self.ui.candidatesTableView.selectionModel().selectionChanged.connect(self.onCandidateSelected)
+        self._setRunning(False)
+        self.initializeParameterNode()
+
+    def updateGUIFromParameterNode(self, caller=None, event=None):
+        if self._parameterNode is None or self._updatingGUI:
+            return
+        self._updatingGUI = True
+        try:
+            p = self._parameterNode
+            self.ui.casePathLineEdit.currentPath = p["caseDirectory"]
+            self.ui.fitPathLineEdit.currentPath = p["fitDirectory"]
+            self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
+            self.ui.effectsLineEdit.text = p["effects"]
+            self.ui.iterationsSpinBox.value = p["refineIterations"]
+            self.ui.roundsSpinBox.value = p["maxRounds"]
+            self.ui.landmarkSdSpinBox.value = p["landmarkSdMm"]
+            self.ui.modelSdSpinBox.value = p["modelSdMm"]
+            self.ui.alphaSpinBox.value = p["alpha"]
+            self.ui.deviceComboBox.currentIndex = max(self.ui.deviceComboBox.findText(p["device"]), 0)
+            self.ui.residualFieldCheckBox.checked = p["residualField"]
+            self.ui.glyphsCheckBox.checked = p["fieldGlyphs"]
+            self.ui.regionsCheckBox.checked = p["showRegions"]
+            self.ui.candidatesTableView.setMRMLTableNode(p.reference("candidatesTable"))
+            rounds = self.logic.roundNumbers(p)
+            self.ui.roundComboBox.clear()
+            for number in rounds:
+                self.ui.roundComboBox.addItem(_("Round {number}").format(number=number), number)
+            if p["shownRound"] in rounds:
+                self.ui.roundComboBox.currentIndex = rounds.index(p["shownRound"])
+            self.ui.verdictLabel.text = self.logic.verdictText(p)
+            self.ui.candidateLabel.text = p["candidate"] or _("none: select a row of the table")
+        finally:
+            self._updatingGUI = False
+
+    def updateParameterNodeFromGUI(self, *args):
+        if self._parameterNode is None or self._updatingGUI:
+            return
+        p = self._parameterNode
+        wasModifying = p.node.StartModify()
+        p["caseDirectory"] = self.ui.casePathLineEdit.currentPath
+        p["fitDirectory"] = self.ui.fitPathLineEdit.currentPath
+        p["outputDirectory"] = self.ui.outputPathLineEdit.currentPath
+        p["effects"] = self.ui.effectsLineEdit.text.strip()
+        p["refineIterations"] = int(self.ui.iterationsSpinBox.value)
+        p["maxRounds"] = int(self.ui.roundsSpinBox.value)
+        p["landmarkSdMm"] = self.ui.landmarkSdSpinBox.value
+        p["modelSdMm"] = self.ui.modelSdSpinBox.value
+        p["alpha"] = self.ui.alphaSpinBox.value
+        p["device"] = self.ui.deviceComboBox.currentText
+        p["residualField"] = self.ui.residualFieldCheckBox.checked
+        p.node.EndModify(wasModifying)
+
+    def _setRunning(self, running):
+        for button in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.saveReportButton,
+                       self.ui.useOptimizationButton):
+            button.enabled = not running
+        self.ui.cancelButton.enabled = running
+
+    def _progress(self, message):
+        self.ui.statusLabel.text = message
+        slicer.app.processEvents()
+        return not self._cancelRequested
+
+    def _runStep(self, title, step):
+        """Run a long Logic step with the buttons disabled, progress in the status line and Cancel."""
+        from BreastBiomechLib.discrepancy import DiagnosisCancelled
+
+        self._cancelRequested = False
+        self._setRunning(True)
+        try:
+            with slicer.util.tryWithErrorDisplay(title, waitCursor=True):
+                try:
+                    return step()
+                except DiagnosisCancelled as cancelled:
+                    self.ui.statusLabel.text = _("{what}: nothing was changed").format(what=cancelled)
+                    return None
+        finally:
+            self._setRunning(False)
+
+    def onUseOptimizationButton(self):
+        if not dependencies_ready(["numpy"], _("Breast Discrepancy")):
+            return
+        with slicer.util.tryWithErrorDisplay(_("No Breast Optimization fit to use."), waitCursor=True):
+            self.logic.useOptimizationFit(self._parameterNode)
+
+    def onDiagnoseButton(self):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
+            return
+        if self._runStep(_("Diagnosis failed."), lambda: self.logic.diagnose(self._parameterNode, self._progress)):
+            self.ui.statusLabel.text = self.logic.verdictText(self._parameterNode)
+            self.logic.showRound(self._parameterNode, self._parameterNode["shownRound"])
+
+    def onAcceptButton(self):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
+            return
+        name = self._parameterNode["candidate"] or None
+        if self._runStep(_("Refit failed."), lambda: self.logic.accept(self._parameterNode, name, self._progress)):
+            self.ui.statusLabel.text = self.logic.verdictText(self._parameterNode)
+            self.logic.showRound(self._parameterNode, self._parameterNode["shownRound"])
+
+    def onRejectButton(self):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
+            return
+        with slicer.util.tryWithErrorDisplay(_("Could not reject the candidate."), waitCursor=True):
+            name = self.logic.reject(self._parameterNode, self._parameterNode["candidate"] or None)
+            self.ui.statusLabel.text = _("{name} rejected: Diagnose runs the next round without it").format(name=name)
+
+    def onCancelButton(self):
+        self._cancelRequested = True
+
+    def onCandidateSelected(self, *args):
+        rows = self.ui.candidatesTableView.selectedIndexes()
+        if not rows:
+            return
+        with slicer.util.tryWithErrorDisplay(_("Could not show the candidate."), waitCursor=True):
+            name = self.logic.candidateAtRow(self._parameterNode, rows[0].row())
+            self.logic.showCandidate(self._parameterNode, name)
+
+    def onRoundChosen(self, index):
+        number = self.ui.roundComboBox.itemData(index)
+        if number is not None:
+            with slicer.util.tryWithErrorDisplay(_("Could not show the round."), waitCursor=True):
+                self.logic.showRound(self._parameterNode, int(number))
+
+    def onGlyphsToggled(self, checked):
+        if not self._updatingGUI and self._parameterNode is not None:
+            self.logic.setGlyphsVisible(self._parameterNode, checked)
+
+    def onRegionsToggled(self, checked):
+        if not self._updatingGUI and self._parameterNode is not None:
+            self.logic.setRegionsVisible(self._parameterNode, checked)
+
+    def onSaveReportButton(self):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
+            return
+        with slicer.util.tryWithErrorDisplay(_("Could not save the report."), waitCursor=True):
+            path = self.logic.saveReport(self._parameterNode, capture=captureSliceViews)
+            self.ui.statusLabel.text = _("report: {path}").format(path=path)
+
+
+def captureSliceViews(path) -> None:
+    """Save the application's slice views as one PNG (the report's screenshot)."""
+    import ScreenCapture
+
+    ScreenCapture.ScreenCaptureLogic().captureImageFromView(None, str(path))
+
+
+#
+# Logic
+#
+
+
+class BreastDiscrepancyLogic(ParameterNodeLogic):
+    """The diagnosis of a fitted compressed case as MRML nodes, one step at a time
+    (:class:`~BreastBiomechLib.discrepancy.session.DiagnosisSession`): rounds, their evidence as
+    overlays, tables and plots, the user's decisions. No Qt: runs in Slicer and headless.
+
+    Frames: the nodes hold RAS; the library LPS (``BreastBiomechLib.mrml`` converts). Distances
+    in mm. Each round's nodes live in the subject-hierarchy folder "Round N" under
+    "Discrepancy <output folder's name>" and
+    carry the attributes ``BreastDiscrepancy.Round``, ``.Kind`` and ``.Folder`` (the output folder)."""
+
+    MODULE_NAME = "BreastDiscrepancy"
+    DEFAULTS = {"caseDirectory": "", "fitDirectory": "", "outputDirectory": "", "effects": "", "refineIterations": 2,
+                "maxRounds": 4, "landmarkSdMm": 0.5, "modelSdMm": 0.5, "alpha": 0.01, "device": "auto",
+                "residualField": True, "fieldGlyphs": False, "showRegions": False, "shownRound": 0, "candidate": ""}
+    ROLES = ("measuredVolume", "candidatesTable", "residualVolume", "candidateVolume", "residualTransform",
+             "landmarkLines", "skinModel", "regions", "landmarkErrorsTable", "landmarkErrorsChart", "measuresTable",
+             "measuresChart", "histogramTable", "histogramChart")
+
+    def __init__(self, scene=None):
+        ParameterNodeLogic.__init__(self, scene)
+        self.session = None   # the open DiagnosisSession
+        self._surface = None  # the measured body's signed distance, made once per session
+
+    # -- inputs ----------------------------------------------------------------------------------
+
+    @staticmethod
+    def chosenFolder(path: str, what: str) -> str:
+        """``path`` as chosen in a folder field; "" or "." (nothing chosen) and relative paths
+        (Slicer's working folder) are refused."""
+        if not path or path.strip() in (".", "./"):
+            raise ValueError(f"choose {what}")
+        if not os.path.isabs(path):
+            raise ValueError(f"{what.split(' (')[0]} must be an absolute path, not {path!r} (a relative path would "
+                             "point into Slicer's working folder)")
+        return path
+
+    def useOptimizationFit(self, parameterNode) -> None:
+        """Take the case and fit folders of the Breast Optimization result in the scene (its case
+        folder, loaded with Load case, and its output folder, once a run has ended)."""
+        from BreastBiomechLib.mrml import ParameterNode
+
+        optimisation = ParameterNode(self.scene, "BreastOptimization", {"caseDirectory": "", "outputDirectory": ""}, ())
+        case, fit = optimisation["caseDirectory"], optimisation["outputDirectory"]
+        if not case:
+            raise ValueError("Breast Optimization has no case folder: load a compressed case there (Load case) and fit "
+                             "it, or choose the case and fit folders here")
+        if not fit or not os.path.isfile(os.path.join(fit, "fitting_mesh.vtu")):
+            raise ValueError(f"Breast Optimization's output folder {fit!r} holds no finished fit: run the fit to its "
+                             "end first")
+        parameterNode["caseDirectory"], parameterNode["fitDirectory"] = case, fit
+
+    def openSession(self, parameterNode, progress=None):
+        """The diagnosis session of the chosen case, fit and output folder (kept while they stay
+        the same; an output folder holding this case's and fit's earlier rounds goes on after
+        them). Loads the measured compressed volume into the scene."""
+        from BreastBiomechLib.discrepancy import DiagnosisSession, DiagnosisSettings, NoiseModel
+        from BreastBiomechLib.discrepancy.registration import RegistrationSettings
+        from BreastBiomechLib.mrml import image_to_volume_node
+
+        p = parameterNode
+        case = self.chosenFolder(p["caseDirectory"], "the compressed case folder (it holds mr.nrrd and compressed/)")
+        fit = self.chosenFolder(p["fitDirectory"], "the fit folder (breastbiomech optimise --out, or Breast "
+                                                   "Optimization's output folder)")
+        out = self.chosenFolder(p["outputDirectory"], "an output folder for the rounds and the report")
+        effects = [e.strip() for e in p["effects"].replace(",", " ").split() if e.strip()] or None
+        key = (case, fit, out, tuple(effects or ()), p["landmarkSdMm"], p["modelSdMm"], p["alpha"], p["residualField"])
+        if self.session is not None and self._key == key:
+            return self.session
+        earlier = os.path.isfile(os.path.join(out, "diagnosis.json"))
+        if not earlier and os.path.isdir(out) and os.listdir(out):
+            raise ValueError(f"the output folder {out} is not empty and holds no diagnosis: choose a new or empty folder")
+        session = DiagnosisSession(case, fit, out, effects,
+                                   NoiseModel(landmark_sd_mm=p["landmarkSdMm"], model_sd_mm=p["modelSdMm"]),
+                                   DiagnosisSettings(alpha=p["alpha"], refine_iterations=0),
+                                   self.resolveDevice(p["device"]), resume=earlier,
+                                   registration=RegistrationSettings() if p["residualField"] else None,
+                                   progress=progress)
+        self.session, self._key, self._surface = session, key, None
+        p.set_reference("measuredVolume", image_to_volume_node(session.fitted.measured_image, self.scene,
+                                                               "Measured compressed MR",
+                                                               node=p.reference("measuredVolume")))
+        return session
+
+    @staticmethod
+    def resolveDevice(choice: str) -> str:
+        return resolve_device(choice)
+
+    # -- the steps -------------------------------------------------------------------------------
+
+    def diagnose(self, parameterNode, progress=None):
+        """Diagnose the next round (an open one again). ``progress(message)`` answering False
+        cancels before anything is written or added to the scene. Returns the candidates table
+        node (ranked as the library ranks them)."""
+        p = parameterNode
+        session = self.openSession(p, progress)
+        last = session.last
+        from BreastBiomechLib.discrepancy.session import is_open
+
+        if last is not None and not is_open(last) and len(session.rounds) >= p["maxRounds"]:
+            raise ValueError(f"{len(session.rounds)} rounds made, the most allowed ({p['maxRounds']}): raise Rounds "
+                             "to go on")
+        record = session.diagnose(progress)
+        number = record["round"]
+        self._removeRound(number)  # an open round diagnosed again: its old nodes go
+        folder = self._roundFolder(number)
+        table = self._candidatesTable(p, record, folder)
+        self._evidence(p, record, "before", folder)
+        p["shownRound"], p["candidate"] = number, record["diagnosis"]["effect"] or ""
+        self._plots(p, record, folder)
+        logging.info("BreastDiscrepancy: round %d: %s", number, record["diagnosis"]["sentence"])
+        return table
+
+    def accept(self, parameterNode, name=None, progress=None) -> dict:
+        """*Refit with effect*: add candidate ``name`` (default the round's verdict, else the
+        selected candidate) to the model and refit it, warm-started, refined by
+        "refineIterations" Gauss-Newton iterations; the overlays and plots after the refit join
+        the round's folder. Cancelling leaves the round as it was. Returns the round's record."""
+        p = parameterNode
+        session = self._session()
+        record = session.last
+        name = name or record["diagnosis"]["effect"] or p["candidate"]
+        if not name:
+            raise ValueError(f"round {record['round']} names no effect ({record['diagnosis']['verdict']}): select a "
+                             "candidate in the table to add it anyway, or diagnose again")
+        record = session.add(name, p["refineIterations"], progress)
+        folder = self._roundFolder(record["round"])
+        self._evidence(p, record, "after", folder)
+        self._candidatesTable(p, record, folder)
+        self._plots(p, record, folder)
+        p["candidate"] = name
+        logging.info("BreastDiscrepancy: round %d: added %s", record["round"], name)
+        return record
+
+    def reject(self, parameterNode, name=None) -> str:
+        """Turn candidate ``name`` (default the selected one, else the verdict's) down: the next
+        round does not test it. Returns its name."""
+        p = parameterNode
+        session = self._session()
+        name = name or p["candidate"] or session.last["diagnosis"]["effect"]
+        if not name:
+            raise ValueError("select the candidate to reject in the table")
+        record = session.reject(name)
+        self._candidatesTable(p, record, self._roundFolder(record["round"]))
+        return name
+
+    def _session(self):
+        if self.session is None or self.session.last is None:
+            raise ValueError("diagnose first")
+        return self.session
+
+    # -- what the scene shows --------------------------------------------------------------------
+
+    def roundNumbers(self, parameterNode=None) -> list[int]:
+        """The rounds whose nodes are in the scene, in order."""
+        numbers = set()
+        for node in self._roundNodes():
+            numbers.add(int(node.GetAttribute(ROUND_ATTRIBUTE)))
+        return sorted(numbers)
+
+    def verdictText(self, parameterNode) -> str:
+        """The shown round's verdict sentence, with what was added or rejected."""
+        if self.session is None:
+            return ""
+        record = next((r for r in self.session.rounds if r["round"] == parameterNode["shownRound"]), None)
+        if record is None:
+            return ""
+        text = f"Round {record['round']}: {record['diagnosis']['sentence']}"
+        if record.get("added"):
+            after = record["after"].get("landmark_error_mm")
+            before = record["before"].get("landmark_error_mm")
+            text += f"\nAdded {record['added']}" + (f": landmark error {before['mean']:.2f} -> {after['mean']:.2f} mm"
+                                                     if before and after else "")
+        if record.get("rejected"):
+            text += f"\nRejected: {', '.join(record['rejected'])}"
+        return text
+
+    def candidateAtRow(self, parameterNode, row: int) -> str:
+        """The candidate's name in ``row`` of the shown round's candidates table."""
+        table = parameterNode.reference("candidatesTable")
+        if table is None or not 0 <= row < table.GetNumberOfRows():
+            raise ValueError(f"the candidates table has no row {row}")
+        name = table.GetCellText(row, 1)
+        parameterNode["candidate"] = name
+        return name
+
+    def showCandidate(self, parameterNode, name: str):
+        """The residual candidate ``name`` predicts (its linearised estimate's change of the model,
+        magnitude in mm on the measured grid, the residual's colour scale), beside the measured
+        residual (application: side-by-side slice views). Returns the volume node."""
+        from BreastBiomechLib.discrepancy.evidence import candidate_pattern
+        from BreastBiomechLib.mrml import image_to_volume_node
+        from BreastBiomechLib.mrml.overlays import MAGNITUDE_COLORS, put_in_folder, show_as_overlay
+
+        p = parameterNode
+        session = self._session()
+        diagnosis, number = session.diagnosis, session.last["round"]
+        candidate = next((c for c in diagnosis.candidates if c.name == name), None)
+        if candidate is None or candidate.skipped or name not in diagnosis.sensitivities.fields:
+            raise ValueError(f"{name!r} was not tested in round {number}: no predicted residual to show")
+        image = candidate_pattern(session.fitted, diagnosis.sensitivities.displacement,
+                                  diagnosis.sensitivities.fields[name], candidate.estimate)
+        node = self._kindNode(number, f"candidate-{name}") or image_to_volume_node(
+            image, self.scene, f"Round {number}: residual {candidate.title} predicts")
+        image_to_volume_node(image, self.scene, node=node)
+        self._tag(node, number, f"candidate-{name}")
+        show_as_overlay(node, MAGNITUDE_COLORS, 0.0, self._limit(number), "predicted |r| (mm)", SHOWN_FROM_MM)
+        put_in_folder(self.scene, [node], self._roundFolder(number))
+        p.set_reference("candidateVolume", node)
+        p["candidate"] = name
+        if IN_SLICER_APPLICATION:
+            layout = slicer.app.layoutManager()
+            layout.setLayout(slicer.vtkMRMLLayoutNode.SlicerLayoutSideBySideView)
+            for view, foreground in (("Red", p.reference("residualVolume")), ("Yellow", node)):
+                composite = layout.sliceWidget(view).mrmlSliceCompositeNode()
+                composite.SetBackgroundVolumeID(p.reference("measuredVolume").GetID())
+                composite.SetForegroundVolumeID(foreground.GetID() if foreground is not None else None)
+                composite.SetForegroundOpacity(0.7)
+        return node
+
+    def showRound(self, parameterNode, number: int) -> None:
+        """Point the panel's nodes at round ``number``'s (after its refit where there was one):
+        the residual overlay, field, landmark lines, skin model, regions, candidates table and
+        plots; in the application the overlay lies over the measured volume."""
+        p = parameterNode
+        if number not in self.roundNumbers():
+            raise ValueError(f"round {number} is not in the scene (rounds: {self.roundNumbers()})")
+        when = "after" if self._kindNode(number, "residual-after") or self._kindNode(number, "lines-after") else "before"
+        for role, kind in (("residualVolume", f"residual-{when}"), ("residualTransform", f"field-{when}"),
+                           ("landmarkLines", f"lines-{when}"), ("skinModel", f"skin-{when}"), ("regions", "regions"),
+                           ("candidatesTable", "candidates"), ("landmarkErrorsTable", "landmark-errors"),
+                           ("landmarkErrorsChart", "landmark-errors-chart"), ("measuresTable", "measures"),
+                           ("measuresChart", "measures-chart"), ("histogramTable", "histogram"),
+                           ("histogramChart", "histogram-chart")):
+            p.set_reference(role, self._kindNode(number, kind))
+        p["shownRound"] = number
+        for other in self._roundNodes():
+            if other.IsA("vtkMRMLDisplayableNode") and other.GetDisplayNode() is not None:
+                mine = int(other.GetAttribute(ROUND_ATTRIBUTE)) == number and other.GetAttribute(
+                    KIND_ATTRIBUTE).endswith(when)
+                if other.IsA("vtkMRMLModelNode"):
+                    other.GetDisplayNode().SetVisibility(mine)
+        self.setGlyphsVisible(p, p["fieldGlyphs"])
+        self.setRegionsVisible(p, p["showRegions"])
+        if IN_SLICER_APPLICATION and p.reference("measuredVolume") is not None:
+            slicer.util.setSliceViewerLayers(background=p.reference("measuredVolume"),
+                                             foreground=p.reference("residualVolume"), foregroundOpacity=0.7)
+            if p.reference("landmarkErrorsChart") is not None:
+                slicer.modules.plots.logic().ShowChartInLayout(p.reference("landmarkErrorsChart"))
+
+    def setGlyphsVisible(self, parameterNode, visible: bool) -> None:
+        """Show or hide the shown round's residual field as glyphs in the slice views."""
+        parameterNode["fieldGlyphs"] = bool(visible)
+        for node in self._roundNodes():
+            if node.IsA("vtkMRMLTransformNode") and node.GetDisplayNode() is not None:
+                node.GetDisplayNode().SetVisibility(bool(visible) and node is parameterNode.reference("residualTransform"))
+
+    def setRegionsVisible(self, parameterNode, visible: bool) -> None:
+        """Show or hide the shown round's regions (segments: contact bands, chest-wall band,
+        sub-surface band, deeper tissue)."""
+        parameterNode["showRegions"] = bool(visible)
+        for node in self._roundNodes():
+            if node.IsA("vtkMRMLSegmentationNode") and node.GetDisplayNode() is not None:
+                node.GetDisplayNode().SetVisibility(bool(visible) and node is parameterNode.reference("regions"))
+
+    def saveReport(self, parameterNode, capture=None):
+        """Write the diagnosis report (Markdown: each round's verdict, ranked candidates, residual by
+        region, before/after, residual maps) into the output folder, with a picture of the slice
+        views made by ``capture(path)`` where given (the application's screenshot). Returns its path."""
+        from pathlib import Path
+
+        from BreastBiomechLib.discrepancy.report import write_report
+
+        session = self._session()
+        pictures = []
+        if capture is not None:
+            picture = Path(session.out) / f"round-{parameterNode['shownRound']}-slice-views.png"
+            capture(picture)
+            pictures.append((f"Slice views of round {parameterNode['shownRound']} in Slicer", picture.name))
+        return write_report(session.run(), Path(session.out) / "report.md", pictures)
+
+    # -- nodes of a round ------------------------------------------------------------------------
+
+    def _roundNodes(self) -> list:
+        """The round nodes of the open session's output folder."""
+        if self.session is None:
+            return []
+        nodes = []
+        for i in range(self.scene.GetNumberOfNodes()):
+            node = self.scene.GetNthNode(i)
+            if node.GetAttribute(ROUND_ATTRIBUTE) is not None and node.GetAttribute(FOLDER_ATTRIBUTE) == str(
+                    self.session.out):
+                nodes.append(node)
+        return nodes
+
+    def _kindNode(self, number: int, kind: str):
+        return next((n for n in self._roundNodes() if n.GetAttribute(ROUND_ATTRIBUTE) == str(number)
+                     and n.GetAttribute(KIND_ATTRIBUTE) == kind), None)
+
+    def _tag(self, node, number: int, kind: str):
+        node.SetAttribute(ROUND_ATTRIBUTE, str(number))
+        node.SetAttribute(KIND_ATTRIBUTE, kind)
+        node.SetAttribute(FOLDER_ATTRIBUTE, str(self.session.out))
+        return node
+
+    def _roundFolder(self, number: int) -> int:
+        """The subject-hierarchy folder "Round N" under "Discrepancy <output folder's name>"."""
+        from BreastBiomechLib.mrml.overlays import folder
+
+        return folder(self.scene, f"Round {number}", folder(self.scene, f"Discrepancy {self.session.out.name}"))
+
+    def _removeRound(self, number: int) -> None:
+        for node in self._roundNodes():
+            if node.GetAttribute(ROUND_ATTRIBUTE) == str(number):
+                self.scene.RemoveNode(node)
+
+    def _limit(self, number: int) -> float:
+        """The colour scale's top (mm) of round ``number``: the 99th percentile of its residual
+        magnitude before the refit (at least 0.5 mm), shared by every overlay of the round."""
+        field = self.session.fields.get((number, "before"))
+        if field is None or not field.mask.any():
+            return 2.0
+        return max(float(np.percentile(field.magnitude[field.mask], 99)), 0.5)
+
+    def _put(self, folder_item, number, kind, node):
+        from BreastBiomechLib.mrml.overlays import put_in_folder
+
+        self._tag(node, number, kind)
+        put_in_folder(self.scene, [node], folder_item)
+        return node
+
+    def _candidatesTable(self, parameterNode, record, folder_item):
+        """The round's candidates as a table: rank, effect name and title, score statistic (dof),
+        corrected p, share of the residual it could explain, localisation, refit dBIC and share
+        removed, where it acts, and its part in the verdict."""
+        from BreastBiomechLib.mrml import columns_to_table_node
+
+        d = record["diagnosis"]
+        rows = [c for c in d["candidates"] if not c["skipped"]] + [c for c in d["candidates"] if c["skipped"]]
+
+        def role(c):
+            if c["skipped"]:
+                return f"skipped: {c['skipped']}"
+            if c["name"] in record.get("rejected", []):
+                return "rejected"
+            if c["name"] == record.get("added"):
+                return "added"
+            if c["name"] == d["effect"]:
+                return "missing effect"
+            if c["name"] in d["alternatives"]:
+                return "ambiguous" if d["verdict"] == "ambiguous" else "unexplained: best, removes too little"
+            if c["p_adjusted"] < 0.01 or (c.get("refit") or {}).get("delta_bic") is not None:
+                return "significant, not confirmed"
+            return "not significant"
+
+        def refit(c, key):
+            value = (c.get("refit") or {}).get(key)
+            return float("nan") if value is None else float(value)
+
+        columns = {"rank": np.array([str(i + 1) if not c["skipped"] else "-" for i, c in enumerate(rows)], dtype=object),
+                   "effect": np.array([c["name"] for c in rows], dtype=object),
+                   "title": np.array([c["title"] for c in rows], dtype=object),
+                   "statistic": np.array([c["statistic"] for c in rows], float),
+                   "dof": np.array([c["dof"] for c in rows], float),
+                   "p (corrected)": np.array([c["p_adjusted"] for c in rows], float),
+                   "could explain": np.array([c["explained_fraction"] for c in rows], float),
+                   "localisation": np.array([c["localisation"] for c in rows], float),
+                   "dBIC": np.array([refit(c, "delta_bic") for c in rows], float),
+                   "removed": np.array([refit(c, "removed") for c in rows], float),
+                   "acts in": np.array([c.get("acts_in", "") for c in rows], dtype=object),
+                   "verdict": np.array([role(c) for c in rows], dtype=object)}
+        number = record["round"]
+        node = columns_to_table_node(columns, self.scene, f"Round {number}: candidates",
+                                     node=self._kindNode(number, "candidates"))
+        parameterNode.set_reference("candidatesTable", self._put(folder_item, number, "candidates", node))
+        return node
+
+    def _evidence(self, parameterNode, record, when, folder_item) -> None:
+        """The round's overlays ``when`` ("before" or "after" its refit): residual magnitude volume
+        with a colour legend, residual field as a grid transform (glyphs), landmark residual lines,
+        skin signed-distance model; before: the regions."""
+        import SimpleITK as sitk
+
+        from BreastBiomechLib.discrepancy.evidence import landmark_residuals, region_labels, skin_surface
+        from BreastBiomechLib.mrml import displacement_field_to_grid_transform_node, image_to_volume_node
+        from BreastBiomechLib.mrml.overlays import (
+            MAGNITUDE_COLORS,
+            segments_to_model_node,
+            show_as_overlay,
+            surface_to_model_node,
+        )
+        from BreastBiomechLib.mrml.segmentations import named_labels_to_segmentation_node
+        from BreastBiomechLib.similarity.surface import SurfaceDistance
+
+        p = parameterNode
+        session, number = self.session, record["round"]
+        diagnosis = session.diagnosis
+        displacement = diagnosis.sensitivities.displacement if when == "before" else diagnosis.refitted.displacement
+        label = "before" if when == "before" else f"after adding {record['added']}"
+        field = session.fields.get((number, when))
+        if field is not None:
+            volume = image_to_volume_node(field.magnitude_image(), self.scene,
+                                          f"Round {number}: residual |r| {label}",
+                                          node=self._kindNode(number, f"residual-{when}"))
+            show_as_overlay(volume, MAGNITUDE_COLORS, 0.0, self._limit(number), "residual |r| (mm)", SHOWN_FROM_MM)
+            p.set_reference("residualVolume", self._put(folder_item, number, f"residual-{when}", volume))
+            transform = displacement_field_to_grid_transform_node(
+                sitk.Cast(field.image(), sitk.sitkVectorFloat64), self.scene, f"Round {number}: residual field {label}",
+                node=self._kindNode(number, f"field-{when}"))
+            if transform.GetDisplayNode() is None:
+                transform.CreateDefaultDisplayNodes()
+            display = transform.GetDisplayNode()
+            display.SetVisualizationMode(display.VIS_MODE_GLYPH)
+            display.SetVisibility2D(True)
+            display.SetVisibility(False)
+            p.set_reference("residualTransform", self._put(folder_item, number, f"field-{when}", transform))
+        residuals = landmark_residuals(session.fitted, displacement)
+        if residuals is not None:
+            lines = segments_to_model_node(residuals.predicted, residuals.measured, residuals.error_mm, "residual_mm",
+                                           self.scene, f"Round {number}: landmark residuals {label}",
+                                           node=self._kindNode(number, f"lines-{when}"))
+            p.set_reference("landmarkLines", self._put(folder_item, number, f"lines-{when}", lines))
+        if self._surface is None:
+            self._surface = SurfaceDistance(session.fitted.measured_image)
+        points, triangles, distance = skin_surface(session.fitted, displacement, self._surface)
+        skin = surface_to_model_node(points, triangles, distance, "signed_distance_mm", self.scene,
+                                     f"Round {number}: skin distance {label}", node=self._kindNode(number, f"skin-{when}"))
+        p.set_reference("skinModel", self._put(folder_item, number, f"skin-{when}", skin))
+        if when == "before":
+            from BreastBiomechLib.discrepancy.regions import regions_of
+
+            node_regions = regions_of(session.fitted, session.fitted.mesh.nodes, displacement)
+            image, segments = region_labels(session.fitted, displacement, node_regions)
+            regions = named_labels_to_segmentation_node(image, segments, self.scene, f"Round {number}: regions",
+                                                        node=self._kindNode(number, "regions"))
+            regions.GetDisplayNode().SetVisibility(bool(p["showRegions"]))
+            p.set_reference("regions", self._put(folder_item, number, "regions", regions))
+
+    def _plots(self, parameterNode, record, folder_item) -> None:
+        """The round's plots: landmark error per landmark, NMI and RMS feature residual, and the
+        residual magnitude's histogram, before and (once refitted) after."""
+        from BreastBiomechLib.discrepancy.evidence import magnitude_histogram
+        from BreastBiomechLib.mrml import columns_to_table_node, plot_chart_node
+
+        p, number = parameterNode, record["round"]
+        stages = [("before", record["before"])] + ([("after", record["after"])] if record.get("after") else [])
+        errors = record["before"].get("landmark_error_mm")
+        if errors:
+            labels = list(errors["per_landmark"])
+            columns = {"landmark": np.array(labels, dtype=object), "index": np.arange(1, len(labels) + 1, dtype=float)}
+            for stage, measures in stages:
+                columns[f"error {stage} (mm)"] = np.array([measures["landmark_error_mm"]["per_landmark"][k]
+                                                           for k in labels], float)
+            table = columns_to_table_node(columns, self.scene, f"Round {number}: landmark errors",
+                                          node=self._kindNode(number, "landmark-errors"))
+            p.set_reference("landmarkErrorsTable", self._put(folder_item, number, "landmark-errors", table))
+            chart = plot_chart_node(table, "index", [f"error {s} (mm)" for s, _ in stages], self.scene,
+                                    f"Round {number}: landmark error", "error (mm)",
+                                    node=self._kindNode(number, "landmark-errors-chart"), bars=True)
+            p.set_reference("landmarkErrorsChart", self._put(folder_item, number, "landmark-errors-chart", chart))
+        columns = {"stage": np.array([s for s, _ in stages], dtype=object),
+                   "index": np.arange(1, len(stages) + 1, dtype=float),
+                   "NMI": np.array([m["nmi"] for _, m in stages], float),
+                   "RMS feature residual (mm)": np.array([m["residual_rms_mm"] for _, m in stages], float),
+                   "mean landmark error (mm)": np.array([m["landmark_error_mm"]["mean"] if m.get("landmark_error_mm")
+                                                         else np.nan for _, m in stages], float)}
+        table = columns_to_table_node(columns, self.scene, f"Round {number}: measures",
+                                      node=self._kindNode(number, "measures"))
+        p.set_reference("measuresTable", self._put(folder_item, number, "measures", table))
+        chart = plot_chart_node(table, "index", ["NMI"], self.scene, f"Round {number}: NMI (1 before, 2 after)",
+                                "NMI", node=self._kindNode(number, "measures-chart"), bars=True)
+        p.set_reference("measuresChart", self._put(folder_item, number, "measures-chart", chart))
+        fields = {f"share {when}": self.session.fields[(number, when)] for when, _ in stages
+                  if (number, when) in self.session.fields}
+        if fields:
+            table = columns_to_table_node(magnitude_histogram(fields), self.scene, f"Round {number}: residual histogram",
+                                          node=self._kindNode(number, "histogram"))
+            p.set_reference("histogramTable", self._put(folder_item, number, "histogram", table))
+            chart = plot_chart_node(table, "|r| (mm)", list(fields), self.scene, f"Round {number}: residual |r|",
+                                    "share of the breast's voxels", node=self._kindNode(number, "histogram-chart"))
+            p.set_reference("histogramChart", self._put(folder_item, number, "histogram-chart", chart))
+
+
+#
+# Test (runs inside Slicer: Reload and Test; the thorough checks run headless in Testing/)
+#
+
+
+class BreastDiscrepancyTest(ModuleTestMixin, ScriptedLoadableModuleTest):
+    REQUIRES = tuple(DEPENDENCIES + ["cma", "tetgen"])
+
+    def test_diagnose_a_small_case_with_hidden_friction(self):
+        import tempfile
+
+        from BreastBiomechLib.cli import main
+
+        self.delayDisplay("Making a small compressed phantom with hidden plate friction and fitting it (12 solves)")
+        folder = tempfile.mkdtemp()
+        case = f"{folder}/case"
+        main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
+              "--compression", "0.4", "--truth-edge-mm", "6", "--no-overview", "--friction", "1.0", "--out", case])
+        main(["optimise", case, "--out", f"{folder}/fit", "--model", "iso-hetero", "--free", "E", "--optimiser",
+              "cmaes", "--budget", "12", "--population", "6", "--edge-mm", "10", "--quiet"])
+        logic = BreastDiscrepancyLogic()
+        p = logic.getParameterNode()
+        p["caseDirectory"], p["fitDirectory"], p["outputDirectory"] = case, f"{folder}/fit", f"{folder}/diagnosis"
+        p["effects"], p["refineIterations"] = "friction skin plate-tilt", 1
+        logic.diagnose(p)
+        self.assertEqual(logic.session.last["diagnosis"]["effect"], "friction")
+        logic.accept(p)
+        logic.showRound(p, 1)
+        self.delayDisplay("Test passed")

@@ -1,0 +1,351 @@
+"""The diagnosis one step at a time: diagnose a round, then add the named effect (or another
+candidate the user chooses) with its warm-started refit, or reject it; every step written to the
+output folder as it finishes, so that a run resumes and the Breast Discrepancy module, the
+Python console and :func:`~BreastBiomechLib.discrepancy.workflow.run_diagnosis` share one path.
+
+Output folder::
+
+    round-<N>.json   each round: the diagnosis (verdict, every statistic), the model before and
+                     after (fit parameters, effects added), landmark error, NMI and residual by
+                     region before and after the refit; ``added`` (the effect added) or
+                     ``rejected`` (candidates the user turned down) once decided
+    diagnosis.json   the case and fit, the settings, all rounds and the latest verdict
+    round-<N>-residual-{before,after}.nrrd
+                     the residual displacement field of the round's model before and after its refit
+                     (vector, LPS mm, on the measured image's grid; Slicer loads it as a vector
+                     volume; it is a residual, measured minus model position, not a resampling transform)
+    round-<N>-residual.png
+                     its magnitude over the measured image, before and after, with the landmark residuals
+    report.md        the report (:mod:`BreastBiomechLib.discrepancy.report`)
+
+A round is *open* while its verdict asks for a decision (a missing effect or an ambiguous
+choice) and none was made; diagnosing again replaces an open round, any other round is followed
+by a new one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib.discrepancy.diagnosis import Diagnosis, DiagnosisSettings, adopt, diagnose, region_summary
+from BreastBiomechLib.discrepancy.effects import library
+from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
+from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
+from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
+from BreastBiomechLib.discrepancy.state import ModelState
+
+DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
+
+
+class DiagnosisCancelled(RuntimeError):
+    """The progress callback answered False: the step stopped before writing anything."""
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file renamed over it: never half written."""
+    temporary = path.with_name(path.name + ".partial")
+    temporary.write_text(text)
+    os.replace(temporary, path)
+
+
+def measures(fitted: FittedCase, observations: Observations, displacement: np.ndarray, regions) -> dict:
+    """What the report compares before and after a round: landmark errors (mm), NMI against the
+    measured image, and the residual by region."""
+    out = {}
+    if fitted.reference is not None:
+        from BreastBiomechLib.landmarks import map_landmarks
+
+        moved = map_landmarks(fitted.mesh, displacement, fitted.reference)
+        errors = np.linalg.norm(moved.positions - fitted.measured.positions, axis=1)
+        out["landmark_error_mm"] = {"mean": float(errors.mean()), "max": float(errors.max()),
+                                    "per_landmark": dict(zip(fitted.reference.labels, errors.round(3).tolist()))}
+    out["nmi"] = float(fitted.problem.similarity.nmi(fitted.problem.warper.warp(displacement)))
+    residual = observations.residual(displacement)
+    out["residual_rms_mm"] = float(np.sqrt(np.mean(residual ** 2)))
+    out["regions"] = region_summary(observations, residual, regions)
+    return out
+
+
+@dataclass
+class FieldRecorder:
+    """Makes, summarises and saves the residual displacement fields of a run's models (see
+    :mod:`~BreastBiomechLib.discrepancy.registration`): the measured body found once, the
+    fitting mesh's nodes labelled by region once."""
+
+    fitted: FittedCase
+    settings: RegistrationSettings
+    node_regions: np.ndarray
+    body: np.ndarray
+
+    @classmethod
+    def of(cls, fitted: FittedCase, base_displacement: np.ndarray, settings: RegistrationSettings) -> FieldRecorder:
+        import SimpleITK as sitk
+
+        from BreastBiomechLib.discrepancy.regions import regions_of
+        from BreastBiomechLib.segmentation.body import body_mask
+        from BreastBiomechLib.segmentation.volume import check_volume
+
+        body = body_mask(sitk.GetArrayFromImage(fitted.measured_image).astype(np.float32),
+                         check_volume(fitted.measured_image))
+        return cls(fitted, settings, regions_of(fitted, fitted.mesh.nodes, base_displacement), body)
+
+    def field(self, displacement: np.ndarray) -> ResidualField:
+        from BreastBiomechLib.discrepancy.registration import residual_field_of
+
+        return residual_field_of(self.fitted, displacement, self.body, self.settings)
+
+    def summary(self, field: ResidualField, displacement: np.ndarray, path: Path) -> dict:
+        """The figures of ``field`` (of the model whose solution is ``displacement``), saved to ``path``."""
+        import SimpleITK as sitk
+
+        from BreastBiomechLib.discrepancy.registration import field_by_region
+
+        image = sitk.Cast(field.image(), sitk.sitkVectorFloat32)
+        sitk.WriteImage(image, str(path.with_name(path.name + ".partial.nrrd")), useCompression=True)
+        os.replace(path.with_name(path.name + ".partial.nrrd"), path)
+        magnitude = field.magnitude[field.mask]
+        return {"file": path.name, "mean_mm": float(magnitude.mean()), "p95_mm": float(np.percentile(magnitude, 95)),
+                "accuracy": field.accuracy,
+                "regions": field_by_region(field, self.fitted.mesh.nodes, displacement, self.node_regions)}
+
+
+def state_from_record(fitted: FittedCase, record: dict, effects) -> ModelState:
+    """The model after a recorded round."""
+    by_name = {e.name: e for e in effects}
+    after = record["state_after"]
+    state = ModelState(fitted, np.asarray(after["z"], float))
+    for name, values in after["added"].items():
+        state = state.with_effect(by_name[name], values)
+    return state
+
+
+def is_open(record: dict) -> bool:
+    """Whether a round still waits for a decision (see the module docstring)."""
+    return (record["diagnosis"]["verdict"] in DECISIONS and not record.get("added")
+            and not record.get("rejected"))
+
+
+class DiagnosisSession:
+    """The diagnosis of the fit in ``fit_dir`` of the compressed case ``case_dir``, written to
+    ``out_dir`` (a new or empty folder; with ``resume`` the folder of an earlier session of the
+    same case and fit, which goes on after its last round). ``effects``: the candidates' names
+    (default the whole library); ``settings.refine_iterations`` refine the verdict's effect
+    during :meth:`diagnose` (0 leaves the refinement to :meth:`add`); ``registration``: the
+    residual displacement field's settings (None: no field). ``progress(message)`` of each step
+    returning False cancels it (:class:`DiagnosisCancelled`), before it writes anything."""
+
+    def __init__(self, case_dir, fit_dir, out_dir, effects=None, noise: NoiseModel | None = None,
+                 settings: DiagnosisSettings | None = None, device=None, resume: bool = False,
+                 registration: RegistrationSettings | None = RegistrationSettings(),
+                 progress: Callable[[str], object] | None = None):
+        from BreastBiomechLib.io.meshes import read_vtu
+
+        self.out = Path(out_dir)
+        self.case_dir, self.fit_dir = Path(case_dir), Path(fit_dir)
+        if self.out.exists() and any(self.out.iterdir()) and not resume:
+            raise FileExistsError(f"{self.out} exists and is not empty: resume it (--resume) or choose another "
+                                  "output folder")
+        recorded = self.out / "diagnosis.json"
+        if resume and recorded.is_file():
+            earlier = json.loads(recorded.read_text())
+            for key, ours in (("case_dir", self.case_dir), ("fit_dir", self.fit_dir)):
+                if Path(earlier[key]).resolve() != ours.resolve():
+                    raise ValueError(f"{self.out} holds the diagnosis of {key.split('_')[0]} {earlier[key]}, not "
+                                     f"{ours}: choose another output folder")
+        self.settings = settings or DiagnosisSettings()
+        self.noise = noise or NoiseModel()
+        self.device = device
+        self._say = self._checked(progress)
+        self._say("reading the case and the fit")
+        self.fitted = load_fitted_case(case_dir, fit_dir, device=device)
+        self.candidates = library(self.fitted, effects)
+        solution = self.fit_dir / "deformed_mesh.vtu"
+        if solution.is_file():
+            base = read_vtu(solution).point_data["displacement"]
+        else:
+            from BreastBiomechLib.discrepancy.variants import solve_variants
+
+            self._say("solving the fitted model")
+            base = solve_variants([ModelState(self.fitted, self.fitted.z).variant()], self.fitted.mesh.nodes,
+                                  self.fitted.relaxation, device)[0].displacement
+        self.base_displacement = base
+        self.observations = observations_of(self.fitted, base, self.noise)
+        self.recorder = FieldRecorder.of(self.fitted, base, registration) if registration is not None else None
+        self.rounds: list[dict] = []
+        self.state = ModelState(self.fitted, self.fitted.z)
+        self.diagnosis: Diagnosis | None = None  # the last round's, while in memory
+        self.fields: dict[tuple[int, str], ResidualField] = {}
+        self.out.mkdir(parents=True, exist_ok=True)
+        number = 1
+        while resume and (self.out / f"round-{number}.json").is_file():
+            record = json.loads((self.out / f"round-{number}.json").read_text())
+            self.rounds.append(record)
+            self.state = state_from_record(self.fitted, record, self.candidates)
+            number += 1
+
+    @staticmethod
+    def _checked(progress):
+        def say(message: str) -> None:
+            if progress is not None and progress(message) is False:
+                raise DiagnosisCancelled(f"cancelled while {message}")
+        return say
+
+    # -- what the session holds ---------------------------------------------------------------
+
+    @property
+    def rejected(self) -> set[str]:
+        """The candidates turned down in any round (not tested again)."""
+        return {name for r in self.rounds for name in r.get("rejected", [])}
+
+    @property
+    def added(self) -> list[str]:
+        return [r["added"] for r in self.rounds if r.get("added")]
+
+    @property
+    def last(self) -> dict | None:
+        return self.rounds[-1] if self.rounds else None
+
+    def path(self, number: int, suffix: str = ".json") -> Path:
+        return self.out / f"round-{number}{suffix}"
+
+    # -- the steps ----------------------------------------------------------------------------
+
+    def diagnose(self, progress: Callable[[str], object] | None = None) -> dict:
+        """A round at the current model over the candidates not rejected (an open last round is
+        replaced): the diagnosis, the measures and the residual field before any refit; written
+        as round-<N>.json. Returns the round's record."""
+        say = self._checked(progress) if progress is not None else self._say
+        number = len(self.rounds) if self.last is not None and is_open(self.last) else len(self.rounds) + 1
+        if self.last is not None and not is_open(self.last) and \
+                self.last["diagnosis"]["verdict"] == "no significant discrepancy" and not self.last.get("added"):
+            raise ValueError(f"round {self.last['round']} found no significant discrepancy: nothing is left to diagnose")
+        started = time.perf_counter()
+        say(f"round {number}: diagnosing")
+        diagnosis = diagnose(self.state, self.observations, self.candidates, self.settings,
+                             lambda m: say(f"round {number}: {m}"),
+                             excluded={name: "rejected in an earlier round" for name in self.rejected})
+        regions = diagnosis.feature_regions
+        fitted, observations = self.fitted, self.observations
+        record = {"round": number, "diagnosis": diagnosis.to_dict(), "state_before": self.state.to_dict(),
+                  "before": measures(fitted, observations, diagnosis.sensitivities.displacement, regions),
+                  "features": {"count": len(observations),
+                               "channels": {c: int(np.sum(observations.channel == c))
+                                            for c in sorted(set(observations.channel))}},
+                  "noise": self.noise.__dict__ | {"channels": list(self.noise.channels)}}
+        record["refits"] = {name: measures(fitted, observations, r.displacement, regions)
+                            for name, r in diagnosis.refits.items() if r.ok}
+        if self.recorder is not None:
+            say(f"round {number}: residual displacement field (deformable registration)")
+            field_started = time.perf_counter()
+            self._record_field(record, "before", diagnosis.sensitivities.displacement)
+            record["residual_field_seconds"] = round(time.perf_counter() - field_started, 1)
+        record["state_after"] = self.state.to_dict()
+        record["seconds"] = round(time.perf_counter() - started, 1)
+        self.rounds[number - 1:] = [record]
+        self.diagnosis = diagnosis
+        self._write(record)
+        say(f"round {number}: {diagnosis.sentence}")
+        return record
+
+    def add(self, name: str, iterations: int | None = None, progress: Callable[[str], object] | None = None) -> dict:
+        """Add candidate ``name`` to the model of the last round and refit (warm start: the
+        round's confirmation refit, else a refit from its sensitivities), refined by
+        ``iterations`` Gauss-Newton iterations (default: the settings' when the round did not
+        refine it already); the measures and the residual field after; the round's record
+        rewritten. Needs the round's diagnosis in memory (diagnose it in this session)."""
+        say = self._checked(progress) if progress is not None else self._say
+        record, diagnosis = self._decidable()
+        candidate = next((c for c in diagnosis.candidates if c.name == name), None)
+        if candidate is None or candidate.skipped:
+            tested = [c.name for c in diagnosis.candidates if not c.skipped]
+            raise ValueError(f"{name!r} was not tested in round {record['round']}"
+                             + (f" ({candidate.skipped})" if candidate is not None else "")
+                             + f"; the tested candidates are {tested}")
+        effect = next(e for e in self.candidates if e.name == name)
+        started = time.perf_counter()
+        refits = dict(diagnosis.refits)
+        if diagnosis.effect == name and diagnosis.refitted is not None:
+            refits[name] = diagnosis.refitted
+            more = iterations or 0
+        else:
+            more = self.settings.refine_iterations if iterations is None else iterations
+        chosen = adopt(self.state, self.observations, diagnosis.sensitivities, candidate, effect, refits, more,
+                       lambda m: say(f"round {record['round']}: {m}"))
+        record["diagnosis"] = diagnosis.to_dict()
+        record["added"] = name
+        record["accepted"] = "verdict" if diagnosis.effect == name else "user"
+        record["after"] = measures(self.fitted, self.observations, chosen.displacement, diagnosis.feature_regions)
+        if self.recorder is not None:
+            say(f"round {record['round']}: residual displacement field after adding {name}")
+            self._record_field(record, "after", chosen.displacement)
+        self.state = chosen.state
+        record["state_after"] = self.state.to_dict()
+        record["seconds"] = round(record.get("seconds", 0.0) + time.perf_counter() - started, 1)
+        self.diagnosis = replace(diagnosis, refitted=chosen, effect=name)
+        self._write(record)
+        say(f"round {record['round']}: added {effect.title} ({effect.describe(chosen.values)})")
+        return record
+
+    def reject(self, name: str) -> dict:
+        """Turn candidate ``name`` down in the last round: it is not tested in later rounds."""
+        record, diagnosis = self._decidable(need_memory=False)
+        tested = [c["name"] for c in record["diagnosis"]["candidates"] if not c["skipped"]]
+        if name not in tested:
+            raise ValueError(f"{name!r} was not tested in round {record['round']}; the tested candidates are {tested}")
+        record["rejected"] = sorted(set(record.get("rejected", [])) | {name})
+        self._write(record)
+        return record
+
+    def _decidable(self, need_memory: bool = True) -> tuple[dict, Diagnosis | None]:
+        record = self.last
+        if record is None:
+            raise ValueError("no round yet: diagnose first")
+        if record.get("added"):
+            raise ValueError(f"round {record['round']} already added {record['added']}: diagnose the next round")
+        if need_memory and self.diagnosis is None:
+            raise ValueError(f"round {record['round']} was diagnosed in an earlier session, whose sensitivities are "
+                             "not kept: diagnose again (it replaces the open round)")
+        return record, self.diagnosis
+
+    def _record_field(self, record: dict, when: str, displacement: np.ndarray) -> None:
+        """The residual field of the round's model ``when`` ("before" or "after" its refit) into
+        ``record`` and beside it (.nrrd), and the round's picture (.png) of all its fields."""
+        from BreastBiomechLib.discrepancy.pictures import save_residual_maps
+
+        number = record["round"]
+        field = self.recorder.field(displacement)
+        self.fields[(number, when)] = field
+        if when == "before":
+            self.fields.pop((number, "after"), None)
+        record[when]["residual_field"] = self.recorder.summary(field, displacement,
+                                                               self.path(number, f"-residual-{when}.nrrd"))
+        rows = [("before" if w == "before" else f"after adding {record['added']}", self.fields[(number, w)],
+                 self.fields[(number, w)].landmarks) for w in ("before", "after") if (number, w) in self.fields]
+        picture = save_residual_maps(self.path(number, "-residual.png"), self.fitted.measured_image, rows,
+                                     title="residual displacement field (registration of the predicted to the "
+                                           "measured image)")
+        record["residual_picture"] = picture.name
+
+    def _write(self, record: dict) -> None:
+        from BreastBiomechLib.discrepancy.report import write_report
+        from BreastBiomechLib.discrepancy.workflow import DiagnosisRun
+
+        write_atomically(self.path(record["round"]), json.dumps(record, indent=1, default=float) + "\n")
+        run = DiagnosisRun(self.rounds, self.out)
+        write_atomically(self.out / "diagnosis.json", json.dumps(
+            {"case_dir": str(self.case_dir), "fit_dir": str(self.fit_dir), "settings": self.settings.__dict__,
+             "rounds": self.rounds, "final": run.final["verdict"], "added": run.added}, indent=1, default=float) + "\n")
+        write_report(run, self.out / "report.md")
+
+    def run(self):
+        """The :class:`~BreastBiomechLib.discrepancy.workflow.DiagnosisRun` of the rounds so far."""
+        from BreastBiomechLib.discrepancy.workflow import DiagnosisRun
+
+        return DiagnosisRun(self.rounds, self.out)

@@ -1,0 +1,174 @@
+"""The BreastDiscrepancy module's Logic against a real MRML scene (slicer-core, headless, CPU).
+
+A small compressed phantom with plate friction hidden in its truth (a copy without the truth
+files), fitted without friction, goes through the module's steps: a round is diagnosed, the
+candidates table is the library's ranking, the overlays, lines, skin model, regions and plots
+are nodes holding the round's figures; friction is accepted and refitted, the gap shrinks and
+the round keeps its nodes. Bad inputs give a clear message and leave the scene as it was."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from discrepancy_cases import fit_coarse, without_truth
+
+pytest.importorskip("slicer")
+import BreastDiscrepancy  # noqa: E402  (BreastBiomech/ is on the test path)
+from BreastBiomechLib.mrml.frames import flip  # noqa: E402
+
+pytestmark = [pytest.mark.mrml, pytest.mark.slow]
+
+EFFECTS = "friction skin plate-tilt"
+
+
+@pytest.fixture(scope="module")
+def friction_case(tmp_path_factory):
+    """(case, fit): the test phantom compressed 40 % with plate friction mu = 1 hidden in its truth."""
+    from BreastBiomechLib.cli import main
+
+    root = tmp_path_factory.mktemp("friction-module")
+    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
+                 "--compression", "0.4", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
+                 "--friction", "1.0", "--out", str(root / "made")]) == 0
+    case = without_truth(root / "made", root / "case")
+    return case, fit_coarse(case, root / "fit")
+
+
+def _logic(scene, case, fit, out):
+    logic = BreastDiscrepancy.BreastDiscrepancyLogic(scene)
+    p = logic.getParameterNode()
+    p["caseDirectory"], p["fitDirectory"], p["outputDirectory"] = str(case), str(fit), str(out)
+    p["effects"], p["refineIterations"], p["device"] = EFFECTS, 1, "cpu"
+    return logic, p
+
+
+def _column(table, name):
+    t = table.GetTable()
+    column = t.GetColumnByName(name)
+    return [column.GetValue(i) for i in range(t.GetNumberOfRows())]
+
+
+def _lengths_mm(model):
+    points = model.GetPolyData().GetPoints()
+    return np.array([np.linalg.norm(np.subtract(points.GetPoint(2 * i + 1), points.GetPoint(2 * i)))
+                     for i in range(points.GetNumberOfPoints() // 2)])
+
+
+def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_case, tmp_path):
+    case, fit = friction_case
+    logic, p = _logic(scene, case, fit, tmp_path / "diagnosis")
+    messages = []
+    table = logic.diagnose(p, progress=lambda m: messages.append(m))
+    record = json.loads((tmp_path / "diagnosis" / "round-1.json").read_text())
+    d = record["diagnosis"]
+    assert d["verdict"] == "missing effect" and d["effect"] == "friction", d["sentence"]
+    assert messages and "added" not in record  # nothing added before the user accepts
+    # the table's order is the library's ranking; the verdict column names the proposal
+    ranked = [c["name"] for c in d["candidates"]]
+    assert _column(table, "effect") == ranked
+    assert _column(table, "verdict")[0] == "missing effect"
+    assert p.reference("candidatesTable") is table and p["candidate"] == "friction"
+    # the landmark residual lines: from predicted to measured, their lengths the reported errors
+    lines = p.reference("landmarkLines")
+    reported = record["before"]["landmark_error_mm"]["per_landmark"]
+    np.testing.assert_allclose(_lengths_mm(lines), list(reported.values()), atol=2e-3)
+    from BreastBiomechLib.io.markups import read_markups
+
+    measured = read_markups(case / "compressed" / "landmarks.mrk.json")  # LPS
+    np.testing.assert_allclose(lines.GetPolyData().GetPoints().GetPoint(1), flip(measured.positions[0]), atol=1e-3)
+    # the residual overlay: the field's magnitude on the measured grid, with a colour legend
+    residual = p.reference("residualVolume")
+    import SimpleITK as sitk
+    from slicer.util import arrayFromVolume
+
+    field = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "diagnosis" / "round-1-residual-before.nrrd")))
+    np.testing.assert_allclose(arrayFromVolume(residual), np.linalg.norm(field, axis=-1), atol=1e-4)
+    assert any(residual.GetNthDisplayNode(i).IsA("vtkMRMLColorLegendDisplayNode")
+               for i in range(residual.GetNumberOfDisplayNodes()))
+    assert p.reference("residualTransform").IsA("vtkMRMLGridTransformNode")
+    # the skin model carries the signed distance; the regions are segments, contact bands among them
+    skin = p.reference("skinModel").GetPolyData().GetPointData().GetArray("signed_distance_mm")
+    assert skin is not None and skin.GetNumberOfTuples() > 50
+    segmentation = p.reference("regions").GetSegmentation()
+    names = {segmentation.GetNthSegment(i).GetName() for i in range(segmentation.GetNumberOfSegments())}
+    assert any(n.startswith("contact") for n in names) and "sub-surface" in names
+    # a candidate's predicted residual beside the measured one
+    predicted = logic.showCandidate(p, "friction")
+    assert p.reference("candidateVolume") is predicted and arrayFromVolume(predicted).max() > 0.1
+    with pytest.raises(ValueError, match="not tested"):
+        logic.showCandidate(p, "gravity")
+
+    # accept: friction added and refitted; the gap shrinks; the plots hold before and after
+    record = logic.accept(p, progress=lambda m: messages.append(m))
+    assert record["added"] == "friction" and record["accepted"] == "verdict"
+    before, after = record["before"]["landmark_error_mm"]["mean"], record["after"]["landmark_error_mm"]["mean"]
+    assert after < 0.7 * before
+    errors = p.reference("landmarkErrorsTable")
+    np.testing.assert_allclose(_column(errors, "error after (mm)"),
+                               list(record["after"]["landmark_error_mm"]["per_landmark"].values()))
+    assert p.reference("landmarkErrorsChart").GetNumberOfPlotSeriesNodes() == 2
+    assert _column(p.reference("measuresTable"), "NMI") == pytest.approx([record["before"]["nmi"],
+                                                                          record["after"]["nmi"]])
+    histogram = p.reference("histogramTable")
+    assert sum(_column(histogram, "share before")) == pytest.approx(1.0)
+    np.testing.assert_allclose(_lengths_mm(p.reference("landmarkLines")),
+                               list(record["after"]["landmark_error_mm"]["per_landmark"].values()), atol=2e-3)
+    # every node of the round sits in its subject-hierarchy folder; showing round 1 again points at them
+    from BreastBiomechLib.mrml.overlays import nodes_in_folder
+
+    kept = nodes_in_folder(scene, logic._roundFolder(1))
+    assert {n.GetAttribute("BreastDiscrepancy.Kind") for n in kept} >= {
+        "residual-before", "residual-after", "lines-before", "lines-after", "skin-before", "skin-after", "regions",
+        "candidates", "field-before", "field-after", "candidate-friction"}
+    logic.showRound(p, 1)
+    assert p.reference("residualVolume").GetAttribute("BreastDiscrepancy.Kind") == "residual-after"
+    logic.setGlyphsVisible(p, True)
+    assert p.reference("residualTransform").GetDisplayNode().GetVisibility()
+    # the report names the effect; with a capture function its picture is in it
+    report = logic.saveReport(p, capture=lambda path: shutil.copy(tmp_path / "diagnosis" / "round-1-residual.png",
+                                                                  path))
+    text = report.read_text()
+    assert "Missing effect: plate friction" in text and "round-1-slice-views.png" in text
+    assert logic.verdictText(p).startswith("Round 1: Missing effect")
+
+
+def test_bad_inputs_are_refused_and_leave_the_scene_as_it_was(scene, friction_case, tmp_path):
+    from BreastBiomechLib.discrepancy import DiagnosisCancelled
+
+    case, fit = friction_case
+    nodes = scene.GetNumberOfNodes()
+    logic, p = _logic(scene, case, fit, tmp_path / "out")
+    p["outputDirectory"] = ""
+    with pytest.raises(ValueError, match="choose an output folder"):
+        logic.diagnose(p)
+    p["outputDirectory"] = "relative/folder"
+    with pytest.raises(ValueError, match="absolute path"):
+        logic.diagnose(p)
+    # a fit of another case
+    other = shutil.copytree(fit, tmp_path / "other-fit")
+    record = json.loads((other / "case.json").read_text())
+    (other / "case.json").write_text(json.dumps({**record, "fingerprint": "0" * 64}))
+    p["outputDirectory"], p["fitDirectory"] = str(tmp_path / "out"), str(other)
+    with pytest.raises(ValueError, match="a fit of another case"):
+        logic.diagnose(p)
+    # a case without its measured volume
+    broken = shutil.copytree(case, tmp_path / "broken")
+    (broken / "compressed" / "mr.nrrd").unlink()
+    p["caseDirectory"], p["fitDirectory"] = str(broken), str(fit)
+    with pytest.raises(FileNotFoundError, match="no measured compressed image"):
+        logic.diagnose(p)
+    assert scene.GetNumberOfNodes() == nodes + 1  # the parameter node only
+    with pytest.raises(ValueError, match="diagnose first"):
+        logic.accept(p)
+    # cancelling a diagnosis writes no round and adds no round node
+    p["caseDirectory"] = str(case)
+    with pytest.raises(DiagnosisCancelled):
+        logic.diagnose(p, progress=lambda message: "building" not in message)
+    assert not (tmp_path / "out" / "round-1.json").exists()
+    assert logic.roundNumbers(p) == []
+    # Breast Optimization's fit is taken only when it has one
+    with pytest.raises(ValueError, match="no case folder"):
+        logic.useOptimizationFit(p)
