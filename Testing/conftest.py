@@ -54,3 +54,30 @@ def compressed_case_dir(tmp_path_factory):
                  "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
                  "--out", str(out)]) == 0
     return out
+
+
+@pytest.fixture(scope="session")
+def friction_case(tmp_path_factory, worker_id):
+    """(case, fit): the test phantom compressed 40 % with plate friction mu = 1 hidden in its
+    truth, copied without its truth files, fitted without friction (``fit_coarse``). Made once
+    for the whole run: under pytest-xdist the first worker that needs it makes it in the run's
+    shared temporary folder while the others wait on a lock. Tests only read it."""
+    import fcntl
+
+    from discrepancy_cases import fit_coarse, without_truth
+
+    from BreastBiomechLib.cli import main
+
+    base = tmp_path_factory.getbasetemp()
+    root = (base if worker_id == "master" else base.parent) / "friction-case"
+    with open(f"{root}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (root / "done").is_file():
+            root.mkdir(exist_ok=True)
+            assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3",
+                         "--compressed", "--compression", "0.4", "--truth-edge-mm", "6", "--device", "cpu",
+                         "--no-overview", "--friction", "1.0", "--out", str(root / "made")]) == 0
+            case = without_truth(root / "made", root / "case")
+            fit_coarse(case, root / "fit")
+            (root / "done").write_text("made\n")
+    return root / "case", root / "fit"

@@ -1,27 +1,13 @@
 """Hidden plate friction on a small CPU phantom (conftest's, compressed 40 % with mu = 1 in its
 truth): the diagnosis names friction, adds it, and the landmark error and the residual
-displacement field fall. The case is a copy without its truth files."""
+displacement field fall. The case (conftest's ``friction_case``, shared with the Breast
+Discrepancy module's test) is a copy without its truth files."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
-from discrepancy_cases import fit_coarse, without_truth
-
-
-@pytest.fixture(scope="module")
-def friction_case(tmp_path_factory):
-    """(case, fit): conftest's phantom compressed 40 % with plate friction mu = 1 hidden in its truth."""
-    from BreastBiomechLib.cli import main
-
-    root = tmp_path_factory.mktemp("friction")
-    made = root / "made"
-    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
-                 "--compression", "0.4", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
-                 "--friction", "1.0", "--out", str(made)]) == 0
-    case = without_truth(made, root / "case")
-    return case, fit_coarse(case, root / "fit")
 
 
 @pytest.mark.slow

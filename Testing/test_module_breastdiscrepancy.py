@@ -13,7 +13,6 @@ import shutil
 
 import numpy as np
 import pytest
-from discrepancy_cases import fit_coarse, without_truth
 
 pytest.importorskip("slicer")
 import BreastDiscrepancy  # noqa: E402  (BreastBiomech/ is on the test path)
@@ -22,19 +21,6 @@ from BreastBiomechLib.mrml.frames import flip  # noqa: E402
 pytestmark = [pytest.mark.mrml, pytest.mark.slow]
 
 EFFECTS = "friction skin plate-tilt"
-
-
-@pytest.fixture(scope="module")
-def friction_case(tmp_path_factory):
-    """(case, fit): the test phantom compressed 40 % with plate friction mu = 1 hidden in its truth."""
-    from BreastBiomechLib.cli import main
-
-    root = tmp_path_factory.mktemp("friction-module")
-    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
-                 "--compression", "0.4", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
-                 "--friction", "1.0", "--out", str(root / "made")]) == 0
-    case = without_truth(root / "made", root / "case")
-    return case, fit_coarse(case, root / "fit")
 
 
 def _logic(scene, case, fit, out):
