@@ -776,7 +776,7 @@ class BreastDiscrepancyTest(ModuleTestMixin, ScriptedLoadableModuleTest):
         logic = BreastDiscrepancyLogic()
         p = logic.getParameterNode()
         p["caseDirectory"], p["fitDirectory"], p["outputDirectory"] = case, f"{folder}/fit", f"{folder}/diagnosis"
-        p["effects"], p["refineIterations"] = "friction skin plate-tilt", 1
+        p["effects"], p["refineIterations"] = "friction skin", 1
         logic.diagnose(p)
         self.assertEqual(logic.session.last["diagnosis"]["effect"], "friction")
         logic.accept(p)

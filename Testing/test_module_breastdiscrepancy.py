@@ -20,7 +20,7 @@ from BreastBiomechLib.mrml.frames import flip  # noqa: E402
 
 pytestmark = [pytest.mark.mrml, pytest.mark.slow]
 
-EFFECTS = "friction skin plate-tilt"
+EFFECTS = "friction skin"
 
 
 def _logic(scene, case, fit, out):

@@ -44,6 +44,8 @@ def color_legend(displayable, title: str):
             candidate.SetTitleText(title)
             return candidate
     scene = displayable.GetScene()
+    if not scene.IsNodeClassRegistered("vtkMRMLColorLegendDisplayNode"):  # the Colors module registers it in Slicer
+        scene.RegisterNodeClass(slicer.vtkMRMLColorLegendDisplayNode())
     legend = scene.AddNewNodeByClass("vtkMRMLColorLegendDisplayNode", f"{displayable.GetName()} color legend")
     legend.SetTitleText(title)
     legend.SetAndObservePrimaryDisplayNode(display)
@@ -163,8 +165,13 @@ def put_in_folder(scene, nodes, folder_item: int) -> None:
     """Move the data nodes ``nodes`` (None entries skipped) under the subject-hierarchy folder."""
     hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(scene)
     for node in nodes:
-        if node is not None:
-            hierarchy.SetItemParent(hierarchy.GetItemByDataNode(node), folder_item)
+        if node is None:
+            continue
+        item = hierarchy.GetItemByDataNode(node)
+        if item:
+            hierarchy.SetItemParent(item, folder_item)
+        else:  # Slicer's subject-hierarchy logic adds an item per node; without it (headless) one is made here
+            hierarchy.CreateItem(folder_item, node)
 
 
 def nodes_in_folder(scene, folder_item: int) -> list:
