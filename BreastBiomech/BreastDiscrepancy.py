@@ -60,7 +60,7 @@ class BreastDiscrepancy(ScriptedLoadableModule):
         ScriptedLoadableModule.__init__(self, parent)
         self.parent.title = _("Breast Discrepancy")
         self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
-        self.parent.dependencies = SLICER_MODULES + ["SubjectHierarchy"]
+        self.parent.dependencies = SLICER_MODULES + ["SubjectHierarchy", "ScreenCapture"]
         self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Find where a fitted breast model and the measured compressed scan disagree, which physical effect "
@@ -111,7 +111,7 @@ class BreastDiscrepancyWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWi
         self.ui.residualFieldCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
         self.ui.glyphsCheckBox.toggled.connect(self.onGlyphsToggled)
         self.ui.regionsCheckBox.toggled.connect(self.onRegionsToggled)
-        self.ui.roundComboBox.activated.connect(self.onRoundChosen)
+        self.ui.roundComboBox.currentIndexChanged.connect(self.onRoundChosen)
         self.ui.useOptimizationButton.clicked.connect(self.onUseOptimizationButton)
         self.ui.diagnoseButton.clicked.connect(self.onDiagnoseButton)
         self.ui.acceptButton.clicked.connect(self.onAcceptButton)
@@ -230,7 +230,7 @@ class BreastDiscrepancyWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWi
         self._cancelRequested = True
 
     def onCandidateSelected(self, *args):
-        rows = self.ui.candidatesTableView.selectedIndexes()
+        rows = self.ui.candidatesTableView.selectionModel().selectedIndexes()
         if not rows:
             return
         with slicer.util.tryWithErrorDisplay(_("Could not show the candidate."), waitCursor=True):
@@ -238,6 +238,8 @@ class BreastDiscrepancyWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWi
             self.logic.showCandidate(self._parameterNode, name)
 
     def onRoundChosen(self, index):
+        if self._updatingGUI or self._parameterNode is None:
+            return
         number = self.ui.roundComboBox.itemData(index)
         if number is not None:
             with slicer.util.tryWithErrorDisplay(_("Could not show the round."), waitCursor=True):
@@ -310,10 +312,9 @@ class BreastDiscrepancyLogic(ParameterNodeLogic):
     def useOptimizationFit(self, parameterNode) -> None:
         """Take the case and fit folders of the Breast Optimization result in the scene (its case
         folder, loaded with Load case, and its output folder, once a run has ended)."""
-        from BreastBiomechLib.mrml import ParameterNode
-
-        optimisation = ParameterNode(self.scene, "BreastOptimization", {"caseDirectory": "", "outputDirectory": ""}, ())
-        case, fit = optimisation["caseDirectory"], optimisation["outputDirectory"]
+        optimisation = self.scene.GetSingletonNode("BreastOptimization", "vtkMRMLScriptedModuleNode")
+        case = (optimisation.GetParameter("caseDirectory") if optimisation is not None else "") or ""
+        fit = (optimisation.GetParameter("outputDirectory") if optimisation is not None else "") or ""
         if not case:
             raise ValueError("Breast Optimization has no case folder: load a compressed case there (Load case) and fit "
                              "it, or choose the case and fit folders here")

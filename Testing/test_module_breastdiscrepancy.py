@@ -87,6 +87,15 @@ def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_
     with pytest.raises(ValueError, match="not tested"):
         logic.showCandidate(p, "gravity")
 
+    # a refit cancelled midway (after its first solve) adds nothing: the round, the model and the scene stay
+    from BreastBiomechLib.discrepancy import DiagnosisCancelled
+
+    state, nodes = logic.session.state, scene.GetNumberOfNodes()
+    with pytest.raises(DiagnosisCancelled):
+        logic.accept(p, progress=lambda message: "Gauss-Newton" not in message)
+    assert "added" not in json.loads((tmp_path / "diagnosis" / "round-1.json").read_text())
+    assert logic.session.state is state and scene.GetNumberOfNodes() == nodes
+
     # accept: friction added and refitted; the gap shrinks; the plots hold before and after
     record = logic.accept(p, progress=lambda m: messages.append(m))
     assert record["added"] == "friction" and record["accepted"] == "verdict"
