@@ -33,6 +33,7 @@ from BreastBiomechCommon import (
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
     _,
+    chosen_folder,
     dependencies_ready,
     ensure_library_importable,
     resolve_device,
@@ -298,17 +299,6 @@ class BreastDiscrepancyLogic(ParameterNodeLogic):
 
     # -- inputs ----------------------------------------------------------------------------------
 
-    @staticmethod
-    def chosenFolder(path: str, what: str) -> str:
-        """``path`` as chosen in a folder field; "" or "." (nothing chosen) and relative paths
-        (Slicer's working folder) are refused."""
-        if not path or path.strip() in (".", "./"):
-            raise ValueError(f"choose {what}")
-        if not os.path.isabs(path):
-            raise ValueError(f"{what.split(' (')[0]} must be an absolute path, not {path!r} (a relative path would "
-                             "point into Slicer's working folder)")
-        return path
-
     def useOptimizationFit(self, parameterNode) -> None:
         """Take the case and fit folders of the Breast Optimization result in the scene (its case
         folder, loaded with Load case, and its output folder, once a run has ended)."""
@@ -332,10 +322,10 @@ class BreastDiscrepancyLogic(ParameterNodeLogic):
         from BreastBiomechLib.mrml import image_to_volume_node
 
         p = parameterNode
-        case = self.chosenFolder(p["caseDirectory"], "the compressed case folder (it holds mr.nrrd and compressed/)")
-        fit = self.chosenFolder(p["fitDirectory"], "the fit folder (breastbiomech optimise --out, or Breast "
+        case = chosen_folder(p["caseDirectory"], "the compressed case folder (it holds mr.nrrd and compressed/)")
+        fit = chosen_folder(p["fitDirectory"], "the fit folder (breastbiomech optimise --out, or Breast "
                                                    "Optimization's output folder)")
-        out = self.chosenFolder(p["outputDirectory"], "an output folder for the rounds and the report")
+        out = chosen_folder(p["outputDirectory"], "an output folder for the rounds and the report")
         effects = [e.strip() for e in p["effects"].replace(",", " ").split() if e.strip()] or None
         key = (case, fit, out, tuple(effects or ()), p["landmarkSdMm"], p["modelSdMm"], p["alpha"], p["residualField"])
         if self.session is not None and self._key == key:

@@ -19,11 +19,9 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 
 import numpy as np
 import slicer
-import vtk
 from BreastBiomechCommon import (
     IN_SLICER_APPLICATION,
     SLICER_MODULES,
@@ -34,6 +32,7 @@ from BreastBiomechCommon import (
     ScriptedLoadableModuleTest,
     ScriptedLoadableModuleWidget,
     _,
+    chosen_folder,
     dependencies_ready,
     ensure_library_importable,
     resolve_device,
@@ -329,7 +328,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         from BreastBiomechLib.mrml import image_to_volume_node, landmarks_to_markups_node
         from BreastBiomechLib.phantom.compressed_files import read_compressed
 
-        folder = Path(self.chosenFolder(caseDir, "the case folder (it holds mr.nrrd and compressed/)"))
+        folder = Path(chosen_folder(caseDir, "the case folder (it holds mr.nrrd and compressed/)"))
         measured = read_compressed(folder)
         if not (folder / "mr.nrrd").is_file():
             raise FileNotFoundError(f"{folder}: no undeformed mr.nrrd beside compressed/")
@@ -349,18 +348,6 @@ class BreastOptimizationLogic(ParameterNodeLogic):
             from BreastBiomechLib.mrml import tetmesh_to_model_node
 
             p.set_reference("inputMesh", tetmesh_to_model_node(read_vtu(meshPath), self.scene, "Fitting mesh"))
-
-    @staticmethod
-    def chosenFolder(path: str, what: str) -> str:
-        """``path`` as chosen in a folder field: refused when nothing was chosen ("" or ".", what an
-        empty folder widget reports) or when relative (it would resolve against Slicer's working
-        folder, which the user never chose)."""
-        if not path or path.strip() in (".", "./"):
-            raise ValueError(f"choose {what}")
-        if not os.path.isabs(path):
-            raise ValueError(f"{what.split(' (')[0]} must be an absolute path, not {path!r} (a relative path would "
-                             "point into Slicer's working folder)")
-        return path
 
     def _planeNode(self, plate: dict):
         """A markups plane at a measured final plate (plates.json dict: name, point, normal LPS)."""
@@ -468,7 +455,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         from BreastBiomechLib.optimisation import optimise
 
         p = parameterNode
-        output = self.chosenFolder(p["outputDirectory"], "an output folder: every evaluation is kept there, so a run "
+        output = chosen_folder(p["outputDirectory"], "an output folder: every evaluation is kept there, so a run "
                                                         "can be resumed")
         problem = self.problem(p)
         done, best = [], []
@@ -570,35 +557,14 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         return f"landmark error {s['mean']:.2f} ± {s['sd']:.2f} mm (max {s['max']:.2f}) over {len(errors.labels)} landmarks"
 
     def _errorLines(self, parameterNode, predicted, measured, errors):
-        """A model of one line per landmark from its predicted to its measured position (RAS),
-        with the cell array ``error_mm`` shown in colour."""
-        from BreastBiomechLib.mrml import frames
+        """A model of one line per landmark from its predicted to its measured position, with the
+        cell array ``error_mm`` shown in colour."""
+        from BreastBiomechLib.mrml.overlays import segments_to_model_node
 
-        points, lines, values = vtk.vtkPoints(), vtk.vtkCellArray(), vtk.vtkDoubleArray()
-        values.SetName("error_mm")
-        for label, error in zip(errors.labels, errors.error_mm):
-            for position in (predicted.position(label), measured.position(label)):
-                points.InsertNextPoint(*frames.flip(np.asarray(position, float)).tolist())
-            lines.InsertNextCell(2)
-            lines.InsertCellPoint(points.GetNumberOfPoints() - 2)
-            lines.InsertCellPoint(points.GetNumberOfPoints() - 1)
-            values.InsertNextValue(float(error))
-        polydata = vtk.vtkPolyData()
-        polydata.SetPoints(points)
-        polydata.SetLines(lines)
-        polydata.GetCellData().AddArray(values)
-        node = parameterNode.reference("errorLines")
-        if node is None:
-            node = self.scene.AddNewNodeByClass("vtkMRMLModelNode", "Landmark errors")
-            node.CreateDefaultDisplayNodes()
-        node.SetAndObservePolyData(polydata)
-        display = node.GetDisplayNode()
-        if display is not None:
-            display.SetActiveScalar("error_mm", vtk.vtkAssignAttribute.CELL_DATA)
-            display.SetAndObserveColorNodeID("vtkMRMLColorTableNodeRainbow")
-            display.SetScalarVisibility(True)
-            display.SetLineWidth(3.0)
-        return node
+        starts = np.array([predicted.position(label) for label in errors.labels], float)
+        ends = np.array([measured.position(label) for label in errors.labels], float)
+        return segments_to_model_node(starts, ends, errors.error_mm, "error_mm", self.scene, "Landmark errors",
+                                      node=parameterNode.reference("errorLines"))
 
     # -- cohort study --------------------------------------------------------------------------
 
@@ -607,7 +573,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         a compressed/ part, in name order."""
         from pathlib import Path
 
-        folder = Path(self.chosenFolder(parameterNode["studyCasesDirectory"],
+        folder = Path(chosen_folder(parameterNode["studyCasesDirectory"],
                                         "a cases folder (its subfolders holding compressed/ are the cases)"))
         if not folder.is_dir():
             raise FileNotFoundError(f"the cases folder {folder} does not exist")
@@ -642,7 +608,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
 
         p = parameterNode
         cases = self.studyCases(p)
-        output = self.chosenFolder(p["studyOutputDirectory"], "a study output folder (finished fits are kept there "
+        output = chosen_folder(p["studyOutputDirectory"], "a study output folder (finished fits are kept there "
                                                              "and a rerun resumes)")
         models = tuple(m.strip() for m in p["studyModels"].split(",") if m.strip())
         budgets = dict(DEFAULT_BUDGETS)

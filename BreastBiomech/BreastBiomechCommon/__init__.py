@@ -163,6 +163,18 @@ def resolve_device(choice: str) -> str:
     return ("cuda" if cuda else "cpu") if choice == "auto" else choice
 
 
+def chosen_folder(path: str, what: str) -> str:
+    """``path`` as chosen in a folder field: refused when nothing was chosen ("" or ".", what an
+    empty folder widget reports) or when relative (it would resolve against Slicer's working
+    folder, which the user never chose). ``what`` names the folder in the message."""
+    if not path or path.strip() in (".", "./"):
+        raise ValueError(f"choose {what}")
+    if not os.path.isabs(path):
+        raise ValueError(f"{what.split(' (')[0]} must be an absolute path, not {path!r} (a relative path would "
+                         "point into Slicer's working folder)")
+    return path
+
+
 def ensure_library_importable() -> None:
     """Make ``import BreastBiomechLib`` work when the modules run from a source checkout (the
     checkout's root is appended to ``sys.path``, so it never shadows an installed package)."""
