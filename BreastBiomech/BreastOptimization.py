@@ -514,12 +514,11 @@ class BreastOptimizationLogic(ParameterNodeLogic):
         from BreastBiomechLib.mesh.tetmesh import TetMesh
         from BreastBiomechLib.mrml import (columns_to_table_node, image_to_volume_node,
                                            landmarks_from_markups_node, landmarks_to_markups_node)
+        from BreastBiomechLib.optimisation.run import solve_best
 
         p = parameterNode
-        best = problem.solve_alone(result.best.z)
-        if not best.ok:
-            raise RuntimeError(f"the best parameters do not solve alone ({best.message})")
         out, mesh = Path(p["outputDirectory"]), problem.mesh
+        result, best = solve_best(problem, result, out)
         write_vtu(out / "fitting_mesh.vtu", mesh)
         write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
                                                                               "displacement": best.displacement},

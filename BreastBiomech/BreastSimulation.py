@@ -595,13 +595,13 @@ class BreastSimulationLogic(ParameterNodeLogic):
             if progress is not None:
                 progress(0.0, "estimating the unloaded (stress-free) shape")
             model, _ = start_from_reference_state(model, settings.unloaded, device)
-        report = None
-        if progress is not None:
-            def report(fraction):
-                return progress(fraction, f"{what} on {device}: {fraction:.0%} of the step budget")
+        def report(fraction):
+            return progress(fraction, f"{what} on {device}: {fraction:.0%} of the step budget")
 
+        if progress is not None:
             progress(0.0, f"{what} on {device}: starting")
-        solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT, progress=report,
+        solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT,
+                         progress=report if progress is not None else None,
                          steady_state_mm=steady)
         # displacements from the mesh as imaged, not from its unloaded shape
         solution.displacement = displacement_from_imaged(model, solution.displacement, imaged.mesh.nodes)

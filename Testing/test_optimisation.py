@@ -126,6 +126,39 @@ def test_cancel_and_resume_lose_nothing_and_end_where_an_uninterrupted_run_does(
     assert len((tmp_path / "evaluations.jsonl").read_text().splitlines()) == 14
 
 
+def test_a_best_that_no_longer_solves_alone_gives_way_to_the_next_best(problem, tmp_path, monkeypatch):
+    """The outputs of a fit are made from its best parameters solved alone; where that solve
+    inverts an element even with slower loads, the next best evaluation that solves stands in,
+    the results file says so, and with none left the error names every failure."""
+    from dataclasses import replace
+
+    from BreastBiomechLib.optimisation.run import solve_best
+
+    result = optimise(problem, "cmaes", budget=8, seed=2, population=4, out_dir=tmp_path)
+    alone = problem.solve_alone
+    refused = [result.best.z]
+
+    def solve_alone(z, retries=2):
+        solution = alone(z, retries)
+        if any(np.allclose(z, r) for r in refused):
+            return replace(solution, status="inverted elements", message="1 element(s) inverted (J <= 0)")
+        return solution
+
+    monkeypatch.setattr(problem, "solve_alone", solve_alone)
+    ranked = sorted((e for e in result.evaluations if e.status == "completed"), key=lambda e: e.objective)
+    standing, solution = solve_best(problem, result, tmp_path)
+    assert solution.ok and standing.best is ranked[1]
+    assert standing.materials["glandular"]["E"] == pytest.approx(ranked[1].values["glandular.E"])
+    written = json.loads((tmp_path / "result.json").read_text())
+    assert written["best"]["z"] == ranked[1].z
+    assert written["stand_in"]["best_objective"] == result.best.objective and "inverted" in written["stand_in"]["reason"]
+    unchanged, _ = solve_best(problem, standing, tmp_path)  # a best that solves stands as it is
+    assert unchanged is standing
+    refused[:] = [e.z for e in ranked]
+    with pytest.raises(RuntimeError, match="no longer solve alone, nor the 5 next best"):
+        solve_best(problem, result)
+
+
 def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_case_dir, tmp_path, capsys):
     """`breastbiomech optimise` on the compressed phantom of conftest, with a small fitting mesh
     (the labels' body, tissues by voxel majority) and a budget of a few solves. The case is a

@@ -212,6 +212,34 @@ def test_an_inverting_model_stops_alone_in_its_batch(relaxed):
     np.testing.assert_allclose(good.displacement, one.displacement, atol=0.02 if relaxed else 1e-5)
 
 
+def test_a_model_inverting_under_a_fast_load_is_solved_again_with_a_slower_one():
+    """Dynamic relaxation's load transient can invert an element that the static solution does
+    not: the block at 70 % compression (nu 0.49) under the shortest load inverts, four times
+    slower it completes. In a batch only that model is solved again; a plate driven through the
+    block inverts at every pace and keeps its status after the retries."""
+    from BreastBiomechLib.solver import DynamicRelaxation
+    from BreastBiomechLib.solver.retries import RETRIES, slower, solve_batch_with_retries
+
+    mesh = _block(4)
+    model = _compression_model(mesh, Material(E, 0.49), strain=0.7)
+    relaxation = DynamicRelaxation(load_iterations=2, tolerance_mm=0.005)
+    motions = [np.array([[0, 0, 0], [0, 0, -5.0]]), np.array([[0, 0, 0], [0, 0, -7.0]]),
+               np.array([[0, 0, 0], [0, 0, -1.1 * SIDE]])]
+    fast = solve_batch(model, [model.materials], [motions[1]], device="cpu", relaxation=relaxation)[0]
+    assert fast.status == "inverted elements"
+    moderate, retried, through = solve_batch_with_retries(model, [model.materials] * 3, relaxation,
+                                                          plate_displacements=motions, device="cpu")
+    assert moderate.ok and moderate.attempts == 1
+    assert retried.ok and retried.attempts == 2
+    alone = solve_batch(model, [model.materials], [motions[1]], device="cpu", relaxation=slower(relaxation))[0]
+    np.testing.assert_allclose(retried.displacement, alone.displacement, atol=1e-6)
+    top = np.flatnonzero(mesh.point_data["face_zhi"])
+    np.testing.assert_allclose(retried.displacement[top, 2], -7.0, atol=0.01)
+    assert through.status == "inverted elements" and through.attempts == 1 + RETRIES
+    with pytest.raises(ValueError, match="pace"):
+        DynamicRelaxation(pace=0.5)
+
+
 def test_undamped_free_vibration_conserves_energy():
     """T4, whose forces are the exact gradient of the stored energy (ANP's averaged pressure has no
     element-wise energy, so its internal-energy monitor is approximate)."""

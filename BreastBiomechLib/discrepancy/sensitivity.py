@@ -43,9 +43,10 @@ class Sensitivities:
 def sensitivities(state: ModelState, observations: Observations, candidates: list[Effect],
                   progress: Callable[[str], None] | None = None) -> Sensitivities:
     """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects
-    not yet added, each available for this fit). A model that fails in the batch is solved again
-    alone, a nuisance difference that fails again or on the other side, an effect's secant again
-    or to half its step (a candidate still failing is skipped with the reason); raises a RuntimeError
+    not yet added, each available for this fit). A model that inverts an element is solved again
+    alone with a slower load (:func:`solve_variants`); a nuisance difference that still fails is
+    taken on the other side, an effect's secant to half its step (a candidate still failing is
+    skipped with the reason); raises a RuntimeError
     when the current model or a nuisance variant still fails to solve."""
     fitted = state.fitted
     say = progress or (lambda message: None)
@@ -78,11 +79,7 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             roles.append(("effect", effect.name, j, step))
     say(f"solving {len(variants)} variants")
     outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
-    solves = len(variants)
-    if not outcomes[0].ok:  # a batch shares its time step: a marginal model may pass alone
-        say("the current model failed in the batch; solving it alone")
-        outcomes[0] = solve_variants(variants[:1], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
-        solves += 1
+    solves = sum(outcome.attempts for outcome in outcomes)
     base = outcomes[0]
     if not base.ok:
         raise RuntimeError(f"the current model does not solve ({base.status}: {base.message})")
@@ -119,31 +116,29 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
 
 
 def _retry_nuisance(state: ModelState, variants, roles, outcomes, bounds, say) -> int:
-    """Where a nuisance parameter's moved model failed to solve in the big batch (an element
-    inverted on the way; a batch shares its time step and damping, and a marginal model may pass
-    in another), it is solved again in a batch of its own together with the model moved to the
-    other side of its value (within its bounds); the first that solves is used. ``roles`` and
-    ``outcomes`` are updated in place. Returns the number of solves made."""
+    """Where a nuisance parameter's moved model failed to solve (an element inverted on the way,
+    also with a slower load), the model moved to the other side of its value (within its bounds)
+    is solved instead. ``variants``, ``roles`` and ``outcomes`` are updated in place. Returns the
+    number of solves made."""
     failed = [i for i, (kind, _, _, _) in enumerate(roles) if kind == "nuisance" and not outcomes[i].ok]
     redo = []
     for i in failed:
         _, key, _, step = roles[i]
         value, lower, upper = bounds[key]
-        redo.append((i, variants[i], step))
         if lower <= value - step <= upper:
             z, values = state.moved(key, value - step)
             redo.append((i, state.variant(z, values), -step))
     if not redo:
         return 0
-    say(f"{len(failed)} nuisance difference(s) failed in the batch; solving them again")
+    say(f"{len(failed)} nuisance difference(s) failed; solving them to the other side")
     return _solve_again(state, redo, variants, roles, outcomes)
 
 
 def _retry_effects(state: ModelState, effects: dict[str, Effect], variants, roles, outcomes, say) -> int:
-    """Where a candidate's secant model failed to solve in the big batch (friction that sticks, a
-    stiff skin: an element inverted on the way), it is solved again in a batch of its own together
-    with the secant to half its step; the first that solves is used. ``variants``, ``roles`` and
-    ``outcomes`` are updated in place. Returns the number of solves made."""
+    """Where a candidate's secant model failed to solve (friction that sticks, a stiff skin: an
+    element inverted on the way, also with a slower load), the secant to half its step is solved
+    instead. ``variants``, ``roles`` and ``outcomes`` are updated in place. Returns the number of
+    solves made."""
     redo = []
     for i, (kind, name, j, step) in enumerate(roles):
         if kind != "effect" or outcomes[i].ok:
@@ -151,17 +146,16 @@ def _retry_effects(state: ModelState, effects: dict[str, Effect], variants, role
         effect = effects[name]
         half = effect.off.copy()
         half[j] = effect.parameters[j].off + step / 2
-        redo.append((i, variants[i], step))
         redo.append((i, state.variant(values={name: (effect, half)}), step / 2))
     if not redo:
         return 0
-    say(f"{len(redo) // 2} candidate secant(s) failed in the batch; solving them again and to half their step")
+    say(f"{len(redo)} candidate secant(s) failed; solving them to half their step")
     return _solve_again(state, redo, variants, roles, outcomes)
 
 
 def _solve_again(state: ModelState, redo, variants, roles, outcomes) -> int:
     """Solve the ``redo`` list of (index, variant, step) in one batch; where an index's model had
-    failed, the first of its retries that solves takes its place (variant, outcome and step in
+    failed, its replacement takes its place if it solves (variant, outcome and step in
     ``variants``, ``outcomes`` and ``roles``). Returns the number of solves made."""
     fitted = state.fitted
     retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
@@ -169,4 +163,4 @@ def _solve_again(state: ModelState, redo, variants, roles, outcomes) -> int:
         if outcome.ok and not outcomes[i].ok:
             variants[i], outcomes[i] = variant, outcome
             roles[i] = (roles[i][0], roles[i][1], roles[i][2], step)
-    return len(redo)
+    return sum(outcome.attempts for outcome in retried)

@@ -33,11 +33,13 @@ class Variant:
 @dataclass
 class Outcome:
     """A variant's solve: ``displacement`` (N, 3) mm from the mesh as imaged, ``status`` and
-    ``message`` of the solver (``ok`` when it completed)."""
+    ``message`` of the solver (``ok`` when it completed), and the forward solves it took
+    (``attempts``: more than 1 where it was solved again with a slower load)."""
 
     displacement: np.ndarray
     status: str
     message: str
+    attempts: int = 1
 
     @property
     def ok(self) -> bool:
@@ -47,8 +49,9 @@ class Outcome:
 def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation: DynamicRelaxation,
                    device=None) -> list[Outcome]:
     """Solve every variant (one batched launch per distinct ``model``) to static equilibrium by
-    dynamic ``relaxation``; the outcomes in the variants' order."""
-    from BreastBiomechLib.solver import solve_batch
+    dynamic ``relaxation``, a variant that inverts an element again alone with a slower load
+    (:mod:`BreastBiomechLib.solver.retries`); the outcomes in the variants' order."""
+    from BreastBiomechLib.solver.retries import solve_batch_with_retries
     from BreastBiomechLib.solver.unloaded import displacement_from_imaged
 
     outcomes: list[Outcome | None] = [None] * len(variants)
@@ -57,9 +60,9 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
         groups.setdefault(id(variant.model), []).append(i)
     for members in groups.values():
         model = variants[members[0]].model
-        solutions = solve_batch(model, [variants[i].materials for i in members], device=device,
-                                relaxation=relaxation, plates=[variants[i].plates for i in members])
+        solutions = solve_batch_with_retries(model, [variants[i].materials for i in members], relaxation,
+                                             plates=[variants[i].plates for i in members], device=device)
         for i, solution in zip(members, solutions):
             outcomes[i] = Outcome(displacement_from_imaged(model, solution.displacement, imaged_nodes),
-                                  solution.status, solution.message)
+                                  solution.status, solution.message, solution.attempts)
     return outcomes

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib.optimisation.forward import FittingProblem
-from BreastBiomechLib.optimisation.run import OptimisationResult, optimise
+from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solve_best
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation
 
@@ -108,9 +108,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
                       progress, population=settings.population)
 
-    best = problem.solve_alone(result.best.z)
-    if not best.ok:
-        raise RuntimeError(f"the best parameters no longer solve ({best.message})")
+    result, best = solve_best(problem, result, out)
     write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)
     write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
                                                                           "displacement": best.displacement},

@@ -18,6 +18,7 @@ from BreastBiomechLib.landmarks import LandmarkMapper, Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation, Model
+from BreastBiomechLib.solver.retries import RETRIES, solve_batch_with_retries
 
 OBJECTIVES = ("nmi", "landmarks", "surface", "nmi+landmarks", "nmi+surface")
 FAILED_NMI = 0.0  # -NMI of a failed solve: worse than any (NMI lies in [1, 2])
@@ -156,24 +157,16 @@ class FittingProblem:
         return solve_batch(self.model, materials, plates, device=self.device,
                            relaxation=relaxation or self.relaxation)
 
-    def solve_alone(self, z, retries: int = 2):
+    def solve_alone(self, z, retries: int = RETRIES):
         """The solution at one unit position ``z``, solved by itself (the outputs of a fit's best
         parameters). Each model of a batch loads at its own pace, so alone it is solved as in
         its batch; should it still invert elements (float32 rounding can tip a marginal solve)
-        it is solved again with a load four times slower (``retries`` times at most). Dynamic
-        relaxation seeks the static equilibrium, which the loading speed does not change once it
-        converges."""
-        from dataclasses import replace
-
-        relaxation = self.relaxation
-        solution = self.solve(z, relaxation)[0]
-        for _ in range(retries):
-            if solution.status != "inverted elements":
-                break
-            relaxation = replace(relaxation, load_iterations=4 * relaxation.load_iterations,
-                                 max_iterations=4 * relaxation.max_iterations)
-            solution = self.solve(z, relaxation)[0]
-        return solution
+        it is solved again with a slower load (:mod:`BreastBiomechLib.solver.retries`,
+        ``retries`` times at most)."""
+        z = np.asarray(z, float)
+        plates = [self.plate_displacements(z)] if self.space.plates else None
+        return solve_batch_with_retries(self.model, [self.space.element_materials(z, self.tissue)], self.relaxation,
+                                        plate_displacements=plates, device=self.device, retries=retries)[0]
 
     def predict(self, displacement_mm: np.ndarray):
         """The FE-predicted image (:class:`~BreastBiomechLib.warping.PredictedImage`, on the

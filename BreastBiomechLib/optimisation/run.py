@@ -16,8 +16,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from BreastBiomechLib.optimisation import search
 from BreastBiomechLib.optimisation.forward import Evaluation, FittingProblem
 from BreastBiomechLib.optimisation.record import EvaluationLog
@@ -29,7 +27,8 @@ class OptimisationResult:
     ``evaluations``: all, in order; ``stopped``: why the run ended ("converged", "budget",
     "time", "cancelled"); ``replayed``: evaluations answered from a resumed results file;
     ``seconds``: wall time of this run; ``geometry``: the free fibre direction and plate
-    offsets there (:meth:`ParameterSpace.geometry`; empty when none is free)."""
+    offsets there (:meth:`ParameterSpace.geometry`; empty when none is free); ``stand_in``:
+    empty, or why ``best`` is not the best evaluation (see :func:`solve_best`)."""
 
     best: Evaluation
     materials: dict[str, dict[str, float]]
@@ -38,12 +37,14 @@ class OptimisationResult:
     replayed: int
     seconds: float
     geometry: dict = field(default_factory=dict)
+    stand_in: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         return {"best": self.best.to_dict(), "materials": self.materials, "geometry": self.geometry,
                 "stopped": self.stopped,
                 "evaluations": len(self.evaluations), "replayed": self.replayed,
-                "failed": sum(e.status != "completed" for e in self.evaluations), "seconds": round(self.seconds, 2)}
+                "failed": sum(e.status != "completed" for e in self.evaluations), "seconds": round(self.seconds, 2),
+                **({"stand_in": self.stand_in} if self.stand_in else {})}
 
 
 def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 500, seconds: float | None = None,
@@ -92,3 +93,39 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
     if out_dir is not None:
         (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
     return result
+
+
+STAND_IN_TRIES = 5  # next-best evaluations tried when the best no longer solves alone
+
+
+def solve_best(problem: FittingProblem, result: OptimisationResult, out_dir: str | Path | None = None,
+               tries: int = STAND_IN_TRIES) -> tuple[OptimisationResult, object]:
+    """The fit's best parameters solved alone, as its outputs are made from them: the result and
+    the :class:`~BreastBiomechLib.solver.Solution`. The best was solved in a batch; alone (even
+    with the slower loads of :meth:`FittingProblem.solve_alone`) a marginal model can still invert
+    an element. Then the next best completed evaluations stand in, in order of objective, ``tries``
+    at most: the first that solves becomes the result's best, its ``stand_in`` names the best
+    that did not solve and why, and ``out_dir``'s result.json is rewritten. Raises RuntimeError
+    when none solves."""
+    others = (e for e in result.evaluations if e.status == "completed" and e is not result.best)
+    ranked = [result.best] + sorted(others, key=lambda e: e.objective)
+    failures = []
+    for evaluation in ranked[:1 + tries]:
+        solution = problem.solve_alone(evaluation.z)
+        if solution.ok:
+            break
+        failures.append(f"objective {evaluation.objective:.6g}: {solution.message}")
+    else:
+        raise RuntimeError(f"the best parameters no longer solve alone, nor the {len(failures) - 1} next best "
+                           f"({'; '.join(failures)})")
+    if evaluation is result.best:
+        return result, solution
+    space = problem.space
+    stand_in = {"best_objective": result.best.objective, "objective": evaluation.objective,
+                "rank": len(failures) + 1, "reason": "; ".join(failures)}
+    result = OptimisationResult(evaluation, space.materials(evaluation.z), result.evaluations,
+                                result.stopped, result.replayed, result.seconds,
+                                space.geometry(evaluation.z), stand_in)
+    if out_dir is not None:
+        (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
+    return result, solution

@@ -177,8 +177,8 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     default: made here). Raises RuntimeError when the truth solve fails (it would not be a truth)."""
     from BreastBiomechLib.io.cases import case_from_dict, compression_case
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-    from BreastBiomechLib.solver import solve
     from BreastBiomechLib.solver.placement import final_planes
+    from BreastBiomechLib.solver.retries import solve_batch_with_retries
     from BreastBiomechLib.solver.unloaded import displacement_from_imaged
     from BreastBiomechLib.warping import ImageWarper
 
@@ -204,7 +204,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     # the plates as the compression's record gives them (nominal poses): a tilt is hidden
     recorded_plates = final_planes(model.loading.plates)
     model, unloaded = _with_hidden_effects(model, truth, settings.relaxation, device)
-    solution = solve(model, device=device, relaxation=settings.relaxation)
+    solution = solve_batch_with_retries(model, [model.materials], settings.relaxation, device=device)[0]
     if not solution.ok:
         raise RuntimeError(f"the truth simulation failed ({solution.status}: {solution.message})")
     # from the imaged shape, not the stress-free one a pre-stressed solve starts from

@@ -86,12 +86,14 @@ class DynamicRelaxation:
     can take more iterations; faster loading crushes the surface elements. In a batch each model
     loads as slowly as its own materials and travel need (and its damping adapts and its
     convergence counts from the end of its own load), so a stiff-bulk model does not slow the
-    others down."""
+    others down. ``pace`` (>= 1) stretches each model's load that many times further (the retry of
+    a model that inverted an element on the way, :mod:`BreastBiomechLib.solver.retries`)."""
 
     load_iterations: int = 1000
     tolerance_mm: float = 0.01
     max_iterations: int = 50_000
     update_every: int = 200
+    pace: float = 1.0
 
     def load_iterations_for(self, travel_mm: float, wave_speed_ratio: float, length_m: float, safety: float,
                             friction_extent_m: float = 0.0) -> int:
@@ -106,16 +108,19 @@ class DynamicRelaxation:
         shear wave takes to cross the model, longer than its slowest modes' periods, so contact
         nodes do not overshoot and stick where a slow load would not have put them (a 10 mm TetGen
         breast at mu = 0.3 loaded over 300 iterations ended 0.35 mm from the physical-time
-        solution; over 3, 4, 6 and 10 crossings 0.084, 0.036, 0.016 and 0.023 mm)."""
+        solution; over 3, 4, 6 and 10 crossings 0.084, 0.036, 0.016 and 0.023 mm). All of it
+        times ``pace``."""
         needed = 3.0 * 1.875 * travel_mm * MM * wave_speed_ratio / (safety * length_m)
         crossing = FRICTION_WAVE_CROSSINGS * friction_extent_m * wave_speed_ratio / (safety * length_m)
-        return max(self.load_iterations, int(math.ceil(needed)), int(math.ceil(crossing)))
+        return int(math.ceil(self.pace * max(self.load_iterations, needed, crossing)))
 
     def __post_init__(self) -> None:
         if self.load_iterations < 2 or self.max_iterations <= self.load_iterations:
             raise ValueError("dynamic relaxation needs load_iterations >= 2 and max_iterations > load_iterations")
         if self.tolerance_mm <= 0 or self.update_every < 10:
             raise ValueError("dynamic relaxation needs tolerance_mm > 0 and update_every >= 10")
+        if not self.pace >= 1.0:
+            raise ValueError(f"dynamic relaxation's pace must be >= 1 (a load that many times slower), not {self.pace}")
 
 
 @dataclass
@@ -141,6 +146,7 @@ class Solution:
     estimated_error_mm: float = float("nan")  # dynamic relaxation: distance to the static solution
     stable_time_step: float = float("inf")  # last power-iteration estimate for the deformed model (s)
     plate_normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (P, 3) towards the tissue
+    attempts: int = 1  # solves it took: more where :mod:`~BreastBiomechLib.solver.retries` slowed the load
 
     @property
     def plate_normal_forces(self) -> np.ndarray:
