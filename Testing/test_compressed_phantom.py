@@ -127,6 +127,9 @@ def test_hidden_effect_options_need_a_compressed_case(tmp_path, capsys):
 
     assert main(["phantom", "--out", str(tmp_path / "p"), "--friction", "0.5", "--no-overview"]) == 2
     assert "--friction change the truth simulation of a compressed case: add --compressed" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as stop:
-        main(["phantom", "--out", str(tmp_path / "p"), "--friction", "-1", "--compressed"])
-    assert stop.value.code == 2 and "must be a finite number >= 0" in capsys.readouterr().err
+    assert main(["phantom", "--out", str(tmp_path / "p"), "--chest-clearance-mm", "8", "--no-overview"]) == 2
+    assert "--chest-clearance-mm change the truth simulation" in capsys.readouterr().err
+    for option in ("--friction", "--chest-clearance-mm"):
+        with pytest.raises(SystemExit) as stop:
+            main(["phantom", "--out", str(tmp_path / "p"), option, "-1", "--compressed"])
+        assert stop.value.code == 2 and "must be a finite number >= 0" in capsys.readouterr().err

@@ -21,7 +21,7 @@ def cmd_suite(args) -> int:
                              truth_edge_mm=args.truth_edge_mm, fit_edge_mm=args.fit_edge_mm,
                              refine_interfaces=not args.no_refine, fit_blur_mm=args.fit_blur_mm, fit_budget=args.fit_budget,
                              fit_population=args.fit_population, rounds=args.rounds,
-                             landmark_noise_mm=args.landmark_noise_mm)
+                             landmark_noise_mm=args.landmark_noise_mm, chest_clearance_mm=args.chest_clearance_mm)
     if args.score_only:
         if not (out / "settings.json").is_file():
             raise FileNotFoundError(f"{out}: no suite run to score (no settings.json); run "
@@ -73,6 +73,8 @@ def add_parsers(sub) -> None:
                    help=f"forward solves of each material fit (default {d.fit_budget})")
     p.add_argument("--fit-population", type=int, default=d.fit_population,
                    help=f"CMA-ES population (default {d.fit_population})")
+    p.add_argument("--chest-clearance-mm", type=non_negative,
+                   help="how far anterior to the chest the plates' flat faces end (mm; default: the plate travel)")
     p.add_argument("--rounds", type=int, default=d.rounds, help=f"diagnosis rounds at most (default {d.rounds})")
     p.add_argument("--landmark-noise-mm", type=non_negative, default=d.landmark_noise_mm,
                    help="localisation error (sd per coordinate, mm) put on the measured landmarks of each image "

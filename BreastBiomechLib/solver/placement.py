@@ -108,6 +108,9 @@ def plate_contacts(mesh: TetMesh, candidates, plates: list[Plate], chest_clearan
 
     The plates' flat faces end ``chest_clearance_mm`` anterior to the chest's most anterior
     node (None: the larger plate travel, at least 5 mm) in a rounded edge of ``edge_radius_mm``
+    (None: the larger plate travel, at least 5 mm, whatever the clearance: a tighter edge wraps
+    the tissue it pushes round a sharper corner; at 8 mm clearance and 25 mm travel the 6 mm
+    truth mesh of the 450 cm3 test phantom inverted 13 elements with an 8 mm edge, 1 with 25 mm)
     (:class:`~BreastBiomechLib.solver.model.PlateEdge`, set on each plate whose plane runs
     anterior-posterior). The band left free stands for the rig's support between the chest and
     the plates' posterior edge, and keeps a rigid plate from shearing the breast base against the
@@ -116,12 +119,13 @@ def plate_contacts(mesh: TetMesh, candidates, plates: list[Plate], chest_clearan
     from BreastBiomechLib.mesh.node_sets import chest_front_y
     from BreastBiomechLib.solver.model import PlateEdge
 
+    travel = max([MIN_CHEST_CLEARANCE_MM] + [float(np.linalg.norm(p.displacement)) for p in plates])
     if chest_clearance_mm is None:
-        chest_clearance_mm = max([MIN_CHEST_CLEARANCE_MM] + [float(np.linalg.norm(p.displacement)) for p in plates])
+        chest_clearance_mm = travel
     if chest_clearance_mm < 0:
         raise ValueError(f"the chest clearance is a distance (mm >= 0), not {chest_clearance_mm}")
     if edge_radius_mm is None:
-        edge_radius_mm = max(chest_clearance_mm, MIN_CHEST_CLEARANCE_MM)
+        edge_radius_mm = travel
     if not edge_radius_mm > 0:
         raise ValueError(f"the plates' edge radius must be positive (mm), not {edge_radius_mm}")
     candidates = np.asarray(candidates, dtype=np.int64).ravel()

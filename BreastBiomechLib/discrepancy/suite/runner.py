@@ -53,7 +53,9 @@ class SuiteSettings:
     ``fit_population``; the diagnosis at most ``rounds`` rounds over the whole library. The
     measured landmarks of both images are the truth's moved by a localisation error of
     ``landmark_noise_mm`` per coordinate (one sd; a person marking them), so that the fit and
-    the diagnosis meet landmarks as uncertain as a clinic's."""
+    the diagnosis meet landmarks as uncertain as a clinic's. The plates' flat faces end
+    ``chest_clearance_mm`` anterior to the chest (None: the plate travel, see
+    :func:`~BreastBiomechLib.solver.placement.plate_contacts`), in rounded edges."""
 
     compression: float = 0.4
     spacing_mm: tuple[float, float, float] | None = None
@@ -66,6 +68,7 @@ class SuiteSettings:
     rounds: int = 3
     landmark_noise_mm: float = 0.35
     effects: list[str] | None = field(default=None)
+    chest_clearance_mm: float | None = None
 
 
 def write_json(path: Path, document: dict) -> None:
@@ -250,7 +253,7 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
         t = time.perf_counter()
         phantom = read_phantom(anatomy / "phantom")
         truth = TruthModel(compression=settings.compression, edge_mm=settings.truth_edge_mm, seed=case.seed,
-                           **case.hidden.truth)
+                           chest_clearance_mm=settings.chest_clearance_mm, **case.hidden.truth)
         compressed = compress_phantom(phantom, truth, device=device, mesh=read_vtu(anatomy / "truth_mesh.vtu"))
         for name in ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json"):
             if (anatomy / "phantom" / name).is_file():
