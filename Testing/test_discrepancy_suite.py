@@ -186,9 +186,37 @@ def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
         text = ast.unparse(case)
         assert text in ("measured", "case_dir / 'measured'", "folder / 'measured'"), f"{call.func.id} reads {text}"
     # the truth is read for scoring only after the diagnosis has answered
-    run_case = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "run_case")
+    run_case = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "_make_fit_and_diagnose")
     lines = {n.func.id: n.lineno for n in ast.walk(run_case) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
     assert lines["fit_compressed_case"] < lines["run_diagnosis"] < lines["scored_against_truth"]
+
+
+def test_a_case_another_run_is_making_is_waited_for_not_made_twice(tmp_path):
+    """Suite runs side by side on one folder (shards of the cases): one that reaches a case the
+    other is making waits for its lock and takes its result, instead of making it again into the
+    same files."""
+    import threading
+    import time
+
+    from BreastBiomechLib.discrepancy.suite import SuiteSettings, suite_cases
+    from BreastBiomechLib.discrepancy.suite.runner import run_case, write_json
+
+    case = suite_cases([1], ["null"])[0]
+    folder = tmp_path / case.name
+    folder.mkdir()
+    (folder / "error.json").write_text("{}")  # an earlier attempt's failure
+    (folder / ".lock").touch()  # the other run is making it
+
+    def the_other_run_finishes():
+        time.sleep(2.5)
+        write_json(folder / "result.json", {"case": case.name, "made_by": "the other run"})
+        (folder / ".lock").unlink()
+
+    other = threading.Thread(target=the_other_run_finishes)
+    other.start()
+    assert run_case(case, tmp_path, SuiteSettings())["made_by"] == "the other run"
+    other.join()
+    assert not (tmp_path / "anatomy1").exists() and not (folder / "truth").exists()
 
 
 def test_the_suite_command_refuses_bad_arguments(tmp_path, capsys):

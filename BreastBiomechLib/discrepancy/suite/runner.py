@@ -231,7 +231,26 @@ def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device
 def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
              say: Callable[[str], None] = lambda m: None) -> dict:
     """Make, fit and diagnose one suite case in ``out/<case.name>``; returns (and writes) its
-    ``result.json`` (see :func:`~BreastBiomechLib.discrepancy.suite.scores.case_result`)."""
+    ``result.json`` (see :func:`~BreastBiomechLib.discrepancy.suite.scores.case_result`). A
+    second suite run on the same folder that reaches the case while the first makes it waits for
+    it (a lock file in the case's folder) and takes its result."""
+    folder = out / case.name
+    result_path = folder / "result.json"
+    if result_path.is_file():
+        return json.loads(result_path.read_text())
+    folder.mkdir(parents=True, exist_ok=True)
+    with _Lock(folder / ".lock", wait_s=4 * 3600.0):  # suite runs side by side on the folder make it once
+        if result_path.is_file():
+            return json.loads(result_path.read_text())
+        result = _make_fit_and_diagnose(case, out, settings, device, say)
+        write_json(result_path, result)
+    (folder / "error.json").unlink(missing_ok=True)  # an earlier attempt's
+    return result
+
+
+def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, device, say) -> dict:
+    """The body of :func:`run_case` (under the case's lock): what is missing of the case's truth,
+    measured copy, fit and diagnosis made, then scored against the truth."""
     from BreastBiomechLib.discrepancy.suite.scores import case_result
     from BreastBiomechLib.discrepancy.workflow import run_diagnosis
     from BreastBiomechLib.io.meshes import read_vtu
@@ -241,9 +260,6 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
     from BreastBiomechLib.phantom.files import read_phantom
 
     folder = out / case.name
-    result_path = folder / "result.json"
-    if result_path.is_file():
-        return json.loads(result_path.read_text())
     anatomy = out / f"anatomy{case.anatomy}"
     prepared = prepare_anatomy(case.anatomy, out, settings, device, say)
     seconds = {}
@@ -285,9 +301,7 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
     seconds["diagnosis"] = time.perf_counter() - t
     say(f"{case.name}: scoring against the truth")
     ceiling, true_errors = scored_against_truth(folder, fit_dir, run.rounds, device)
-    result = case_result(case, run.rounds, ceiling, prepared, seconds, true_errors)
-    write_json(result_path, result)
-    return result
+    return case_result(case, run.rounds, ceiling, prepared, seconds, true_errors)
 
 
 def suite_tasks(out: Path, cases: list[SuiteCase], settings: SuiteSettings) -> list:
