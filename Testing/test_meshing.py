@@ -296,3 +296,31 @@ def test_cli_mesh_writes_mesh_case_and_niftysim(tmp_path, labels, capsys):
     for name in ("body", "glandular", "muscle", "tumour"):
         assert (out / "surfaces" / f"{name}.vtp").is_file()
     assert main(["mesh", str(tmp_path / "missing.nrrd"), "--out", str(out)]) == 2
+
+
+def test_flat_boundary_caps_are_removed_even_where_they_pass_the_quality_criteria():
+    """A cap (an element with two or more faces on the boundary: all its nodes on the surface)
+    lies almost in the surface; a plate flattening the surface there flattens it to zero volume.
+    One 0.4 mm high on a 5 mm face (smallest dihedral 13.5 degrees) passes the seed's criteria
+    and is kept by the 5-degree sliver rule alone, but is removed as flatter than 15 degrees;
+    the box's own corner elements (caps of 45-90 degrees) stay."""
+    from BreastBiomechLib.mesh.improve import improve_quality
+    from BreastBiomechLib.mesh.primitives import box_mesh
+    from BreastBiomechLib.mesh.quality import mesh_quality
+    from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
+
+    box = box_mesh((10.0, 10.0, 10.0), (2, 2, 2))
+    faces, _ = boundary_faces(box.tets)
+    top = next(f for f in faces if np.allclose(box.nodes[f][:, 2], 10.0))
+    nodes = np.vstack([box.nodes, box.nodes[top].mean(axis=0) + [0.0, 0.0, 0.4]])
+    cap = np.array([*top, len(box.nodes)])
+    p = nodes[cap]
+    if np.dot(np.cross(p[1] - p[0], p[2] - p[0]), p[3] - p[0]) < 0:
+        cap = cap[[1, 0, 2, 3]]
+    mesh = TetMesh(nodes, np.vstack([box.tets, cap]))
+    quality = mesh_quality(mesh)
+    assert not quality.failing()["any"][-1] and 5.0 < quality.min_dihedral_deg[-1] < 15.0
+    repaired, done = improve_quality(mesh)
+    assert done["caps_removed"] == 1 and len(repaired.tets) == len(box.tets) and len(repaired.nodes) == len(box.nodes)
+    assert improve_quality(mesh, cap_dihedral_deg=5.0)[1]["caps_removed"] == 0
+    assert improve_quality(box)[1]["caps_removed"] == 0

@@ -151,9 +151,9 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
     lap("tetgen")
     report(0.6, "repairing poor boundary elements")
     mesh, repairs = improve_quality(mesh)
-    if repairs["poor_before"]:
-        notes.append(f"{repairs['poor_before']} poor elements after TetGen: {repairs['caps_removed']} boundary "
-                     f"caps removed, {repairs['nodes_moved']} nodes moved")
+    if repairs["poor_before"] or repairs["caps_removed"]:
+        notes.append(f"{repairs['poor_before']} poor elements after TetGen; {repairs['caps_removed']} flat or poor "
+                     f"boundary caps removed, {repairs['nodes_moved']} nodes moved")
     lap("repair")
 
     report(0.7, "tissue per element")

@@ -1,5 +1,6 @@
 """Repair of the few poor elements TetGen leaves at a curved boundary: flat caps (elements with
-two or three faces on the surface, which lie almost in it) are removed, and the nodes of the
+two or three faces on the surface, which lie almost in it: all four nodes on the surface, so a
+plate that flattens the surface there flattens them to zero volume and inverts them) are removed, and the nodes of the
 remaining poor elements are moved towards their neighbours (boundary nodes along the surface)
 where that improves every element around them (smart Laplacian smoothing). Nodes in LPS mm."""
 
@@ -49,10 +50,13 @@ def _ideal_apex(nodes: np.ndarray, tet: np.ndarray, node: int) -> np.ndarray:
     return centre + normal * edge * np.sqrt(2.0 / 3.0)
 
 
-def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0) -> tuple[TetMesh, dict]:
+def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0,
+                    cap_dihedral_deg: float = 15.0) -> tuple[TetMesh, dict]:
     """``mesh`` with its poor elements (failing the seed's criteria, or slivers with a dihedral
     angle below ``min_dihedral_deg``) repaired: those with two or more faces on the boundary
-    removed, the nodes of the others moved where that improves every element around them
+    removed, as is every such cap flatter than ``cap_dihedral_deg`` (its smallest dihedral
+    angle: a cap of 5.5 degrees on the skin of a suite anatomy's fitting mesh passed the poor
+    criteria and inverted under the plate in every solve near the fit), the nodes of the others moved where that improves every element around them
     (boundary nodes only towards their surface neighbours, at most halfway). Returns the mesh (unused nodes dropped, so node ids change) and what was done:
     ``caps_removed``, ``nodes_moved``, ``poor_before``."""
     from scipy.sparse import csr_matrix
@@ -60,7 +64,8 @@ def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0) -> tuple[TetMe
     nodes = mesh.nodes.copy()
     poor = _poor(nodes, mesh.tets, min_dihedral_deg)
     poor_before = int(poor.sum())
-    caps = poor & (boundary_face_counts(mesh.tets) >= 2)
+    flat = mesh_quality(TetMesh(nodes, mesh.tets)).min_dihedral_deg < cap_dihedral_deg
+    caps = (poor | flat) & (boundary_face_counts(mesh.tets) >= 2)
     tets = mesh.tets[~caps]
     poor = poor[~caps]
     incidence = csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),
