@@ -1,7 +1,7 @@
 """Repair of the few poor elements TetGen leaves at a curved boundary: flat caps (elements with
 two or three faces on the surface, which lie almost in it: all four nodes on the surface, so a
-plate that flattens the surface there flattens them to zero volume and inverts them) are removed, and the nodes of the
-remaining poor elements are moved towards their neighbours (boundary nodes along the surface)
+plate that flattens the surface there flattens them to zero volume) are removed, and the nodes
+of the remaining poor elements are moved towards their neighbours (boundary nodes along the surface)
 where that improves every element around them (smart Laplacian smoothing). Nodes in LPS mm."""
 
 from __future__ import annotations
@@ -12,17 +12,9 @@ from BreastBiomechLib.mesh.quality import mesh_quality
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes
 
 
-
 def boundary_face_counts(tets: np.ndarray) -> np.ndarray:
     """Number of faces (0-4) of each element that lie on the mesh boundary."""
     return np.bincount(boundary_faces(tets)[1], minlength=len(tets))
-
-
-def _poor(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> np.ndarray:
-    """Elements failing a criterion of the quality report or with a dihedral angle below
-    ``min_dihedral_deg`` (slivers, which pass the seed's criteria but shrink the stable step)."""
-    report = mesh_quality(TetMesh(nodes, tets))
-    return report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
 
 
 def _score(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> float:
@@ -56,16 +48,17 @@ def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0,
     angle below ``min_dihedral_deg``) repaired: those with two or more faces on the boundary
     removed, as is every such cap flatter than ``cap_dihedral_deg`` (its smallest dihedral
     angle: a cap of 5.5 degrees on the skin of a suite anatomy's fitting mesh passed the poor
-    criteria and inverted under the plate in every solve near the fit), the nodes of the others moved where that improves every element around them
-    (boundary nodes only towards their surface neighbours, at most halfway). Returns the mesh (unused nodes dropped, so node ids change) and what was done:
-    ``caps_removed``, ``nodes_moved``, ``poor_before``."""
+    criteria and inverted under the plate in every solve near the fit), the nodes of the others
+    moved where that improves every element around them (boundary nodes only towards their
+    surface neighbours, at most halfway). Returns the mesh (unused nodes dropped, so node ids
+    change) and what was done: ``caps_removed``, ``nodes_moved``, ``poor_before``."""
     from scipy.sparse import csr_matrix
 
     nodes = mesh.nodes.copy()
-    poor = _poor(nodes, mesh.tets, min_dihedral_deg)
+    report = mesh_quality(TetMesh(nodes, mesh.tets))
+    poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
     poor_before = int(poor.sum())
-    flat = mesh_quality(TetMesh(nodes, mesh.tets)).min_dihedral_deg < cap_dihedral_deg
-    caps = (poor | flat) & (boundary_face_counts(mesh.tets) >= 2)
+    caps = (poor | (report.min_dihedral_deg < cap_dihedral_deg)) & (boundary_face_counts(mesh.tets) >= 2)
     tets = mesh.tets[~caps]
     poor = poor[~caps]
     incidence = csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),

@@ -11,7 +11,6 @@ failure: the parameters, the mesh or the constraints), and its last solution is 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import replace
 
 from BreastBiomechLib.solver.materials import ElementMaterials
@@ -29,15 +28,14 @@ def slower(relaxation, factor: int = SLOWER):
 
 def solve_batch_with_retries(model: Model, materials: list[ElementMaterials], relaxation,
                              plates: list[list[Plate]] | None = None, plate_displacements: list | None = None,
-                             device=None, retries: int = RETRIES, progress: Callable[[str], None] | None = None) -> list:
+                             device=None, retries: int = RETRIES) -> list:
     """:func:`~BreastBiomechLib.solver.solve_batch` of the variants (``materials[b]``, optionally
-    ``plates[b]`` or ``plate_displacements[b]``) by dynamic ``relaxation``; then each variant that inverted an element is solved
-    again alone, its load :data:`SLOWER` times slower each time, ``retries`` times at most. The
-    solutions in the variants' order, each with the number of solves it took (``attempts``); a
-    variant that never passes keeps its last solution (status "inverted elements"). ``progress(message)`` is told of each retry."""
+    ``plates[b]`` or ``plate_displacements[b]``) by dynamic ``relaxation``; then each variant that
+    inverted an element is solved again alone, its load :data:`SLOWER` times slower each time,
+    ``retries`` times at most. The solutions in the variants' order, each with the number of solves it took (``attempts``); a
+    variant that never passes keeps its last solution (status "inverted elements")."""
     from BreastBiomechLib.solver import solve_batch
 
-    say = progress or (lambda message: None)
     def one(items, b):
         return None if items is None else [items[b]]
 
@@ -47,7 +45,6 @@ def solve_batch_with_retries(model: Model, materials: list[ElementMaterials], re
         patient, attempts = relaxation, 1
         while solution.status == "inverted elements" and attempts <= retries:
             patient = slower(patient)
-            say(f"variant {b + 1} inverted an element; solving it alone with a {SLOWER ** attempts}x slower load")
             solution = solve_batch(model, [materials[b]], one(plate_displacements, b), device=device,
                                    relaxation=patient, plates=one(plates, b))[0]
             attempts += 1
