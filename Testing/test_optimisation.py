@@ -190,7 +190,9 @@ def test_the_command_fits_a_compressed_case_and_writes_its_results(compressed_ca
     assert 1.0 < summary["best"]["nmi"] < 2.0
     assert set(summary["materials"]) >= {"fat", "glandular", "muscle"}
     errors = summary["landmark_errors"]
-    assert errors["displacement_mm"]["mean"] > 3.0 and 0 < errors["error_mm"]["mean"] < errors["displacement_mm"]["max"]
+    # the case's landmarks moved by millimetres (2.99 mm on average at 25 % compression since the
+    # mesh repair removes flat caps, 2026-11-25), and the fit's error is below the largest move
+    assert errors["displacement_mm"]["mean"] > 2.5 and 0 < errors["error_mm"]["mean"] < errors["displacement_mm"]["max"]
     for name in ("settings.json", "evaluations.jsonl", "result.json", "fitting_mesh.vtu", "predicted.nrrd",
                  "predicted_landmarks.mrk.json", "deformed_mesh.vtu", "landmark_errors.json", "convergence.png"):
         assert (out / name).is_file(), name
