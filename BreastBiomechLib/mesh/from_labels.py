@@ -22,6 +22,7 @@ from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.mesh.tissues import TissueAssignment, assign_tissues
 from BreastBiomechLib.mesh.volume import TetGenSettings, interface_points, tetrahedralize
 from BreastBiomechLib.surface.extract import SurfaceSettings, body_surface, label_array, tissue_surface
+from BreastBiomechLib.surface.intersections import SurfaceCrossesItself
 from BreastBiomechLib.surface.trisurface import TriSurface
 
 _RETRIES = 2  # finer body surfaces tried when TetGen finds the surface intersecting itself
@@ -81,6 +82,20 @@ class BreastMesh:
         }
 
 
+def _body_surface(labels: sitk.Image, settings: SurfaceSettings, notes: list[str]) -> tuple[TriSurface, int]:
+    """:func:`body_surface`, made with finer triangles (up to ``_RETRIES`` times 0.7 the edge)
+    where even its repair leaves it crossing itself (a part of the body thinner than the edge)."""
+    for attempt in range(_RETRIES + 1):
+        try:
+            return body_surface(labels, settings, notes)
+        except SurfaceCrossesItself as error:
+            if attempt == _RETRIES:
+                raise SurfaceCrossesItself(f"{error} (also at {settings.edge_mm:.1f} mm)") from None
+            notes.append(f"{error}; remade at {0.7 * settings.edge_mm:.1f} mm")
+            settings = replace(settings, edge_mm=0.7 * settings.edge_mm)
+    raise AssertionError("unreachable")
+
+
 def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple_mm=None,
                 progress: Callable[[float, str], None] | None = None) -> BreastMesh:
     """Mesh the labelled region of ``labels`` (see the module notes). ``nipple_mm`` (3,) LPS
@@ -107,7 +122,7 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
                          f"({', '.join(f'{t.label}={t.name}' for t in lt.TISSUES)})")
     report(0.0, "body surface")
     surface_settings = settings.surface()
-    body, islands = body_surface(labels, surface_settings)
+    body, islands = _body_surface(labels, surface_settings, notes)
     if islands:
         notes.append(f"{islands} labelled voxels outside the largest connected region were left out")
     surfaces = {"body": body}
@@ -143,9 +158,9 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
             if attempt == _RETRIES or "self-intersect" not in str(error):
                 raise
             edge = body.mean_edge_mm * 0.7
-            notes.append(f"the body surface intersected itself at a {body.mean_edge_mm:.1f} mm edge; "
+            notes.append(f"TetGen found the body surface intersecting itself at a {body.mean_edge_mm:.1f} mm edge; "
                          f"remade it at {edge:.1f} mm")
-            body, _ = body_surface(labels, replace(surface_settings, edge_mm=edge))
+            body, _ = _body_surface(labels, replace(surface_settings, edge_mm=edge), notes)
             surfaces["body"] = body
             points = interface_points(body, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
     lap("tetgen")
@@ -153,7 +168,8 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
     mesh, repairs = improve_quality(mesh)
     if repairs["poor_before"] or repairs["caps_removed"]:
         notes.append(f"{repairs['poor_before']} poor elements after TetGen; {repairs['caps_removed']} flat or poor "
-                     f"boundary caps removed, {repairs['nodes_moved']} nodes moved")
+                     f"boundary caps removed, {repairs['peeled']} poor elements peeled off the surface, "
+                     f"{repairs['nodes_moved']} nodes moved; {repairs['poor_after']} poor elements left")
     lap("repair")
 
     report(0.7, "tissue per element")

@@ -1,8 +1,10 @@
 """Repair of the few poor elements TetGen leaves at a curved boundary: flat caps (elements with
 two or three faces on the surface, which lie almost in it: all four nodes on the surface, so a
-plate that flattens the surface there flattens them to zero volume) are removed, and the nodes
-of the remaining poor elements are moved towards their neighbours (boundary nodes along the surface)
-where that improves every element around them (smart Laplacian smoothing). Nodes in LPS mm."""
+plate that flattens the surface there flattens them to zero volume) are removed, poor elements
+with one face on the surface peeled off, and the nodes of the remaining poor elements are moved
+towards their neighbours (boundary nodes along the surface) where that improves every element
+around them (smart Laplacian smoothing), round after round while poor elements remain. Nodes in
+LPS mm."""
 
 from __future__ import annotations
 
@@ -29,6 +31,20 @@ def _score(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> floa
     return float((report.shape_factor * np.where(poor, 0.5, 1.0)).min())
 
 
+def _apex_edges_inside(tets: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """For elements ``which`` with one face on the boundary: whether none of the three edges from
+    the node off that face to the face's nodes is an edge of a boundary face."""
+    faces, owner = boundary_faces(tets)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    on_surface = {tuple(e) for e in edges}
+    face_of = dict(zip(owner, faces))
+    result = np.ones(len(which), bool)
+    for k, element in enumerate(which):
+        apex = [n for n in tets[element] if n not in face_of[element]][0]
+        result[k] = not any(tuple(sorted((apex, n))) in on_surface for n in face_of[element])
+    return result
+
+
 def _ideal_apex(nodes: np.ndarray, tet: np.ndarray, node: int) -> np.ndarray:
     """Where ``node`` would make ``tet`` regular-like: above the centroid of the opposite face, on
     the side it is now, at the height of a regular tet on that face's mean edge."""
@@ -42,25 +58,51 @@ def _ideal_apex(nodes: np.ndarray, tet: np.ndarray, node: int) -> np.ndarray:
     return centre + normal * edge * np.sqrt(2.0 / 3.0)
 
 
-def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0,
-                    cap_dihedral_deg: float = 15.0) -> tuple[TetMesh, dict]:
-    """``mesh`` with its poor elements (failing the seed's criteria, or slivers with a dihedral
-    angle below ``min_dihedral_deg``) repaired: those with two or more faces on the boundary
-    removed, as is every such cap flatter than ``cap_dihedral_deg`` (its smallest dihedral
+def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0, cap_dihedral_deg: float = 15.0,
+                    rounds: int = 3) -> tuple[TetMesh, dict]:
+    """:func:`improve_once` repeated while poor elements remain (``rounds`` at most): each round
+    peels what the last left at the boundary and smooths around the rest. Returns the mesh and
+    the totals of what was done, ``poor_before`` the poor elements TetGen left and ``poor_after``
+    those that remain."""
+    totals = {"caps_removed": 0, "peeled": 0, "nodes_moved": 0}
+    poor_before = None
+    for _ in range(rounds):
+        mesh, done = improve_once(mesh, min_dihedral_deg, cap_dihedral_deg)
+        poor_before = done["poor_before"] if poor_before is None else poor_before
+        for key in totals:
+            totals[key] += done[key]
+        report = mesh_quality(mesh)
+        poor_after = int((report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)).sum())
+        if poor_after == 0 or not (done["caps_removed"] or done["peeled"] or done["nodes_moved"]):
+            break
+    return mesh, {**totals, "poor_before": poor_before, "poor_after": poor_after}
+
+
+def improve_once(mesh: TetMesh, min_dihedral_deg: float = 5.0,
+                 cap_dihedral_deg: float = 15.0) -> tuple[TetMesh, dict]:
+    """One round of repair: ``mesh`` with its poor elements (failing the seed's criteria, or
+    slivers with a dihedral angle below ``min_dihedral_deg``) repaired: those with two or more
+    faces on the boundary removed, as is every such cap flatter than ``cap_dihedral_deg`` (its smallest dihedral
     angle: a cap of 5.5 degrees on the skin of a suite anatomy's fitting mesh passed the poor
-    criteria and inverted under the plate in every solve near the fit), the nodes of the others
-    moved where that improves every element around them (boundary nodes only towards their
+    criteria and inverted under the plate in every solve near the fit), those with one face on
+    it and their fourth node inside peeled off, the nodes of the others moved where that improves every element around them (boundary nodes only towards their
     surface neighbours, at most halfway). Returns the mesh (unused nodes dropped, so node ids
-    change) and what was done: ``caps_removed``, ``nodes_moved``, ``poor_before``."""
+    change) and what was done: ``caps_removed``, ``peeled``, ``nodes_moved``, ``poor_before``."""
     from scipy.sparse import csr_matrix
 
     nodes = mesh.nodes.copy()
     report = mesh_quality(TetMesh(nodes, mesh.tets))
     poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
     poor_before = int(poor.sum())
-    caps = (poor | (report.min_dihedral_deg < cap_dihedral_deg)) & (boundary_face_counts(mesh.tets) >= 2)
-    tets = mesh.tets[~caps]
-    poor = poor[~caps]
+    on_faces = boundary_face_counts(mesh.tets)
+    caps = (poor | (report.min_dihedral_deg < cap_dihedral_deg)) & (on_faces >= 2)
+    # a poor element with one face on the surface: removing it exposes its three other faces,
+    # which lie close to the one removed (a flat element); not where an edge from its fourth
+    # node already runs along the surface (the surface would fold onto that edge)
+    peel = poor & (on_faces == 1)
+    peel[peel] = _apex_edges_inside(mesh.tets, np.flatnonzero(peel))
+    tets = mesh.tets[~(caps | peel)]
+    poor = poor[~(caps | peel)]
     incidence = csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),
                            shape=(len(nodes), len(tets)))
     on_boundary = boundary_nodes(tets, len(nodes))
@@ -91,5 +133,5 @@ def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0,
     used = np.zeros(len(nodes), bool)
     used[tets.ravel()] = True
     remap = np.cumsum(used) - 1
-    return TetMesh(nodes[used], remap[tets]), {"caps_removed": int(caps.sum()), "nodes_moved": moved,
-                                               "poor_before": poor_before}
+    return TetMesh(nodes[used], remap[tets]), {"caps_removed": int(caps.sum()), "peeled": int(peel.sum()),
+                                               "nodes_moved": moved, "poor_before": poor_before}

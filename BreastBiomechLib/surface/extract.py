@@ -83,12 +83,14 @@ def _drop_small(mask: np.ndarray, min_voxels: int) -> np.ndarray:
 
 
 def mask_surface(mask: np.ndarray, geometry: sitk.Image, name: str, settings: SurfaceSettings,
-                 edge_mm: float | None = None) -> TriSurface:
+                 edge_mm: float | None = None, notes: list[str] | None = None, untangle: bool = False) -> TriSurface:
     """Closed surface of a boolean mask (z, y, x) on ``geometry``'s grid with triangles of about
     ``edge_mm`` (default the settings' edge): surface nets on the blurred mask sampled on an
     isotropic grid of that spacing (well-shaped triangles, no slivers), each vertex then moved
     onto the 0.5 level of the blurred mask on the full-resolution grid (so the coarse sampling
-    and the smoothing do not shrink the region)."""
+    and the smoothing do not shrink the region). With ``untangle`` (a surface that bounds a
+    mesh), not where that would make the surface cross itself (:func:`untangled`; a sentence
+    saying so is appended to ``notes``)."""
     import vtk
     from vtk.util import numpy_support as nps
 
@@ -136,9 +138,46 @@ def mask_surface(mask: np.ndarray, geometry: sitk.Image, name: str, settings: Su
         raise ValueError(f"{name}: no surface at a {edge:g} mm spacing; use a smaller edge")
     ijk = _relaxed_onto_level((wide, fine), surface, max_move=step)
     A, origin = index_to_physical(geometry)
-    surface = TriSurface(origin + (ijk - _PAD) @ A.T, surface.triangles, name)
-    surface = flip_obtuse_triangles(surface)
+    nets_points = origin + (surface.points - _PAD) @ A.T
+    surface = flip_obtuse_triangles(TriSurface(origin + (ijk - _PAD) @ A.T, surface.triangles, name))
+    surface, pulled = untangled(surface, nets_points, edge) if untangle else (surface, 0)
+    if pulled and notes is not None:
+        notes.append(f"{name}: {pulled} surface points kept nearer the sampled surface, where moving them onto "
+                     f"the boundary would make the surface cross itself (tissue thinner than the {edge:g} mm spacing)")
     return surface if surface.volume_mm3 > 0 else surface.flipped()
+
+
+def untangled(surface: TriSurface, fallback: np.ndarray, edge_mm: float, rounds: int = 6) -> tuple[TriSurface, int]:
+    """``surface`` with the points of every pair of crossing triangles (and their neighbours)
+    moved halfway back to their ``fallback`` positions (K, 3) (the surface nets' points, which
+    lie in their own sampling cells), round after round, and at last onto them; returns the
+    surface and how many points moved. A ValueError names where the surface still crosses
+    itself when even the fallback positions do."""
+    from scipy.sparse import coo_matrix
+
+    from BreastBiomechLib.surface.intersections import SurfaceCrossesItself, intersecting_vertices
+
+    tri = surface.triangles
+    n = len(surface.points)
+    rows, cols = tri[:, [0, 1, 2, 1, 2, 0]].ravel(), tri[:, [1, 2, 0, 0, 1, 2]].ravel()
+    adjacency = coo_matrix((np.ones(len(rows), bool), (rows, cols)), shape=(n, n)).tocsr()
+    points = surface.points.copy()
+    moved = np.zeros(n, bool)
+    for round_ in range(rounds + 1):
+        bad = intersecting_vertices(TriSurface(points, tri, surface.name))
+        if len(bad) == 0:
+            return TriSurface(points, tri, surface.name), int(moved.sum())
+        if round_ == rounds:
+            break
+        ring = np.zeros(n, bool)
+        ring[bad] = True
+        ring |= np.asarray(adjacency[bad].sum(axis=0)).ravel() > 0
+        points[ring] = fallback[ring] if round_ == rounds - 1 else 0.5 * (points[ring] + fallback[ring])
+        moved |= ring
+    where = np.round(points[bad].mean(axis=0), 1).tolist()
+    raise SurfaceCrossesItself(f"{surface.name}: the surface crosses itself near {where} mm (LPS) even at its sampled "
+                     f"positions: the tissue there is thinner than the {edge_mm:g} mm spacing; use a smaller edge "
+                     "or a larger blur")
 
 
 def _corner_angles(p: np.ndarray) -> np.ndarray:
@@ -271,9 +310,11 @@ def _onto_level(field: np.ndarray, gradient: list[np.ndarray], ijk: np.ndarray, 
     return points
 
 
-def body_surface(labels: sitk.Image, settings: SurfaceSettings | None = None) -> tuple[TriSurface, int]:
+def body_surface(labels: sitk.Image, settings: SurfaceSettings | None = None,
+                 notes: list[str] | None = None) -> tuple[TriSurface, int]:
     """The outer surface of every labelled voxel (the whole model: breast and muscle), its
-    largest connected piece; returns the surface and the number of voxels in other pieces that
+    largest connected piece, free of self-intersections (:func:`untangled`; the repair is
+    described in ``notes``); returns the surface and the number of voxels in other pieces that
     were left out (islands)."""
     settings = settings or SurfaceSettings()
     array = label_array(labels)
@@ -281,14 +322,14 @@ def body_surface(labels: sitk.Image, settings: SurfaceSettings | None = None) ->
     if not body.any():
         raise ValueError("the label map has no labelled voxels (all background); segment the breast first")
     body, dropped = largest_component(body)
-    return mask_surface(body, labels, "body", settings), dropped
+    return mask_surface(body, labels, "body", settings, notes=notes, untangle=True), dropped
 
 
 def tissue_surface(labels: sitk.Image, label: int, edge_mm: float,
                    settings: SurfaceSettings | None = None) -> TriSurface | None:
     """Surface of the voxels of one tissue label (all its pieces of at least
     ``settings.min_component_mm3``) with triangles of about ``edge_mm``; None when the tissue is
-    absent."""
+    absent. (Its points refine the mesh: it need not be free of self-intersections.)"""
     settings = settings or SurfaceSettings()
     mask = label_array(labels) == label
     voxel_mm3 = float(np.prod(labels.GetSpacing()))
