@@ -56,10 +56,28 @@ def main(argv: list[str] | None = None) -> int:
         print(f"breastbiomech {args.command}: cancelled{': ' + str(exc) if str(exc) else ''}; what finished is kept, "
               "and the same command resumes", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
+    except (ValueError, OSError, RuntimeError) as exc:
         end_progress()
-        print(f"breastbiomech {args.command}: error: {exc}", file=sys.stderr)
+        print(f"breastbiomech {args.command}: error: {_described(exc)}", file=sys.stderr)
         return 2
+
+
+def _described(error: Exception) -> str:
+    """The message of a bad input or output: the project's own as it is; an operating-system
+    error (a path that is a file, a folder that cannot be made or written) as the path, what is
+    wrong with it and what to do."""
+    if not isinstance(error, OSError) or error.filename is None:
+        return str(error)
+    path = error.filename
+    if isinstance(error, (FileExistsError, NotADirectoryError)):
+        return f"{path} is a file where a folder is needed; give another --out (a new or existing folder)"
+    if isinstance(error, IsADirectoryError):
+        return f"{path} is a folder where a file is needed"
+    if isinstance(error, PermissionError):
+        return f"{path}: permission denied; give a path you can write to"
+    if isinstance(error, FileNotFoundError):
+        return f"{path}: no such file or folder"
+    return f"{path}: {error.strerror or error}"
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import MODEL_CHOICES, non_negative
+from BreastBiomechLib.cli.common import MODEL_CHOICES, device_argument, non_negative
 
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
@@ -459,7 +459,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
     p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
     p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
-    p.add_argument("--device", default=None, help="solver, warp: cuda, cpu or a warp device name (default: warp's)")
+    p.add_argument("--device", type=device_argument, default=None, help="solver, warp: cuda, cpu or a warp device name (default: warp's)")
     p.add_argument("--total-time", type=float, default=1.0, help="solver: loading time in s (+25%% settling)")
     p.add_argument("--settle-time", type=float, default=None, help="solver: settling time in s (default 25%% of loading)")
     p.add_argument("--steady-state-mm", type=float, default=None,

@@ -29,6 +29,14 @@ def end_progress() -> None:
         _line["open"] = False
 
 
+def device_argument(text: str) -> str:
+    """argparse type of ``--device``: cpu, cuda or cuda:K (warp's device names), so that a typo
+    is refused before anything runs."""
+    if text in ("cpu", "cuda") or (text.startswith("cuda:") and text[5:].isdigit()):
+        return text
+    raise argparse.ArgumentTypeError(f"takes cpu, cuda or cuda:K (a GPU's number), not {text!r}")
+
+
 def non_negative(text: str) -> float:
     """An argparse type: a finite number >= 0."""
     value = float(text)

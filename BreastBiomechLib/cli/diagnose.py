@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import sys
 
-from BreastBiomechLib.cli.common import non_negative
+from BreastBiomechLib.cli.common import device_argument, non_negative
 
 
 def cmd_diagnose(args) -> int:
@@ -65,7 +65,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--no-residual-field", action="store_true",
                    help="skip the residual displacement field (the deformable registration of the predicted to the "
                         "measured image, its maps and pictures; about 10-60 s per round)")
-    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")

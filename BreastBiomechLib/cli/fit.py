@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import (MODEL_CHOICES, OBJECTIVE_CHOICES, add_cluster_options, cohort_progress,
-                                         end_progress, report_failures)
+                                         device_argument, end_progress, report_failures)
 
 
 def cmd_optimise(args) -> int:
@@ -62,6 +62,7 @@ def cmd_study(args) -> int:
     from BreastBiomechLib.cohort import place
     from BreastBiomechLib.optimisation.study import (StudySettings, provenance, run_study, study_markdown,
                                                      write_report)
+    from BreastBiomechLib.phantom.compressed_files import compressed_folder
 
     budgets = {}
     for item in args.budget or []:
@@ -72,6 +73,8 @@ def cmd_study(args) -> int:
     settings = StudySettings(models=tuple(args.models), optimisers=tuple(args.optimisers),
                              budgets={**StudySettings().budgets, **budgets}, fibre=tuple(args.fibre),
                              edge_mm=args.edge_mm, seed=args.seed, bins=args.bins, tolerance_mm=args.tolerance_mm)
+    for case_dir in args.case_dirs:  # every case is there before a cluster starts
+        compressed_folder(case_dir)
     placement = place(args.scheduler, args.workers, args.device)
     run = run_study(args.case_dirs, args.out, settings, placement=placement, progress=cohort_progress(args.quiet))
     end_progress()
@@ -119,7 +122,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--labels", help="label map to mesh (default: the case's labels.nrrd)")
     p.add_argument("--edge-mm", type=float, default=4.0, help="fitting mesh element size (default 4 mm)")
     p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
-    p.add_argument("--device", help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue a fit interrupted in --out")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -139,7 +142,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
     p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
-    p.add_argument("--device", help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
+    p.add_argument("--device", type=device_argument, help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
     add_cluster_options(p)
     p.add_argument("--report", help="Markdown file whose study tables are (re)written, e.g. docs/validation.md")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

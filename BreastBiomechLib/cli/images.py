@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import time
 
+from BreastBiomechLib.cli.common import device_argument
+
 
 def _nodal_displacement(path: str, mesh):
     """Nodal displacements (N, 3) mm from a .vtu with a ``displacement`` point array (e.g.
@@ -116,7 +118,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--landmarks", help="reference landmarks (.mrk.json) to move with the displacement")
     p.add_argument("--landmarks-out", help="where to write the moved landmarks (.mrk.json)")
     p.add_argument("--background", type=float, default=0.0, help="value outside the deformed body (default 0)")
-    p.add_argument("--device", default=None, help="cuda, cpu or a warp device name (default: warp's)")
+    p.add_argument("--device", type=device_argument, default=None, help="cuda, cpu or a warp device name (default: warp's)")
     p.set_defaults(func=cmd_warp)
 
     p = sub.add_parser("compare", help="NMI and NCC of predicted vs measured image, and landmark errors")
@@ -126,6 +128,6 @@ def add_parsers(sub) -> None:
     p.add_argument("--bins", type=int, default=64, help="histogram bins per image for NMI (default 64)")
     p.add_argument("--landmarks", nargs=3, metavar=("REFERENCE", "PREDICTED", "MEASURED"),
                    help="three .mrk.json point lists matched by label: errors as in the seed's Table 2")
-    p.add_argument("--device", default=None, help="cuda, cpu or a warp device name (default: warp's)")
+    p.add_argument("--device", type=device_argument, default=None, help="cuda, cpu or a warp device name (default: warp's)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_compare)

@@ -8,6 +8,8 @@ import warnings
 from dataclasses import replace
 from pathlib import Path
 
+from BreastBiomechLib.cli.common import device_argument
+
 
 def export_for_niftysim(path: Path, model, solved_displacement=None, formulation: str | None = None):
     """Write ``model`` for NiftySim the way the commands do: the settling phase dropped, a T4ANP
@@ -106,6 +108,6 @@ def add_parsers(sub) -> None:
     r = inner.add_parser("run", help="solve a NiftySim XML model as NiftySim would (physical time)")
     r.add_argument("model", help="NiftySim model (.xml)")
     r.add_argument("--out", required=True, help="output folder (new or empty)")
-    r.add_argument("--device", default=None, help="warp device (cpu, cuda, cuda:1; default: warp's)")
+    r.add_argument("--device", type=device_argument, default=None, help="warp device (cpu, cuda, cuda:1; default: warp's)")
     r.add_argument("--quiet", action="store_true", help="no progress on standard error")
     r.set_defaults(func=cmd_run)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import add_cluster_options, cohort_progress, non_negative, report_failures
+from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, non_negative,
+                                         report_failures)
 
 
 def _phantom_parameters(args):
@@ -134,7 +135,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--chest-clearance-mm", type=non_negative,
                    help="how far anterior to the chest the plates' flat faces end (mm; default: the plate travel, "
                         "at least 5 mm); their edges are rounded")
-    p.add_argument("--device", help="warp device of the truth simulation (cuda, cpu; default: warp's)")
+    p.add_argument("--device", type=device_argument, help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
     effects.add_argument("--friction", type=non_negative, default=0.0, help="the plates' Coulomb friction mu")
     effects.add_argument("--gravity", type=float, nargs=3, metavar=("GX", "GY", "GZ"),
@@ -165,7 +166,7 @@ def add_parsers(sub) -> None:
                    help="which cases (default all)")
     p.add_argument("--truth-edge-mm", type=float, default=2.0, help="element size of the truth meshes (default 2 mm)")
     p.add_argument("--no-overview", action="store_true", help="skip the PNG overviews")
-    p.add_argument("--device", help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
+    p.add_argument("--device", type=device_argument, help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
     add_cluster_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_table1_cases)

@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from BreastBiomechLib.cli.common import device_argument
+
 
 def cmd_simulate(args) -> int:
     """Solve CASE.json; write the mesh with its displacement and a JSON summary of the solve."""
@@ -87,6 +89,6 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("simulate", help="solve a case file (mesh + materials + loading, see docs/solver.md)")
     p.add_argument("case", help="CASE.json")
     p.add_argument("--out", required=True, help="output folder for deformed.vtu and solution.json")
-    p.add_argument("--device", default=None, help="cuda, cpu or a warp device name (default: the case's, or warp's)")
+    p.add_argument("--device", type=device_argument, default=None, help="cuda, cpu or a warp device name (default: the case's, or warp's)")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")
     p.set_defaults(func=cmd_simulate)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import add_cluster_options, cohort_progress, non_negative, report_failures
+from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, non_negative,
+                                         report_failures)
 
 
 def cmd_suite(args) -> int:
@@ -79,7 +80,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--landmark-noise-mm", type=non_negative, default=d.landmark_noise_mm,
                    help="localisation error (sd per coordinate, mm) put on the measured landmarks of each image "
                         f"(default {d.landmark_noise_mm:g})")
-    p.add_argument("--device", help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
+    p.add_argument("--device", type=device_argument, help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
     add_cluster_options(p)
     p.add_argument("--score-only", action="store_true", help="score the finished cases, run nothing")
     p.add_argument("--json", action="store_true", help="print the headline scores as one JSON line")

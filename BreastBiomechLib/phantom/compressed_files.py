@@ -83,15 +83,22 @@ class MeasuredCompression:
         return json.loads((self.folder / "truth.json").read_text())
 
 
-def read_compressed(case_dir: str | Path) -> MeasuredCompression:
-    """Read the measured part of a compressed case written by :func:`write_compressed`
-    (``case_dir`` is the undeformed case's folder, or its ``compressed/`` folder)."""
+def compressed_folder(case_dir: str | Path) -> Path:
+    """The ``compressed/`` folder of a compressed case (``case_dir`` is the undeformed case's
+    folder, or that folder itself); a FileNotFoundError that says how to make one otherwise."""
     folder = Path(case_dir)
     if (folder / FOLDER).is_dir():
         folder = folder / FOLDER
     if not (folder / "plates.json").is_file():
         raise FileNotFoundError(f"{folder}: not a compressed case (no plates.json); make one with "
                                 "`breastbiomech phantom --case N --compressed --out DIR`")
+    return folder
+
+
+def read_compressed(case_dir: str | Path) -> MeasuredCompression:
+    """Read the measured part of a compressed case written by :func:`write_compressed`
+    (``case_dir`` is the undeformed case's folder, or its ``compressed/`` folder)."""
+    folder = compressed_folder(case_dir)
     document = json.loads((folder / "plates.json").read_text())
     for plate in document["plates"]:
         if np.linalg.norm(plate["normal"]) == 0:

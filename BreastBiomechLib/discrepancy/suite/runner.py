@@ -70,6 +70,28 @@ class SuiteSettings:
     effects: list[str] | None = field(default=None)
     chest_clearance_mm: float | None = None
 
+    def __post_init__(self) -> None:
+        """Refuse settings no case could be made or fitted with, before anything runs (and
+        before a run records them in its folder's settings.json)."""
+        checks = [(0.0 < self.compression <= 0.7, f"compression is a fraction of the breast's thickness in (0, 0.7], "
+                                                  f"not {self.compression}"),
+                  (self.truth_edge_mm > 0 and self.fit_edge_mm > 0, "the truth and fitting meshes' edges must be "
+                                                                     "positive (mm)"),
+                  (self.fit_blur_mm >= 0, f"fit_blur_mm must be >= 0 (mm), not {self.fit_blur_mm}"),
+                  (self.fit_population >= 2, f"the fit's population needs at least 2 models, not {self.fit_population}"),
+                  (self.fit_budget >= self.fit_population, f"the fit's budget ({self.fit_budget} solves) must hold one "
+                                                           f"generation of {self.fit_population}"),
+                  (self.rounds >= 1, f"the diagnosis needs at least one round, not {self.rounds}"),
+                  (self.landmark_noise_mm >= 0, f"landmark_noise_mm must be >= 0, not {self.landmark_noise_mm}"),
+                  (self.chest_clearance_mm is None or self.chest_clearance_mm >= 0,
+                   f"chest_clearance_mm must be >= 0 (mm), not {self.chest_clearance_mm}")]
+        if self.spacing_mm is not None:
+            checks.append((len(self.spacing_mm) == 3 and all(0.3 <= v <= 4.0 for v in self.spacing_mm),
+                           f"spacing_mm needs three voxel sizes of 0.3-4 mm, not {self.spacing_mm}"))
+        problems = [message for ok, message in checks if not ok]
+        if problems:
+            raise ValueError("suite settings: " + "; ".join(problems))
+
 
 def write_json(path: Path, document: dict) -> None:
     """Write ``document`` to ``path`` atomically (a temporary file renamed over it)."""
