@@ -40,11 +40,9 @@ def test_an_output_folder_that_is_a_file_is_named_with_what_to_do(tmp_path, caps
 
 
 @pytest.mark.parametrize("option, value, message", [
-    ("--compression", "2", "compression is a fraction of the breast's thickness in (0, 0.7], not 2.0"),
-    ("--fit-budget", "-1", "the fit's budget (-1 solves) must hold one generation of 12"),
+    ("--compression", "0.9", "compression is a fraction of the breast's thickness in (0, 0.7], not 0.9"),
+    ("--fit-budget", "5", "the fit's budget (5 solves) must hold one generation of 12"),
     ("--fit-population", "1", "the fit's population needs at least 2 models, not 1"),
-    ("--rounds", "0", "the diagnosis needs at least one round, not 0"),
-    ("--truth-edge-mm", "0", "the truth and fitting meshes' edges must be positive (mm)"),
 ])
 def test_suite_settings_are_checked_before_a_run_records_them(tmp_path, capsys, option, value, message):
     out = tmp_path / "suite"
@@ -53,9 +51,59 @@ def test_suite_settings_are_checked_before_a_run_records_them(tmp_path, capsys, 
     assert not (out / "settings.json").exists()  # a later run with good settings is not refused
 
 
+def test_suite_settings_refuse_what_no_case_could_be_made_with():
+    from BreastBiomechLib.discrepancy.suite import SuiteSettings
+
+    with pytest.raises(ValueError, match=r"suite settings: .*at least one round.*landmark_noise_mm must be >= 0"):
+        SuiteSettings(rounds=0, landmark_noise_mm=-1.0)
+
+
 def test_a_study_checks_its_cases_before_starting_a_cluster(tmp_path, capsys):
     missing = tmp_path / "no-such-case"
     assert main(["study", str(missing), "--out", str(tmp_path / "study")]) == 2
     assert _error_line(capsys).endswith(f"{missing}: not a compressed case (no plates.json); make one with "
                                         "`breastbiomech phantom --case N --compressed --out DIR`")
     assert not (tmp_path / "study").exists()
+
+
+def _numeric_options():
+    """(command words, option, argparse type, how many values) of every option of every command
+    that takes numbers."""
+    from BreastBiomechLib.cli import build_parser
+    from BreastBiomechLib.cli import common
+
+    numeric = {common.finite, common.positive, common.fraction, common.positive_int, common.non_negative_int,
+               common.non_negative, int, float}
+    found = []
+
+    def walk(words, parser):
+        for action in parser._actions:
+            if action.__class__.__name__ == "_SubParsersAction":
+                for name, sub in action.choices.items():
+                    walk(words + [name], sub)
+            elif action.option_strings and action.type in numeric and not action.choices:
+                count = action.nargs if isinstance(action.nargs, int) else 1
+                found.append((words, action.option_strings[-1], action.type, count))
+    walk([], build_parser())
+    return found
+
+
+def test_every_numeric_option_is_checked_by_the_parser():
+    """Plain int or float lets NaN, infinities and out-of-range numbers through to where they
+    fail late (or not at all); every number a command takes has a checked type."""
+    plain = [f"{' '.join(words)} {option}" for words, option, kind, _ in _numeric_options() if kind in (int, float)]
+    assert not plain, f"options without a checked number type: {plain}"
+    assert len(_numeric_options()) > 80
+
+
+@pytest.mark.parametrize("words, option, kind, count", _numeric_options(),
+                         ids=lambda v: v if isinstance(v, str) else None)
+def test_a_number_out_of_range_is_refused_with_the_option_named(capsys, words, option, kind, count):
+    from BreastBiomechLib.cli import common
+
+    bad = "nan" if kind in (common.finite, common.positive, common.fraction, common.non_negative) else "-1"
+    with pytest.raises(SystemExit) as stop:
+        main(words + [option] + [bad] * count)
+    assert stop.value.code == 2
+    line = _error_line(capsys)
+    assert f"argument {option}: must be " in line and bad in line

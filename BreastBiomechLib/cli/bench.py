@@ -9,7 +9,8 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import MODEL_CHOICES, device_argument, non_negative
+from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, non_negative, non_negative_int, positive,
+                                         positive_int)
 
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
@@ -446,46 +447,46 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("bench", help="print benchmark figures")
     p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise",
                                     "diagnose", "cohort"], help="what to time")
-    p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5],
+    p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], choices=range(1, 6),
                    help="Table 1 cases (phantom; effects, diagnose: the first)")
-    p.add_argument("--truth-edge-mm", type=float, default=3.0,
+    p.add_argument("--truth-edge-mm", type=positive, default=3.0,
                    help="effects, diagnose: the truth mesh's element size (mm)")
     p.add_argument("--hidden", choices=sorted(HIDDEN), default="friction",
                    help="diagnose: the effect hidden in the truth (a suite case's, default friction)")
-    p.add_argument("--fit-edge-mm", type=float, default=6.0,
+    p.add_argument("--fit-edge-mm", type=positive, default=6.0,
                    help="diagnose, cohort: the fitting mesh's element size (mm)")
-    p.add_argument("--fit-budget", type=int, default=60, help="diagnose: the material fit's forward solves")
-    p.add_argument("--rounds", type=int, default=3, help="diagnose: rounds at most")
-    p.add_argument("--tets", type=int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
-    p.add_argument("--repeat", type=int, default=10, help="warp: timed calls (median and best reported)")
-    p.add_argument("--batch", type=int, default=1, help="solver: parameter sets solved in one launch")
+    p.add_argument("--fit-budget", type=positive_int, default=60, help="diagnose: the material fit's forward solves")
+    p.add_argument("--rounds", type=positive_int, default=3, help="diagnose: rounds at most")
+    p.add_argument("--tets", type=positive_int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
+    p.add_argument("--repeat", type=positive_int, default=10, help="warp: timed calls (median and best reported)")
+    p.add_argument("--batch", type=positive_int, default=1, help="solver: parameter sets solved in one launch")
     p.add_argument("--device", type=device_argument, default=None, help="solver, warp: cuda, cpu or a warp device name (default: warp's)")
-    p.add_argument("--total-time", type=float, default=1.0, help="solver: loading time in s (+25%% settling)")
-    p.add_argument("--settle-time", type=float, default=None, help="solver: settling time in s (default 25%% of loading)")
-    p.add_argument("--steady-state-mm", type=float, default=None,
+    p.add_argument("--total-time", type=positive, default=1.0, help="solver: loading time in s (+25%% settling)")
+    p.add_argument("--settle-time", type=non_negative, default=None, help="solver: settling time in s (default 25%% of loading)")
+    p.add_argument("--steady-state-mm", type=positive, default=None,
                    help="solver, physical time: stop settling once this close to rest (mm)")
     p.add_argument("--relaxation", action="store_true", help="solver: dynamic relaxation (tolerance 0.01 mm)")
     p.add_argument("--friction", type=non_negative, default=0.0, help="solver: the plates' Coulomb friction mu")
-    p.add_argument("--load-iterations", type=int, default=None,
+    p.add_argument("--load-iterations", type=positive_int, default=None,
                    help="solver, dynamic relaxation: iterations over which the load is applied, at least "
                         "(default: DynamicRelaxation's)")
-    p.add_argument("--volume-cm3", type=float, default=1000.0, help="mesh, segment: phantom breast volume (cm^3)")
-    p.add_argument("--tumour-mm", type=float, default=20.0, help="segment: phantom tumour diameter (0: none)")
-    p.add_argument("--snr", type=float, default=30.0, help="segment: phantom fat signal / noise sigma")
-    p.add_argument("--bias", type=float, default=0.2, help="segment: phantom bias field amplitude")
-    p.add_argument("--seed", type=int, default=1, help="segment: phantom random seed")
-    p.add_argument("--edge-mm", type=float, default=3.0, help="mesh: element edge (mm)")
-    p.add_argument("--grid", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
+    p.add_argument("--volume-cm3", type=positive, default=1000.0, help="mesh, segment: phantom breast volume (cm^3)")
+    p.add_argument("--tumour-mm", type=non_negative, default=20.0, help="segment: phantom tumour diameter (0: none)")
+    p.add_argument("--snr", type=positive, default=30.0, help="segment: phantom fat signal / noise sigma")
+    p.add_argument("--bias", type=non_negative, default=0.2, help="segment: phantom bias field amplitude")
+    p.add_argument("--seed", type=non_negative_int, default=1, help="segment: phantom random seed")
+    p.add_argument("--edge-mm", type=positive, default=3.0, help="mesh: element edge (mm)")
+    p.add_argument("--grid", type=positive_int, nargs=3, metavar=("NX", "NY", "NZ"),
                    help="mesh, segment: pad or crop the phantom to this many voxels (e.g. 256 256 80); warp: the grid")
-    p.add_argument("--radii", type=float, nargs=3, default=[70.0, 60.0, 65.0], metavar=("LR", "AP", "SI"),
+    p.add_argument("--radii", type=positive, nargs=3, default=[70.0, 60.0, 65.0], metavar=("LR", "AP", "SI"),
                    help="optimise: synthetic breast radii (mm)")
-    p.add_argument("--element-mm", type=float, default=4.0, help="optimise: synthetic mesh cube size (mm)")
-    p.add_argument("--voxel-mm", type=float, nargs=3, default=[1.0, 1.0, 2.5],
+    p.add_argument("--element-mm", type=positive, default=4.0, help="optimise: synthetic mesh cube size (mm)")
+    p.add_argument("--voxel-mm", type=positive, nargs=3, default=[1.0, 1.0, 2.5],
                    help="optimise, diagnose: voxel size (mm)")
     p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
-    p.add_argument("--budget", type=int, default=500, help="optimise: forward solves; cohort: per fit")
-    p.add_argument("--population", type=int, default=None, help="optimise: CMA-ES population (batch size)")
-    p.add_argument("--tolerance-mm", type=float, default=None,
+    p.add_argument("--budget", type=positive_int, default=500, help="optimise: forward solves; cohort: per fit")
+    p.add_argument("--population", type=positive_int, default=None, help="optimise: CMA-ES population (batch size)")
+    p.add_argument("--tolerance-mm", type=positive, default=None,
                    help="optimise: forward solves' relaxation tolerance (default 0.01); unloaded: largest node mismatch "
                         "to reach (default 0.02 mm)")
     p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
@@ -495,6 +496,6 @@ def add_parsers(sub) -> None:
     p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=["iso-homo"], help="cohort: models fitted")
     p.add_argument("--modes", nargs="+", choices=("serial", "dask", "processes"), default=["serial", "dask"],
                    help="cohort: how the study runs (the first is the reference)")
-    p.add_argument("--workers", type=int, help="cohort: the dask mode's local workers (default one per GPU or core)")
+    p.add_argument("--workers", type=non_negative_int, help="cohort: the dask mode's local workers (default one per GPU or core)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)

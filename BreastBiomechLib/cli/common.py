@@ -37,12 +37,44 @@ def device_argument(text: str) -> str:
     raise argparse.ArgumentTypeError(f"takes cpu, cuda or cuda:K (a GPU's number), not {text!r}")
 
 
+def _number(text: str, kind, test, wanted: str):
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be {wanted}, not {text!r}") from None
+    if not (value == value and abs(value) < float("inf") and test(value)):  # NaN and infinities fail
+        raise argparse.ArgumentTypeError(f"must be {wanted}, not {text}")
+    return value
+
+
+def finite(text: str) -> float:
+    """An argparse type: a finite number (no NaN or infinity)."""
+    return _number(text, float, lambda v: True, "a finite number")
+
+
+def positive(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    return _number(text, float, lambda v: v > 0, "a finite number > 0")
+
+
+def fraction(text: str) -> float:
+    """An argparse type: a number strictly between 0 and 1."""
+    return _number(text, float, lambda v: 0 < v < 1, "a number between 0 and 1")
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1."""
+    return _number(text, int, lambda v: v >= 1, "a whole number >= 1")
+
+
+def non_negative_int(text: str) -> int:
+    """An argparse type: a whole number >= 0."""
+    return _number(text, int, lambda v: v >= 0, "a whole number >= 0")
+
+
 def non_negative(text: str) -> float:
     """An argparse type: a finite number >= 0."""
-    value = float(text)
-    if not (value >= 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, not {text}")
-    return value
+    return _number(text, float, lambda v: v >= 0, "a finite number >= 0")
 
 
 def add_cluster_options(p: argparse.ArgumentParser) -> None:
@@ -51,7 +83,7 @@ def add_cluster_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="an existing Dask cluster's scheduler (tcp://HOST:PORT; default: the environment's "
                         "BREASTBIOMECH_SCHEDULER, else a local cluster made for the run)")
-    p.add_argument("--workers", type=int, metavar="N",
+    p.add_argument("--workers", type=non_negative_int, metavar="N",
                    help="local cluster's worker processes (default: one per GPU, or one per core without a GPU; "
                         "several may share a GPU; 0: run every task in this process)")
 

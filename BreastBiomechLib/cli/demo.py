@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import device_argument
+from BreastBiomechLib.cli.common import device_argument, positive_int
 
 
 def clear_earlier_result(folder: Path, marker: str = "settings.json", what: str = "fit") -> None:
@@ -241,5 +241,5 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("demo", help="run the main job on the built-in phantom")
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     p.add_argument("--device", type=device_argument, help="warp device (default: the GPU when there is one)")
-    p.add_argument("--budget", type=int, help="forward solves of the fit (default 12 on a CPU, 200 on a GPU)")
+    p.add_argument("--budget", type=positive_int, help="forward solves of the fit (default 12 on a CPU, 200 on a GPU)")
     p.set_defaults(func=cmd_demo)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import json
 import sys
 
-from BreastBiomechLib.cli.common import device_argument, non_negative
+from BreastBiomechLib.cli.common import (device_argument, fraction, non_negative, non_negative_int, positive,
+                                         positive_int)
 
 
 def cmd_diagnose(args) -> int:
@@ -50,17 +51,17 @@ def add_parsers(sub) -> None:
     p.add_argument("--fit", required=True, help="the fit's folder (`breastbiomech optimise --out`)")
     p.add_argument("--out", required=True, help="a new output folder (or an interrupted run's, with --resume)")
     p.add_argument("--effects", nargs="+", choices=NAMES, help="candidate effects (default: the whole library)")
-    p.add_argument("--rounds", type=int, default=3, help="rounds of diagnose, add and refit at most (default 3)")
+    p.add_argument("--rounds", type=positive_int, default=3, help="rounds of diagnose, add and refit at most (default 3)")
     p.add_argument("--channels", nargs="+", choices=CHANNELS, default=list(CHANNELS),
                    help="what is compared (default: landmarks and the body surface)")
     p.add_argument("--landmark-sd-mm", type=non_negative, default=0.5,
                    help="landmark localisation error per coordinate (mm, default 0.5)")
     p.add_argument("--model-sd-mm", type=non_negative, default=0.5,
                    help="model-error floor added to every feature's noise (mm, default 0.5)")
-    p.add_argument("--surface-spacing-mm", type=float, default=8.0,
+    p.add_argument("--surface-spacing-mm", type=positive, default=8.0,
                    help="one surface feature per cube of this size (mm, default 8)")
-    p.add_argument("--alpha", type=float, default=0.01, help="family-wise significance level (default 0.01)")
-    p.add_argument("--refine-iterations", type=int, default=2,
+    p.add_argument("--alpha", type=fraction, default=0.01, help="family-wise significance level (default 0.01)")
+    p.add_argument("--refine-iterations", type=non_negative_int, default=2,
                    help="Gauss-Newton iterations refining the refit of an added effect (default 2)")
     p.add_argument("--no-residual-field", action="store_true",
                    help="skip the residual displacement field (the deformable registration of the predicted to the "

@@ -9,7 +9,8 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import (MODEL_CHOICES, OBJECTIVE_CHOICES, add_cluster_options, cohort_progress,
-                                         device_argument, end_progress, report_failures)
+                                         device_argument, end_progress, finite, non_negative_int, positive,
+                                         positive_int, report_failures)
 
 
 def cmd_optimise(args) -> int:
@@ -106,22 +107,22 @@ def add_parsers(sub) -> None:
     p.add_argument("--free", nargs="+", choices=("E", "nu", "eta", "fibre", "offset"), default=["E", "nu", "eta"],
                    help="parameters searched per material (fat's E is the reference, eta only for aniso models); "
                         "fibre: the fibre direction's angles (aniso models); offset: each plate's position")
-    p.add_argument("--fibre", type=float, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
+    p.add_argument("--fibre", type=finite, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
                    help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
     p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="hybrid",
                    help="hybrid: annealing then L-BFGS-B (the seed's); cmaes: CMA-ES, one batch per generation")
-    p.add_argument("--budget", type=int, default=500, help="forward solves in all (default 500)")
-    p.add_argument("--seconds", type=float, help="wall-time limit of this run (s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same run)")
-    p.add_argument("--population", type=int, help="CMA-ES population per generation (default 4 + 3 ln d)")
+    p.add_argument("--budget", type=positive_int, default=500, help="forward solves in all (default 500)")
+    p.add_argument("--seconds", type=positive, help="wall-time limit of this run (s)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (same seed, same run)")
+    p.add_argument("--population", type=positive_int, help="CMA-ES population per generation (default 4 + 3 ln d)")
     p.add_argument("--objective", choices=OBJECTIVE_CHOICES, default="nmi",
                    help="nmi (the seed's), landmarks (mean error), surface (mean distance of the predicted breast "
                         "skin to the measured body surface) or a weighted sum with NMI (default nmi)")
-    p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
+    p.add_argument("--bins", type=positive_int, default=64, help="NMI histogram bins (default 64)")
     p.add_argument("--mesh", help="fitting mesh (.vtu from `breastbiomech mesh`); default: made from the labels")
     p.add_argument("--labels", help="label map to mesh (default: the case's labels.nrrd)")
-    p.add_argument("--edge-mm", type=float, default=4.0, help="fitting mesh element size (default 4 mm)")
-    p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
+    p.add_argument("--edge-mm", type=positive, default=4.0, help="fitting mesh element size (default 4 mm)")
+    p.add_argument("--tolerance-mm", type=positive, default=0.01, help="forward solves' relaxation tolerance (mm)")
     p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue a fit interrupted in --out")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
@@ -136,12 +137,12 @@ def add_parsers(sub) -> None:
     p.add_argument("--budget", nargs="+", metavar="MODEL=SOLVES",
                    help="forward solves per fit of a model (default iso-homo=24 aniso-homo=48 iso-hetero=160 "
                         "aniso-hetero=240)")
-    p.add_argument("--fibre", type=float, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
+    p.add_argument("--fibre", type=finite, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
                    help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
-    p.add_argument("--edge-mm", type=float, default=4.0, help="fitting mesh element size (default 4 mm)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--bins", type=int, default=64, help="NMI histogram bins (default 64)")
-    p.add_argument("--tolerance-mm", type=float, default=0.01, help="forward solves' relaxation tolerance (mm)")
+    p.add_argument("--edge-mm", type=positive, default=4.0, help="fitting mesh element size (default 4 mm)")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--bins", type=positive_int, default=64, help="NMI histogram bins (default 64)")
+    p.add_argument("--tolerance-mm", type=positive, default=0.01, help="forward solves' relaxation tolerance (mm)")
     p.add_argument("--device", type=device_argument, help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
     add_cluster_options(p)
     p.add_argument("--report", help="Markdown file whose study tables are (re)written, e.g. docs/validation.md")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import time
 
-from BreastBiomechLib.cli.common import device_argument
+from BreastBiomechLib.cli.common import device_argument, finite, positive_int
 
 
 def _nodal_displacement(path: str, mesh):
@@ -117,7 +117,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--field", help="also write the dense displacement field (ITK convention) here")
     p.add_argument("--landmarks", help="reference landmarks (.mrk.json) to move with the displacement")
     p.add_argument("--landmarks-out", help="where to write the moved landmarks (.mrk.json)")
-    p.add_argument("--background", type=float, default=0.0, help="value outside the deformed body (default 0)")
+    p.add_argument("--background", type=finite, default=0.0, help="value outside the deformed body (default 0)")
     p.add_argument("--device", type=device_argument, default=None, help="cuda, cpu or a warp device name (default: warp's)")
     p.set_defaults(func=cmd_warp)
 
@@ -125,7 +125,7 @@ def add_parsers(sub) -> None:
     p.add_argument("predicted", help="predicted image (from warp)")
     p.add_argument("measured", help="measured image on the same grid")
     p.add_argument("--mask", help="compare only the non-zero voxels of this image (e.g. warp --inside)")
-    p.add_argument("--bins", type=int, default=64, help="histogram bins per image for NMI (default 64)")
+    p.add_argument("--bins", type=positive_int, default=64, help="histogram bins per image for NMI (default 64)")
     p.add_argument("--landmarks", nargs=3, metavar=("REFERENCE", "PREDICTED", "MEASURED"),
                    help="three .mrk.json point lists matched by label: errors as in the seed's Table 2")
     p.add_argument("--device", type=device_argument, default=None, help="cuda, cpu or a warp device name (default: warp's)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import end_progress, progress_line
+from BreastBiomechLib.cli.common import end_progress, fraction, non_negative, positive, progress_line
 
 
 def cmd_mesh(args) -> int:
@@ -65,14 +65,14 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("mesh", help="tetrahedral FE mesh of a tissue label map (TetGen), with a compression case")
     p.add_argument("labels", help="label map (.nrrd/.nii.gz) with the label table's values")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--edge-mm", type=float, default=3.0, help="element edge length in mm (default 3)")
-    p.add_argument("--interface-edge-mm", type=float, default=None,
+    p.add_argument("--edge-mm", type=positive, default=3.0, help="element edge length in mm (default 3)")
+    p.add_argument("--interface-edge-mm", type=positive, default=None,
                    help="spacing of the points inserted on tissue interfaces (default: --edge-mm)")
     p.add_argument("--no-refine", action="store_true", help="do not insert tissue-interface points")
     p.add_argument("--landmarks", help="a .mrk.json with a point labelled 'nipple' (the nipple node)")
     p.add_argument("--axis", default="LR", choices=["LR", "AP", "SI"], help="compression axis of case.json")
-    p.add_argument("--compression", type=float, default=0.25, help="compression of case.json, fraction of thickness")
-    p.add_argument("--chest-clearance-mm", type=float, default=None,
+    p.add_argument("--compression", type=fraction, default=0.25, help="compression of case.json, fraction of thickness")
+    p.add_argument("--chest-clearance-mm", type=non_negative, default=None,
                    help="band anterior to the chest wall the plates do not touch (default: the plate travel, >= 5 mm)")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")
     p.set_defaults(func=cmd_mesh)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, non_negative,
-                                         report_failures)
+from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, finite, fraction,
+                                         non_negative, non_negative_int, positive, report_failures)
 
 
 def _phantom_parameters(args):
@@ -28,13 +28,13 @@ def _phantom_parameters(args):
 def _add_phantom_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--case", type=int, choices=range(1, 6), metavar="1-5",
                    help="start from the preset for case 1-5 of the seed paper's Table 1")
-    p.add_argument("--seed", type=int, help="random seed (same seed, same case)")
-    p.add_argument("--volume-cm3", type=float, help="breast volume, 400-1500 cm^3")
-    p.add_argument("--density", type=float, help="glandular volume fraction, 0.05-0.65")
-    p.add_argument("--tumour-mm", type=float, help="tumour diameter in mm (0: none)")
-    p.add_argument("--snr", type=float, help="fat signal / noise sigma")
-    p.add_argument("--bias", type=float, help="bias field amplitude (0.2 = +-20%%)")
-    p.add_argument("--spacing", type=float, nargs=3, metavar=("L", "P", "S"), help="voxel size in mm")
+    p.add_argument("--seed", type=non_negative_int, help="random seed (same seed, same case)")
+    p.add_argument("--volume-cm3", type=positive, help="breast volume, 400-1500 cm^3")
+    p.add_argument("--density", type=fraction, help="glandular volume fraction, 0.05-0.65")
+    p.add_argument("--tumour-mm", type=non_negative, help="tumour diameter in mm (0: none)")
+    p.add_argument("--snr", type=positive, help="fat signal / noise sigma")
+    p.add_argument("--bias", type=non_negative, help="bias field amplitude (0.2 = +-20%%)")
+    p.add_argument("--spacing", type=positive, nargs=3, metavar=("L", "P", "S"), help="voxel size in mm")
     p.add_argument("--skin-separate", action="store_true", help="keep skin as its own label")
 
 
@@ -127,10 +127,10 @@ def add_parsers(sub) -> None:
     p.add_argument("--compressed", action="store_true",
                    help="also write a compressed 'measured' case (OUT/compressed): a truth simulation with hidden "
                         "materials, imaged like a second scan, its landmarks and plates")
-    p.add_argument("--compression", type=float,
+    p.add_argument("--compression", type=fraction,
                    help="fraction of the breast's thickness the plates close (default: the seed's for --case, else 0.25)")
     p.add_argument("--axis", choices=("LR", "SI"), default="LR", help="compression axis (default LR, as the seed)")
-    p.add_argument("--truth-edge-mm", type=float, default=2.0,
+    p.add_argument("--truth-edge-mm", type=positive, default=2.0,
                    help="element size of the truth mesh (default 2 mm: finer than any fitting mesh)")
     p.add_argument("--chest-clearance-mm", type=non_negative,
                    help="how far anterior to the chest the plates' flat faces end (mm; default: the plate travel, "
@@ -138,23 +138,23 @@ def add_parsers(sub) -> None:
     p.add_argument("--device", type=device_argument, help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
     effects.add_argument("--friction", type=non_negative, default=0.0, help="the plates' Coulomb friction mu")
-    effects.add_argument("--gravity", type=float, nargs=3, metavar=("GX", "GY", "GZ"),
+    effects.add_argument("--gravity", type=finite, nargs=3, metavar=("GX", "GY", "GZ"),
                          help="gravity the scan was imaged under (m/s^2, LPS; prone: 0 -9.81 0): the truth starts "
                               "pre-stressed from its unloaded state")
-    effects.add_argument("--compression-gravity", type=float, nargs=3, metavar=("GX", "GY", "GZ"),
+    effects.add_argument("--compression-gravity", type=finite, nargs=3, metavar=("GX", "GY", "GZ"),
                          help="gravity while the plates close (default: --gravity's)")
     effects.add_argument("--chest-wall", choices=("fixed", "sliding", "elastic"), default="fixed",
                          help="the chest wall's support (default fixed, as the seed)")
     effects.add_argument("--chest-wall-stiffness", type=non_negative, nargs=2, default=[0.0, 0.0],
                          metavar=("NORMAL", "TANGENTIAL"), help="elastic or sliding chest wall's springs (Pa/mm)")
-    effects.add_argument("--skin", type=float, nargs=2, metavar=("E_PA", "THICKNESS_MM"),
+    effects.add_argument("--skin", type=positive, nargs=2, metavar=("E_PA", "THICKNESS_MM"),
                          help="a skin layer of this Young's modulus and thickness (partial-volume weighting)")
-    effects.add_argument("--plate-tilt", type=float, nargs=2, metavar=("DEG1", "DEG2"),
+    effects.add_argument("--plate-tilt", type=finite, nargs=2, metavar=("DEG1", "DEG2"),
                          help="the first plate's tilt about its two tilt axes (degrees, at most 10)")
-    effects.add_argument("--stiff-band", type=float, nargs=2, metavar=("FACTOR", "THICKNESS_MM"),
+    effects.add_argument("--stiff-band", type=positive, nargs=2, metavar=("FACTOR", "THICKNESS_MM"),
                          help="a stiff sheet the MR does not show: moduli times FACTOR in an oblique band "
                               "through the breast's centroid (not in the discrepancy library)")
-    effects.add_argument("--chest-wall-shift", type=float, nargs=3, metavar=("L", "P", "S"),
+    effects.add_argument("--chest-wall-shift", type=finite, nargs=3, metavar=("L", "P", "S"),
                          help="the thorax moved by this (mm, LPS) between the scans (not in the discrepancy "
                               "library)")
     p.set_defaults(func=cmd_phantom)
@@ -164,7 +164,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="output folder (one case<N> folder per case)")
     p.add_argument("--cases", nargs="+", type=int, choices=sorted(TABLE1_CASES), default=sorted(TABLE1_CASES),
                    help="which cases (default all)")
-    p.add_argument("--truth-edge-mm", type=float, default=2.0, help="element size of the truth meshes (default 2 mm)")
+    p.add_argument("--truth-edge-mm", type=positive, default=2.0, help="element size of the truth meshes (default 2 mm)")
     p.add_argument("--no-overview", action="store_true", help="skip the PNG overviews")
     p.add_argument("--device", type=device_argument, help="warp device: cuda (every GPU), cuda:K (GPU K), cpu; default: the GPUs if any")
     add_cluster_options(p)

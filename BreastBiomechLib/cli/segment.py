@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from BreastBiomechLib.cli.common import end_progress, progress_line
+from BreastBiomechLib.cli.common import (end_progress, non_negative, non_negative_int, positive, positive_int,
+                                         progress_line)
 
 
 def _segmentation_settings(args):
@@ -54,12 +55,12 @@ def add_parsers(sub) -> None:
     p.add_argument("--seeds-muscle", required=True, help="point list (.mrk.json) on the pectoral muscle, 3-5 spread over it")
     p.add_argument("--seeds-tumour", help="point list (.mrk.json) inside the tumour, if there is one")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--mrf", type=float, default=0.4, help="MRF strength beta (0: no spatial prior; default 0.4)")
-    p.add_argument("--bias-order", type=int, default=3, help="bias-field polynomial order (0: none; default 3)")
-    p.add_argument("--iterations", type=int, default=40, help="EM iterations at most (default 40)")
-    p.add_argument("--tolerance", type=float, default=1e-5, help="EM stop: relative log-likelihood change (default 1e-5)")
+    p.add_argument("--mrf", type=non_negative, default=0.4, help="MRF strength beta (0: no spatial prior; default 0.4)")
+    p.add_argument("--bias-order", type=non_negative_int, default=3, help="bias-field polynomial order (0: none; default 3)")
+    p.add_argument("--iterations", type=positive_int, default=40, help="EM iterations at most (default 40)")
+    p.add_argument("--tolerance", type=positive, default=1e-5, help="EM stop: relative log-likelihood change (default 1e-5)")
     p.add_argument("--no-partial-volume", action="store_true", help="two pure classes only (no mixed-voxel class)")
-    p.add_argument("--skin-mm", type=float, default=3.0, help="outer breast layer labelled skin (default 3 mm)")
+    p.add_argument("--skin-mm", type=non_negative, default=3.0, help="outer breast layer labelled skin (default 3 mm)")
     p.add_argument("--keep-skin", action="store_true", help="label skin separately (default: folded into fat)")
     p.add_argument("--reference", help="ground-truth label map: report Dice per tissue")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, non_negative,
-                                         report_failures)
+from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, fraction, non_negative,
+                                         positive, positive_int, report_failures)
 
 
 def cmd_suite(args) -> int:
@@ -59,24 +59,24 @@ def add_parsers(sub) -> None:
                    help="Table 1 presets used as anatomies (default all five)")
     p.add_argument("--hidden", nargs="+", choices=list(HIDDEN_EFFECTS),
                    help="hidden effects (default all: " + ", ".join(HIDDEN_EFFECTS) + ")")
-    p.add_argument("--compression", type=float, default=d.compression,
+    p.add_argument("--compression", type=fraction, default=d.compression,
                    help=f"fraction of the breast thickness the plates close (default {d.compression})")
-    p.add_argument("--spacing", type=float, nargs=3, metavar=("L", "P", "S"),
+    p.add_argument("--spacing", type=positive, nargs=3, metavar=("L", "P", "S"),
                    help="phantom voxel size in mm (default: the presets' 1 x 1 x 2.5)")
-    p.add_argument("--truth-edge-mm", type=float, default=d.truth_edge_mm,
+    p.add_argument("--truth-edge-mm", type=positive, default=d.truth_edge_mm,
                    help=f"truth mesh element size (default {d.truth_edge_mm:g} mm)")
-    p.add_argument("--fit-edge-mm", type=float, default=d.fit_edge_mm,
+    p.add_argument("--fit-edge-mm", type=positive, default=d.fit_edge_mm,
                    help=f"fitting mesh element size (default {d.fit_edge_mm:g} mm)")
-    p.add_argument("--fit-blur-mm", type=float, default=d.fit_blur_mm,
+    p.add_argument("--fit-blur-mm", type=non_negative, default=d.fit_blur_mm,
                    help=f"smoothing of the segmentation's surface before the fitting mesh (default {d.fit_blur_mm:g} mm)")
     p.add_argument("--no-refine", action="store_true", help="fitting meshes without interface refinement")
-    p.add_argument("--fit-budget", type=int, default=d.fit_budget,
+    p.add_argument("--fit-budget", type=positive_int, default=d.fit_budget,
                    help=f"forward solves of each material fit (default {d.fit_budget})")
-    p.add_argument("--fit-population", type=int, default=d.fit_population,
+    p.add_argument("--fit-population", type=positive_int, default=d.fit_population,
                    help=f"CMA-ES population (default {d.fit_population})")
     p.add_argument("--chest-clearance-mm", type=non_negative,
                    help="how far anterior to the chest the plates' flat faces end (mm; default: the plate travel)")
-    p.add_argument("--rounds", type=int, default=d.rounds, help=f"diagnosis rounds at most (default {d.rounds})")
+    p.add_argument("--rounds", type=positive_int, default=d.rounds, help=f"diagnosis rounds at most (default {d.rounds})")
     p.add_argument("--landmark-noise-mm", type=non_negative, default=d.landmark_noise_mm,
                    help="localisation error (sd per coordinate, mm) put on the measured landmarks of each image "
                         f"(default {d.landmark_noise_mm:g})")
