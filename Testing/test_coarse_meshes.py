@@ -80,3 +80,14 @@ def test_a_thin_chest_at_the_field_of_view_meshes_at_coarse_edges(small_phantom,
     assert made.quality.summary()["failing"]["any"]["count"] == 0
     assert made.mesh.volumes.min() > 0
     assert made.mesh.volumes.sum() / 1000.0 == pytest.approx(body.volume_mm3 / 1000.0, rel=0.02)
+
+
+def test_a_finer_skin_under_a_coarse_interior():
+    """``surface_edge_mm`` sets the outer surface's triangles apart from the interior's size (a
+    fitting mesh whose skin the diagnosis compares with the measured one)."""
+    labels = breast_labels()
+    coarse = mesh_labels(labels, MeshSettings(edge_mm=10.0, refine_interfaces=False))
+    skin = mesh_labels(labels, MeshSettings(edge_mm=10.0, surface_edge_mm=5.0, refine_interfaces=False))
+    assert skin.surfaces["body"].mean_edge_mm == pytest.approx(0.5 * coarse.surfaces["body"].mean_edge_mm, rel=0.25)
+    assert len(skin.mesh.tets) > len(coarse.mesh.tets)
+    assert skin.quality.summary()["failing"]["any"]["count"] == 0

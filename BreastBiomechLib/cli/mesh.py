@@ -25,8 +25,8 @@ def cmd_mesh(args) -> int:
         if "nipple" not in marks.labels:
             raise ValueError(f"{args.landmarks}: no landmark labelled 'nipple'")
         nipple = marks.positions[marks.labels.index("nipple")]
-    settings = MeshSettings(edge_mm=args.edge_mm, interface_edge_mm=args.interface_edge_mm,
-                            refine_interfaces=not args.no_refine)
+    settings = MeshSettings(edge_mm=args.edge_mm, surface_edge_mm=args.surface_edge_mm,
+                            interface_edge_mm=args.interface_edge_mm, refine_interfaces=not args.no_refine)
 
     result = mesh_labels(labels, settings, nipple_mm=nipple, progress=progress_line(args.quiet))
     end_progress()
@@ -66,6 +66,8 @@ def add_parsers(sub) -> None:
     p.add_argument("labels", help="label map (.nrrd/.nii.gz) with the label table's values")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--edge-mm", type=positive, default=3.0, help="element edge length in mm (default 3)")
+    p.add_argument("--surface-edge-mm", type=positive, default=None,
+                   help="the outer surface's triangles, where finer than the interior (default: --edge-mm)")
     p.add_argument("--interface-edge-mm", type=positive, default=None,
                    help="spacing of the points inserted on tissue interfaces (default: --edge-mm)")
     p.add_argument("--no-refine", action="store_true", help="do not insert tissue-interface points")

@@ -20,6 +20,7 @@ def cmd_suite(args) -> int:
     settings = SuiteSettings(compression=args.compression,
                              spacing_mm=None if args.spacing is None else tuple(args.spacing),
                              truth_edge_mm=args.truth_edge_mm, fit_edge_mm=args.fit_edge_mm,
+                             fit_surface_edge_mm=args.fit_surface_edge_mm,
                              refine_interfaces=not args.no_refine, fit_blur_mm=args.fit_blur_mm, fit_budget=args.fit_budget,
                              fit_population=args.fit_population, rounds=args.rounds,
                              landmark_noise_mm=args.landmark_noise_mm, chest_clearance_mm=args.chest_clearance_mm)
@@ -67,6 +68,8 @@ def add_parsers(sub) -> None:
                    help=f"truth mesh element size (default {d.truth_edge_mm:g} mm)")
     p.add_argument("--fit-edge-mm", type=positive, default=d.fit_edge_mm,
                    help=f"fitting mesh element size (default {d.fit_edge_mm:g} mm)")
+    p.add_argument("--fit-surface-edge-mm", type=positive, default=d.fit_surface_edge_mm,
+                   help=f"fitting mesh's skin triangles (default {d.fit_surface_edge_mm:g} mm)")
     p.add_argument("--fit-blur-mm", type=non_negative, default=d.fit_blur_mm,
                    help=f"smoothing of the segmentation's surface before the fitting mesh (default {d.fit_blur_mm:g} mm)")
     p.add_argument("--no-refine", action="store_true", help="fitting meshes without interface refinement")

@@ -31,13 +31,16 @@ _RETRIES = 2  # finer body surfaces tried when TetGen finds the surface intersec
 @dataclass
 class MeshSettings:
     """Everything that shapes the mesh. ``edge_mm`` sets the element size in the interior and on
-    the outer surface; ``interface_edge_mm`` the spacing of the points inserted on tissue
+    the outer surface, ``surface_edge_mm`` the outer surface's triangles where they should be
+    finer (None: ``edge_mm``; a skin compared with the measured one, under a coarse interior);
+    ``interface_edge_mm`` the spacing of the points inserted on tissue
     interfaces (None: ``edge_mm``); ``refine_interfaces`` False meshes the body alone (tissues
     then follow the voxel majority only); ``blur_mm``, quality bounds as in
     :class:`~BreastBiomechLib.surface.SurfaceSettings` and
     :class:`~BreastBiomechLib.mesh.volume.TetGenSettings`."""
 
     edge_mm: float = 3.0
+    surface_edge_mm: float | None = None
     interface_edge_mm: float | None = None
     refine_interfaces: bool = True
     blur_mm: float = 0.8
@@ -46,7 +49,9 @@ class MeshSettings:
     min_component_mm3: float = 20.0
 
     def surface(self) -> SurfaceSettings:
-        return SurfaceSettings(edge_mm=self.edge_mm, blur_mm=self.blur_mm, min_component_mm3=self.min_component_mm3)
+        return SurfaceSettings(edge_mm=self.edge_mm if self.surface_edge_mm is None else self.surface_edge_mm,
+                               blur_mm=self.blur_mm,
+                               min_component_mm3=self.min_component_mm3)
 
     def tetgen(self) -> TetGenSettings:
         return TetGenSettings(edge_mm=self.edge_mm, interface_edge_mm=self.interface_edge_mm,

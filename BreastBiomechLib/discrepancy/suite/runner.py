@@ -47,7 +47,8 @@ class SuiteSettings:
     """How the suite's cases are made and fitted: the plates close by ``compression`` of the
     breast's thickness (LR); phantom voxels ``spacing_mm`` (None: the presets' 1 x 1 x 2.5 mm);
     ``truth_edge_mm`` the truth mesh's element size, ``fit_edge_mm`` the fitting mesh's (of the
-    segmentation, its surface smoothed by ``fit_blur_mm``, tissue interfaces refined when
+    segmentation, its surface smoothed by ``fit_blur_mm`` and made of ``fit_surface_edge_mm``
+    triangles, since the diagnosis compares the skin; tissue interfaces refined when
     ``refine_interfaces``); the material fit
     (iso-hetero, E per tissue, CMA-ES) has ``fit_budget`` forward solves in generations of
     ``fit_population``; the diagnosis at most ``rounds`` rounds over the whole library. The
@@ -61,6 +62,7 @@ class SuiteSettings:
     spacing_mm: tuple[float, float, float] | None = None
     truth_edge_mm: float = 3.0
     fit_edge_mm: float = 6.0
+    fit_surface_edge_mm: float = 3.0
     refine_interfaces: bool = True
     fit_blur_mm: float = 0.8
     fit_budget: int = 60
@@ -75,8 +77,8 @@ class SuiteSettings:
         before a run records them in its folder's settings.json)."""
         checks = [(0.0 < self.compression <= 0.7, f"compression is a fraction of the breast's thickness in (0, 0.7], "
                                                   f"not {self.compression}"),
-                  (self.truth_edge_mm > 0 and self.fit_edge_mm > 0, "the truth and fitting meshes' edges must be "
-                                                                     "positive (mm)"),
+                  (self.truth_edge_mm > 0 and self.fit_edge_mm > 0 and self.fit_surface_edge_mm > 0,
+                   "the truth and fitting meshes' edges must be positive (mm)"),
                   (self.fit_blur_mm >= 0, f"fit_blur_mm must be >= 0 (mm), not {self.fit_blur_mm}"),
                   (self.fit_population >= 2, f"the fit's population needs at least 2 models, not {self.fit_population}"),
                   (self.fit_budget >= self.fit_population, f"the fit's budget ({self.fit_budget} solves) must hold one "
@@ -167,6 +169,7 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
         say(f"anatomy {number}: fitting mesh of the segmentation ({settings.fit_edge_mm:g} mm)")
         t = time.perf_counter()
         mesh = mesh_labels(result.labels, MeshSettings(edge_mm=settings.fit_edge_mm,
+                                                       surface_edge_mm=settings.fit_surface_edge_mm,
                                                        refine_interfaces=settings.refine_interfaces,
                                                        blur_mm=settings.fit_blur_mm),
                            nipple_mm=read_markups(scan / "landmarks.mrk.json").position("nipple"))
