@@ -89,9 +89,11 @@ def cmd_demo(args) -> int:
     seg_paths = write_segmentation(result, out / "segmentation", {"dice_vs_truth": dice})
     print("    Dice vs the ground truth: " + ", ".join(f"{k} {v:.3f}" for k, v in dice.items()))
 
-    step(f"4/7 tetrahedral fitting mesh of the segmentation ({fit_mm:g} mm"
+    step(f"4/7 tetrahedral fitting mesh of the segmentation ({fit_mm:g} mm, skin {fit_mm / 2:g} mm"
          + (")" if gpu else ", tissues by voxel majority)"))
-    mesh = mesh_labels(result.labels, MeshSettings(edge_mm=fit_mm, refine_interfaces=gpu, blur_mm=0.8 if gpu else 3.0),
+    # a skin of half the interior's size: the diagnosis compares it with the measured one
+    mesh = mesh_labels(result.labels, MeshSettings(edge_mm=fit_mm, surface_edge_mm=fit_mm / 2, refine_interfaces=gpu,
+                                                   blur_mm=0.8 if gpu else 3.0),
                        nipple_mm=case.landmarks.position("nipple"))
     mesh_path = write_vtu(out / "mesh" / "mesh.vtu", mesh.mesh)
     m = mesh.summary()
