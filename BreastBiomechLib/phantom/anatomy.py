@@ -18,6 +18,7 @@ from BreastBiomechLib.phantom.parameters import PhantomParameters
 CHEST_LAYER_MM = 3.0   # skin + subcutaneous fat covering the pectoral muscle outside the breast base
 NIPPLE_RADIUS_MM = 5.0
 NIPPLE_LENGTH_MM = 6.0
+THORAXLESS_MARGIN_MM = 3.0  # field of view behind the muscle's most posterior corner when no thorax is imaged
 
 
 def smooth_min(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
@@ -106,13 +107,14 @@ class BreastAnatomy:
 
     def extent(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned box (LPS mm, low and high corners) holding the breast with ``margin`` and
-        the chest wall behind its base (beyond the base the chest may leave the field of view)."""
+        the chest wall behind its base (beyond the base the chest may leave the field of view);
+        without a thorax the box ends a few millimetres behind the muscle."""
         lo_x, hi_x = -self.a * 1.15 - margin, self.a * 1.15 + margin
         lo_z, hi_z = -self.b * 1.15 - self.droop - margin, self.b * 1.15 + margin
         lo_y = -self.d - NIPPLE_LENGTH_MM - margin
         corners_x, corners_z = np.meshgrid([-self.a, self.a, self.sternum_x], [-self.b, self.b, 0.0])
         back = self.muscle_front_y(corners_x, corners_z) + self.muscle_thickness(corners_x, corners_z)
-        hi_y = float(back.max()) + 22.0
+        hi_y = float(back.max()) + (22.0 if self.params.thorax else THORAXLESS_MARGIN_MM)
         return np.array([lo_x, lo_y, lo_z]), np.array([hi_x, hi_y, hi_z])
 
     # --- ducts --------------------------------------------------------------------------------

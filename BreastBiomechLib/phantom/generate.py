@@ -150,6 +150,7 @@ def generate_phantom(params: PhantomParameters | None = None,
     started = time.perf_counter()
     report(0.0, "shaping the breast to the requested volume")
     rng = np.random.default_rng(params.seed)
+    variant_rng = np.random.default_rng([params.seed, 27])  # the optional anatomy draws from its own stream
     anatomy = _calibrated_anatomy(params, params.seed)
     tree = anatomy.grow_duct_tree(rng)
 
@@ -186,36 +187,21 @@ def generate_phantom(params: PhantomParameters | None = None,
     material[thorax & (y < wall + 14.0)] = _INTERCOSTAL
     material[rib] = _RIB
     material[thorax & (y < wall)] = _SUBPECTORAL_FAT
+    if not params.thorax:
+        material[thorax] = 0  # nothing imaged behind the muscle, as in the compressed scans
     skin = body & (depth < params.skin_thickness_mm) & (y < back)
     material[skin] = 5
     nip_base, nip_tip = anatomy.nipple_axis()
     nipple = body & (anatomy.nipple_phi(x, y, z) < 0.5) & (y < nip_base[1])
     material[nipple] = 5
 
-    # --- tumour --------------------------------------------------------------------------------
-    tumour_phi = None
+    # --- tumour in the gland (a tumour at a fat/gland border is placed once the gland exists) ---
     tumour_centre = None
-    if params.tumour_diameter_mm > 0:
+    if params.tumour_diameter_mm > 0 and params.tumour_site == "central":
         depth_frac = rng.uniform(0.35, 0.55)
         tumour_centre = np.array([rng.uniform(-0.25, 0.25) * anatomy.a, -depth_frac * anatomy.d,
                                   rng.uniform(-0.2, 0.2) * anatomy.b - anatomy.droop * depth_frac**2])
-        tumour_phi = tumour_phi_factory(tumour_centre, params.tumour_diameter_mm / 2, rng)
-        # calibrate the lobulated shape's equivalent diameter on a local 0.25 mm grid
-        r = params.tumour_diameter_mm
-        ax = np.arange(-r, r, 0.25)
-        vol = (tumour_phi(tumour_centre[0] + ax[None, None, :], tumour_centre[1] + ax[None, :, None],
-                          tumour_centre[2] + ax[:, None, None]) < 0).sum() * 0.25**3
-        target = np.pi / 6 * params.tumour_diameter_mm**3
-        shrink = (target / vol) ** (1 / 3)
-        base_phi = tumour_phi
-
-        def tumour_phi(x_, y_, z_, _c=tumour_centre, _s=shrink, _f=base_phi):
-            return _f(_c[0] + (x_ - _c[0]) / _s, _c[1] + (y_ - _c[1]) / _s, _c[2] + (z_ - _c[2]) / _s) * _s
-
-        box = fine.box(tumour_centre, params.tumour_diameter_mm * 1.5)
-        zs, ys, xs = box
-        inside = breast[box] & ~skin[box] & (tumour_phi(x[..., xs], y[:, ys, :], z[zs]) < 0)
-        material[box][inside] = 4
+        _paint_tumour(material, breast & ~skin, fine, (x, y, z), tumour_centre, params.tumour_diameter_mm, rng)
 
     report(0.4, "fibroglandular tissue")
     # --- fibroglandular tissue: duct tree + lobules, blurred, thresholded to the density -------
@@ -238,14 +224,24 @@ def generate_phantom(params: PhantomParameters | None = None,
              + 0.5 * ndimage.gaussian_filter(lobules, sig(9.0)))
     # log-domain texture: fat lobules interleaved with glandular tissue at a few millimetres
     gland = np.log(field + 1e-4 * field.max()) + 0.9 * _smooth_noise(rng, field.shape, sig(2.5))
+    if params.gland_texture > 0:  # fat interleaved with the gland at about a millimetre
+        gland += 1.2 * params.gland_texture * _smooth_noise(variant_rng, field.shape, sig(0.6))
     gland -= gland.min()
     del field
     gland = _upsample2(gland, phi.shape)
-    taper = np.clip((depth - 2.0) / 6.0, 0, 1) * np.clip((front - y - 2.0) / 6.0, 0, 1)
-    gland *= taper
+    clear_of_muscle = np.clip((front - y - 2.0) / 6.0, 0, 1)
+    if params.gland_on_muscle:
+        on_fascia = _gland_on_fascia(anatomy, (x, y, z), front, variant_rng)
+        clear_of_muscle[on_fascia] = 1.0
+        gland[on_fascia] = gland.max()
+        del on_fascia
+    gland *= np.clip((depth - 2.0) / 6.0, 0, 1) * clear_of_muscle
+    del clear_of_muscle
+    if params.gland_texture > 0:
+        material[(material == 1) & _ligaments(half, (x, y, z), phi.shape, depth, front, params, variant_rng)] = 2
     candidate = material == 1
     n_breast = int(np.count_nonzero(np.isin(material, (1, 2, 4, 5))))
-    n_gland = int(round(params.density * n_breast))
+    n_gland = int(round(params.density * n_breast)) - int(np.count_nonzero(material == 2))
     values = gland[candidate]
     if n_gland >= np.count_nonzero(values > 0):
         raise ValueError(
@@ -254,7 +250,11 @@ def generate_phantom(params: PhantomParameters | None = None,
         )
     threshold = np.partition(values, len(values) - n_gland)[len(values) - n_gland]
     material[candidate & (gland >= threshold)] = 2
-    del gland, taper, values
+    del gland, values
+    if params.tumour_diameter_mm > 0 and params.tumour_site == "border":
+        tumour_centre = _border_site(material, grid, factors, params.tumour_diameter_mm, variant_rng)
+        _paint_tumour(material, breast & ~skin, fine, (x, y, z), tumour_centre, params.tumour_diameter_mm,
+                      variant_rng)
 
     report(0.7, "partial-volume truth images")
     # --- truth images ----------------------------------------------------------------------------
@@ -312,6 +312,69 @@ def generate_phantom(params: PhantomParameters | None = None,
         summary=summary,
         signal=to_image(signal.astype(np.float32)),
     )
+
+
+def _paint_tumour(material: np.ndarray, allowed: np.ndarray, fine: _Grid, xyz, centre: np.ndarray,
+                  diameter_mm: float, rng) -> None:
+    """Mark (code 4) the fine voxels of ``allowed`` inside a lobulated tumour around ``centre``
+    (LPS mm) whose equivalent-sphere diameter is ``diameter_mm`` (calibrated on a 0.25 mm grid)."""
+    base_phi = tumour_phi_factory(centre, diameter_mm / 2, rng)
+    ax = np.arange(-diameter_mm, diameter_mm, 0.25)
+    vol = (base_phi(centre[0] + ax[None, None, :], centre[1] + ax[None, :, None],
+                    centre[2] + ax[:, None, None]) < 0).sum() * 0.25**3
+    shrink = (np.pi / 6 * diameter_mm**3 / vol) ** (1 / 3)
+
+    def phi(x_, y_, z_):
+        return base_phi(centre[0] + (x_ - centre[0]) / shrink, centre[1] + (y_ - centre[1]) / shrink,
+                        centre[2] + (z_ - centre[2]) / shrink) * shrink
+
+    x, y, z = xyz
+    box = fine.box(centre, diameter_mm * 1.5)
+    zs, ys, xs = box
+    inside = allowed[box] & (phi(x[..., xs], y[:, ys, :], z[zs]) < 0)
+    material[box][inside] = 4
+
+
+def _border_site(material: np.ndarray, grid: _Grid, factors, diameter_mm: float, rng) -> np.ndarray:
+    """A tumour centre (LPS mm) where fat and gland mix about evenly within the tumour's radius
+    (so it sits in mixed tissue and touches fat on one side), at least 4 mm clear of the skin
+    and the muscle."""
+    radius = diameter_mm / 2
+    breast = _block_mean(np.isin(material, (1, 2)), factors) > 0.5
+    gland = _block_mean(material == 2, factors)
+    spacing = grid.spacing[::-1]
+    share = ndimage.gaussian_filter(gland, radius / spacing) / np.maximum(
+        ndimage.gaussian_filter(breast.astype(np.float32), radius / spacing), 1e-3)
+    clear = ndimage.distance_transform_edt(breast, sampling=spacing) > radius + 4.0
+    candidates = np.argwhere(clear & (share > 0.35) & (share < 0.65))
+    if len(candidates) == 0:
+        raise ValueError("phantom: no fat/gland border deep enough for a tumour of "
+                         f"{diameter_mm:g} mm; make it smaller or use tumour_site='central'")
+    k, j, i = candidates[int(rng.integers(len(candidates)))]
+    return grid.origin + grid.spacing * np.array([i, j, k])
+
+
+def _gland_on_fascia(anatomy: BreastAnatomy, xyz, front, rng) -> np.ndarray:
+    """Fine voxels of a glandular slab 5 mm thick lying on the pectoral fascia (no retromammary
+    fat plane) over a patch of the breast base about 0.9 x its radius across."""
+    x, y, z = xyz
+    cx, cz = rng.uniform(-0.2, 0.2) * anatomy.a, rng.uniform(-0.2, 0.2) * anatomy.b
+    patch = ((x - cx) / (0.45 * anatomy.a)) ** 2 + ((z - cz) / (0.45 * anatomy.b)) ** 2 < 1.0
+    gap = front - y
+    return patch & (gap > 0) & (gap < 5.0)
+
+
+def _ligaments(half: _Grid, xyz, shape, depth, front, params: PhantomParameters, rng) -> np.ndarray:
+    """Cooper's ligaments: fibrous septa about 0.6 mm thick (the zero level of a smooth random
+    field at 8 mm, spaced about a centimetre apart) crossing the fat between the skin and the
+    muscle; ``gland_texture`` sets the share of that level set kept."""
+    field = _smooth_noise(rng, half.size[::-1], 8.0 / half.spacing[::-1])
+    gradient = np.sqrt(sum(g**2 for g in np.gradient(field, *half.spacing[::-1])))
+    distance = _upsample2(np.abs(field) / np.maximum(gradient, 1e-6), shape)  # mm to the zero level
+    keep = _upsample2(_smooth_noise(rng, half.size[::-1], 12.0 / half.spacing[::-1]), shape)
+    x, y, z = xyz
+    return ((distance < 0.3) & (keep < np.quantile(keep[::7, ::7, ::7], params.gland_texture))
+            & (depth > params.skin_thickness_mm) & (front - y > 1.0))
 
 
 def _bias_field(grid: _Grid, body: np.ndarray, strength: float, rng) -> np.ndarray:

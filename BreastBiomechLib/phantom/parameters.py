@@ -18,6 +18,8 @@ INTENSITY = {  # T1-weighted, non-fat-suppressed: fat bright, fibroglandular and
     "rib": 650.0,
 }
 
+TUMOUR_SITES = ("central", "border")
+
 
 @dataclass
 class PhantomParameters:
@@ -37,6 +39,12 @@ class PhantomParameters:
     aspect_depth: float = 0.95         # anterior projection / left-right base radius (pendulous > 0.8)
     ptosis: float = 0.12               # inferior droop of the nipple, fraction of the depth
     margin_mm: float = 15.0            # field of view beyond the breast
+    # anatomy the default case does not make (all off by default, so older cases stay bit for bit):
+    gland_texture: float = 0.0         # 0-1: fat interleaved with the gland at ~1 mm and thin fibrous septa
+                                       # (Cooper's ligaments) crossing the subcutaneous fat
+    gland_on_muscle: bool = False      # glandular tissue lying on the pectoral fascia with no fat plane between
+    tumour_site: str = "central"       # "central": inside the gland; "border": in mixed tissue, touching fat
+    thorax: bool = True                # False: air behind the pectoral muscle, field of view ending just behind it
     extra: dict = field(default_factory=dict)  # free-form notes carried into parameters.json
 
     def __post_init__(self) -> None:
@@ -46,12 +54,16 @@ class PhantomParameters:
             (0.05 <= self.density <= 0.65, "density (glandular fraction) must lie in 0.05-0.65"),
             (self.tumour_diameter_mm == 0 or 5.0 <= self.tumour_diameter_mm <= 30.0,
              "tumour_diameter_mm must be 0 (none) or 5-30 mm"),
-            (0.8 <= self.skin_thickness_mm <= 3.0, "skin_thickness_mm must lie in 0.8-3 mm"),
+            (0.0 <= self.skin_thickness_mm <= 3.0, "skin_thickness_mm must lie in 0-3 mm (0: no skin layer)"),
             (4.0 <= self.muscle_thickness_mm <= 25.0, "muscle_thickness_mm must lie in 4-25 mm"),
             (self.snr > 2.0, "snr must exceed 2"),
             (0.0 <= self.bias_strength <= 0.45, "bias_strength must lie in 0-0.45"),
             (len(self.spacing_mm) == 3 and all(0.3 <= s <= 4.0 for s in self.spacing_mm),
              "spacing_mm needs three voxel sizes of 0.3-4 mm"),
+            (0.0 <= self.gland_texture <= 1.0, "gland_texture must lie in 0-1"),
+            (self.tumour_site in TUMOUR_SITES, f"tumour_site must be one of {', '.join(TUMOUR_SITES)}"),
+            (isinstance(self.gland_on_muscle, bool) and isinstance(self.thorax, bool),
+             "gland_on_muscle and thorax are true or false"),
         ]
         for ok, message in checks:
             if not ok:
