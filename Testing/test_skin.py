@@ -5,6 +5,7 @@ under refinement, the mesh's own skin elements, refusals."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -85,7 +86,8 @@ def test_case_files_carry_a_skin_layer(tmp_path):
     expected = ElementMaterials.uniform(len(mesh.tets), Material(1e4, 0.45)).with_skin(
         skin_fraction(mesh, top, 2.5), Material(5e4, 0.45))
     np.testing.assert_allclose(model.materials.mu, expected.mu)
-    assert "partial-volume weighting of 96 elements (0.2 cm^3 of layer)" in model.loading.notes[0]
+    # the layer is 0.25 cm^3: whether it prints as 0.2 or 0.3 is the platform's last-bit rounding
+    assert re.search(r"partial-volume weighting of 96 elements \(0\.[23] cm\^3 of layer\)", model.loading.notes[0])
     for bad, match in (({"E": 5e4, "nu": 0.45}, "skin is"), ({"E": 5e4, "nu": 0.45, "thickness_mm": -1}, "positive"),
                        ({"E": 5e4, "nu": 0.45, "thickness_mm": 12, "nodes": top.tolist()}, "as thick as the breast"),
                        ({"E": "stiff", "nu": 0.45, "thickness_mm": 2}, "skin E must be a number")):

@@ -12,7 +12,7 @@ def _segmentation_settings(args):
     return SegmentationSettings(
         em=EMSettings(mrf_strength=args.mrf, bias_order=args.bias_order, max_iterations=args.iterations,
                       tolerance=args.tolerance, partial_volume=not args.no_partial_volume),
-        skin_mm=args.skin_mm, keep_skin=args.keep_skin)
+        skin_mm=args.skin_mm, measure_skin=not args.fixed_skin, keep_skin=args.keep_skin)
 
 
 def cmd_segment(args) -> int:
@@ -60,7 +60,10 @@ def add_parsers(sub) -> None:
     p.add_argument("--iterations", type=positive_int, default=40, help="EM iterations at most (default 40)")
     p.add_argument("--tolerance", type=positive, default=1e-5, help="EM stop: relative log-likelihood change (default 1e-5)")
     p.add_argument("--no-partial-volume", action="store_true", help="two pure classes only (no mixed-voxel class)")
-    p.add_argument("--skin-mm", type=non_negative, default=3.0, help="outer breast layer labelled skin (default 3 mm)")
+    p.add_argument("--skin-mm", type=non_negative, default=3.0,
+                   help="outer breast layer labelled skin (default 3 mm; deeper where the image shows the skin deeper)")
+    p.add_argument("--fixed-skin", action="store_true",
+                   help="keep the skin layer at --skin-mm instead of deepening it to the skin seen in the image")
     p.add_argument("--keep-skin", action="store_true", help="label skin separately (default: folded into fat)")
     p.add_argument("--reference", help="ground-truth label map: report Dice per tissue")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")

@@ -16,10 +16,10 @@ import SimpleITK as sitk
 
 from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import body_mask
-from BreastBiomechLib.segmentation.breast import breast_mask, skin_layer
+from BreastBiomechLib.segmentation.breast import breast_mask, skin_depth, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
-from BreastBiomechLib.segmentation.seeded import (GrowSettings, SeededRegion, agreeing_probability, border_fractions,
-                                                  grow_from_seeds, grow_to_midpoint)
+from BreastBiomechLib.segmentation.seeded import (GrowSettings, SeededRegion, Surroundings, agreeing_probability,
+                                                  border_fractions, grow_from_seeds, grow_to_midpoint)
 from BreastBiomechLib.segmentation.volume import VoxelGrid, check_volume, seed_voxels
 
 Progress = Callable[[float, str], None]
@@ -30,12 +30,15 @@ class SegmentationSettings:
     """``em``: the fat/glandular model; ``muscle`` and ``tumour``: region growing from seeds;
     ``skin_mm``: the outer layer of the breast labelled skin (then folded into fat unless
     ``keep_skin``), kept out of the EM fit because skin is neither fat nor glandular tissue;
+    ``measure_skin``: deepen that layer to where the image shows the skin and its
+    partial-volume voxels reaching (a skin 3 mm thick imaged with 2.5 mm slices reaches 4 mm);
     ``body_surface_fraction``: see :func:`body_mask`."""
 
     em: EMSettings = field(default_factory=EMSettings)
     muscle: GrowSettings = field(default_factory=GrowSettings)
     tumour: GrowSettings = field(default_factory=lambda: GrowSettings(multiplier=2.0))
     skin_mm: float = 3.0
+    measure_skin: bool = True
     keep_skin: bool = False
     body_surface_fraction: float = 0.3
 
@@ -84,8 +87,8 @@ def segment_tissues(image: sitk.Image, muscle_seeds, tumour_seeds=None,
     if tumour_seeds is not None and len(tumour_seeds):
         report(0.2, "tumour from seeds")
         started = time.perf_counter()
-        regions = _breast_and_skin(grid, body, muscle.mask, settings)
-        tumour = _grow_tumour(grid, array, muscle, *regions, tumour_seeds, settings)
+        regions = _breast_and_skin(grid, array, body, muscle.mask, settings)
+        tumour = _grow_tumour(grid, array, muscle, *regions[:2], tumour_seeds, settings)
         seconds["tumour"] = time.perf_counter() - started
     result = _classify(grid, array, body, muscle, tumour, settings,
                        lambda f, m: report(0.4 + 0.6 * f, m), regions)
@@ -97,15 +100,30 @@ def segment_tissues(image: sitk.Image, muscle_seeds, tumour_seeds=None,
 
 def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
                  settings: SegmentationSettings) -> SeededRegion:
+    """The pectoral muscle grown from its seeds, its border unmixed against air where it lies on
+    the body surface (no thorax imaged behind it)."""
     return grow_from_seeds(array, seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body"),
-                           body, grid, settings.muscle)
+                           body, grid, settings.muscle, Surroundings(empty=~body))
 
 
-def _breast_and_skin(grid: VoxelGrid, body: np.ndarray, muscle_mask: np.ndarray,
-                     settings: SegmentationSettings) -> tuple[np.ndarray, np.ndarray]:
-    """The breast in front of the muscle and its outer skin layer (both independent of the tumour)."""
+def _fat_glandular_levels(grid: VoxelGrid, array: np.ndarray, breast: np.ndarray, skin: np.ndarray,
+                          settings: SegmentationSettings, *regions: SeededRegion | None) -> tuple[np.ndarray, np.ndarray]:
+    """The bias-corrected fat and glandular intensities over the volume, from a first
+    fat/glandular fit of the breast without its skin layer (a tumour counted as glandular)."""
+    em = classify_fat_glandular(_unmixed(array, breast, *regions), breast & ~skin, grid.spacing_zyx, settings.em)
+    return em.means[FAT] * em.bias_field, em.means[GLANDULAR] * em.bias_field
+
+
+def _breast_and_skin(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle_mask: np.ndarray,
+                     settings: SegmentationSettings) -> tuple[np.ndarray, np.ndarray, float]:
+    """The breast in front of the muscle, its outer skin layer (both independent of the tumour)
+    and that layer's thickness (mm): ``settings.skin_mm``, or deeper where the image shows the
+    skin reaching deeper (:func:`skin_depth`) when ``settings.measure_skin``."""
     breast = breast_mask(body, muscle_mask, grid)
-    return breast, skin_layer(body, breast, grid, settings.skin_mm)
+    thickness = settings.skin_mm
+    if settings.measure_skin:
+        thickness = max(thickness, skin_depth(array, body, breast, grid))
+    return breast, skin_layer(body, breast, grid, thickness), thickness
 
 
 def _grow_tumour(grid: VoxelGrid, array: np.ndarray, muscle: SeededRegion, breast: np.ndarray, skin: np.ndarray,
@@ -113,10 +131,12 @@ def _grow_tumour(grid: VoxelGrid, array: np.ndarray, muscle: SeededRegion, breas
     """The tumour, delineated against the glandular tissue it sits in: a first fat/glandular fit
     of the breast (tumour included, as glandular) gives the bias-corrected glandular level at
     every voxel, and the tumour is what is connected to the seeds on the tumour's side of the
-    midpoint between its level and that one."""
+    midpoint between its level and that one; its border voxels are unmixed against the fat or
+    glandular level, whichever their outside neighbours show."""
     seed_index = seed_voxels(grid, seeds, breast, "tumour", "inside the breast (anterior to the pectoral muscle)")
-    em = classify_fat_glandular(_unmixed(array, breast, muscle), breast & ~skin, grid.spacing_zyx, settings.em)
-    return grow_to_midpoint(array, seed_index, breast, grid, em.means[GLANDULAR] * em.bias_field, settings.tumour)
+    fat, glandular = _fat_glandular_levels(grid, array, breast, skin, settings, muscle)
+    return grow_to_midpoint(array, seed_index, breast, grid, glandular, settings.tumour,
+                            Surroundings(levels=(fat, glandular), where=breast))
 
 
 @dataclass
@@ -147,7 +167,7 @@ def segment_tumour(image: sitk.Image, muscle: sitk.Image, seeds,
     grid = check_volume(image)
     array = sitk.GetArrayFromImage(image).astype(np.float32)
     body, muscle_region, _ = _regions_from_masks(grid, image, array, muscle, None, settings)
-    tumour = _grow_tumour(grid, array, muscle_region, *_breast_and_skin(grid, body, muscle_region.mask, settings),
+    tumour = _grow_tumour(grid, array, muscle_region, *_breast_and_skin(grid, array, body, muscle_region.mask, settings)[:2],
                           seeds, settings)
     return StructureSegmentation(grid.to_image(tumour.mask.astype(np.uint8)), grid.to_image(tumour.probability))
 
@@ -186,7 +206,8 @@ def _regions_from_masks(grid: VoxelGrid, image: sitk.Image, array: np.ndarray, m
             continue
         if within is None:
             within = breast_mask(body, masks["muscle"], grid)
-        region = border_fractions(array, masks[name], within, grid, getattr(settings, name))
+        region = border_fractions(array, masks[name], within, grid, getattr(settings, name),
+                                  Surroundings(empty=~body) if name == "muscle" else None)
         region.probability = agreeing_probability(region.probability, region.mask)
         regions.append(region)
     return body, regions[0], regions[1]
@@ -204,11 +225,11 @@ def _check_same_grid(image: sitk.Image, mask: sitk.Image, name: str) -> None:
 
 def _classify(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: SeededRegion,
               tumour: SeededRegion | None, settings: SegmentationSettings, report: Progress,
-              regions: tuple[np.ndarray, np.ndarray] | None = None) -> TissueSegmentation:
-    """Fat/glandular fit and merging; ``regions``: the breast and skin layer when already made."""
+              regions: tuple[np.ndarray, np.ndarray, float] | None = None) -> TissueSegmentation:
+    """Fat/glandular fit and merging; ``regions``: the breast, skin layer and its thickness when already made."""
     started = time.perf_counter()
     report(0.0, "breast region")
-    breast, skin = regions or _breast_and_skin(grid, body, muscle.mask, settings)
+    breast, skin, skin_mm = regions or _breast_and_skin(grid, array, body, muscle.mask, settings)
     tumour_mask = tumour.mask & breast if tumour is not None else np.zeros_like(breast)
     skin = skin & ~tumour_mask
     em_region = breast & ~skin & ~tumour_mask
@@ -251,6 +272,7 @@ def _classify(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle: Seed
         "tissue_volumes_cm3": volumes,
         "breast_volume_cm3": breast_cm3,
         "glandular_density": volumes["glandular"] / breast_cm3 if breast_cm3 else 0.0,
+        "skin_layer_mm": float(skin_mm),
         "em": {"iterations": em.iterations, "converged": em.converged,
                "class_means": {"fat": float(em.means[FAT]), "glandular": float(em.means[GLANDULAR])},
                "class_log_sigmas": {"fat": float(em.sigmas[FAT]), "glandular": float(em.sigmas[GLANDULAR])},

@@ -45,6 +45,24 @@ class GrowSettings:
 
 
 @dataclass
+class Surroundings:
+    """What may lie just outside a seeded structure, for unmixing its border voxels.
+
+    ``empty``: voxels known to hold nothing (air outside the body; their intensity counts as
+    0), so that a structure on the body surface, such as a muscle with no thorax imaged behind
+    it, is unmixed against air. ``levels``: the pure intensities (arrays on the grid, e.g. the
+    bias-corrected fat and glandular levels of an EM fit) of the tissues that may lie outside
+    where ``where`` holds; a border voxel there is unmixed against the one nearest to the mean of
+    its own outside neighbours, not against a local average that mixes them (in textured tissue
+    that average lies between fat and gland, and pure gland next to a tumour or a muscle would
+    read as two-thirds tumour or muscle)."""
+
+    empty: np.ndarray | None = None
+    levels: tuple[np.ndarray, ...] = ()
+    where: np.ndarray | None = None
+
+
+@dataclass
 class SeededRegion:
     """A segmented structure: ``mask`` (bool); ``probability`` (float32, its volume fraction per
     voxel: 1 inside, 0 outside, the linear partial-volume estimate on the voxels either side of
@@ -56,7 +74,8 @@ class SeededRegion:
 
 
 def grow_from_seeds(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, grid: VoxelGrid,
-                    settings: GrowSettings | None = None) -> SeededRegion:
+                    settings: GrowSettings | None = None,
+                    surroundings: Surroundings | None = None) -> SeededRegion:
     """The structure holding the seed voxels ``seeds`` ((N, 3) indices (z, y, x), inside
     ``within``), grown inside ``within`` through voxels of similar intensity, under a bias field.
 
@@ -67,7 +86,8 @@ def grow_from_seeds(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, gr
     spread about the level (seed neighbourhoods first, then the region). So a thin structure
     whose intensity drifts by tens of percent across the field of view (a pectoral muscle under
     a bias field) is followed, while a fixed intensity window would either stop short or leak.
-    Cavities are filled; then the border refinement (:func:`border_fractions`)."""
+    Cavities are filled; then the border refinement (:func:`border_fractions`, against
+    ``surroundings``)."""
     settings = settings or GrowSettings()
     values = array.astype(np.float32)
     smooth = _smoothed(values, grid, settings)
@@ -88,16 +108,18 @@ def grow_from_seeds(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, gr
         residual = (smooth - level)[region]
         noise = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
     mask = seeded_components(ndimage.binary_fill_holes(region), seeds)
-    return _refine(values, mask, within, seeds, grid, settings)
+    return _refine(values, mask, within, seeds, grid, settings, surroundings)
 
 
 def grow_to_midpoint(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, grid: VoxelGrid,
-                     surrounding_level, settings: GrowSettings | None = None) -> SeededRegion:
+                     surrounding_level, settings: GrowSettings | None = None,
+                     surroundings: Surroundings | None = None) -> SeededRegion:
     """The structure holding the seed voxels ``seeds`` ((N, 3) indices (z, y, x), inside
     ``within``): the voxels connected to the seeds whose smoothed intensity lies on the
     structure's side of the midpoint between its level (the median smoothed intensity at the
     seeds) and ``surrounding_level`` (a number or an array on the grid, e.g. the bias-corrected
-    glandular level the tumour sits in); then the border refinement of :func:`grow_from_seeds`.
+    glandular level the tumour sits in); then the border refinement of :func:`grow_from_seeds`
+    against ``surroundings``.
 
     Suited to a small compact structure (a tumour) whose seed neighbourhoods are too few and
     too mixed for confidence-connected statistics."""
@@ -113,7 +135,7 @@ def grow_to_midpoint(array: np.ndarray, seeds: np.ndarray, within: np.ndarray, g
     midpoint = 0.5 * (level + around)
     side = (smooth < midpoint) if level < seed_around else (smooth > midpoint)
     mask = seeded_components(ndimage.binary_fill_holes(side & within), seeds)
-    return _refine(values, mask, within, seeds, grid, settings)
+    return _refine(values, mask, within, seeds, grid, settings, surroundings)
 
 
 def _smoothed(values: np.ndarray, grid: VoxelGrid, settings: GrowSettings) -> np.ndarray:
@@ -122,7 +144,8 @@ def _smoothed(values: np.ndarray, grid: VoxelGrid, settings: GrowSettings) -> np
     return ndimage.gaussian_filter(values, settings.smoothing_mm / grid.spacing_zyx, mode="nearest")
 
 
-def _refine(values, mask, within, seeds, grid: VoxelGrid, settings: GrowSettings) -> SeededRegion:
+def _refine(values, mask, within, seeds, grid: VoxelGrid, settings: GrowSettings,
+            surroundings: Surroundings | None = None) -> SeededRegion:
     """``border_passes`` partial-volume refinements of ``mask``'s border (see
     :func:`border_fractions`), worked in its bounding box with room for the levels' blur."""
     if not mask.any():
@@ -132,17 +155,26 @@ def _refine(values, mask, within, seeds, grid: VoxelGrid, settings: GrowSettings
     hits = np.nonzero(mask)
     box = tuple(slice(max(int(h.min()) - m, 0), int(h.max()) + m + 1) for h, m in zip(hits, margin))
     local_seeds = seeds - np.array([b.start for b in box])
-    estimate = border_fractions(values[box], mask[box], within[box], grid, settings)
+    around = _cropped(surroundings, box)
+    estimate = border_fractions(values[box], mask[box], within[box], grid, settings, around)
     for _ in range(settings.border_passes):
         estimate.mask = seeded_components(ndimage.binary_fill_holes(estimate.probability >= 0.5) & within[box],
                                           local_seeds)
         estimate.probability = agreeing_probability(estimate.probability, estimate.mask)
         if _ < settings.border_passes - 1:
-            estimate = border_fractions(values[box], estimate.mask, within[box], grid, settings)
+            estimate = border_fractions(values[box], estimate.mask, within[box], grid, settings, around)
     out = SeededRegion(np.zeros(values.shape, bool), np.zeros(values.shape, np.float32),
                        np.zeros(values.shape, np.float32))
     out.mask[box], out.probability[box], out.inside_level[box] = estimate.mask, estimate.probability, estimate.inside_level
     return out
+
+
+def _cropped(surroundings: Surroundings | None, box) -> Surroundings | None:
+    if surroundings is None:
+        return None
+    return Surroundings(None if surroundings.empty is None else surroundings.empty[box],
+                        tuple(np.broadcast_to(level, surroundings.where.shape)[box] for level in surroundings.levels),
+                        None if surroundings.where is None else surroundings.where[box])
 
 
 def agreeing_probability(probability: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -153,27 +185,47 @@ def agreeing_probability(probability: np.ndarray, mask: np.ndarray) -> np.ndarra
 
 
 def border_fractions(values: np.ndarray, region: np.ndarray, within: np.ndarray, grid: VoxelGrid,
-                     settings: GrowSettings | None = None) -> SeededRegion:
+                     settings: GrowSettings | None = None, surroundings: Surroundings | None = None) -> SeededRegion:
     """Partial-volume fractions of ``region`` (its mask kept as given) on the voxels either side
     of its border: fraction = (I - outside) / (inside - outside), clipped to [0, 1], where
     ``inside`` is the local mean (``level_mm``) of the layer of region voxels just inside those
     and ``outside`` that of the layer of ``within`` voxels just outside: each side's own
     neighbours, so a thin structure with different tissues on its two faces is unmixed against
-    the right one. Where the levels do not differ the mask itself is the fraction."""
+    the right one. ``surroundings`` adds air (its voxels count as intensity 0 in the outside
+    layer) and pure tissue levels to unmix against (see :class:`Surroundings`). Where the levels
+    do not differ the mask itself is the fraction."""
     settings = settings or GrowSettings()
+    surroundings = surroundings or Surroundings()
     values = values.astype(np.float32, copy=False)
+    empty = surroundings.empty if surroundings.empty is not None else np.zeros_like(region)
     grown = ndimage.binary_dilation(region, _FACES)
     core = ndimage.binary_erosion(region, _FACES)
     band = within & grown & ~core
     inner_layer = core & ~ndimage.binary_erosion(core, _FACES)
-    outer_layer = within & ndimage.binary_dilation(grown, _FACES) & ~grown
+    outer_layer = (within | empty) & ndimage.binary_dilation(grown, _FACES) & ~grown
+    outside_values = np.where(empty, 0.0, values).astype(np.float32)
     sigma = settings.level_mm / grid.spacing_zyx
     level_in = local_mean(values, inner_layer if inner_layer.any() else region, sigma)
-    level_out = local_mean(values, outer_layer, sigma)
+    level_out = local_mean(outside_values, outer_layer, sigma)
+    has_outside = local_mean(np.ones_like(values), outer_layer, sigma) > 0
+    if surroundings.levels:
+        level_out = _nearest_level(outside_values, outer_layer, level_out, band & surroundings.where,
+                                   surroundings.levels)
     contrast = level_in - level_out
-    usable = band & (level_in > 0) & (level_out > 0) & \
+    usable = band & (level_in > 0) & has_outside & (level_out >= 0) & \
         (np.abs(contrast) > 1e-6 * max(float(np.abs(values).max()), 1.0))
     probability = core.astype(np.float32)
     probability[usable] = np.clip((values[usable] - level_out[usable]) / contrast[usable], 0.0, 1.0)
     probability[band & ~usable] = region[band & ~usable]
     return SeededRegion(region.copy(), probability, np.where(band, level_in, 0.0).astype(np.float32))
+
+
+def _nearest_level(values: np.ndarray, outer_layer: np.ndarray, level_out: np.ndarray, where: np.ndarray,
+                   levels: tuple[np.ndarray, ...]) -> np.ndarray:
+    """``level_out`` with, on the voxels of ``where``, the one of ``levels`` nearest to the mean
+    of the voxel's own outside neighbours (the outer layer within one voxel)."""
+    near = local_mean(values, outer_layer, 0.7)
+    stacked = np.stack([np.broadcast_to(level, values.shape) for level in levels])
+    nearest = np.take_along_axis(stacked, np.argmin(np.abs(stacked - near[None]), axis=0)[None], axis=0)[0]
+    usable = where & (near > 0) & (nearest > 0)
+    return np.where(usable, nearest, level_out).astype(np.float32)

@@ -1,0 +1,153 @@
+"""Anatomy the default phantom never makes (issue 27): textured gland with Cooper's ligaments, a
+tumour in mixed tissue touching fat, gland on the muscle with no fat plane, no thorax behind the
+muscle, skin from 0 to 3 mm. The phantom makes each; the segmentation copes with each."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from scipy import ndimage
+
+from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
+from BreastBiomechLib.phantom.seeds import seed_points
+from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
+from BreastBiomechLib.segmentation.seeded import Surroundings, border_fractions
+from BreastBiomechLib.segmentation.volume import check_volume
+
+SMALL = dict(seed=3, volume_cm3=420.0, tumour_diameter_mm=12.0)
+
+
+def _array(image):
+    return sitk.GetArrayFromImage(image)
+
+
+@pytest.fixture(scope="module")
+def default():
+    return generate_phantom(PhantomParameters(**SMALL))
+
+
+def _segment(case):
+    muscle = seed_points(case.labels, "muscle", 4).positions
+    tumour = seed_points(case.labels, "tumour", 3).positions
+    return segment_tissues(case.image, muscle, tumour)
+
+
+# --- the phantom makes the anatomy ------------------------------------------------------------
+
+def test_new_options_are_off_by_default_and_checked():
+    params = PhantomParameters()
+    assert (params.gland_texture, params.gland_on_muscle, params.tumour_site, params.thorax) == (0.0, False,
+                                                                                                  "central", True)
+    for bad, message in [(dict(gland_texture=1.5), "gland_texture"), (dict(tumour_site="edge"), "tumour_site"),
+                         (dict(skin_thickness_mm=-1.0), "skin_thickness_mm"), (dict(thorax="no"), "thorax")]:
+        with pytest.raises(ValueError, match=message):
+            PhantomParameters(**bad)
+
+
+def test_textured_gland_mixes_fat_and_gland_within_voxels(default):
+    textured = generate_phantom(PhantomParameters(**SMALL, gland_texture=1.0))
+
+    def mixed_share(case):
+        gland = _array(case.fractions["glandular"])
+        return np.count_nonzero((gland > 0.2) & (gland < 0.8)) / np.count_nonzero(gland >= 0.5)
+
+    assert mixed_share(textured) > 1.3 * mixed_share(default)
+    assert textured.summary["glandular_density"] == pytest.approx(0.25, abs=0.01)
+
+
+def test_a_border_tumour_touches_fat_and_gland():
+    case = generate_phantom(PhantomParameters(**SMALL, gland_texture=1.0, tumour_site="border"))
+    labels = _array(case.labels)
+    shell = ndimage.binary_dilation(labels == 4, iterations=2) & (labels != 4)
+    around = np.bincount(labels[shell], minlength=5)
+    assert around[1] > 0.25 * shell.sum() and around[2] > 0.25 * shell.sum()  # fat on one side, gland on another
+    assert case.summary["tumour_equivalent_diameter_mm"] == pytest.approx(12.0, rel=0.1)
+
+
+def test_gland_can_lie_on_the_muscle(default):
+    def gland_on_fascia(case):
+        labels = _array(case.labels)
+        return np.count_nonzero((labels == 2) & ndimage.binary_dilation(labels == 3))
+
+    assert gland_on_fascia(default) < 50
+    assert gland_on_fascia(generate_phantom(PhantomParameters(**SMALL, gland_on_muscle=True))) > 500
+
+
+def test_without_a_thorax_there_is_air_behind_the_muscle(default):
+    case = generate_phantom(PhantomParameters(**SMALL, thorax=False))
+    labels, image = _array(case.labels), _array(case.image)
+    muscle = labels == 3
+    behind = np.zeros_like(muscle)
+    last = muscle.shape[1] - 1 - np.argmax(muscle[:, ::-1, :], axis=1)  # most posterior muscle row per (z, x)
+    rows = np.arange(muscle.shape[1])[None, :, None]
+    behind = muscle.any(axis=1)[:, None, :] & (rows > last[:, None, :] + 1)
+    assert behind.any() and np.median(image[behind]) < 0.1 * np.median(image[labels == 1])
+    assert case.image.GetSize()[1] < default.image.GetSize()[1]  # the field of view ends behind the muscle
+
+
+@pytest.mark.parametrize("skin_mm", [0.0, 3.0])
+def test_skin_thickness_from_none_to_three_mm(skin_mm):
+    case = generate_phantom(PhantomParameters(**SMALL, skin_thickness_mm=skin_mm, skin_separate=True))
+    skin_cm3 = case.summary["tissue_volumes_cm3"]["skin"]
+    if skin_mm == 0:
+        assert skin_cm3 < 1.0  # the nipple alone
+    else:
+        assert skin_cm3 > 30.0
+
+
+# --- the segmentation copes with it -----------------------------------------------------------
+
+def test_border_voxels_are_unmixed_against_the_tissue_actually_outside():
+    """A dark structure in tissue of fat and gland blocks (3 voxels): pure gland next to it must
+    not read as the structure (the local average of the outside layer is half fat)."""
+    fat, gland, tumour = 1000.0, 420.0, 250.0
+    shape = (18, 18, 18)
+    image = np.where((np.indices(shape) // 3).sum(axis=0) % 2 == 0, fat, gland).astype(np.float32)
+    region = np.zeros(shape, bool)
+    region[6:12, 6:12, 6:12] = True
+    image[region] = tumour
+    grid = check_volume(sitk.GetImageFromArray(image))
+    within = np.ones(shape, bool)
+    outside = ndimage.binary_dilation(region) & ~region
+    gland_next = outside & (image == gland)
+    plain = border_fractions(image, region, within, grid)
+    assert np.mean(plain.probability[gland_next] >= 0.5) > 0.3  # the contaminated average: gland reads as tumour
+    unmixed = border_fractions(image, region, within, grid,
+                               surroundings=Surroundings(levels=(np.full(shape, fat), np.full(shape, gland)),
+                                                         where=within))
+    assert np.mean(unmixed.probability[gland_next] >= 0.5) < 0.15  # left: gland voxels whose outside is fat
+    assert np.all(unmixed.probability[region] >= 0.95)
+
+
+def test_a_structure_on_the_body_surface_is_unmixed_against_air():
+    muscle = 330.0
+    shape = (8, 8, 12)
+    image = np.zeros(shape, np.float32)
+    image[:, :, :6] = muscle
+    image[:, :, 6] = 0.6 * muscle  # 60 % muscle, 40 % air: muscle by majority
+    grid = check_volume(sitk.GetImageFromArray(image))
+    body = image > 0
+    region = image >= muscle
+    plain = border_fractions(image, region, body, grid)
+    assert np.all(plain.probability[:, :, 6] == 0)  # no tissue outside to unmix against: dropped
+    with_air = border_fractions(image, region, body, grid, surroundings=Surroundings(empty=~body))
+    assert with_air.probability[:, :, 6] == pytest.approx(0.6, abs=0.02)
+
+
+def test_muscle_with_no_thorax_behind_it_is_kept():
+    case = generate_phantom(PhantomParameters(**SMALL, thorax=False))
+    assert dice_per_tissue(_segment(case).labels, case.labels)["muscle"] >= 0.985
+
+
+def test_a_tumour_in_textured_tissue_touching_fat():
+    case = generate_phantom(PhantomParameters(**SMALL, gland_texture=1.0, tumour_site="border"))
+    assert dice_per_tissue(_segment(case).labels, case.labels)["tumour"] >= 0.90
+
+
+def test_a_thick_skin_is_not_read_as_gland():
+    case = generate_phantom(PhantomParameters(**SMALL, skin_thickness_mm=3.0))
+    result = _segment(case)
+    assert result.summary["skin_layer_mm"] > 3.0  # measured from the image: 3 mm of skin, 2.5 mm slices
+    dice = dice_per_tissue(result.labels, case.labels)
+    assert dice["glandular"] >= 0.96 and dice["fat"] >= 0.97
