@@ -91,3 +91,16 @@ def test_a_finer_skin_under_a_coarse_interior():
     assert skin.surfaces["body"].mean_edge_mm == pytest.approx(0.5 * coarse.surfaces["body"].mean_edge_mm, rel=0.25)
     assert len(skin.mesh.tets) > len(coarse.mesh.tets)
     assert skin.quality.summary()["failing"]["any"]["count"] == 0
+
+
+def test_a_tumour_smaller_than_the_edge_refines_the_mesh_around_it():
+    """A 12 mm tumour under 10 mm elements: its surface sampled at the interface spacing has no
+    sample inside it, which used to refuse the whole mesh; now it is sampled finer (a third of its
+    diameter), the mesh is refined around it and the note says so."""
+    case = generate_phantom(PhantomParameters(seed=1, volume_cm3=400, tumour_diameter_mm=12.0))
+    made = mesh_labels(case.labels, MeshSettings(edge_mm=10.0))
+    assert any("tumour: smaller than the 10 mm interface spacing" in note for note in made.notes), made.notes
+    tumour = made.assignment.tissue == 4
+    assert tumour.sum() >= 4
+    assert made.mesh.volumes[tumour].sum() == pytest.approx(np.pi / 6 * 12.0**3, rel=0.5)
+    assert made.quality.summary()["failing"]["any"]["count"] == 0

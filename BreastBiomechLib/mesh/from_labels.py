@@ -21,7 +21,7 @@ from BreastBiomechLib.mesh.quality import QualityReport, mesh_quality
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.mesh.tissues import TissueAssignment, assign_tissues
 from BreastBiomechLib.mesh.volume import TetGenSettings, interface_points, tetrahedralize
-from BreastBiomechLib.surface.extract import SurfaceSettings, body_surface, label_array, tissue_surface
+from BreastBiomechLib.surface.extract import RegionTooThin, SurfaceSettings, body_surface, label_array, tissue_surface
 from BreastBiomechLib.surface.intersections import SurfaceCrossesItself
 from BreastBiomechLib.surface.trisurface import TriSurface
 
@@ -101,6 +101,26 @@ def _body_surface(labels: sitk.Image, settings: SurfaceSettings, notes: list[str
     raise AssertionError("unreachable")
 
 
+def _interface_surface(labels: sitk.Image, value: int, name: str, spacing: float, settings: SurfaceSettings,
+                       notes: list[str]) -> TriSurface | None:
+    """The surface of one tissue whose points refine the mesh, at ``spacing`` mm; a tissue
+    smaller than that (a 12 mm tumour under 10 mm elements) is sampled at a third of its
+    equivalent diameter instead, which refines the mesh around it (said in ``notes``)."""
+    try:
+        return tissue_surface(labels, value, spacing, settings)
+    except RegionTooThin:
+        voxels = int(np.count_nonzero(label_array(labels) == value))
+        diameter = (6.0 * voxels * float(np.prod(labels.GetSpacing())) / np.pi) ** (1.0 / 3.0)
+        finer = max(diameter / 3.0, min(labels.GetSpacing()))
+        notes.append(f"{name}: smaller than the {spacing:g} mm interface spacing ({diameter:.0f} mm across); "
+                     f"its surface points at {finer:.1f} mm refine the mesh around it")
+        try:
+            return tissue_surface(labels, value, finer, settings)
+        except RegionTooThin:
+            notes.append(f"{name}: too thin to sample even at {finer:.1f} mm; elements take it by voxel majority only")
+            return None
+
+
 def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple_mm=None,
                 progress: Callable[[float, str], None] | None = None) -> BreastMesh:
     """Mesh the labelled region of ``labels`` (see the module notes). ``nipple_mm`` (3,) LPS
@@ -141,7 +161,7 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
         if value == lt.FAT.label or not settings.refine_interfaces:
             continue
         name = lt.BY_LABEL[value].name
-        surface = tissue_surface(labels, value, spacing, surface_settings)
+        surface = _interface_surface(labels, value, name, spacing, surface_settings, notes)
         if surface is None:
             count = int(np.count_nonzero(array == value))
             notes.append(f"{name}: {count} voxels ({count * voxel_mm3:.0f} mm3), no piece of "

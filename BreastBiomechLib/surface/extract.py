@@ -20,6 +20,11 @@ from BreastBiomechLib.surface.trisurface import TriSurface
 _PAD = 2  # background voxels added on every side
 
 
+class RegionTooThin(ValueError):
+    """A region that no sample of the coarse surface grid falls inside: it is smaller or
+    thinner than the surface spacing."""
+
+
 @dataclass
 class SurfaceSettings:
     """How surfaces are made. ``edge_mm``: target triangle edge (the outer surface; tissue
@@ -112,7 +117,7 @@ def mask_surface(mask: np.ndarray, geometry: sitk.Image, name: str, settings: Su
     zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     coarse = ndimage.map_coordinates(wide, [zz, yy, xx], order=1) > 0.5
     if not coarse.any():
-        raise ValueError(f"{name}: the region is thinner than the {edge:g} mm surface spacing; use a smaller edge")
+        raise RegionTooThin(f"{name}: the region is thinner than the {edge:g} mm surface spacing; use a smaller edge")
     coarse = np.pad(well_composed(coarse), 1).astype(np.uint8)
     image = vtk.vtkImageData()
     image.SetDimensions(coarse.shape[2], coarse.shape[1], coarse.shape[0])
