@@ -151,3 +151,34 @@ def test_a_thick_skin_is_not_read_as_gland():
     assert result.summary["skin_layer_mm"] > 3.0  # measured from the image: 3 mm of skin, 2.5 mm slices
     dice = dice_per_tissue(result.labels, case.labels)
     assert dice["glandular"] >= 0.96 and dice["fat"] >= 0.97
+
+
+# --- the robustness sweeps --------------------------------------------------------------------
+
+def test_the_sweep_covers_every_option_value():
+    from BreastBiomechLib.phantom.variants import _OPTIONS, sweep_variants
+
+    variants = sweep_variants(24)
+    assert len({p.seed for p in variants}) == 24
+    for name, values in _OPTIONS.items():
+        assert {repr(getattr(p, name)) for p in variants} == {repr(v) for v in values}, name
+    assert min(p.snr for p in variants) == 15 and max(p.snr for p in variants) == 40
+    assert max(p.bias_strength for p in variants) == 0.35
+
+
+def test_mesh_sweep_resumes_and_reports(tmp_path, capsys):
+    import json
+
+    from BreastBiomechLib.cli import main
+
+    out = tmp_path / "sweep.jsonl"
+    assert main(["bench", "mesh", "--sweep", "--variants", "1", "--edges", "15", "--out", str(out), "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["by_mesh"]["truth@15"] == {"meshed": 1, "with_failing_elements": 0, "refused": 0, "errors": 0}
+    assert figures["by_mesh"]["segmentation@15"]["meshed"] == 1
+    assert figures["rows"][0]["dice"]["tumour"] > 0.85
+    out.write_text(out.read_text() + '{"variant": 1, "cut off')  # a line cut by a kill is run again, not read
+    assert main(["bench", "mesh", "--sweep", "--variants", "1", "--edges", "15", "--out", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["rows"] == figures["rows"]  # nothing recomputed
+    assert main(["bench", "warp", "--sweep"]) == 2
+    assert "--sweep applies to segment and mesh only" in capsys.readouterr().err

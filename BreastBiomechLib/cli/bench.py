@@ -413,6 +413,14 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
+    if args.sweep:
+        if args.what not in ("segment", "mesh"):
+            raise ValueError(f"--sweep applies to segment and mesh only, not to {args.what}")
+        from BreastBiomechLib.cli.sweeps import MESH_EDGES_MM, run_sweep
+
+        figures = run_sweep(args.what, args.variants, args.processes, args.out, args.edges or MESH_EDGES_MM)
+        print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items() if k != "rows"))
+        return 0
     if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "diagnose", "cohort"):
         figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp, "optimise": _bench_optimise,
                    "unloaded": _bench_unloaded, "effects": _bench_effects, "diagnose": _bench_diagnose,
@@ -491,11 +499,18 @@ def add_parsers(sub) -> None:
                         "to reach (default 0.02 mm)")
     p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
                                  "parameters, objective and status; result.json); diagnose: the case's folder (kept, "
-                                 "resumed; default a temporary one); cohort: a new folder for the studies")
+                                 "resumed; default a temporary one); cohort: a new folder for the studies; sweep: a "
+                                 "JSON-lines file of finished variants (appended, and resumed from)")
     p.add_argument("--case-dirs", nargs="+", default=[], help="cohort: compressed case folders (table1-cases)")
     p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=["iso-homo"], help="cohort: models fitted")
     p.add_argument("--modes", nargs="+", choices=("serial", "dask", "processes"), default=["serial", "dask"],
                    help="cohort: how the study runs (the first is the reference)")
     p.add_argument("--workers", type=non_negative_int, help="cohort: the dask mode's local workers (default one per GPU or core)")
+    p.add_argument("--sweep", action="store_true",
+                   help="segment, mesh: the robustness sweep over phantom variants (anatomy options x image quality; "
+                        "mesh: truth and segmentation meshed at every --edges size)")
+    p.add_argument("--variants", type=positive_int, default=24, help="sweep: how many variants (default 24)")
+    p.add_argument("--processes", type=positive_int, default=1, help="sweep: variants run side by side")
+    p.add_argument("--edges", type=positive, nargs="+", help="mesh sweep: element edges in mm (default 3 4 6 8 10 12 15)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)
