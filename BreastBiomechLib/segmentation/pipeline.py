@@ -135,7 +135,7 @@ def _breast_and_skin(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscl
     thickness = settings.skin_mm
     if settings.measure_skin:
         thickness = max(thickness, skin_depth(array, body, breast, grid))
-    return breast, skin_layer(body, breast, grid, thickness), thickness
+    return breast, skin_layer(body, breast, grid, thickness, muscle_mask), thickness
 
 
 def _grow_tumour(grid: VoxelGrid, array: np.ndarray, muscle: SeededRegion, breast: np.ndarray, skin: np.ndarray,
