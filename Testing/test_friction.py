@@ -1,4 +1,4 @@
-"""Coulomb friction on rigid plates (kernels.plate_contact's return mapping), on warp's CPU device:
+"""Coulomb friction on rigid plates (kernels.touch_plate's return mapping), on warp's CPU device:
 the stick limit equals fully prescribed contact faces, a sliding plate drags the tissue with mu
 times its normal force, dynamic relaxation follows the physical-time path on a TetGen breast, a
 batch with a friction coefficient per model equals separate solves, bad coefficients are refused."""

@@ -1,4 +1,4 @@
-"""Chest-wall support modes (solver.supports.chest_wall_support, kernels.slide_on_surface and
+"""Chest-wall support modes (solver.supports.chest_wall_support, kernels.advance_nodes and
 support_springs) on warp's CPU device: a sliding base equals a frictionless plate, an elastic base
 compresses as springs in series with the block, a sliding chest wall keeps zero normal
 displacement and changes the breast's answer, rigid motion is stopped or the set-up refused."""

@@ -105,8 +105,9 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                    pressure_volume: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
-                   n_nodes: int, n_elements: int, step: wp.array(dtype=int), active: wp.array(dtype=int),
-                   forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
+                   n_nodes: int, n_elements: int, clock: wp.array(dtype=int), active: wp.array(dtype=int),
+                   forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int),
+                   plate_force: wp.array(dtype=wp.vec3)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
     the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
     with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
@@ -115,8 +116,16 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     ``inverted[4b:4b+4]`` = [count, element, step, frozen] of model b; once frozen that model
     stands still (the others of the batch go on), keeping its last configuration for
     inspection instead of producing NaN. Models with ``active[b]`` = 0 (converged: they stand
-    still, so their forces no longer change anything) are skipped."""
+    still, so their forces no longer change anything) are skipped.
+
+    The step is ``clock[0]``, copied to ``clock[1]`` for :func:`advance_nodes`, which advances
+    it. Also clears the plate forces, which that kernel sums next (fewer graph nodes than
+    separate memsets)."""
     tid = wp.tid()
+    if tid == 0:
+        clock[1] = clock[0]
+    if tid < plate_force.shape[0]:
+        plate_force[tid] = wp.vec3(0.0)
     b = tid // n_elements
     if inverted[4 * b + 3] != 0 or active[b] == 0:
         return
@@ -129,7 +138,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     if J <= 0.0:
         if wp.atomic_add(inverted, 4 * b, 1) == 0:
             inverted[4 * b + 1] = e
-            inverted[4 * b + 2] = step[0]
+            inverted[4 * b + 2] = clock[0]
         return
     if use_anp != 0:
         s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
@@ -140,7 +149,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
         if Jm <= 0.0:
             if wp.atomic_add(inverted, 4 * b, 1) == 0:
                 inverted[4 * b + 1] = e
-                inverted[4 * b + 2] = step[0]
+                inverted[4 * b + 2] = clock[0]
             return
         F = wp.pow(Jm / J, 1.0 / 3.0) * F
     S_iso = isochoric_stress(F, mu[tid], eta[tid], fibre[tid])
@@ -170,77 +179,11 @@ def compensated_add(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), i:
     u[i] = t
 
 
-@wp.kernel
-def central_difference(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                       forces: wp.array(dtype=wp.vec3), pressure_volume: wp.array(dtype=float),
-                       plate_force: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
-                       body_start: wp.array(dtype=wp.vec3), body_force: wp.array(dtype=wp.vec3),
-                       damping: wp.array(dtype=float), active: wp.array(dtype=int), n_nodes: int, dt: float,
-                       step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
-                       inverted: wp.array(dtype=int)):
-    """Seed eq. (15) in increment form: du_(n+1) = ((R - F) dt^2 / m + (1 - a dt/2) du_n) / (1 + a dt/2),
-    u_(n+1) = u_n + du_(n+1), the same scheme as (m/dt^2 + a m/(2 dt)) u_(n+1) = R - F + 2m/dt^2 u_n
-    - (m/dt^2 - a m/(2 dt)) u_(n-1) without its float32 cancellation, and u accumulated with
-    compensation (:func:`compensated_add`). ``du`` holds the last increment (velocity x dt),
-    updated in place with ``u``. The external force per node is ``body_start + load x body_force``
-    (N, gravity on the physical mass; ``mass`` may be fictitious under mass scaling): the force
-    already acting at the start (a pre-stressed, gravity-loaded reference state) and its change
-    over the loading. ``damping[b]``
-    is model b's coefficient a (1/s), adapted between steps by dynamic relaxation; a model with
-    ``active[b]`` = 0 (converged) or an inverted element stands still. The load is full at
-    ``t_total[b]``, model b's loading time (under dynamic relaxation each model's own, as slow
-    as its materials need). Also clears what the next kernels of the step
-    accumulate into (fewer graph nodes than separate memsets): the ANP pressures, already used,
-    and the plate forces, which the contact kernels sum next."""
-    i = wp.tid()
-    for j in range(i, pressure_volume.shape[0], active.shape[0] * n_nodes):  # slots >= nodes
-        pressure_volume[j] = 0.0
-    if i < plate_force.shape[0]:
-        plate_force[i] = wp.vec3(0.0)
-    b = i // n_nodes
-    if active[b] == 0 or inverted[4 * b] != 0:
-        du[i] = wp.vec3(0.0)
-        return
-    t = float(step[0] + 1) * dt
-    half = 0.5 * damping[b] * dt
-    accel = (body_start[i] + load_factor(t, t_total[b], load_shape) * body_force[i] - forces[i]) / mass[i]
-    increment = (accel * (dt * dt) + (1.0 - half) * du[i]) / (1.0 + half)
-    du[i] = increment
-    compensated_add(u, low, i, increment)
-
-
 @wp.func
 def set_component(x: wp.vec3, mask: wp.vec3, value: wp.vec3) -> wp.vec3:
     """x with the components where mask > 0 replaced by value's."""
     return wp.vec3(wp.where(mask[0] > 0.0, value[0], x[0]), wp.where(mask[1] > 0.0, value[1], x[1]),
                    wp.where(mask[2] > 0.0, value[2], x[2]))
-
-
-@wp.kernel
-def apply_constraints(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                      nodes: wp.array(dtype=int), mask: wp.array(dtype=wp.vec3),
-                      value: wp.array(dtype=wp.vec3), shapes: wp.array(dtype=wp.vec3i), n_nodes: int,
-                      n_constrained: int, dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float),
-                      inverted: wp.array(dtype=int)):
-    """Constrained components (mask 1) take load(t) x their final prescribed value (LPS, m), each
-    component with its own load curve (``shapes``); their increment becomes the change from the
-    previous step and their compensation zero."""
-    tid = wp.tid()
-    b = tid // n_constrained
-    if inverted[4 * b] != 0:
-        return
-    k = tid - b * n_constrained
-    i = b * n_nodes + nodes[k]
-    m = mask[k]
-    t = float(step[0] + 1) * dt
-    shape = shapes[k]
-    v = value[tid]
-    target = wp.vec3(load_factor(t, t_total[b], shape[0]) * v[0], load_factor(t, t_total[b], shape[1]) * v[1],
-                     load_factor(t, t_total[b], shape[2]) * v[2])
-    previous = u[i] - du[i]
-    u[i] = set_component(u[i], m, target)
-    du[i] = set_component(du[i], m, target - previous)
-    low[i] = set_component(low[i], m, wp.vec3(0.0))
 
 
 @wp.func
@@ -252,50 +195,92 @@ def clipped(v: wp.vec3, limit: float) -> wp.vec3:
     return v
 
 
-@wp.kernel
-def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                  x0: wp.array(dtype=wp.vec3), slaves: wp.array(dtype=int),
-                  p: int, plate_point: wp.array(dtype=wp.vec3),
-                  plate_normal: wp.array(dtype=wp.vec3), plate_motion: wp.array(dtype=wp.vec3),
-                  edge_direction: wp.array(dtype=wp.vec3), edge_shape: wp.array(dtype=wp.vec2),
-                  friction: wp.array(dtype=float), anchor: wp.array(dtype=wp.vec3), touching: wp.array(dtype=int),
-                  forces: wp.array(dtype=wp.vec3), body_start: wp.array(dtype=wp.vec3),
-                  body_force: wp.array(dtype=wp.vec3),
-                  n_nodes: int, n_slaves: int, n_plates: int,
-                  dt: float, step: wp.array(dtype=int), t_total: wp.array(dtype=float), load_shape: int,
-                  plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
-    """Kinematic contact with rigid plate ``p`` (one launch per plate; its pose per model b at
-    ``b * n_plates + p``): a slave node behind the plate is moved back onto its surface along the
-    surface normal by the depth d it went in. A plate's flat face ends ``edge_shape[q][0]`` (m)
-    along ``edge_direction[q]`` from its point, in a convex rounded edge of radius
-    ``edge_shape[q][1]`` (m); beyond it the plate has ended (an unbounded plate has a huge distance).
+@wp.struct
+class NodeLoads:
+    """What the step applies at the nodes besides the internal forces (SI units, LPS axes).
 
-    Coulomb friction (``friction[q]`` = mu > 0), by return mapping: a node's position on the plate
-    (relative to the moving plate, ``anchor``, per node and model) is kept from its first contact
-    (``touching``); each step it is pulled back tangentially to that point (stick) unless the pull
-    t exceeds mu d, when it moves by mu d towards it and the anchor follows (slip). A kinematic
-    correction c in one step stands for the force m c (1 + a dt / 2) / dt^2, the same factor for
-    the normal and the tangential part, so |t| <= mu d is |f_t| <= mu f_n whatever the (scaled)
-    mass and damping. mu = 0 leaves the frictionless contact unchanged.
+    External force per node ``body_start + load x body_force`` (N; gravity on the physical
+    masses, see :func:`advance_nodes`); ``damping[b]`` model b's coefficient (1/s);
+    ``t_total[b]`` the time (s) at which model b's load is full; ``load_shape`` the plates' and
+    gravity's load curve (``LOAD_*``)."""
+    mass: wp.array(dtype=float)
+    body_start: wp.array(dtype=wp.vec3)
+    body_force: wp.array(dtype=wp.vec3)
+    damping: wp.array(dtype=float)
+    t_total: wp.array(dtype=float)
+    load_shape: int
+    dt: float
 
-    The plate force is the contact force on the nodes in contact, internal minus external
-    (gravity) force: its normal part, and with friction its tangential part up to mu times the
-    normal part (N, the force the plate applies to the tissue)."""
-    tid = wp.tid()
-    b = tid // n_slaves
-    if inverted[4 * b] != 0:
-        return
-    k = tid - b * n_slaves
-    node = slaves[k]
-    i = b * n_nodes + node
-    q = b * n_plates + p
-    s = load_factor(float(step[0] + 1) * dt, t_total[b], load_shape)
-    rel = x0[node] + u[i] - (plate_point[q] + s * plate_motion[q])
-    n = plate_normal[q]
+
+@wp.struct
+class NodeConstraints:
+    """Sliding supports and prescribed components, looked up per node.
+
+    ``slide[a, s]``: node a's row in ``slide_normals`` for sliding support s, or -1 (one column
+    per sliding support, at least one). ``constrained[a]``: node a's row K in the merged
+    constraints, or -1; its ``mask[K]`` (1 where prescribed), ``shapes[K]`` (load curve per
+    component) and final values ``value[b * n_constrained + K]`` (m) for model b."""
+    slide: wp.array2d(dtype=int)
+    slide_normals: wp.array(dtype=wp.vec3)
+    constrained: wp.array(dtype=int)
+    mask: wp.array(dtype=wp.vec3)
+    shapes: wp.array(dtype=wp.vec3i)
+    value: wp.array(dtype=wp.vec3)
+    n_constrained: int
+
+
+@wp.struct
+class PlateContact:
+    """Rigid plates (P per model; model b's plate p at q = b P + p) and their contact nodes.
+
+    ``slot[a, p]``: node a's contact slot for plate p, or -1 (slots of all plates numbered one
+    after another, ``n_slots`` in all); the friction state per slot and model at
+    ``b * n_slots + slot``: ``anchor`` (where the node sticks on the plate, m) and ``touching``.
+    Pose per plate and model: ``point`` (m) and ``normal`` (towards the tissue) at the start,
+    ``motion`` (m) over the load, the flat face's end ``edge_shape[q][0]`` (m) along
+    ``edge_direction[q]`` with a fillet of radius ``edge_shape[q][1]`` (m), ``friction[q]``
+    (mu). ``x0`` the reference node positions (m)."""
+    slot: wp.array2d(dtype=int)
+    n_slots: int
+    n_plates: int
+    x0: wp.array(dtype=wp.vec3)
+    point: wp.array(dtype=wp.vec3)
+    normal: wp.array(dtype=wp.vec3)
+    motion: wp.array(dtype=wp.vec3)
+    edge_direction: wp.array(dtype=wp.vec3)
+    edge_shape: wp.array(dtype=wp.vec2)
+    friction: wp.array(dtype=float)
+    anchor: wp.array(dtype=wp.vec3)
+    touching: wp.array(dtype=int)
+
+
+@wp.func
+def touch_plate(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
+                i: int, node: int, q: int, state: int, s: float, contact: wp.vec3, plates: PlateContact,
+                plate_force: wp.array(dtype=wp.vec3)):
+    """Kinematic contact of node ``node`` (entry i of model b) with rigid plate q at load
+    factor s: a node behind the plate is moved back onto its surface along the surface normal by
+    the depth d it went in. A plate's flat face ends ``edge_shape[q][0]`` along
+    ``edge_direction[q]`` from its point, in a convex rounded edge of radius
+    ``edge_shape[q][1]``; beyond it the plate has ended (an unbounded plate has a huge distance).
+
+    Coulomb friction (mu > 0), by return mapping: the node's position on the plate (relative to
+    the moving plate, ``anchor[state]``) is kept from its first contact (``touching[state]``);
+    each step it is pulled back tangentially to that point (stick) unless the pull t exceeds mu d,
+    when it moves by mu d towards it and the anchor follows (slip). A kinematic correction c in
+    one step stands for the force m c (1 + a dt / 2) / dt^2, the same factor for the normal and
+    the tangential part, so |t| <= mu d is |f_t| <= mu f_n whatever the (scaled) mass and
+    damping. mu = 0 is frictionless contact.
+
+    ``contact`` is the node's internal minus external (gravity) force (N): the plate force
+    gains its normal part and, with friction, its tangential part up to mu times the normal part
+    (the force the plate applies to the tissue)."""
+    rel = plates.x0[node] + u[i] - (plates.point[q] + s * plates.motion[q])
+    n = plates.normal[q]
     gap = wp.dot(rel, n)
-    e = edge_direction[q]
-    past = wp.dot(rel, e) - edge_shape[q][0]
-    radius = edge_shape[q][1]
+    e = plates.edge_direction[q]
+    past = wp.dot(rel, e) - plates.edge_shape[q][0]
+    radius = plates.edge_shape[q][1]
     normal = n
     depth = float(0.0)  # how far the node lies inside the plate, along ``normal``
     if past <= 0.0:
@@ -306,20 +291,19 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
         if distance > 0.0:
             normal = v / distance
             depth = radius - distance
-    mu = friction[q]
+    mu = plates.friction[q]
     if depth > 0.0:
         correction = depth * normal
-        contact = forces[i] - (body_start[i] + s * body_force[i])
         normal_force = wp.dot(contact, normal)
         if mu > 0.0:
             on_plate = rel + correction
-            if touching[tid] == 0:  # first contact: stick where it touched
-                touching[tid] = 1
-                anchor[tid] = on_plate
+            if plates.touching[state] == 0:  # first contact: stick where it touched
+                plates.touching[state] = 1
+                plates.anchor[state] = on_plate
             else:
-                pull = anchor[tid] - on_plate
+                pull = plates.anchor[state] - on_plate
                 pull = clipped(pull - wp.dot(pull, normal) * normal, mu * depth)
-                anchor[tid] = on_plate + pull  # unchanged in stick, the new position in slip
+                plates.anchor[state] = on_plate + pull  # unchanged in stick, the new position in slip
                 correction = correction + pull
             low[i] = wp.vec3(0.0)
             tangential = clipped(contact - normal_force * normal, mu * wp.max(normal_force, 0.0))
@@ -330,21 +314,88 @@ def plate_contact(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
         u[i] = u[i] + correction
         du[i] = du[i] + correction
     elif mu > 0.0:
-        touching[tid] = 0
+        plates.touching[state] = 0
 
 
 @wp.kernel
-def finish_step(forces: wp.array(dtype=wp.vec3), step: wp.array(dtype=int), inverted: wp.array(dtype=int)):
-    """End of a step: clear the internal forces for the next one, freeze each model in which an
-    inverted element was found (``inverted``: 4 flags per model, see :func:`element_forces`),
-    and advance the step counter."""
+def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
+                  forces: wp.array(dtype=wp.vec3), pressure_volume: wp.array(dtype=float),
+                  loads: NodeLoads, constraints: NodeConstraints, plates: PlateContact,
+                  active: wp.array(dtype=int), n_nodes: int, clock: wp.array(dtype=int),
+                  plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
+    """The node half of a step, one thread per node and model, everything a node's update
+    needs in one launch (a step is launch-bound at breast-model sizes):
+
+    1. Seed eq. (15) in increment form: du_(n+1) = ((R - F) dt^2 / m + (1 - a dt/2) du_n) /
+       (1 + a dt/2), u_(n+1) = u_n + du_(n+1), the same scheme as (m/dt^2 + a m/(2 dt)) u_(n+1) =
+       R - F + 2m/dt^2 u_n - (m/dt^2 - a m/(2 dt)) u_(n-1) without its float32 cancellation, and
+       u accumulated with compensation (:func:`compensated_add`). ``du`` holds the last increment
+       (velocity x dt). The external force R is ``body_start + load x body_force`` (gravity on
+       the physical mass; ``mass`` may be fictitious under mass scaling): the force already
+       acting at the start (a pre-stressed, gravity-loaded reference state) and its change over
+       the loading. A model with ``active[b]`` = 0 (converged) stands still here; one with an
+       inverted element stands still altogether.
+    2. Sliding supports: the displacement, its increment and compensation lose their part along
+       the node's surface normal.
+    3. Prescribed components take load(t) x their final value, each component with its own load
+       curve; their increment becomes the change from the previous step, their compensation zero
+       (they win over sliding).
+    4. Contact with each plate in turn (:func:`touch_plate`), the plate forces summed.
+    5. The internal force is cleared for the next step, a model in which an inverted element was
+       found is frozen (``inverted[4b + 3]``, see :func:`element_forces`), and the step clock
+       advances: this kernel reads the step from ``clock[1]`` (which :func:`element_forces`
+       copies from ``clock[0]``) and writes ``clock[0]``, so no thread reads what another writes.
+
+    Also clears the ANP pressures, already used by this step's element forces."""
     i = wp.tid()
-    forces[i] = wp.vec3(0.0)
-    if i < inverted.shape[0] // 4:
-        if inverted[4 * i] != 0:
-            inverted[4 * i + 3] = 1
+    for j in range(i, pressure_volume.shape[0], active.shape[0] * n_nodes):  # slots >= nodes
+        pressure_volume[j] = 0.0
+    step = clock[1]
     if i == 0:
-        step[0] = step[0] + 1
+        clock[0] = step + 1
+    b = i // n_nodes
+    if i < active.shape[0] and inverted[4 * i] != 0:
+        inverted[4 * i + 3] = 1
+    f = forces[i]
+    forces[i] = wp.vec3(0.0)
+    if inverted[4 * b] != 0:
+        du[i] = wp.vec3(0.0)
+        return
+    t = float(step + 1) * loads.dt
+    s = load_factor(t, loads.t_total[b], loads.load_shape)
+    if active[b] == 0:
+        du[i] = wp.vec3(0.0)
+    else:
+        half = 0.5 * loads.damping[b] * loads.dt
+        external = loads.body_start[i] + s * loads.body_force[i]
+        increment = ((external - f) / loads.mass[i] * (loads.dt * loads.dt) + (1.0 - half) * du[i]) / (1.0 + half)
+        du[i] = increment
+        compensated_add(u, low, i, increment)
+    a = i - b * n_nodes
+    for c in range(constraints.slide.shape[1]):
+        row = constraints.slide[a, c]
+        if row >= 0:
+            n = constraints.slide_normals[row]
+            u[i] = u[i] - wp.dot(u[i], n) * n
+            du[i] = du[i] - wp.dot(du[i], n) * n
+            low[i] = low[i] - wp.dot(low[i], n) * n
+    k = constraints.constrained[a]
+    if k >= 0:
+        m = constraints.mask[k]
+        shape = constraints.shapes[k]
+        v = constraints.value[b * constraints.n_constrained + k]
+        target = wp.vec3(load_factor(t, loads.t_total[b], shape[0]) * v[0],
+                         load_factor(t, loads.t_total[b], shape[1]) * v[1],
+                         load_factor(t, loads.t_total[b], shape[2]) * v[2])
+        previous = u[i] - du[i]
+        u[i] = set_component(u[i], m, target)
+        du[i] = set_component(du[i], m, target - previous)
+        low[i] = set_component(low[i], m, wp.vec3(0.0))
+    for p in range(plates.n_plates):
+        slot = plates.slot[a, p]
+        if slot >= 0:
+            touch_plate(u, low, du, i, a, b * plates.n_plates + p, b * plates.n_slots + slot, s,
+                        f - (loads.body_start[i] + s * loads.body_force[i]), plates, plate_force)
 
 
 @wp.kernel
@@ -458,22 +509,3 @@ def support_springs(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), norm
     n = normals[k]
     along = wp.dot(u[i], n) * n
     wp.atomic_add(forces, i, stiffness[k][0] * along + stiffness[k][1] * (u[i] - along))
-
-
-@wp.kernel
-def slide_on_surface(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                     nodes: wp.array(dtype=int), normals: wp.array(dtype=wp.vec3), n_nodes: int, n_supported: int,
-                     inverted: wp.array(dtype=int)):
-    """A sliding support: each supported node's displacement loses its part along the node's
-    surface normal (zero normal displacement, free along the surface); so do its increment and
-    its compensation term."""
-    tid = wp.tid()
-    b = tid // n_supported
-    if inverted[4 * b] != 0:
-        return
-    k = tid - b * n_supported
-    i = b * n_nodes + nodes[k]
-    n = normals[k]
-    u[i] = u[i] - wp.dot(u[i], n) * n
-    du[i] = du[i] - wp.dot(du[i], n) * n
-    low[i] = low[i] - wp.dot(low[i], n) * n

@@ -57,7 +57,7 @@ class Plate:
     rounded edge (:class:`PlateEdge`); None: the plate is unbounded. ``friction``: the Coulomb
     coefficient mu (>= 0; 0: frictionless; skin on plastic is about 0.2-1, dry skin ~0.5): a
     contact node sticks to the plate while the tangential force it needs is within mu times its
-    normal force, and slips otherwise (:func:`BreastBiomechLib.solver.kernels.plate_contact`)."""
+    normal force, and slips otherwise (:func:`BreastBiomechLib.solver.kernels.touch_plate`)."""
 
     point: np.ndarray
     normal: np.ndarray

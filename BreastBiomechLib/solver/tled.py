@@ -1,10 +1,10 @@
 """Total Lagrangian explicit dynamics (TLED) on NVIDIA warp: ``solve`` and ``solve_batch``.
 
 Precomputed once: reference shape-function derivatives and volumes of the four-node tets, lumped
-nodal masses, the critical time step. Each step: (ANP nodal pressures), element forces, central
-difference update with mass-proportional damping (seed eq. (15)) in increment form, with the
-displacement accumulated in float32 plus a compensation term (Kahan summation, see
-``kernels.central_difference``), prescribed components, plate contact. The step loop has no host
+nodal masses, the critical time step. Each step: (ANP nodal pressures), element forces, then one
+node kernel (``kernels.advance_nodes``): the central difference update with mass-proportional
+damping (seed eq. (15)) in increment form, with the displacement accumulated in float32 plus a
+compensation term (Kahan summation), sliding supports, prescribed components, plate contact. The step loop has no host
 synchronisation: on CUDA it replays a captured graph of two steps. Energies, plate forces and the
 inverted-element flag are read every ``sample_every`` steps.
 """
@@ -333,8 +333,8 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
                                          len(slot_volume), pressure,
                                          wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
-                                         wp.zeros(1, dtype=wp.mat33), 0, N, M, wp.zeros(1, dtype=int), one_model,
-                                         forces, inverted])
+                                         wp.zeros(1, dtype=wp.mat33), 0, N, M, wp.zeros(2, dtype=int), one_model,
+                                         forces, inverted, wp.zeros(0, dtype=wp.vec3)])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
         return forces.numpy().astype(np.float64)
@@ -477,7 +477,6 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_prony_g = arr(prony_g.reshape(-1) if K else np.zeros(1), float)
         d_prony_decay = arr(np.exp(-dt / prony_tau).reshape(-1) if K else np.zeros(1), float)
         visco_state = wp.zeros(max(B * M * K, 1), dtype=wp.mat33)
-        d_x0 = arr(nodes, wp.vec3)
         if model.prestate is not None:  # at rest in the pre-stressed state
             initial_displacement = model.prestate.displacement
         u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.tile(
@@ -487,7 +486,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         scratch = wp.zeros(B * N, dtype=wp.vec3)
         forces = wp.zeros(B * N, dtype=wp.vec3)
         pressure = wp.zeros(B * S, dtype=float)
-        step = wp.zeros(1, dtype=int)
+        clock = wp.zeros(2, dtype=int)  # the step: [as the element kernel reads it, as the node kernel does]
         inverted = wp.zeros(4 * B, dtype=int)  # per model: count, first element, its step, frozen
         plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
         # gravity acts on the physical masses, also where dynamic relaxation scales them
@@ -500,41 +499,68 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         damping = np.full(B, model.damping) if relaxation is None else 4.0 * np.pi / totals
         d_totals = arr(totals, float)
         d_damping = arr(damping, float)
+        loads = k.NodeLoads()
+        loads.mass, loads.body_start, loads.body_force = d_mass, d_body_start, d_body_force
+        loads.damping, loads.t_total, loads.load_shape, loads.dt = d_damping, d_totals, load_shape, float(dt)
         active = np.ones(B, np.int32)  # dynamic relaxation stops each model once it has converged
         d_active = arr(active, int)
 
         c_nodes, c_mask, c_vals = merged_constraints(model)
-        c_vals = c_vals * MM
         n_con = len(c_nodes)
         d_cnodes = arr(c_nodes, int)
         d_cmask = arr(c_mask.astype(f32), wp.vec3)
-        d_cvals = arr(np.tile(c_vals, (B, 1)), wp.vec3)
-        d_cshapes = wp.array(constraint_load_shapes(model, c_nodes).reshape(-1, 3), dtype=wp.vec3i)
+        constraints = k.NodeConstraints()
+        row_of_node = np.full(N, -1, np.int32)
+        row_of_node[c_nodes] = np.arange(n_con)
+        constraints.constrained = arr(row_of_node, int)
+        constraints.mask = d_cmask if n_con else arr(np.zeros((1, 3)), wp.vec3)
+        constraints.shapes = wp.array(constraint_load_shapes(model, c_nodes).reshape(-1, 3) if n_con
+                                      else np.zeros((1, 3), np.int32), dtype=wp.vec3i)
+        constraints.value = arr(np.tile(c_vals * MM, (B, 1)) if n_con else np.zeros((1, 3)), wp.vec3)
+        constraints.n_constrained = n_con
 
-        # one contact launch per plate: a node may be a slave of several plates, and the kernel
-        # writes its displacement (threads of one launch must not touch the same node); the
-        # plates' poses, travel and friction per model (model b's plate p at b * P + p)
-        d_slaves = [arr(p.slave_nodes, int) for p in model.loading.plates]
-        every_plate = [p for ps in plate_sets for p in ps]
-        d_ppoint = arr(np.array([p.point for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
-        d_pnormal = arr(np.array([p.normal for p in every_plate]).reshape(-1, 3), wp.vec3)
-        d_edge_direction = arr(np.array([p.edge.direction if p.edge else np.zeros(3)
-                                         for p in every_plate]).reshape(-1, 3), wp.vec3)
-        d_edge_shape = arr(np.array([(p.edge.distance * MM, p.edge.radius * MM) if p.edge else (UNBOUNDED_M, 1.0)
-                                     for p in every_plate]).reshape(-1, 2), wp.vec2)
-        d_pmotion = arr(np.array([p.displacement for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
-        d_friction = arr(np.array([p.friction for p in every_plate] or [0.0]), float)
-        # friction state per plate, contact node and model: where on the plate it sticks (m)
-        d_anchor = [wp.zeros(max(B * d_sl.shape[0], 1), dtype=wp.vec3) for d_sl in d_slaves]
-        d_touching = [wp.zeros(max(B * d_sl.shape[0], 1), dtype=int) for d_sl in d_slaves]
         # surface supports: springs (with the internal forces) and, sliding, the normal projection
         d_supports = []
+        sliding = [s for s in model.loading.supports if s.mode == "sliding" and len(s.nodes)]
+        slide = np.full((N, max(len(sliding), 1)), -1, np.int32)
+        offset = 0
+        for column, support in enumerate(sliding):
+            slide[support.nodes, column] = offset + np.arange(len(support.nodes))
+            offset += len(support.nodes)
+        constraints.slide = wp.array(slide, dtype=int)
+        constraints.slide_normals = arr(np.concatenate([s.normals for s in sliding]) if sliding
+                                        else np.zeros((1, 3)), wp.vec3)
         for support in model.loading.supports:
-            spring = np.stack([support.normal_stiffness * support.areas, support.tangential_stiffness * support.areas],
-                              axis=1) * SPRING_PA_PER_MM_MM2_TO_N_PER_M
-            d_supports.append((len(support.nodes), support.mode == "sliding",
-                               support.normal_stiffness > 0 or support.tangential_stiffness > 0,
-                               arr(support.nodes, int), arr(support.normals, wp.vec3), arr(spring, wp.vec2)))
+            if (support.normal_stiffness > 0 or support.tangential_stiffness > 0) and len(support.nodes):
+                spring = np.stack([support.normal_stiffness * support.areas,
+                                   support.tangential_stiffness * support.areas],
+                                  axis=1) * SPRING_PA_PER_MM_MM2_TO_N_PER_M
+                d_supports.append((len(support.nodes), arr(support.nodes, int), arr(support.normals, wp.vec3),
+                                   arr(spring, wp.vec2)))
+
+        # the plates' poses, travel and friction per model (model b's plate p at b * P + p); a
+        # node may touch several plates, in turn; friction state per contact slot and model
+        plates = k.PlateContact()
+        contact_slot = np.full((N, max(P, 1)), -1, np.int32)
+        n_slots = 0
+        for p, plate in enumerate(model.loading.plates):
+            contact_slot[plate.slave_nodes, p] = n_slots + np.arange(len(plate.slave_nodes))
+            n_slots += len(plate.slave_nodes)
+        every_plate = [p for ps in plate_sets for p in ps]
+        plates.slot = wp.array(contact_slot, dtype=int)
+        plates.n_slots = n_slots
+        plates.n_plates = P
+        plates.x0 = arr(nodes, wp.vec3)
+        plates.point = arr(np.array([p.point for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
+        plates.normal = arr(np.array([p.normal for p in every_plate]).reshape(-1, 3), wp.vec3)
+        plates.edge_direction = arr(np.array([p.edge.direction if p.edge else np.zeros(3)
+                                              for p in every_plate]).reshape(-1, 3), wp.vec3)
+        plates.edge_shape = arr(np.array([(p.edge.distance * MM, p.edge.radius * MM) if p.edge
+                                          else (UNBOUNDED_M, 1.0) for p in every_plate]).reshape(-1, 2), wp.vec2)
+        plates.motion = arr(np.array([p.displacement for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
+        plates.friction = arr(np.array([p.friction for p in every_plate] or [0.0]), float)
+        plates.anchor = wp.zeros(max(B * n_slots, 1), dtype=wp.vec3)
+        plates.touching = wp.zeros(max(B * n_slots, 1), dtype=int)
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
         every_model = arr(np.ones(B, np.int32), int)
@@ -552,37 +578,16 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                                      models, pressure_buffer])
             wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
                                                  use_anp, d_slots, S, pressure_buffer, d_slotvol, K, d_prony_g,
-                                                 d_prony_decay,
-                                                 visco_state, update_state, N, M, step, models, out, flags])
-            for n_sup, _, springs, d_snodes, d_snormals, d_sstiff in d_supports:
-                if springs and n_sup:
-                    wp.launch(k.support_springs, B * n_sup, [state, d_snodes, d_snormals, d_sstiff, N, n_sup, models,
-                                                             out])
+                                                 d_prony_decay, visco_state, update_state, N, M, clock, models, out,
+                                                 flags, plate_force])
+            for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
+                wp.launch(k.support_springs, B * n_sup, [state, d_snodes, d_snormals, d_sstiff, N, n_sup, models, out])
 
         def one_step():
             # converged models stand still: their element forces are not computed again
             internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True)
-            wp.launch(k.central_difference, B * N, [u, low, du, forces, pressure, plate_force, d_mass, d_body_start,
-                                                     d_body_force,
-                                                     d_damping, d_active, N, float(dt), step, d_totals,
-                                                     load_shape, inverted])
-            # sliding first: where a node is also constrained, its prescribed components win
-            for n_sup, sliding, _, d_snodes, d_snormals, _ in d_supports:
-                if sliding and n_sup:
-                    wp.launch(k.slide_on_surface, B * n_sup, [u, low, du, d_snodes, d_snormals, N, n_sup, inverted])
-            if n_con:
-                wp.launch(k.apply_constraints, B * n_con, [u, low, du, d_cnodes, d_cmask, d_cvals, d_cshapes, N,
-                                                            n_con, float(dt), step, d_totals, inverted])
-            for p, d_sl in enumerate(d_slaves):
-                if d_sl.shape[0]:
-                    wp.launch(k.plate_contact, B * d_sl.shape[0], [u, low, du, d_x0, d_sl, p, d_ppoint, d_pnormal,
-                                                                    d_pmotion, d_edge_direction, d_edge_shape,
-                                                                    d_friction, d_anchor[p], d_touching[p],
-                                                                    forces, d_body_start, d_body_force, N,
-                                                                    d_sl.shape[0], P,
-                                                                    float(dt), step, d_totals, load_shape,
-                                                                    plate_force, inverted])
-            wp.launch(k.finish_step, B * N, [forces, step, inverted])
+            wp.launch(k.advance_nodes, B * N, [u, low, du, forces, pressure, loads, constraints, plates, d_active, N,
+                                               clock, plate_force, inverted])
 
         def two_steps():
             one_step()
@@ -591,7 +596,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         graph = None
         if device.is_cuda:
             two_steps()  # compile and warm up outside the capture
-            step.zero_()
+            clock.zero_()
             u.assign(u0.astype(f32))
             low.zero_()
             du.zero_()
@@ -599,8 +604,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             pressure.zero_()
             inverted.zero_()
             visco_state.zero_()
-            for state in d_touching:
-                state.zero_()
+            plates.touching.zero_()
             with wp.ScopedCapture() as capture:
                 two_steps()
             graph = capture.graph

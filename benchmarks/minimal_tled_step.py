@@ -1,0 +1,119 @@
+"""The reference the solver's step is measured against (issue 25): a minimal warp TLED step.
+
+One neo-Hookean four-node-tet element kernel (no ANP, no visco, no fibres, no inversion
+flags: F, its stress and four atomic adds) and one node kernel (undamped central difference,
+no constraints, no contact), replayed as a CUDA graph of two steps on the benchmarks'
+hemi-ellipsoid (``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's
+step does more (ANP's second element pass, damping, constraints, plates, per-model flags), so
+the ratio of the two per-step times is the price of that work plus whatever the solver wastes.
+
+    python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda]
+
+prints one JSON line: the mesh size, microseconds per step and per element-step. Units inside
+the kernels are SI (m, Pa, kg, s, N). Times are wall-clock over synchronised graph replays,
+after a warm-up; never asserted anywhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import warp as wp
+
+from BreastBiomechLib.cli.bench import BENCH_RADII_MM, _hemi_ellipsoid_spacing
+from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+from BreastBiomechLib.solver.tled import MM, shape_derivatives
+
+
+@wp.kernel
+def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                   vol: wp.array(dtype=float), mu: float, kappa: float, forces: wp.array(dtype=wp.vec3)):
+    """f_a += V0 F S dN_a/dX for a compressible neo-Hookean solid (W = mu/2 (I1bar - 3) + kappa/2 (J - 1)^2)."""
+    e = wp.tid()
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], d0) + wp.outer(u[n1], d1) + wp.outer(u[n2], d2)
+         + wp.outer(u[n3], d3))
+    C = wp.transpose(F) * F
+    Cinv = wp.inverse(C)
+    J = wp.determinant(F)
+    S = (mu * wp.pow(J, -2.0 / 3.0) * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
+         + kappa * J * (J - 1.0) * Cinv)
+    P = vol[e] * (F * S)
+    wp.atomic_add(forces, n0, P * d0)
+    wp.atomic_add(forces, n1, P * d1)
+    wp.atomic_add(forces, n2, P * d2)
+    wp.atomic_add(forces, n3, P * d3)
+
+
+@wp.kernel
+def central_difference(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3), forces: wp.array(dtype=wp.vec3),
+                       external: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float):
+    """u_(n+1) = 2 u_n - u_(n-1) + (R - F) dt^2 / m; the forces cleared for the next step."""
+    i = wp.tid()
+    un = u[i]
+    u[i] = 2.0 * un - u_prev[i] + (external[i] - forces[i]) * (dt * dt / mass[i])
+    u_prev[i] = un
+    forces[i] = wp.vec3(0.0)
+
+
+def measure(tets_wanted: int, steps: int, device: str | None) -> dict:
+    wp.init()
+    dev = wp.get_device(device)
+    mesh = hemi_ellipsoid_mesh(BENCH_RADII_MM, _hemi_ellipsoid_spacing(tets_wanted))
+    nodes = mesh.nodes * MM
+    dhdx, vol = shape_derivatives(nodes, mesh.tets)
+    n, m = len(nodes), len(mesh.tets)
+    E, nu, rho = 10e3, 0.49, 1000.0
+    mu, kappa = E / (2 * (1 + nu)), E / (3 * (1 - 2 * nu))
+    mass = np.bincount(mesh.tets.ravel(), weights=np.repeat(rho * vol / 4, 4), minlength=n)
+    dt = 1e-7  # small enough for any mesh here; the time per step does not depend on it
+    with wp.ScopedDevice(dev):
+        d_tets = wp.array(mesh.tets.astype(np.int32), dtype=int)
+        d_dhdx = wp.array(dhdx.astype(np.float32), dtype=wp.vec3)
+        d_vol = wp.array(vol.astype(np.float32), dtype=float)
+        d_mass = wp.array(mass.astype(np.float32), dtype=float)
+        u = wp.zeros(n, dtype=wp.vec3)
+        u_prev = wp.zeros(n, dtype=wp.vec3)
+        forces = wp.zeros(n, dtype=wp.vec3)
+        external = wp.array(np.tile([0.0, 0.0, -9.81], (n, 1)) * mass[:, None], dtype=wp.vec3)
+
+        def two_steps():
+            for _ in range(2):
+                wp.launch(element_forces, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, forces])
+                wp.launch(central_difference, n, [u, u_prev, forces, external, d_mass, dt])
+
+        two_steps()  # compile and warm up
+        graph = None
+        if dev.is_cuda:
+            with wp.ScopedCapture() as capture:
+                two_steps()
+            graph = capture.graph
+        for _ in range(50):  # warm the clocks and caches
+            wp.capture_launch(graph) if graph is not None else two_steps()
+        wp.synchronize_device(dev)
+        started = time.perf_counter()
+        for _ in range(steps // 2):
+            wp.capture_launch(graph) if graph is not None else two_steps()
+        wp.synchronize_device(dev)
+        wall = time.perf_counter() - started
+    done = 2 * (steps // 2)
+    return {"benchmark": "minimal_tled_step", "device": str(dev), "device_name": getattr(dev, "name", ""),
+            "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
+            "us_per_step": round(1e6 * wall / done, 3), "ns_per_element_step": round(1e9 * wall / done / m, 4)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tets", type=int, default=160_000, help="about this many tets (the bench's mesh)")
+    parser.add_argument("--steps", type=int, default=4000, help="steps timed")
+    parser.add_argument("--device", default=None, help="warp device (cuda, cpu); default warp's")
+    args = parser.parse_args()
+    print(json.dumps(measure(args.tets, args.steps, args.device)))
+
+
+if __name__ == "__main__":
+    main()
