@@ -29,8 +29,6 @@ for _code, _name in [(1, "fat"), (2, "glandular"), (3, "muscle"), (4, "tumour"),
                      (_LUNG, "lung"), (_RIB, "rib"), (_INTERCOSTAL, "muscle"), (_SUBPECTORAL_FAT, "fat")]:
     _MATERIAL_INTENSITY[_code] = INTENSITY[_name]
 _FINE_MM = 0.6  # target fine-grid spacing
-_COARSEST_FINE_MM = 0.7  # finer where the target's rounding leaves more (a 1.5 mm voxel split in 2 has
-                         # fractions in halves along that axis: many exact 0.5 ties in the truth labels)
 _SUBPECTORAL_FAT_MM = 2.0  # the thin fat plane between the pectoral muscle and the chest wall
 
 
@@ -163,7 +161,6 @@ def generate_phantom(params: PhantomParameters | None = None,
     grid = _Grid(lo, spacing, size)
     factors = np.maximum(1, np.rint(spacing / _FINE_MM)).astype(int)
     factors += factors % 2  # even, so the half-resolution grid below lands on fine voxels
-    factors[spacing / factors > _COARSEST_FINE_MM] += 2  # 1.5 mm voxels: 4 sub-voxels, not 2 (fewer exact ties)
     fine = grid.refined(factors)
     half = _Grid(fine.origin, fine.spacing * 2, (fine.size + 1) // 2)
     x, y, z = fine.broadcast(np.float32)  # float32 halves the memory traffic of the fine grid
