@@ -398,52 +398,89 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
                         f - (loads.body_start[i] + s * loads.body_force[i]), plates, plate_force)
 
 
+REDUCTION_BLOCK = wp.constant(256)  # threads per block of the per-model sums below
+
+
+def reduction_launch(kernel, n_models: int, n_items: int, inputs: list) -> None:
+    """Launch a per-model reduction kernel over ``n_items`` entries of each of ``n_models``
+    models: each model's range padded to whole blocks of :data:`REDUCTION_BLOCK` threads (the
+    kernel gets the padded length after ``inputs``), so that a block never mixes two models and
+    sums its threads' values before one atomic per block: a single atomic per entry on one
+    address per model serialises (160k elements: 0.29 ms per internal-energy sum on an H100)."""
+    padded = -(-n_items // REDUCTION_BLOCK) * REDUCTION_BLOCK
+    wp.launch(kernel, n_models * padded, inputs + [padded], block_dim=REDUCTION_BLOCK)
+
+
+@wp.func
+def model_and_entry(tid: int, padded: int) -> wp.vec2i:
+    """(model, entry) of thread ``tid`` of a :func:`reduction_launch`."""
+    b = tid // padded
+    return wp.vec2i(b, tid - b * padded)
+
+
 @wp.kernel
 def energies(du: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float, n_nodes: int,
-             kinetic: wp.array(dtype=float)):
-    """Kinetic energy per model at the last half step, velocity du / dt (J)."""
-    i = wp.tid()
-    v = du[i] / dt
-    wp.atomic_add(kinetic, i // n_nodes, 0.5 * mass[i] * wp.dot(v, v))
+             kinetic: wp.array(dtype=float), padded: int):
+    """Kinetic energy per model at the last half step, velocity du / dt (J); see :func:`reduction_launch`."""
+    at = model_and_entry(wp.tid(), padded)
+    value = float(0.0)
+    if at[1] < n_nodes:
+        i = at[0] * n_nodes + at[1]
+        v = du[i] / dt
+        value = 0.5 * mass[i] * wp.dot(v, v)
+    wp.tile_atomic_add(kinetic, wp.tile_sum(wp.tile(value)), offset=at[0])
 
 
 @wp.kernel
 def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                     vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
                     eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), n_nodes: int, n_elements: int,
-                    energy: wp.array(dtype=float)):
-    """Stored strain energy per model, sum of V0 W(F) (J)."""
-    tid = wp.tid()
-    b = tid // n_elements
-    e = tid - b * n_elements
-    base = b * n_nodes
-    F = deformation_gradient(u, base, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3],
-                             dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
-    if wp.determinant(F) > 0.0:
-        wp.atomic_add(energy, b, vol0[e] * strain_energy_density(F, mu[tid], kappa[tid], eta[tid], fibre[tid]))
+                    energy: wp.array(dtype=float), padded: int):
+    """Stored strain energy per model, sum of V0 W(F) over the elements with J > 0 (J); see
+    :func:`reduction_launch`."""
+    at = model_and_entry(wp.tid(), padded)
+    b, e = at[0], at[1]
+    value = float(0.0)
+    if e < n_elements:
+        tid = b * n_elements + e
+        F = deformation_gradient(u, b * n_nodes, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3],
+                                 dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
+        if wp.determinant(F) > 0.0:
+            value = vol0[e] * strain_energy_density(F, mu[tid], kappa[tid], eta[tid], fibre[tid])
+    wp.tile_atomic_add(energy, wp.tile_sum(wp.tile(value)), offset=b)
 
 
 @wp.kernel
 def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3),
                      f_curr: wp.array(dtype=wp.vec3), f_prev: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
-                     n_nodes: int, stiffness: wp.array(dtype=float), inertia: wp.array(dtype=float)):
+                     n_nodes: int, stiffness: wp.array(dtype=float), inertia: wp.array(dtype=float), padded: int):
     """Per model: du.K du ~ du.(F(u_curr) - F(u_prev)) and du.M du, du = u_curr - u_prev, for
     dynamic relaxation (Rayleigh quotient of the change since the last update: the lowest
-    eigenvalue once transients have died)."""
-    i = wp.tid()
-    b = i // n_nodes
-    du = u_curr[i] - u_prev[i]
-    wp.atomic_add(stiffness, b, wp.dot(du, f_curr[i] - f_prev[i]))
-    wp.atomic_add(inertia, b, mass[i] * wp.dot(du, du))
+    eigenvalue once transients have died); see :func:`reduction_launch`."""
+    at = model_and_entry(wp.tid(), padded)
+    k_part = float(0.0)
+    m_part = float(0.0)
+    if at[1] < n_nodes:
+        i = at[0] * n_nodes + at[1]
+        du = u_curr[i] - u_prev[i]
+        k_part = wp.dot(du, f_curr[i] - f_prev[i])
+        m_part = mass[i] * wp.dot(du, du)
+    wp.tile_atomic_add(stiffness, wp.tile_sum(wp.tile(k_part)), offset=at[0])
+    wp.tile_atomic_add(inertia, wp.tile_sum(wp.tile(m_part)), offset=at[0])
 
 
 @wp.kernel
 def largest_change(u: wp.array(dtype=wp.vec3), reference: wp.array(dtype=wp.vec3), n_nodes: int,
-                   largest: wp.array(dtype=float)):
-    """Per model the largest component of |u - reference| (m)."""
-    i = wp.tid()
-    d = wp.abs(u[i] - reference[i])
-    wp.atomic_max(largest, i // n_nodes, wp.max(d))
+                   largest: wp.array(dtype=float), padded: int):
+    """Per model the largest component of |u - reference| (m); see :func:`reduction_launch`."""
+    at = model_and_entry(wp.tid(), padded)
+    value = float(0.0)
+    if at[1] < n_nodes:
+        i = at[0] * n_nodes + at[1]
+        value = wp.max(wp.abs(u[i] - reference[i]))
+    block = wp.tile_max(wp.tile(value))
+    if value == block[0]:  # the block's largest (each thread its own on the CPU, whose tiles hold one lane)
+        wp.atomic_max(largest, at[0], value)
 
 
 @wp.kernel
@@ -457,18 +494,28 @@ def perturbed(u: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), eps: float
 def power_iteration_terms(v: wp.array(dtype=wp.vec3), f_probe: wp.array(dtype=wp.vec3),
                           f_base: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), eps: float,
                           n_nodes: int, vkv: wp.array(dtype=float), vmv: wp.array(dtype=float),
-                          next_v: wp.array(dtype=wp.vec3), largest: wp.array(dtype=float)):
+                          next_v: wp.array(dtype=wp.vec3), largest: wp.array(dtype=float), padded: int):
     """One power iteration on M^-1 K, K v ~ (f(u + eps v) - f(u)) / eps: per model the Rayleigh
     quotient parts v.Kv and v.Mv (its ratio is a lower bound of the largest eigenvalue omega_max^2,
-    1/s^2), the next vector M^-1 K v and its largest component (for normalisation)."""
-    i = wp.tid()
-    b = i // n_nodes
-    kv = (f_probe[i] - f_base[i]) / eps
-    wp.atomic_add(vkv, b, wp.dot(v[i], kv))
-    wp.atomic_add(vmv, b, mass[i] * wp.dot(v[i], v[i]))
-    w = kv / mass[i]
-    next_v[i] = w
-    wp.atomic_max(largest, b, wp.max(wp.abs(w)))
+    1/s^2), the next vector M^-1 K v and its largest component (for normalisation); see
+    :func:`reduction_launch`."""
+    at = model_and_entry(wp.tid(), padded)
+    k_part = float(0.0)
+    m_part = float(0.0)
+    top = float(0.0)
+    if at[1] < n_nodes:
+        i = at[0] * n_nodes + at[1]
+        kv = (f_probe[i] - f_base[i]) / eps
+        k_part = wp.dot(v[i], kv)
+        m_part = mass[i] * wp.dot(v[i], v[i])
+        w = kv / mass[i]
+        next_v[i] = w
+        top = wp.max(wp.abs(w))
+    wp.tile_atomic_add(vkv, wp.tile_sum(wp.tile(k_part)), offset=at[0])
+    wp.tile_atomic_add(vmv, wp.tile_sum(wp.tile(m_part)), offset=at[0])
+    block = wp.tile_max(wp.tile(top))
+    if top == block[0]:  # the block's largest (each thread its own on the CPU, whose tiles hold one lane)
+        wp.atomic_max(largest, at[0], top)
 
 
 @wp.kernel

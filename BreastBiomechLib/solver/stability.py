@@ -60,9 +60,9 @@ class StableStepMonitor:
             self._force(self._probe, self._f_probe)
             for a in (self._vkv, self._vmv, self._largest):
                 a.zero_()
-            wp.launch(k.power_iteration_terms, self._B * self._N,
-                      [self._v, self._f_probe, f_base, self._mass, self._eps, self._N, self._vkv, self._vmv,
-                       self._w, self._largest])
+            k.reduction_launch(k.power_iteration_terms, self._B, self._N,
+                               [self._v, self._f_probe, f_base, self._mass, self._eps, self._N, self._vkv, self._vmv,
+                                self._w, self._largest])
             wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
             self._zero_constrained()
         quotient = self._vkv.numpy().astype(float) / np.maximum(self._vmv.numpy().astype(float), 1e-300)

@@ -54,7 +54,8 @@ class DistanceToRest:
         remaining = None
         if self._samples:
             self._largest.zero_()
-            wp.launch(k.largest_change, u.shape[0], [u, self._sample, self._n_nodes, self._largest])
+            k.reduction_launch(k.largest_change, u.shape[0] // self._n_nodes, self._n_nodes,
+                               [u, self._sample, self._n_nodes, self._largest])
             change = self._largest.numpy().astype(np.float64) / MM
             if self._change is not None:
                 # a model that stood still at the previous sample is not contracting (rate inf)
@@ -675,11 +676,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             internal.zero_()
             # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
             # u_{n-1}: the pair the central-difference scheme conserves to second order
-            wp.launch(k.energies, B * N, [du, d_mass, float(dt), N, kinetic])
+            k.reduction_launch(k.energies, B, N, [du, d_mass, float(dt), N, kinetic])
             wp.launch(k.perturbed, B * N, [u, du, -1.0, scratch])  # u_(n-1)
             for state in (u, scratch):
-                wp.launch(k.internal_energy, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta,
-                                                      d_fibre, N, M, internal])
+                k.reduction_launch(k.internal_energy, B, M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta,
+                                                             d_fibre, N, M, internal])
             ke, ie = kinetic.numpy().astype(float), 0.5 * internal.numpy().astype(float)
             history["time"].append(done * dt)
             history["kinetic"].append(ke)
@@ -727,7 +728,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if relaxation is not None:
                 for a in (stiffness, inertia):
                     a.zero_()
-                wp.launch(k.relaxation_terms, B * N, [u, u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
+                k.reduction_launch(k.relaxation_terms, B, N, [u, u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
                 wp.copy(u_last, u)
                 wp.copy(f_last, f_curr)
                 lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
