@@ -48,9 +48,9 @@ class StableStepMonitor:
         if n_con:
             wp.launch(k.zero_constrained, self._B * n_con, [self._v, self._cnodes, self._cmask, self._N, n_con])
 
-    def iterate(self, state: wp.array, iterations: int = 1, base_force: wp.array | None = None) -> np.ndarray:
-        """Advance the power iteration at displacement ``state`` (m); returns the stable step
-        estimate 2 / omega (s) per model (inf where no stiffness was seen). ``base_force``: the
+    def advance(self, state: wp.array, iterations: int = 1, base_force: wp.array | None = None) -> None:
+        """Device work of :meth:`iterate` (no host synchronisation, so it can be captured in a
+        graph): ``iterations`` power iterations at displacement ``state`` (m); ``base_force``: the
         internal forces of ``state`` when the caller has them already."""
         if base_force is None:
             self._force(state, self._f_base)
@@ -65,8 +65,19 @@ class StableStepMonitor:
                                 self._w, self._largest])
             wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
             self._zero_constrained()
+
+    def stable_step(self) -> np.ndarray:
+        """The stable step estimate 2 / omega (s) per model after the last :meth:`advance` (inf
+        where no stiffness was seen)."""
         quotient = self._vkv.numpy().astype(float) / np.maximum(self._vmv.numpy().astype(float), 1e-300)
         self.omega_squared = quotient
         with np.errstate(divide="ignore"):
             positive = self.omega_squared > 0
         return np.where(positive, 2.0 / np.sqrt(np.where(positive, self.omega_squared, 1.0)), np.inf)
+
+    def iterate(self, state: wp.array, iterations: int = 1, base_force: wp.array | None = None) -> np.ndarray:
+        """Advance the power iteration at displacement ``state`` (m); returns the stable step
+        estimate 2 / omega (s) per model (inf where no stiffness was seen). ``base_force``: the
+        internal forces of ``state`` when the caller has them already."""
+        self.advance(state, iterations, base_force)
+        return self.stable_step()

@@ -48,14 +48,19 @@ class DistanceToRest:
         self._samples = 0
         self._change = None
 
-    def update(self, u: wp.array) -> np.ndarray | None:
-        """``u`` the displacement (m) of the B models; returns (B,) estimates (mm) from the third
-        sample on."""
+    def measure(self, u: wp.array) -> None:
+        """Device work of a sample (no host synchronisation, so it can be captured in a graph):
+        the largest change of ``u`` (m) since the previous measurement; ``u`` kept for the next."""
+        self._largest.zero_()
+        k.reduction_launch(k.largest_change, self._largest.shape[0], self._n_nodes,
+                           [u, self._sample, self._n_nodes, self._largest])
+        wp.copy(self._sample, u)
+
+    def estimate(self) -> np.ndarray | None:
+        """(B,) estimates (mm) from the last :meth:`measure`, from the third estimate on; call
+        once per measurement, at consecutive measurements (the first call only starts counting)."""
         remaining = None
         if self._samples:
-            self._largest.zero_()
-            k.reduction_launch(k.largest_change, u.shape[0] // self._n_nodes, self._n_nodes,
-                               [u, self._sample, self._n_nodes, self._largest])
             change = self._largest.numpy().astype(np.float64) / MM
             if self._change is not None:
                 # a model that stood still at the previous sample is not contracting (rate inf)
@@ -66,9 +71,14 @@ class DistanceToRest:
                 at_rest = change <= ROUND_OFF_MM  # nothing left to contract
                 remaining[at_rest] = change[at_rest]
             self._change = change
-        wp.copy(self._sample, u)
         self._samples += 1
         return remaining
+
+    def update(self, u: wp.array) -> np.ndarray | None:
+        """``u`` the displacement (m) of the B models; returns (B,) estimates (mm) from the third
+        sample on (:meth:`measure` then :meth:`estimate`)."""
+        self.measure(u)
+        return self.estimate()
 
 
 @dataclass
@@ -565,12 +575,15 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
         every_model = arr(np.ones(B, np.int32), int)
+        probe_clock, no_plates = wp.zeros(2, dtype=int), wp.zeros(0, dtype=wp.vec3)
 
-        def internal_force(state, out, pressure_buffer, flags, models=every_model, update_state=0, cleared=False):
+        def internal_force(state, out, pressure_buffer, flags, models=every_model, update_state=0, cleared=False,
+                           step_clock=None, to_clear=None):
             """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)
             for the ``models`` flagged 1 (the others' stay zero); ``update_state`` advances the
             visco state variables by one step; ``cleared``: ``out`` and ``pressure_buffer`` are
-            zero already (the step kernels clear them)."""
+            zero already (the step kernels clear them). A step passes its clock and the plate
+            forces to clear (see :func:`kernels.element_forces`); a probe leaves both alone."""
             if not cleared:
                 out.zero_()
                 pressure_buffer.zero_()
@@ -579,14 +592,16 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                                      models, pressure_buffer])
             wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
                                                  use_anp, d_slots, S, pressure_buffer, d_slotvol, K, d_prony_g,
-                                                 d_prony_decay, visco_state, update_state, N, M, clock, models, out,
-                                                 flags, plate_force])
+                                                 d_prony_decay, visco_state, update_state, N, M,
+                                                 probe_clock if step_clock is None else step_clock, models, out, flags,
+                                                 no_plates if to_clear is None else to_clear])
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
                 wp.launch(k.support_springs, B * n_sup, [state, d_snodes, d_snormals, d_sstiff, N, n_sup, models, out])
 
         def one_step():
             # converged models stand still: their element forces are not computed again
-            internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True)
+            internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True, step_clock=clock,
+                           to_clear=plate_force)
             wp.launch(k.advance_nodes, B * N, [u, low, du, forces, pressure, loads, constraints, plates, d_active, N,
                                                clock, plate_force, inverted])
 
@@ -660,6 +675,36 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             mass_rescales += 1
             return stable * np.sqrt(grow)
 
+        def sample():
+            """The device work of a sample, before anything is read back: energies, the forces
+            at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms and the
+            displacement change since the last sample."""
+            kinetic.zero_()
+            internal.zero_()
+            # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
+            # u_{n-1}: the pair the central-difference scheme conserves to second order
+            k.reduction_launch(k.energies, B, N, [du, d_mass, float(dt), N, kinetic])
+            wp.launch(k.perturbed, B * N, [u, du, -1.0, scratch])  # u_(n-1)
+            for state in (u, scratch):
+                k.reduction_launch(k.internal_energy, B, M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta,
+                                                             d_fibre, N, M, internal])
+            if relaxation is not None:  # the relaxation update needs the same forces
+                probe_force(u, f_curr)
+            monitor.advance(u, base_force=f_curr if relaxation is not None else None)
+            if relaxation is not None:
+                for a in (stiffness, inertia):
+                    a.zero_()
+                k.reduction_launch(k.relaxation_terms, B, N, [u, u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
+                wp.copy(u_last, u)
+                wp.copy(f_last, f_curr)
+            distance_to_rest.measure(u)
+
+        sample_graph = None
+        if device.is_cuda:  # one graph launch and one wait per sample instead of some thirty of each
+            with wp.ScopedCapture() as capture:
+                sample()
+            sample_graph = capture.graph
+
         if scaled:
             stable_step = keep_step_stable(stable_step)
         elif dt > stable_step.min():
@@ -672,15 +717,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 else:
                     two_steps()
             done += 2 * pairs
-            kinetic.zero_()
-            internal.zero_()
-            # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
-            # u_{n-1}: the pair the central-difference scheme conserves to second order
-            k.reduction_launch(k.energies, B, N, [du, d_mass, float(dt), N, kinetic])
-            wp.launch(k.perturbed, B * N, [u, du, -1.0, scratch])  # u_(n-1)
-            for state in (u, scratch):
-                k.reduction_launch(k.internal_energy, B, M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta,
-                                                             d_fibre, N, M, internal])
+            if sample_graph is not None:
+                wp.capture_launch(sample_graph)
+            else:
+                sample()
             ke, ie = kinetic.numpy().astype(float), 0.5 * internal.numpy().astype(float)
             history["time"].append(done * dt)
             history["kinetic"].append(ke)
@@ -700,9 +740,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 status, message = "unstable", (f"the solution diverged by step {done}; reduce the time step "
                                                f"(now {dt:.3g} s) or the safety factor")
                 break
-            if relaxation is not None:  # the relaxation update below needs the same forces
-                probe_force(u, f_curr)
-            stable_step = monitor.iterate(u, base_force=f_curr if relaxation is not None else None)
+            stable_step = monitor.stable_step()
             stable_step[~alive] = np.inf  # a frozen model's step no longer matters
             history["stable_time_step"].append(stable_step)
             if scaled:
@@ -716,7 +754,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max((ke / np.maximum(ie, 1e-30))[alive]))
             if steady_state_mm is not None and done * dt >= total - 0.5 * dt:
-                remaining = distance_to_rest.update(u)
+                remaining = distance_to_rest.estimate()
                 if remaining is not None:
                     at_rest = np.all(remaining < steady_state_mm) and np.all(ke < 1e-3 * np.maximum(ie, 1e-30))
                     settled_checks = settled_checks + 1 if at_rest else 0
@@ -726,18 +764,13 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                    f"{n_steps - done} of {n_steps} steps early")
                         break
             if relaxation is not None:
-                for a in (stiffness, inertia):
-                    a.zero_()
-                k.reduction_launch(k.relaxation_terms, B, N, [u, u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
-                wp.copy(u_last, u)
-                wp.copy(f_last, f_curr)
                 lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
                 loaded = done * dt >= totals
                 if loaded.any():
                     ok = (lam > 0) & loaded
                     damping[ok] = np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt)
                     d_damping.assign(damping.astype(f32))
-                    remaining = distance_to_rest.update(u)
+                    remaining = distance_to_rest.estimate()
                     if remaining is not None:
                         running = (active == 1) & loaded
                         estimated_error[running] = remaining[running]
