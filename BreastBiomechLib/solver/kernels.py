@@ -88,13 +88,15 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slot
     e = tid - b * n_elements
     base = b * n_nodes
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    F = deformation_gradient(u, base, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
-    pv = kappa[tid] * (wp.determinant(F) - 1.0) * vol0[e]
     slot_base = b * n_slots
-    wp.atomic_add(pressure_volume, slot_base + slots[e, 0], pv)
-    wp.atomic_add(pressure_volume, slot_base + slots[e, 1], pv)
-    wp.atomic_add(pressure_volume, slot_base + slots[e, 2], pv)
-    wp.atomic_add(pressure_volume, slot_base + slots[e, 3], pv)
+    s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
+    kappa_e, v0 = kappa[tid], vol0[e]
+    F = deformation_gradient(u, base, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
+    pv = kappa_e * (wp.determinant(F) - 1.0) * v0
+    wp.atomic_add(pressure_volume, slot_base + s0, pv)
+    wp.atomic_add(pressure_volume, slot_base + s1, pv)
+    wp.atomic_add(pressure_volume, slot_base + s2, pv)
+    wp.atomic_add(pressure_volume, slot_base + s3, pv)
 
 
 @wp.kernel
@@ -131,8 +133,16 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
         return
     e = tid - b * n_elements
     base = b * n_nodes
+    # every read that does not depend on another first, so that they are in flight together
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+    mu_e, kappa_e, eta_e, fibre_e, v0 = mu[tid], kappa[tid], eta[tid], fibre[tid], vol0[e]
+    pm = float(0.0)
+    if use_anp != 0:
+        s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
+        sb = b * n_slots
+        pm = 0.25 * (pressure_volume[sb + s0] / slot_volume[s0] + pressure_volume[sb + s1] / slot_volume[s1]
+                     + pressure_volume[sb + s2] / slot_volume[s2] + pressure_volume[sb + s3] / slot_volume[s3])
     F = deformation_gradient(u, base, n0, n1, n2, n3, d0, d1, d2, d3)
     J = wp.determinant(F)
     if J <= 0.0:
@@ -141,19 +151,15 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
             inverted[4 * b + 2] = clock[0]
         return
     if use_anp != 0:
-        s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
-        sb = b * n_slots
-        pm = 0.25 * (pressure_volume[sb + s0] / slot_volume[s0] + pressure_volume[sb + s1] / slot_volume[s1]
-                     + pressure_volume[sb + s2] / slot_volume[s2] + pressure_volume[sb + s3] / slot_volume[s3])
-        Jm = pm / kappa[tid] + 1.0
+        Jm = pm / kappa_e + 1.0
         if Jm <= 0.0:
             if wp.atomic_add(inverted, 4 * b, 1) == 0:
                 inverted[4 * b + 1] = e
                 inverted[4 * b + 2] = clock[0]
             return
         F = wp.pow(Jm / J, 1.0 / 3.0) * F
-    S_iso = isochoric_stress(F, mu[tid], eta[tid], fibre[tid])
-    S = S_iso + volumetric_stress(F, kappa[tid])
+    S_iso = isochoric_stress(F, mu_e, eta_e, fibre_e)
+    S = S_iso + volumetric_stress(F, kappa_e)
     for i in range(n_terms):
         slot = tid * n_terms + i
         Q = visco_state[slot]
@@ -161,22 +167,11 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
             Q = prony_decay[slot] * Q + (1.0 - prony_decay[slot]) * S_iso
             visco_state[slot] = Q
         S = S - prony_g[slot] * Q
-    P = vol0[e] * (F * S)
+    P = v0 * (F * S)
     wp.atomic_add(forces, base + n0, P * d0)
     wp.atomic_add(forces, base + n1, P * d1)
     wp.atomic_add(forces, base + n2, P * d2)
     wp.atomic_add(forces, base + n3, P * d3)
-
-
-@wp.func
-def compensated_add(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), i: int, du: wp.vec3):
-    """u[i] += du with the float32 rounding error carried in ``low`` (Kahan summation): the
-    displacement is u + low to about 1e-14 m. Plain float32 loses increments below half an ulp of
-    u (1e-9 m at 20 mm), so slow motion at small time steps stalls short of equilibrium."""
-    y = du + low[i]
-    t = u[i] + y
-    low[i] = y - (t - u[i])
-    u[i] = t
 
 
 @wp.func
@@ -254,11 +249,20 @@ class PlateContact:
     touching: wp.array(dtype=int)
 
 
+@wp.struct
+class NodeState:
+    """One node's displacement ``u`` (m), its float32 rounding remainder ``low`` (see
+    :func:`advance_nodes`) and its last increment ``du`` (m), held in registers while a step
+    updates them."""
+    u: wp.vec3
+    du: wp.vec3
+    low: wp.vec3
+
+
 @wp.func
-def touch_plate(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                i: int, node: int, q: int, state: int, s: float, contact: wp.vec3, plates: PlateContact,
-                plate_force: wp.array(dtype=wp.vec3)):
-    """Kinematic contact of node ``node`` (entry i of model b) with rigid plate q at load
+def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: wp.vec3, plates: PlateContact,
+                plate_force: wp.array(dtype=wp.vec3)) -> NodeState:
+    """Node ``node`` (its state ``x``, returned updated) in kinematic contact with rigid plate q at load
     factor s: a node behind the plate is moved back onto its surface along the surface normal by
     the depth d it went in. A plate's flat face ends ``edge_shape[q][0]`` along
     ``edge_direction[q]`` from its point, in a convex rounded edge of radius
@@ -275,7 +279,7 @@ def touch_plate(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp
     ``contact`` is the node's internal minus external (gravity) force (N): the plate force
     gains its normal part and, with friction, its tangential part up to mu times the normal part
     (the force the plate applies to the tissue)."""
-    rel = plates.x0[node] + u[i] - (plates.point[q] + s * plates.motion[q])
+    rel = plates.x0[node] + x.u - (plates.point[q] + s * plates.motion[q])
     n = plates.normal[q]
     gap = wp.dot(rel, n)
     e = plates.edge_direction[q]
@@ -305,16 +309,17 @@ def touch_plate(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp
                 pull = clipped(pull - wp.dot(pull, normal) * normal, mu * depth)
                 plates.anchor[state] = on_plate + pull  # unchanged in stick, the new position in slip
                 correction = correction + pull
-            low[i] = wp.vec3(0.0)
+            x.low = wp.vec3(0.0)
             tangential = clipped(contact - normal_force * normal, mu * wp.max(normal_force, 0.0))
             wp.atomic_add(plate_force, q, normal_force * normal + tangential)
         else:
-            low[i] = low[i] - wp.dot(low[i], normal) * normal
+            x.low = x.low - wp.dot(x.low, normal) * normal
             wp.atomic_add(plate_force, q, normal_force * normal)
-        u[i] = u[i] + correction
-        du[i] = du[i] + correction
+        x.u = x.u + correction
+        x.du = x.du + correction
     elif mu > 0.0:
         plates.touching[state] = 0
+    return x
 
 
 @wp.kernel
@@ -324,12 +329,13 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
                   active: wp.array(dtype=int), n_nodes: int, clock: wp.array(dtype=int),
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
     """The node half of a step, one thread per node and model, everything a node's update
-    needs in one launch (a step is launch-bound at breast-model sizes):
+    needs in one launch, its state kept in registers (:class:`NodeState`) from its one read to its
+    one write (at breast-model sizes a step is bound by latency, not by bandwidth):
 
     1. Seed eq. (15) in increment form: du_(n+1) = ((R - F) dt^2 / m + (1 - a dt/2) du_n) /
        (1 + a dt/2), u_(n+1) = u_n + du_(n+1), the same scheme as (m/dt^2 + a m/(2 dt)) u_(n+1) =
        R - F + 2m/dt^2 u_n - (m/dt^2 - a m/(2 dt)) u_(n-1) without its float32 cancellation, and
-       u accumulated with compensation (:func:`compensated_add`). ``du`` holds the last increment
+       u accumulated with compensation (Kahan summation, the remainder in ``low``). ``du`` holds the last increment
        (velocity x dt). The external force R is ``body_start + load x body_force`` (gravity on
        the physical mass; ``mass`` may be fictitious under mass scaling): the force already
        acting at the start (a pre-stressed, gravity-loaded reference state) and its change over
@@ -363,22 +369,29 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
         return
     t = float(step + 1) * loads.dt
     s = load_factor(t, loads.t_total[b], loads.load_shape)
-    if active[b] == 0:
-        du[i] = wp.vec3(0.0)
-    else:
+    x = NodeState()
+    x.u = u[i]
+    x.low = low[i]
+    x.du = wp.vec3(0.0)
+    if active[b] != 0:
         half = 0.5 * loads.damping[b] * loads.dt
         external = loads.body_start[i] + s * loads.body_force[i]
-        increment = ((external - f) / loads.mass[i] * (loads.dt * loads.dt) + (1.0 - half) * du[i]) / (1.0 + half)
-        du[i] = increment
-        compensated_add(u, low, i, increment)
+        x.du = ((external - f) / loads.mass[i] * (loads.dt * loads.dt) + (1.0 - half) * du[i]) / (1.0 + half)
+        # u += du with the rounding error carried in low (Kahan summation): the displacement is
+        # u + low to about 1e-14 m; plain float32 loses increments below half an ulp of u (1e-9 m
+        # at 20 mm), so slow motion at small time steps would stall short of equilibrium
+        y = x.du + x.low
+        total = x.u + y
+        x.low = y - (total - x.u)
+        x.u = total
     a = i - b * n_nodes
     for c in range(constraints.slide.shape[1]):
         row = constraints.slide[a, c]
         if row >= 0:
             n = constraints.slide_normals[row]
-            u[i] = u[i] - wp.dot(u[i], n) * n
-            du[i] = du[i] - wp.dot(du[i], n) * n
-            low[i] = low[i] - wp.dot(low[i], n) * n
+            x.u = x.u - wp.dot(x.u, n) * n
+            x.du = x.du - wp.dot(x.du, n) * n
+            x.low = x.low - wp.dot(x.low, n) * n
     k = constraints.constrained[a]
     if k >= 0:
         m = constraints.mask[k]
@@ -387,15 +400,18 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
         target = wp.vec3(load_factor(t, loads.t_total[b], shape[0]) * v[0],
                          load_factor(t, loads.t_total[b], shape[1]) * v[1],
                          load_factor(t, loads.t_total[b], shape[2]) * v[2])
-        previous = u[i] - du[i]
-        u[i] = set_component(u[i], m, target)
-        du[i] = set_component(du[i], m, target - previous)
-        low[i] = set_component(low[i], m, wp.vec3(0.0))
+        previous = x.u - x.du
+        x.u = set_component(x.u, m, target)
+        x.du = set_component(x.du, m, target - previous)
+        x.low = set_component(x.low, m, wp.vec3(0.0))
     for p in range(plates.n_plates):
         slot = plates.slot[a, p]
         if slot >= 0:
-            touch_plate(u, low, du, i, a, b * plates.n_plates + p, b * plates.n_slots + slot, s,
-                        f - (loads.body_start[i] + s * loads.body_force[i]), plates, plate_force)
+            x = touch_plate(x, a, b * plates.n_plates + p, b * plates.n_slots + slot, s,
+                            f - (loads.body_start[i] + s * loads.body_force[i]), plates, plate_force)
+    u[i] = x.u
+    du[i] = x.du
+    low[i] = x.low
 
 
 REDUCTION_BLOCK = wp.constant(256)  # threads per block of the per-model sums below
