@@ -2,12 +2,13 @@
 
 One neo-Hookean four-node-tet element kernel (no ANP, no visco, no fibres, no inversion
 flags: F, its stress and four atomic adds) and one node kernel (undamped central difference,
-no constraints, no contact), replayed as a CUDA graph of two steps on the benchmarks'
+no constraints, no contact); with ``--anp`` also the average-nodal-pressure pass (one slot per
+node) before it, replayed as a CUDA graph of two steps on the benchmarks'
 hemi-ellipsoid (``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's
 step does more (ANP's second element pass, damping, constraints, plates, per-model flags), so
 the ratio of the two per-step times is the price of that work plus whatever the solver wastes.
 
-    python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda]
+    python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda] [--anp]
 
 prints one JSON line: the mesh size, microseconds per step and per element-step. Units inside
 the kernels are SI (m, Pa, kg, s, N). Times are wall-clock over synchronised graph replays,
@@ -50,17 +51,60 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
 
 
 @wp.kernel
+def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                   vol: wp.array(dtype=float), kappa: float, pressure_volume: wp.array(dtype=float)):
+    """ANP pass 1 (``--anp``): kappa (J - 1) V at each node of the element, one slot per node."""
+    e = wp.tid()
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], dhdx[e, 0]) + wp.outer(u[n1], dhdx[e, 1])
+         + wp.outer(u[n2], dhdx[e, 2]) + wp.outer(u[n3], dhdx[e, 3]))
+    pv = kappa * (wp.determinant(F) - 1.0) * vol[e]
+    wp.atomic_add(pressure_volume, n0, pv)
+    wp.atomic_add(pressure_volume, n1, pv)
+    wp.atomic_add(pressure_volume, n2, pv)
+    wp.atomic_add(pressure_volume, n3, pv)
+
+
+@wp.kernel
+def anp_element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                       vol: wp.array(dtype=float), mu: float, kappa: float, pressure_volume: wp.array(dtype=float),
+                       node_volume: wp.array(dtype=float), forces: wp.array(dtype=wp.vec3)):
+    """``--anp``: the element's F scaled to the mean of its nodes' averaged J, then as :func:`element_forces`."""
+    e = wp.tid()
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], d0) + wp.outer(u[n1], d1) + wp.outer(u[n2], d2)
+         + wp.outer(u[n3], d3))
+    pm = 0.25 * (pressure_volume[n0] / node_volume[n0] + pressure_volume[n1] / node_volume[n1]
+                 + pressure_volume[n2] / node_volume[n2] + pressure_volume[n3] / node_volume[n3])
+    F = wp.pow((pm / kappa + 1.0) / wp.determinant(F), 1.0 / 3.0) * F
+    C = wp.transpose(F) * F
+    Cinv = wp.inverse(C)
+    J = wp.determinant(F)
+    S = (mu * wp.pow(J, -2.0 / 3.0) * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
+         + kappa * J * (J - 1.0) * Cinv)
+    P = vol[e] * (F * S)
+    wp.atomic_add(forces, n0, P * d0)
+    wp.atomic_add(forces, n1, P * d1)
+    wp.atomic_add(forces, n2, P * d2)
+    wp.atomic_add(forces, n3, P * d3)
+
+
+@wp.kernel
 def central_difference(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3), forces: wp.array(dtype=wp.vec3),
-                       external: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float):
-    """u_(n+1) = 2 u_n - u_(n-1) + (R - F) dt^2 / m; the forces cleared for the next step."""
+                       external: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float,
+                       pressure_volume: wp.array(dtype=float)):
+    """u_(n+1) = 2 u_n - u_(n-1) + (R - F) dt^2 / m; the forces (and ANP pressures) cleared for the next step."""
     i = wp.tid()
     un = u[i]
     u[i] = 2.0 * un - u_prev[i] + (external[i] - forces[i]) * (dt * dt / mass[i])
     u_prev[i] = un
     forces[i] = wp.vec3(0.0)
+    if i < pressure_volume.shape[0]:
+        pressure_volume[i] = 0.0
 
 
-def measure(tets_wanted: int, steps: int, device: str | None) -> dict:
+def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False) -> dict:
     wp.init()
     dev = wp.get_device(device)
     mesh = hemi_ellipsoid_mesh(BENCH_RADII_MM, _hemi_ellipsoid_spacing(tets_wanted))
@@ -80,11 +124,19 @@ def measure(tets_wanted: int, steps: int, device: str | None) -> dict:
         u_prev = wp.zeros(n, dtype=wp.vec3)
         forces = wp.zeros(n, dtype=wp.vec3)
         external = wp.array(np.tile([0.0, 0.0, -9.81], (n, 1)) * mass[:, None], dtype=wp.vec3)
+        pressure_volume = wp.zeros(n if anp else 0, dtype=float)
+        node_volume = wp.array(np.bincount(mesh.tets.ravel(), weights=np.repeat(vol, 4), minlength=n).astype(np.float32),
+                               dtype=float)
 
         def two_steps():
             for _ in range(2):
-                wp.launch(element_forces, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, forces])
-                wp.launch(central_difference, n, [u, u_prev, forces, external, d_mass, dt])
+                if anp:
+                    wp.launch(nodal_pressure, m, [u, d_tets, d_dhdx, d_vol, kappa, pressure_volume])
+                    wp.launch(anp_element_forces, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, pressure_volume,
+                                                      node_volume, forces])
+                else:
+                    wp.launch(element_forces, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, forces])
+                wp.launch(central_difference, n, [u, u_prev, forces, external, d_mass, dt, pressure_volume])
 
         two_steps()  # compile and warm up
         graph = None
@@ -102,7 +154,7 @@ def measure(tets_wanted: int, steps: int, device: str | None) -> dict:
         wall = time.perf_counter() - started
     done = 2 * (steps // 2)
     return {"benchmark": "minimal_tled_step", "device": str(dev), "device_name": getattr(dev, "name", ""),
-            "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
+            "anp": anp, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
             "us_per_step": round(1e6 * wall / done, 3), "ns_per_element_step": round(1e9 * wall / done / m, 4)}
 
 
@@ -111,8 +163,10 @@ def main() -> None:
     parser.add_argument("--tets", type=int, default=160_000, help="about this many tets (the bench's mesh)")
     parser.add_argument("--steps", type=int, default=4000, help="steps timed")
     parser.add_argument("--device", default=None, help="warp device (cuda, cpu); default warp's")
+    parser.add_argument("--anp", action="store_true",
+                        help="with average nodal pressure (one more element pass, as the solver's T4ANP)")
     args = parser.parse_args()
-    print(json.dumps(measure(args.tets, args.steps, args.device)))
+    print(json.dumps(measure(args.tets, args.steps, args.device, args.anp)))
 
 
 if __name__ == "__main__":

@@ -42,11 +42,10 @@ def deformation_gradient(u: wp.array(dtype=wp.vec3), base: int, n0: int, n1: int
 
 
 @wp.func
-def isochoric_stress(F: wp.mat33, mu: float, eta: float, a: wp.vec3) -> wp.mat33:
-    """Isochoric second Piola-Kirchhoff stress 2 dW_iso/dC, W_iso = mu/2 (I1bar - 3) + eta/2 (I4bar - 1)^2."""
-    C = wp.transpose(F) * F
-    Cinv = wp.inverse(C)
-    J23 = wp.pow(wp.determinant(F), -2.0 / 3.0)
+def isochoric_stress(C: wp.mat33, Cinv: wp.mat33, J: float, mu: float, eta: float, a: wp.vec3) -> wp.mat33:
+    """Isochoric second Piola-Kirchhoff stress 2 dW_iso/dC, W_iso = mu/2 (I1bar - 3) + eta/2 (I4bar - 1)^2,
+    from C = F^T F, its inverse and J = det F (computed once per element for both stress parts)."""
+    J23 = wp.pow(J, -2.0 / 3.0)
     S = mu * J23 * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
     if eta > 0.0:
         I4 = wp.dot(a, C * a)
@@ -55,10 +54,9 @@ def isochoric_stress(F: wp.mat33, mu: float, eta: float, a: wp.vec3) -> wp.mat33
 
 
 @wp.func
-def volumetric_stress(F: wp.mat33, kappa: float) -> wp.mat33:
+def volumetric_stress(Cinv: wp.mat33, J: float, kappa: float) -> wp.mat33:
     """Volumetric second Piola-Kirchhoff stress 2 dW_vol/dC, W_vol = kappa/2 (J - 1)^2."""
-    J = wp.determinant(F)
-    return kappa * J * (J - 1.0) * wp.inverse(wp.transpose(F) * F)
+    return kappa * J * (J - 1.0) * Cinv
 
 
 @wp.func
@@ -158,8 +156,11 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                 inverted[4 * b + 2] = clock[0]
             return
         F = wp.pow(Jm / J, 1.0 / 3.0) * F
-    S_iso = isochoric_stress(F, mu_e, eta_e, fibre_e)
-    S = S_iso + volumetric_stress(F, kappa_e)
+    C = wp.transpose(F) * F
+    Cinv = wp.inverse(C)
+    J = wp.determinant(F)
+    S_iso = isochoric_stress(C, Cinv, J, mu_e, eta_e, fibre_e)
+    S = S_iso + volumetric_stress(Cinv, J, kappa_e)
     for i in range(n_terms):
         slot = tid * n_terms + i
         Q = visco_state[slot]
