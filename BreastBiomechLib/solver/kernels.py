@@ -1,7 +1,10 @@
 """Warp kernels of the TLED solver (total Lagrangian explicit dynamics).
 
-All kernels work on a batch of B models that share one mesh: node arrays hold B*N entries
-(model b's node a at b*N + a), element arrays B*M entries. Units inside the kernels are SI:
+All kernels work on a batch of B models that share one mesh, models innermost: node arrays hold
+N*B entries (model b's node a at a*B + b), element arrays M*B (element e at e*B + b), ANP slot
+arrays S*B, so that the threads of one element (or node) for the B models are neighbours: they
+read the element's connectivity and shape-function derivatives once between them, and their
+displacements, forces and materials side by side. Units inside the kernels are SI:
 metres, pascal, kilograms, seconds, newtons. Vectors are in the mesh frame (LPS axes).
 """
 
@@ -34,11 +37,11 @@ def load_factor(t: float, total: float, shape: int) -> float:
 
 
 @wp.func
-def deformation_gradient(u: wp.array(dtype=wp.vec3), base: int, n0: int, n1: int, n2: int, n3: int,
+def deformation_gradient(u: wp.array(dtype=wp.vec3), b: int, n_models: int, n0: int, n1: int, n2: int, n3: int,
                          d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3) -> wp.mat33:
-    """F = I + sum_a u_a (x) dN_a/dX."""
-    return (wp.identity(n=3, dtype=float) + wp.outer(u[base + n0], d0) + wp.outer(u[base + n1], d1)
-            + wp.outer(u[base + n2], d2) + wp.outer(u[base + n3], d3))
+    """F = I + sum_a u_a (x) dN_a/dX of model b."""
+    return (wp.identity(n=3, dtype=float) + wp.outer(u[n0 * n_models + b], d0) + wp.outer(u[n1 * n_models + b], d1)
+            + wp.outer(u[n2 * n_models + b], d2) + wp.outer(u[n3 * n_models + b], d3))
 
 
 @wp.func
@@ -74,38 +77,35 @@ def strain_energy_density(F: wp.mat33, mu: float, kappa: float, eta: float, a: w
 @wp.kernel
 def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
                    dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), kappa: wp.array(dtype=float),
-                   n_nodes: int, n_slots: int, n_elements: int, active: wp.array(dtype=int),
-                   pressure_volume: wp.array(dtype=float)):
+                   n_models: int, active: wp.array(dtype=int), pressure_volume: wp.array(dtype=float)):
     """ANP pass 1: accumulate kappa (J_e - 1) V_e at each of the element's ANP slots: its nodes,
     one slot per node and material (see :func:`BreastBiomechLib.solver.tled.anp_slots`). Models
     with ``active[b]`` = 0 (converged: they stand still) are skipped."""
     tid = wp.tid()
-    b = tid // n_elements
+    e = tid // n_models
+    b = tid - e * n_models
     if active[b] == 0:
         return
-    e = tid - b * n_elements
-    base = b * n_nodes
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    slot_base = b * n_slots
     s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
     kappa_e, v0 = kappa[tid], vol0[e]
-    F = deformation_gradient(u, base, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
+    F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
     pv = kappa_e * (wp.determinant(F) - 1.0) * v0
-    wp.atomic_add(pressure_volume, slot_base + s0, pv)
-    wp.atomic_add(pressure_volume, slot_base + s1, pv)
-    wp.atomic_add(pressure_volume, slot_base + s2, pv)
-    wp.atomic_add(pressure_volume, slot_base + s3, pv)
+    wp.atomic_add(pressure_volume, s0 * n_models + b, pv)
+    wp.atomic_add(pressure_volume, s1 * n_models + b, pv)
+    wp.atomic_add(pressure_volume, s2 * n_models + b, pv)
+    wp.atomic_add(pressure_volume, s3 * n_models + b, pv)
 
 
 @wp.kernel
 def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                    vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
                    eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), use_anp: int,
-                   slots: wp.array2d(dtype=int), n_slots: int,
+                   slots: wp.array2d(dtype=int),
                    pressure_volume: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
-                   n_nodes: int, n_elements: int, clock: wp.array(dtype=int), active: wp.array(dtype=int),
+                   n_models: int, clock: wp.array(dtype=int), active: wp.array(dtype=int),
                    forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int),
                    plate_force: wp.array(dtype=wp.vec3)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
@@ -126,11 +126,10 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
         clock[1] = clock[0]
     if tid < plate_force.shape[0]:
         plate_force[tid] = wp.vec3(0.0)
-    b = tid // n_elements
+    e = tid // n_models
+    b = tid - e * n_models
     if inverted[4 * b + 3] != 0 or active[b] == 0:
         return
-    e = tid - b * n_elements
-    base = b * n_nodes
     # every read that does not depend on another first, so that they are in flight together
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
@@ -138,10 +137,11 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     pm = float(0.0)
     if use_anp != 0:
         s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
-        sb = b * n_slots
-        pm = 0.25 * (pressure_volume[sb + s0] / slot_volume[s0] + pressure_volume[sb + s1] / slot_volume[s1]
-                     + pressure_volume[sb + s2] / slot_volume[s2] + pressure_volume[sb + s3] / slot_volume[s3])
-    F = deformation_gradient(u, base, n0, n1, n2, n3, d0, d1, d2, d3)
+        pm = 0.25 * (pressure_volume[s0 * n_models + b] / slot_volume[s0]
+                     + pressure_volume[s1 * n_models + b] / slot_volume[s1]
+                     + pressure_volume[s2 * n_models + b] / slot_volume[s2]
+                     + pressure_volume[s3 * n_models + b] / slot_volume[s3])
+    F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     J = wp.determinant(F)
     if J <= 0.0:
         if wp.atomic_add(inverted, 4 * b, 1) == 0:
@@ -169,10 +169,10 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
             visco_state[slot] = Q
         S = S - prony_g[slot] * Q
     P = v0 * (F * S)
-    wp.atomic_add(forces, base + n0, P * d0)
-    wp.atomic_add(forces, base + n1, P * d1)
-    wp.atomic_add(forces, base + n2, P * d2)
-    wp.atomic_add(forces, base + n3, P * d3)
+    wp.atomic_add(forces, n0 * n_models + b, P * d0)
+    wp.atomic_add(forces, n1 * n_models + b, P * d1)
+    wp.atomic_add(forces, n2 * n_models + b, P * d2)
+    wp.atomic_add(forces, n3 * n_models + b, P * d3)
 
 
 @wp.func
@@ -215,7 +215,7 @@ class NodeConstraints:
     ``slide[a, s]``: node a's row in ``slide_normals`` for sliding support s, or -1 (one column
     per sliding support, at least one). ``constrained[a]``: node a's row K in the merged
     constraints, or -1; its ``mask[K]`` (1 where prescribed), ``shapes[K]`` (load curve per
-    component) and final values ``value[b * n_constrained + K]`` (m) for model b."""
+    component) and final values ``value[K * B + b]`` (m) for model b."""
     slide: wp.array2d(dtype=int)
     slide_normals: wp.array(dtype=wp.vec3)
     constrained: wp.array(dtype=int)
@@ -327,7 +327,7 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
 def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                   forces: wp.array(dtype=wp.vec3), pressure_volume: wp.array(dtype=float),
                   loads: NodeLoads, constraints: NodeConstraints, plates: PlateContact,
-                  active: wp.array(dtype=int), n_nodes: int, clock: wp.array(dtype=int),
+                  active: wp.array(dtype=int), n_models: int, clock: wp.array(dtype=int),
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
     """The node half of a step, one thread per node and model, everything a node's update
     needs in one launch, its state kept in registers (:class:`NodeState`) from its one read to its
@@ -355,12 +355,13 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
 
     Also clears the ANP pressures, already used by this step's element forces."""
     i = wp.tid()
-    for j in range(i, pressure_volume.shape[0], active.shape[0] * n_nodes):  # slots >= nodes
+    for j in range(i, pressure_volume.shape[0], u.shape[0]):  # slots >= nodes
         pressure_volume[j] = 0.0
     step = clock[1]
     if i == 0:
         clock[0] = step + 1
-    b = i // n_nodes
+    a = i // n_models  # the node
+    b = i - a * n_models  # the model
     if i < active.shape[0] and inverted[4 * i] != 0:
         inverted[4 * i + 3] = 1
     f = forces[i]
@@ -385,7 +386,6 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
         total = x.u + y
         x.low = y - (total - x.u)
         x.u = total
-    a = i - b * n_nodes
     for c in range(constraints.slide.shape[1]):
         row = constraints.slide[a, c]
         if row >= 0:
@@ -397,7 +397,7 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     if k >= 0:
         m = constraints.mask[k]
         shape = constraints.shapes[k]
-        v = constraints.value[b * constraints.n_constrained + k]
+        v = constraints.value[k * n_models + b]
         target = wp.vec3(load_factor(t, loads.t_total[b], shape[0]) * v[0],
                          load_factor(t, loads.t_total[b], shape[1]) * v[1],
                          load_factor(t, loads.t_total[b], shape[2]) * v[2])
@@ -442,7 +442,7 @@ def energies(du: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float
     at = model_and_entry(wp.tid(), padded)
     value = float(0.0)
     if at[1] < n_nodes:
-        i = at[0] * n_nodes + at[1]
+        i = at[1] * kinetic.shape[0] + at[0]
         v = du[i] / dt
         value = 0.5 * mass[i] * wp.dot(v, v)
     wp.tile_atomic_add(kinetic, wp.tile_sum(wp.tile(value)), offset=at[0])
@@ -459,8 +459,8 @@ def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhd
     b, e = at[0], at[1]
     value = float(0.0)
     if e < n_elements:
-        tid = b * n_elements + e
-        F = deformation_gradient(u, b * n_nodes, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3],
+        tid = e * energy.shape[0] + b
+        F = deformation_gradient(u, b, energy.shape[0], tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3],
                                  dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
         if wp.determinant(F) > 0.0:
             value = vol0[e] * strain_energy_density(F, mu[tid], kappa[tid], eta[tid], fibre[tid])
@@ -478,7 +478,7 @@ def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.
     k_part = float(0.0)
     m_part = float(0.0)
     if at[1] < n_nodes:
-        i = at[0] * n_nodes + at[1]
+        i = at[1] * stiffness.shape[0] + at[0]
         du = u_curr[i] - u_prev[i]
         k_part = wp.dot(du, f_curr[i] - f_prev[i])
         m_part = mass[i] * wp.dot(du, du)
@@ -493,7 +493,7 @@ def largest_change(u: wp.array(dtype=wp.vec3), reference: wp.array(dtype=wp.vec3
     at = model_and_entry(wp.tid(), padded)
     value = float(0.0)
     if at[1] < n_nodes:
-        i = at[0] * n_nodes + at[1]
+        i = at[1] * largest.shape[0] + at[0]
         value = wp.max(wp.abs(u[i] - reference[i]))
     block = wp.tile_max(wp.tile(value))
     if value == block[0]:  # the block's largest (each thread its own on the CPU, whose tiles hold one lane)
@@ -521,7 +521,7 @@ def power_iteration_terms(v: wp.array(dtype=wp.vec3), f_probe: wp.array(dtype=wp
     m_part = float(0.0)
     top = float(0.0)
     if at[1] < n_nodes:
-        i = at[0] * n_nodes + at[1]
+        i = at[1] * vkv.shape[0] + at[0]
         kv = (f_probe[i] - f_base[i]) / eps
         k_part = wp.dot(v[i], kv)
         m_part = mass[i] * wp.dot(v[i], v[i])
@@ -540,7 +540,7 @@ def normalise_iterate(w: wp.array(dtype=wp.vec3), largest: wp.array(dtype=float)
                       v: wp.array(dtype=wp.vec3)):
     """v = w / max|w| per model."""
     i = wp.tid()
-    scale = largest[i // n_nodes]
+    scale = largest[i % largest.shape[0]]
     if scale > 0.0:
         v[i] = w[i] / scale
 
@@ -551,7 +551,7 @@ def zero_constrained(v: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), mas
     """Zero the prescribed components of v: they take no part in the dynamics."""
     tid = wp.tid()
     b = tid // n_constrained
-    i = b * n_nodes + nodes[tid - b * n_constrained]
+    i = nodes[tid - b * n_constrained] * (v.shape[0] // n_nodes) + b
     m = mask[tid - b * n_constrained]
     x = v[i]
     v[i] = wp.vec3(wp.where(m[0] > 0.0, 0.0, x[0]), wp.where(m[1] > 0.0, 0.0, x[1]), wp.where(m[2] > 0.0, 0.0, x[2]))
@@ -569,7 +569,7 @@ def support_springs(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), norm
     if models[b] == 0:
         return
     k = tid - b * n_supported
-    i = b * n_nodes + nodes[k]
+    i = nodes[k] * models.shape[0] + b
     n = normals[k]
     along = wp.dot(u[i], n) * n
     wp.atomic_add(forces, i, stiffness[k][0] * along + stiffness[k][1] * (u[i] - along))

@@ -336,15 +336,13 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         anp = 1 if model.formulation == "T4ANP" else 0
         one_model = wp.ones(1, dtype=int)
         if anp:
-            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, kappa, N, len(slot_volume), M, one_model,
-                                            pressure])
+            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, kappa, 1, one_model, pressure])
         wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, wp.array(mat.mu.astype(f32), dtype=float), kappa,
                                          wp.array(mat.eta.astype(f32), dtype=float),
-                                         wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, d_slots,
-                                         len(slot_volume), pressure,
+                                         wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, d_slots, pressure,
                                          wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
-                                         wp.zeros(1, dtype=wp.mat33), 0, N, M, wp.zeros(2, dtype=int), one_model,
+                                         wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model,
                                          forces, inverted, wp.zeros(0, dtype=wp.vec3)])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
@@ -454,9 +452,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         sample_every = relaxation.update_every
     total = float(totals.max())  # the batch's loading ends with its slowest model's
     def lumped(element_density):
-        """Nodal masses (kg) of the B models: a quarter of each element's mass at its nodes."""
-        return np.concatenate([np.bincount(tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=N)
-                               for rho in element_density])
+        """Nodal masses (kg) of the B models, models innermost (node a of model b at a*B + b): a
+        quarter of each element's mass at its nodes."""
+        return np.stack([np.bincount(tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=N)
+                         for rho in element_density], axis=1).ravel()
 
     mass = lumped(densities)
     weight = lumped([m.density for m in materials])  # physical masses: gravity acts on these
@@ -476,22 +475,27 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_slots = wp.array(slots, dtype=int)
         d_slotvol = arr(slot_volume, float)
         d_mass = arr(mass, float)
-        d_mu = arr(np.concatenate([m.mu for m in materials]), float)
-        d_kappa = arr(np.concatenate([m.kappa for m in materials]), float)
-        d_eta = arr(np.concatenate([m.eta for m in materials]), float)
-        d_fibre = arr(np.concatenate([m.fibre for m in materials]), wp.vec3)
+        def interleaved(per_model):
+            """(B, M, ...) values of the B models as the kernels hold them: element e of model b at e*B + b."""
+            first = np.shape(per_model[0])
+            return np.stack(per_model, axis=1).reshape((first[0] * len(per_model),) + first[1:])
+
+        d_mu = arr(interleaved([m.mu for m in materials]), float)
+        d_kappa = arr(interleaved([m.kappa for m in materials]), float)
+        d_eta = arr(interleaved([m.eta for m in materials]), float)
+        d_fibre = arr(interleaved([m.fibre for m in materials]), wp.vec3)
         # visco: K Prony terms per element (padded with g = 0), decay exp(-dt / tau) per step
         K = max(m.prony_terms for m in materials)
-        prony_g = np.concatenate([np.pad(m.prony_g, ((0, 0), (0, K - m.prony_terms))) for m in materials])
-        prony_tau = np.concatenate([np.pad(m.prony_tau, ((0, 0), (0, K - m.prony_terms)), constant_values=1.0)
+        prony_g = interleaved([np.pad(m.prony_g, ((0, 0), (0, K - m.prony_terms))) for m in materials])
+        prony_tau = interleaved([np.pad(m.prony_tau, ((0, 0), (0, K - m.prony_terms)), constant_values=1.0)
                                     for m in materials])
         d_prony_g = arr(prony_g.reshape(-1) if K else np.zeros(1), float)
         d_prony_decay = arr(np.exp(-dt / prony_tau).reshape(-1) if K else np.zeros(1), float)
         visco_state = wp.zeros(max(B * M * K, 1), dtype=wp.mat33)
         if model.prestate is not None:  # at rest in the pre-stressed state
             initial_displacement = model.prestate.displacement
-        u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.tile(
-            np.asarray(initial_displacement, float).reshape(N, 3) * MM, (B, 1))
+        u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.repeat(
+            np.asarray(initial_displacement, float).reshape(N, 3) * MM, B, axis=0)
         # the state: displacement u (m), its float32 rounding remainder and the last increment
         u, low, du = arr(u0, wp.vec3), wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
         scratch = wp.zeros(B * N, dtype=wp.vec3)
@@ -527,7 +531,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         constraints.mask = d_cmask if n_con else arr(np.zeros((1, 3)), wp.vec3)
         constraints.shapes = wp.array(constraint_load_shapes(model, c_nodes).reshape(-1, 3) if n_con
                                       else np.zeros((1, 3), np.int32), dtype=wp.vec3i)
-        constraints.value = arr(np.tile(c_vals * MM, (B, 1)) if n_con else np.zeros((1, 3)), wp.vec3)
+        constraints.value = arr(np.repeat(c_vals * MM, B, axis=0) if n_con else np.zeros((1, 3)), wp.vec3)
         constraints.n_constrained = n_con
 
         # surface supports: springs (with the internal forces) and, sliding, the normal projection
@@ -588,11 +592,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 out.zero_()
                 pressure_buffer.zero_()
             if use_anp:
-                wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_kappa, N, S, M,
-                                                     models, pressure_buffer])
+                wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_kappa, B, models,
+                                                     pressure_buffer])
             wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
-                                                 use_anp, d_slots, S, pressure_buffer, d_slotvol, K, d_prony_g,
-                                                 d_prony_decay, visco_state, update_state, N, M,
+                                                 use_anp, d_slots, pressure_buffer, d_slotvol, K, d_prony_g,
+                                                 d_prony_decay, visco_state, update_state, B,
                                                  probe_clock if step_clock is None else step_clock, models, out, flags,
                                                  no_plates if to_clear is None else to_clear])
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
@@ -602,7 +606,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             # converged models stand still: their element forces are not computed again
             internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True, step_clock=clock,
                            to_clear=plate_force)
-            wp.launch(k.advance_nodes, B * N, [u, low, du, forces, pressure, loads, constraints, plates, d_active, N,
+            wp.launch(k.advance_nodes, B * N, [u, low, du, forces, pressure, loads, constraints, plates, d_active, B,
                                                clock, plate_force, inverted])
 
         def two_steps():
@@ -669,7 +673,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             if np.all(dt <= 0.9 * stable):
                 return stable
             grow = np.maximum((dt / (0.8 * stable)) ** 2, 1.0)
-            mass[:] = mass * np.repeat(grow, N)
+            mass[:] = mass * np.tile(grow, N)
             d_mass.assign(mass.astype(f32))
             monitor.omega_squared /= grow
             mass_rescales += 1
@@ -790,7 +794,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                                 break
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
-        displacement = u.numpy().reshape(B, N, 3).astype(np.float64) / MM
+        displacement = u.numpy().reshape(N, B, 3).transpose(1, 0, 2).astype(np.float64) / MM
 
     statuses, messages, steps = [status] * B, [message] * B, [done] * B
     if relaxation is not None:
@@ -815,7 +819,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     for b, text in failed.items():  # whatever else happened, these models stopped on an inverted element
         statuses[b], messages[b] = "inverted elements", text
     if mass_scaling:
-        ratio = mass.reshape(B, N).sum(axis=1) / weight.reshape(B, N).sum(axis=1)
+        ratio = mass.reshape(N, B).sum(axis=0) / weight.reshape(N, B).sum(axis=0)
         messages = [f"{m}; mass scaling: total mass x{r:.3g}, time step {dt:.3g} s" for m, r in zip(messages, ratio)]
     solutions = []
     for b in range(B):
