@@ -3,12 +3,13 @@
 One neo-Hookean four-node-tet element kernel (no ANP, no visco, no fibres, no inversion
 flags: F, its stress and four atomic adds) and one node kernel (undamped central difference,
 no constraints, no contact); with ``--anp`` also the average-nodal-pressure pass (one slot per
-node) before it, replayed as a CUDA graph of two steps on the benchmarks'
+node) before it; with ``--gather`` the element kernel stores its four nodal forces and the
+node kernel sums them through a node-to-entries index (no atomics, as NiftySim assembles), replayed as a CUDA graph of two steps on the benchmarks'
 hemi-ellipsoid (``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's
 step does more (ANP's second element pass, damping, constraints, plates, per-model flags), so
 the ratio of the two per-step times is the price of that work plus whatever the solver wastes.
 
-    python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda] [--anp]
+    python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda] [--anp | --gather]
 
 prints one JSON line: the mesh size, microseconds per step and per element-step. Units inside
 the kernels are SI (m, Pa, kg, s, N). Times are wall-clock over synchronised graph replays,
@@ -91,6 +92,44 @@ def anp_element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), 
 
 
 @wp.kernel
+def element_forces_stored(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                          vol: wp.array(dtype=float), mu: float, kappa: float,
+                          element_node_forces: wp.array2d(dtype=wp.vec3)):
+    """``--gather``: as :func:`element_forces`, each element's four nodal forces stored, not scattered."""
+    e = wp.tid()
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], d0) + wp.outer(u[n1], d1) + wp.outer(u[n2], d2)
+         + wp.outer(u[n3], d3))
+    C = wp.transpose(F) * F
+    Cinv = wp.inverse(C)
+    J = wp.determinant(F)
+    S = (mu * wp.pow(J, -2.0 / 3.0) * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
+         + kappa * J * (J - 1.0) * Cinv)
+    P = vol[e] * (F * S)
+    element_node_forces[e, 0] = P * d0
+    element_node_forces[e, 1] = P * d1
+    element_node_forces[e, 2] = P * d2
+    element_node_forces[e, 3] = P * d3
+
+
+@wp.kernel
+def gathered_central_difference(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3),
+                                element_node_forces: wp.array(dtype=wp.vec3), start: wp.array(dtype=int),
+                                entries: wp.array(dtype=int), external: wp.array(dtype=wp.vec3),
+                                mass: wp.array(dtype=float), dt: float):
+    """``--gather``: the node's force summed from its elements' stored forces (``entries[start[i]:
+    start[i+1]]`` index the flattened (M, 4) array), then as :func:`central_difference`."""
+    i = wp.tid()
+    f = wp.vec3(0.0)
+    for k in range(start[i], start[i + 1]):
+        f = f + element_node_forces[entries[k]]
+    un = u[i]
+    u[i] = 2.0 * un - u_prev[i] + (external[i] - f) * (dt * dt / mass[i])
+    u_prev[i] = un
+
+
+@wp.kernel
 def central_difference(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3), forces: wp.array(dtype=wp.vec3),
                        external: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float,
                        pressure_volume: wp.array(dtype=float)):
@@ -104,7 +143,7 @@ def central_difference(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec
         pressure_volume[i] = 0.0
 
 
-def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False) -> dict:
+def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False, gather: bool = False) -> dict:
     wp.init()
     dev = wp.get_device(device)
     mesh = hemi_ellipsoid_mesh(BENCH_RADII_MM, _hemi_ellipsoid_spacing(tets_wanted))
@@ -128,8 +167,19 @@ def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False)
         node_volume = wp.array(np.bincount(mesh.tets.ravel(), weights=np.repeat(vol, 4), minlength=n).astype(np.float32),
                                dtype=float)
 
+        order = np.argsort(mesh.tets.ravel(), kind="stable")  # element-node entries grouped by node
+        d_entries = wp.array(order.astype(np.int32), dtype=int)
+        d_start = wp.array(np.concatenate([[0], np.cumsum(np.bincount(mesh.tets.ravel(), minlength=n))]).astype(np.int32),
+                           dtype=int)
+        stored = wp.zeros((m, 4), dtype=wp.vec3)
+
         def two_steps():
             for _ in range(2):
+                if gather:
+                    wp.launch(element_forces_stored, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, stored])
+                    wp.launch(gathered_central_difference, n, [u, u_prev, stored.flatten(), d_start, d_entries,
+                                                               external, d_mass, dt])
+                    continue
                 if anp:
                     wp.launch(nodal_pressure, m, [u, d_tets, d_dhdx, d_vol, kappa, pressure_volume])
                     wp.launch(anp_element_forces, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, pressure_volume,
@@ -154,7 +204,7 @@ def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False)
         wall = time.perf_counter() - started
     done = 2 * (steps // 2)
     return {"benchmark": "minimal_tled_step", "device": str(dev), "device_name": getattr(dev, "name", ""),
-            "anp": anp, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
+            "anp": anp, "gather": gather, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
             "us_per_step": round(1e6 * wall / done, 3), "ns_per_element_step": round(1e9 * wall / done / m, 4)}
 
 
@@ -165,8 +215,12 @@ def main() -> None:
     parser.add_argument("--device", default=None, help="warp device (cuda, cpu); default warp's")
     parser.add_argument("--anp", action="store_true",
                         help="with average nodal pressure (one more element pass, as the solver's T4ANP)")
+    parser.add_argument("--gather", action="store_true",
+                        help="element forces stored per element node and gathered per node (no atomics; no ANP)")
     args = parser.parse_args()
-    print(json.dumps(measure(args.tets, args.steps, args.device, args.anp)))
+    if args.gather and args.anp:
+        parser.error("--gather is measured without ANP")
+    print(json.dumps(measure(args.tets, args.steps, args.device, args.anp, args.gather)))
 
 
 if __name__ == "__main__":
