@@ -21,6 +21,7 @@ import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.materials import ElementMaterials
+from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.stability import StableStepMonitor
 
@@ -373,7 +374,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 relaxation: DynamicRelaxation | None = None,
                 progress: Callable[[float], bool | None] | None = None,
                 steady_state_mm: float | None = None, mass_scaling: bool = False,
-                plates: list[list[Plate]] | None = None) -> list[Solution]:
+                plates: list[list[Plate]] | None = None, memory_limit_bytes: int | None = None) -> list[Solution]:
     """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
     ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm, or whole
     plate sets ``plates[b]`` (pose, travel, edge and friction per variant; the same P plates in
@@ -399,7 +400,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     check finds the model stiffer), as dynamic relaxation does, but keep the physical load
     history and damping. For quasi-static loading only: inertia is no longer physical (KE/IE
     then measures the fictitious masses), gravity still acts on the physical masses. It pays on
-    meshes with slivers or very stiff small elements, whose critical step sets the pace."""
+    meshes with slivers or very stiff small elements, whose critical step sets the pace.
+
+    Before anything is allocated the memory the solve needs is estimated and checked against what
+    the device has free (or ``memory_limit_bytes``, a cap on a shared machine): a mesh or batch
+    that does not fit is refused (:class:`~BreastBiomechLib.solver.memory.TooLargeForMemory`, a
+    ValueError) with the estimate and the largest batch that fits."""
     wp.init()
     device = _device(device)
     if initial_displacement is not None and model.prestate is not None:
@@ -426,6 +432,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
     slots, slot_volume = anp_slots(tets, materials, vol, model.anp_across_materials)
     S = len(slot_volume)
+    check_fits(SolveSize(B, N, M, S, max(m.prony_terms for m in materials),
+                         sum(len(p.slave_nodes) for p in model.loading.plates), P), device, memory_limit_bytes)
     length = characteristic_lengths(nodes, model.mesh.tets, vol)
     if scaled:  # mass scaling: every element's stable step becomes dt / safety
         dt = model.safety * float(np.median(length / np.sqrt(wave_modulus(materials[0]) / materials[0].density)))

@@ -1,0 +1,100 @@
+"""Will a solve fit in memory? The estimate of what ``solve_batch`` allocates, checked against
+what the device has free before anything is allocated, so that a mesh or batch too large is
+refused with the figures and what to do instead of failing in an out-of-memory crash midway.
+
+Sizes in bytes. The estimate counts the solver's arrays (float32 and int32 on the device: the
+state and its monitors per node and model, the materials and visco state per element and model,
+the shared mesh data, the ANP slots, the contact state) and, on the CPU, where the device is the
+host, also the float64 copies the set-up holds at the same time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+MEMORY_MARGIN = 0.9  # use at most this share of what is free
+GB = 1024.0 ** 3
+
+# bytes per entry of the device arrays of a solve (float32 / int32), see tled.solve_batch
+_PER_MODEL_NODE = (5 * 12  # displacement, rounding remainder, increment, scratch state, forces
+                   + 4 + 2 * 12  # fictitious mass, body forces at the start and over the load
+                   + 5 * 12  # stable-step monitor: vector, next vector, probe, base and probe forces
+                   + 12 + 3 * 12)  # distance to rest; relaxation: forces now and last, last state
+_PER_MODEL_ELEMENT = 3 * 4 + 12  # shear and bulk moduli, fibre stiffness, fibre direction
+_PER_MODEL_ELEMENT_TERM = 2 * 4 + 36  # Prony weight and decay, visco state (3x3)
+_PER_ELEMENT = 16 + 48 + 4 + 16  # connectivity, shape-function derivatives, volume, ANP slots
+_PER_NODE = 12 + 4 + 4  # reference position, constraint row, sliding-support column (one)
+_PER_MODEL_SLOT = 2 * 4  # ANP pressures of the step and of the probes
+_PER_MODEL_CONTACT = 12 + 4  # friction anchor and contact flag
+_HOST_PER_MODEL_NODE = 3 * 8 + 2 * 8 + 3 * 8  # set-up copies in float64: start state, masses, result
+_HOST_PER_MODEL_ELEMENT = 8 * 8  # set-up copies in float64: moduli, densities, stacked materials
+
+
+class TooLargeForMemory(ValueError):
+    """A solve that would not fit in the memory the device has free."""
+
+
+@dataclass(frozen=True)
+class SolveSize:
+    """The dimensions of a batched solve: models, nodes, elements, ANP slots (per model),
+    Prony terms per element, contact slots (per model, all plates), plates."""
+
+    models: int
+    nodes: int
+    elements: int
+    slots: int
+    prony_terms: int = 0
+    contact_slots: int = 0
+    plates: int = 0
+
+    def device_bytes(self) -> int:
+        """What the solve allocates on its device (bytes)."""
+        b = self.models
+        return int(b * self.nodes * _PER_MODEL_NODE
+                   + b * self.elements * (_PER_MODEL_ELEMENT + self.prony_terms * _PER_MODEL_ELEMENT_TERM)
+                   + self.elements * _PER_ELEMENT + self.nodes * (_PER_NODE + 4 * max(self.plates, 1))
+                   + b * self.slots * _PER_MODEL_SLOT + b * self.contact_slots * _PER_MODEL_CONTACT)
+
+    def host_bytes(self) -> int:
+        """What the set-up holds on the host at the same time, in float64 (bytes)."""
+        return int(self.models * (self.nodes * _HOST_PER_MODEL_NODE + self.elements * _HOST_PER_MODEL_ELEMENT))
+
+
+def free_bytes(device) -> int | None:
+    """Memory the warp ``device`` has free (bytes): the GPU's free memory, or for the CPU the
+    host's available memory (Linux ``MemAvailable``); None where it cannot be read."""
+    if getattr(device, "is_cuda", False):
+        return int(device.free_memory)
+    try:
+        with open("/proc/meminfo") as info:
+            for line in info:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def check_fits(size: SolveSize, device, limit_bytes: int | None = None) -> int:
+    """Refuse (:class:`TooLargeForMemory`) a solve of ``size`` on the warp ``device`` that needs
+    more than :data:`MEMORY_MARGIN` of what is free there, or more than ``limit_bytes`` when given
+    (a cap on a shared machine); the message gives the estimate, the limit and the largest batch
+    that fits. Returns the estimate (bytes). Nothing is checked where the free memory is unknown
+    and no limit is given."""
+    needed = size.device_bytes() + (0 if getattr(device, "is_cuda", False) else size.host_bytes())
+    free = free_bytes(device) if limit_bytes is None else int(limit_bytes)
+    if free is None:
+        return needed
+    allowed = MEMORY_MARGIN * free if limit_bytes is None else float(free)
+    if needed <= allowed:
+        return needed
+    one = SolveSize(1, size.nodes, size.elements, size.slots, size.prony_terms, size.contact_slots, size.plates)
+    per_model = one.device_bytes() + (0 if getattr(device, "is_cuda", False) else one.host_bytes())
+    fitting = int(allowed // per_model) if per_model else 0
+    limit = (f"the memory limit given is {allowed / GB:.2f} GB" if limit_bytes is not None else
+             f"{device} has {free / GB:.2f} GB free, of which it uses at most {MEMORY_MARGIN:.0%}")
+    remedy = (f"solve at most {fitting} model(s) at once" if fitting >= 1 else
+              "use a coarser mesh (one model of this one does not fit)")
+    raise TooLargeForMemory(
+        f"a solve of {size.models} model(s) on {size.nodes} nodes and {size.elements} elements needs about "
+        f"{needed / GB:.2f} GB, and {limit}; {remedy}, or free memory on the device")
