@@ -40,6 +40,7 @@ from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
 from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.io.claims import CLAIM_FILE
 
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
 
@@ -149,7 +150,7 @@ class DiagnosisSession:
 
         self.out = Path(out_dir)
         self.case_dir, self.fit_dir = Path(case_dir), Path(fit_dir)
-        if self.out.exists() and any(self.out.iterdir()) and not resume:
+        if self.out.exists() and any(p.name != CLAIM_FILE for p in self.out.iterdir()) and not resume:
             raise FileExistsError(f"{self.out} exists and is not empty: resume it (--resume) or choose another "
                                   "output folder")
         recorded = self.out / "diagnosis.json"

@@ -43,21 +43,23 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
     models are also compared through the residual displacement field of a deformable
     registration (``registration``; None: not made)."""
     from BreastBiomechLib.discrepancy.session import DiagnosisSession, is_open
+    from BreastBiomechLib.io.claims import claimed
 
     if rounds < 1:
         raise ValueError("the diagnosis needs at least one round")
     say = progress or (lambda message: None)
-    session = DiagnosisSession(case_dir, fit_dir, out_dir, effects, noise, settings, device, resume, registration,
-                               progress)
-    for record in session.rounds:
-        say(f"round {record['round']}: {record['diagnosis']['verdict']} (from {session.path(record['round'])})")
-    while True:
-        last = session.last
-        pending = last is not None and is_open(last) and last["diagnosis"]["verdict"] == "missing effect"
-        if last is not None and not pending and (not last.get("added") or len(session.rounds) >= rounds):
-            break  # a round that added nothing ends the run (on resume: an interrupted add is redone)
-        record = session.diagnose()
-        if record["diagnosis"]["verdict"] != "missing effect":
-            break
-        session.add(record["diagnosis"]["effect"])
-    return session.run()
+    with claimed(out_dir, "a diagnosis"):
+        session = DiagnosisSession(case_dir, fit_dir, out_dir, effects, noise, settings, device, resume, registration,
+                                   progress)
+        for record in session.rounds:
+            say(f"round {record['round']}: {record['diagnosis']['verdict']} (from {session.path(record['round'])})")
+        while True:
+            last = session.last
+            pending = last is not None and is_open(last) and last["diagnosis"]["verdict"] == "missing effect"
+            if last is not None and not pending and (not last.get("added") or len(session.rounds) >= rounds):
+                break  # a round that added nothing ends the run (on resume: an interrupted add is redone)
+            record = session.diagnose()
+            if record["diagnosis"]["verdict"] != "missing effect":
+                break
+            session.add(record["diagnosis"]["effect"])
+        return session.run()

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation.forward import FittingProblem
 from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solve_best
 from BreastBiomechLib.optimisation.space import ParameterSpace
@@ -83,47 +84,48 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     measured = read_compressed(case)
     undeformed = read_image(case / "mr.nrrd")
     reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "case.json").write_text(json.dumps({"case_dir": str(case.resolve()),
-                                               "fingerprint": case_fingerprint(case)}, indent=2) + "\n")
-    mesh_file = out / "fitting_mesh.vtu"
-    if mesh_path is not None:
-        mesh = read_vtu(mesh_path)
-    elif resume and mesh_file.is_file():
-        mesh = read_vtu(mesh_file)
-    else:
-        from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    with claimed(out, "a fit of a compressed case"):
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "case.json").write_text(json.dumps({"case_dir": str(case.resolve()),
+                                                   "fingerprint": case_fingerprint(case)}, indent=2) + "\n")
+        mesh_file = out / "fitting_mesh.vtu"
+        if mesh_path is not None:
+            mesh = read_vtu(mesh_path)
+        elif resume and mesh_file.is_file():
+            mesh = read_vtu(mesh_file)
+        else:
+            from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
-        nipple = reference.position("nipple") if reference is not None and "nipple" in reference.labels else None
-        mesh = mesh_labels(read_image(labels or case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
-                           nipple_mm=nipple).mesh
-    write_vtu(mesh_file, mesh)
-    space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
-                                     free=settings.free, fibre=settings.fibre,
-                                     plates=len(measured.plates) if "offset" in settings.free else 0)
-    problem = FittingProblem(space, mesh, undeformed, measured.image, measured.plates,
-                             landmarks=(reference, measured.landmarks) if reference is not None else None,
-                             objective=settings.objective, bins=settings.bins,
-                             relaxation=DynamicRelaxation(tolerance_mm=settings.tolerance_mm), device=device)
-    result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
-                      progress, population=settings.population)
+            nipple = reference.position("nipple") if reference is not None and "nipple" in reference.labels else None
+            mesh = mesh_labels(read_image(labels or case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
+                               nipple_mm=nipple).mesh
+        write_vtu(mesh_file, mesh)
+        space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
+                                         free=settings.free, fibre=settings.fibre,
+                                         plates=len(measured.plates) if "offset" in settings.free else 0)
+        problem = FittingProblem(space, mesh, undeformed, measured.image, measured.plates,
+                                 landmarks=(reference, measured.landmarks) if reference is not None else None,
+                                 objective=settings.objective, bins=settings.bins,
+                                 relaxation=DynamicRelaxation(tolerance_mm=settings.tolerance_mm), device=device)
+        result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
+                          progress, population=settings.population)
 
-    result, best = solve_best(problem, result, out)
-    write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)
-    write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
-                                                                          "displacement": best.displacement},
-                                                 dict(mesh.cell_data)))
-    errors = None
-    if reference is not None:
-        moved = map_landmarks(mesh, best.displacement, reference)
-        write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
-        table = landmark_errors(reference, moved, measured.landmarks)
-        errors = table.summary()
-        (out / "landmark_errors.json").write_text(json.dumps({**errors, "per_landmark": {
-            label: {"displacement_mm": float(d), "error_mm": float(e)}
-            for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}}, indent=2) + "\n")
-    save_convergence(out / "convergence.png", result)
-    return CaseFit(result, errors, out)
+        result, best = solve_best(problem, result, out)
+        write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)
+        write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
+                                                                              "displacement": best.displacement},
+                                                     dict(mesh.cell_data)))
+        errors = None
+        if reference is not None:
+            moved = map_landmarks(mesh, best.displacement, reference)
+            write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
+            table = landmark_errors(reference, moved, measured.landmarks)
+            errors = table.summary()
+            (out / "landmark_errors.json").write_text(json.dumps({**errors, "per_landmark": {
+                label: {"displacement_mm": float(d), "error_mm": float(e)}
+                for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}}, indent=2) + "\n")
+        save_convergence(out / "convergence.png", result)
+        return CaseFit(result, errors, out)
 
 
 def save_convergence(path: str | Path, result: OptimisationResult) -> Path:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation import search
 from BreastBiomechLib.optimisation.forward import Evaluation, FittingProblem
 from BreastBiomechLib.optimisation.record import EvaluationLog
@@ -66,33 +67,34 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
     z0 = space.unit(start) if start else space.start()
     settings = {"space": space.to_dict(), "optimiser": optimiser, "seed": int(seed), "budget": int(budget),
                 "objective": problem.objective, "start": [float(v) for v in z0], "population": population}
-    path = None
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        path = out / "evaluations.jsonl"
-        settings_path = out / "settings.json"
-        if resume and settings_path.exists():
-            before = json.loads(settings_path.read_text())
-            changed = sorted(k for k in settings if k != "budget" and before.get(k) != settings[k])
-            if changed:
-                raise ValueError(f"{out}: cannot resume with other settings ({', '.join(changed)} differ); "
-                                 "resume with the same ones or start a new output folder")
-        settings_path.write_text(json.dumps(settings, indent=2) + "\n")
-    started = time.perf_counter()
-    log = EvaluationLog(problem.evaluate, budget, seconds, path, resume, progress)
-    if optimiser == "hybrid":
-        search.hybrid(log, z0, seed)
-    else:
-        search.cmaes(log, z0, seed, population=population)
-    if log.best is None:
-        raise RuntimeError("the optimisation stopped before its first evaluation")
-    result = OptimisationResult(log.best, space.materials(log.best.z), log.evaluations,
-                                log.stopped or ("budget" if len(log.evaluations) >= budget else "converged"),
-                                log.replayed, time.perf_counter() - started, space.geometry(log.best.z))
-    if out_dir is not None:
-        (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
-    return result
+    with claimed(out_dir, "an optimisation"):
+        path = None
+        if out_dir is not None:
+            out = Path(out_dir)
+            out.mkdir(parents=True, exist_ok=True)
+            path = out / "evaluations.jsonl"
+            settings_path = out / "settings.json"
+            if resume and settings_path.exists():
+                before = json.loads(settings_path.read_text())
+                changed = sorted(k for k in settings if k != "budget" and before.get(k) != settings[k])
+                if changed:
+                    raise ValueError(f"{out}: cannot resume with other settings ({', '.join(changed)} differ); "
+                                     "resume with the same ones or start a new output folder")
+            settings_path.write_text(json.dumps(settings, indent=2) + "\n")
+        started = time.perf_counter()
+        log = EvaluationLog(problem.evaluate, budget, seconds, path, resume, progress)
+        if optimiser == "hybrid":
+            search.hybrid(log, z0, seed)
+        else:
+            search.cmaes(log, z0, seed, population=population)
+        if log.best is None:
+            raise RuntimeError("the optimisation stopped before its first evaluation")
+        result = OptimisationResult(log.best, space.materials(log.best.z), log.evaluations,
+                                    log.stopped or ("budget" if len(log.evaluations) >= budget else "converged"),
+                                    log.replayed, time.perf_counter() - started, space.geometry(log.best.z))
+        if out_dir is not None:
+            (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
+        return result
 
 
 STAND_IN_TRIES = 5  # next-best evaluations tried when the best no longer solves alone

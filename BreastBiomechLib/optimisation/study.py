@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
 from BreastBiomechLib.optimisation.search import OPTIMISERS
 from BreastBiomechLib.optimisation.space import HOMOGENEOUS, MODELS, REFERENCE_E
@@ -233,21 +234,22 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
     settings = settings or StudySettings()
     out = Path(out_dir)
     tasks = study_tasks(case_dirs, out, settings)
-    out.mkdir(parents=True, exist_ok=True)
-    placement = placement or place(device=device)
+    with claimed(out, "a study"):
+        out.mkdir(parents=True, exist_ok=True)
+        placement = placement or place(device=device)
 
-    def summarise() -> None:
-        write_json_atomically(out / "study.json", {"settings": asdict(settings),
-                                                   "fits": [r.to_dict() for r in read_study(out)]})
+        def summarise() -> None:
+            write_json_atomically(out / "study.json", {"settings": asdict(settings),
+                                                       "fits": [r.to_dict() for r in read_study(out)]})
 
-    def ended(outcome) -> None:
-        if not outcome.ok:
-            log_failure(out / "failures.log", outcome)
+        def ended(outcome) -> None:
+            if not outcome.ok:
+                log_failure(out / "failures.log", outcome)
+            summarise()
+
+        outcomes = run_tasks(tasks, placement, progress=progress, on_outcome=ended)
         summarise()
-
-    outcomes = run_tasks(tasks, placement, progress=progress, on_outcome=ended)
-    summarise()
-    return StudyRun(read_study(out), [o for o in outcomes if not o.ok])
+        return StudyRun(read_study(out), [o for o in outcomes if not o.ok])
 
 
 def log_failure(path: Path, outcome) -> None:
