@@ -583,8 +583,8 @@ def test_distance_to_rest_extrapolates_a_geometric_approach():
             u[0, :, 0] = (1.0 - r ** k) * d_mm * 1e-3  # approaching d geometrically (m)
             u[1, :, 2] = 0.0 if k < 4 else 2e-3 * (k - 3)  # still, then moving
             # the solver's layout: models innermost (node a of model b at a * B + b)
-            estimates.append(monitor.update(wp.array(u.transpose(1, 0, 2).reshape(-1, 3), dtype=wp.vec3,
-                                                      device="cpu")))
+            monitor.measure(wp.array(u.transpose(1, 0, 2).reshape(-1, 3), dtype=wp.vec3, device="cpu"))
+            estimates.append(monitor.estimate())
     assert estimates[0] is None and estimates[1] is None
     for k in range(2, 6):
         assert estimates[k][0] == pytest.approx(r ** k * d_mm, rel=1e-4)

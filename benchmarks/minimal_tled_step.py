@@ -30,6 +30,25 @@ from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
 from BreastBiomechLib.solver.tled import MM, shape_derivatives
 
 
+@wp.func
+def deformation_gradient(u: wp.array(dtype=wp.vec3), n0: int, n1: int, n2: int, n3: int,
+                         d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3) -> wp.mat33:
+    """F = I + sum_a u_a (x) dN_a/dX."""
+    return (wp.identity(n=3, dtype=float) + wp.outer(u[n0], d0) + wp.outer(u[n1], d1) + wp.outer(u[n2], d2)
+            + wp.outer(u[n3], d3))
+
+
+@wp.func
+def first_piola_kirchhoff(F: wp.mat33, mu: float, kappa: float) -> wp.mat33:
+    """F S of a compressible neo-Hookean solid, W = mu/2 (I1bar - 3) + kappa/2 (J - 1)^2 (Pa)."""
+    C = wp.transpose(F) * F
+    Cinv = wp.inverse(C)
+    J = wp.determinant(F)
+    S = (mu * wp.pow(J, -2.0 / 3.0) * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
+         + kappa * J * (J - 1.0) * Cinv)
+    return F * S
+
+
 @wp.kernel
 def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                    vol: wp.array(dtype=float), mu: float, kappa: float, forces: wp.array(dtype=wp.vec3)):
@@ -37,14 +56,8 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     e = wp.tid()
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], d0) + wp.outer(u[n1], d1) + wp.outer(u[n2], d2)
-         + wp.outer(u[n3], d3))
-    C = wp.transpose(F) * F
-    Cinv = wp.inverse(C)
-    J = wp.determinant(F)
-    S = (mu * wp.pow(J, -2.0 / 3.0) * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
-         + kappa * J * (J - 1.0) * Cinv)
-    P = vol[e] * (F * S)
+    F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
+    P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
     wp.atomic_add(forces, n0, P * d0)
     wp.atomic_add(forces, n1, P * d1)
     wp.atomic_add(forces, n2, P * d2)
@@ -57,8 +70,7 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     """ANP pass 1 (``--anp``): kappa (J - 1) V at each node of the element, one slot per node."""
     e = wp.tid()
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], dhdx[e, 0]) + wp.outer(u[n1], dhdx[e, 1])
-         + wp.outer(u[n2], dhdx[e, 2]) + wp.outer(u[n3], dhdx[e, 3]))
+    F = deformation_gradient(u, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
     pv = kappa * (wp.determinant(F) - 1.0) * vol[e]
     wp.atomic_add(pressure_volume, n0, pv)
     wp.atomic_add(pressure_volume, n1, pv)
@@ -74,17 +86,11 @@ def anp_element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), 
     e = wp.tid()
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], d0) + wp.outer(u[n1], d1) + wp.outer(u[n2], d2)
-         + wp.outer(u[n3], d3))
+    F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
     pm = 0.25 * (pressure_volume[n0] / node_volume[n0] + pressure_volume[n1] / node_volume[n1]
                  + pressure_volume[n2] / node_volume[n2] + pressure_volume[n3] / node_volume[n3])
     F = wp.pow((pm / kappa + 1.0) / wp.determinant(F), 1.0 / 3.0) * F
-    C = wp.transpose(F) * F
-    Cinv = wp.inverse(C)
-    J = wp.determinant(F)
-    S = (mu * wp.pow(J, -2.0 / 3.0) * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
-         + kappa * J * (J - 1.0) * Cinv)
-    P = vol[e] * (F * S)
+    P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
     wp.atomic_add(forces, n0, P * d0)
     wp.atomic_add(forces, n1, P * d1)
     wp.atomic_add(forces, n2, P * d2)
@@ -99,14 +105,8 @@ def element_forces_stored(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int
     e = wp.tid()
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-    F = (wp.identity(n=3, dtype=float) + wp.outer(u[n0], d0) + wp.outer(u[n1], d1) + wp.outer(u[n2], d2)
-         + wp.outer(u[n3], d3))
-    C = wp.transpose(F) * F
-    Cinv = wp.inverse(C)
-    J = wp.determinant(F)
-    S = (mu * wp.pow(J, -2.0 / 3.0) * (wp.identity(n=3, dtype=float) - ((C[0, 0] + C[1, 1] + C[2, 2]) / 3.0) * Cinv)
-         + kappa * J * (J - 1.0) * Cinv)
-    P = vol[e] * (F * S)
+    F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
+    P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
     element_node_forces[e, 0] = P * d0
     element_node_forces[e, 1] = P * d1
     element_node_forces[e, 2] = P * d2

@@ -375,9 +375,9 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     x.u = u[i]
     x.low = low[i]
     x.du = wp.vec3(0.0)
+    external = loads.body_start[i] + s * loads.body_force[i]
     if active[b] != 0:
         half = 0.5 * loads.damping[b] * loads.dt
-        external = loads.body_start[i] + s * loads.body_force[i]
         x.du = ((external - f) / loads.mass[i] * (loads.dt * loads.dt) + (1.0 - half) * du[i]) / (1.0 + half)
         # u += du with the rounding error carried in low (Kahan summation): the displacement is
         # u + low to about 1e-14 m; plain float32 loses increments below half an ulp of u (1e-9 m
@@ -408,8 +408,8 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     for p in range(plates.n_plates):
         slot = plates.slot[a, p]
         if slot >= 0:
-            x = touch_plate(x, a, b * plates.n_plates + p, b * plates.n_slots + slot, s,
-                            f - (loads.body_start[i] + s * loads.body_force[i]), plates, plate_force)
+            x = touch_plate(x, a, b * plates.n_plates + p, b * plates.n_slots + slot, s, f - external, plates,
+                            plate_force)
     u[i] = x.u
     du[i] = x.du
     low[i] = x.low

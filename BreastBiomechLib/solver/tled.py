@@ -4,9 +4,10 @@ Precomputed once: reference shape-function derivatives and volumes of the four-n
 nodal masses, the critical time step. Each step: (ANP nodal pressures), element forces, then one
 node kernel (``kernels.advance_nodes``): the central difference update with mass-proportional
 damping (seed eq. (15)) in increment form, with the displacement accumulated in float32 plus a
-compensation term (Kahan summation), sliding supports, prescribed components, plate contact. The step loop has no host
-synchronisation: on CUDA it replays a captured graph of two steps. Energies, plate forces and the
-inverted-element flag are read every ``sample_every`` steps.
+compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
+The step loop has no host synchronisation: on CUDA it replays a captured graph of two steps.
+Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate and
+the relaxation's terms, and they, the plate forces and the inverted-element flags are read back.
 """
 
 from __future__ import annotations
@@ -74,12 +75,6 @@ class DistanceToRest:
             self._change = change
         self._samples += 1
         return remaining
-
-    def update(self, u: wp.array) -> np.ndarray | None:
-        """``u`` the displacement (m) of the B models; returns (B,) estimates (mm) from the third
-        sample on (:meth:`measure` then :meth:`estimate`)."""
-        self.measure(u)
-        return self.estimate()
 
 
 @dataclass
