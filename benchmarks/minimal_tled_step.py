@@ -49,6 +49,16 @@ def first_piola_kirchhoff(F: wp.mat33, mu: float, kappa: float) -> wp.mat33:
     return F * S
 
 
+@wp.func
+def scatter(forces: wp.array(dtype=wp.vec3), n0: int, n1: int, n2: int, n3: int, P: wp.mat33,
+            d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3):
+    """f_a += P dN_a/dX at the element's four nodes (atomic adds)."""
+    wp.atomic_add(forces, n0, P * d0)
+    wp.atomic_add(forces, n1, P * d1)
+    wp.atomic_add(forces, n2, P * d2)
+    wp.atomic_add(forces, n3, P * d3)
+
+
 @wp.kernel
 def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                    vol: wp.array(dtype=float), mu: float, kappa: float, forces: wp.array(dtype=wp.vec3)):
@@ -58,10 +68,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
     F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
     P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
-    wp.atomic_add(forces, n0, P * d0)
-    wp.atomic_add(forces, n1, P * d1)
-    wp.atomic_add(forces, n2, P * d2)
-    wp.atomic_add(forces, n3, P * d3)
+    scatter(forces, n0, n1, n2, n3, P, d0, d1, d2, d3)
 
 
 @wp.kernel
@@ -91,10 +98,7 @@ def anp_element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), 
                  + pressure_volume[n2] / node_volume[n2] + pressure_volume[n3] / node_volume[n3])
     F = wp.pow((pm / kappa + 1.0) / wp.determinant(F), 1.0 / 3.0) * F
     P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
-    wp.atomic_add(forces, n0, P * d0)
-    wp.atomic_add(forces, n1, P * d1)
-    wp.atomic_add(forces, n2, P * d2)
-    wp.atomic_add(forces, n3, P * d3)
+    scatter(forces, n0, n1, n2, n3, P, d0, d1, d2, d3)
 
 
 @wp.kernel
