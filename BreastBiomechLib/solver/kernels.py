@@ -97,6 +97,14 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slot
     wp.atomic_add(pressure_volume, s3 * n_models + b, pv)
 
 
+@wp.func
+def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
+    """Count an inverted element of model b, keeping the first one found and its step."""
+    if wp.atomic_add(inverted, 4 * b, 1) == 0:
+        inverted[4 * b + 1] = e
+        inverted[4 * b + 2] = step
+
+
 @wp.kernel
 def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                    vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
@@ -144,21 +152,17 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     J = wp.determinant(F)
     if J <= 0.0:
-        if wp.atomic_add(inverted, 4 * b, 1) == 0:
-            inverted[4 * b + 1] = e
-            inverted[4 * b + 2] = clock[0]
+        record_inversion(inverted, b, e, clock[0])
         return
     if use_anp != 0:
         Jm = pm / kappa_e + 1.0
         if Jm <= 0.0:
-            if wp.atomic_add(inverted, 4 * b, 1) == 0:
-                inverted[4 * b + 1] = e
-                inverted[4 * b + 2] = clock[0]
+            record_inversion(inverted, b, e, clock[0])
             return
         F = wp.pow(Jm / J, 1.0 / 3.0) * F
+        J = wp.determinant(F)
     C = wp.transpose(F) * F
     Cinv = wp.inverse(C)
-    J = wp.determinant(F)
     S_iso = isochoric_stress(C, Cinv, J, mu_e, eta_e, fibre_e)
     S = S_iso + volumetric_stress(Cinv, J, kappa_e)
     for i in range(n_terms):
