@@ -173,3 +173,42 @@ def test_reruns_build_only_the_missing_tasks(tmp_path):
     assert [t.key for t in table1_tasks(tmp_path / "t1", [1, 2, 3])] == ["table1/case1", "table1/case3"]
     with pytest.raises(ValueError, match="Table 1 has cases"):
         table1_tasks(tmp_path / "t1", [6])
+
+
+def test_bench_cohort_names_how_far_two_studies_fits_are():
+    """`bench cohort`'s comparison of a run with the first: the largest NMI, objective and
+    relative material differences, the fits whose solve counts differ, the fits only one has."""
+    from BreastBiomechLib.cli.bench import _study_differences
+    from BreastBiomechLib.optimisation.study import StudyFit
+
+    def fit(case, nmi, E, evaluations=12):
+        return StudyFit(case=case, model="iso-homo", optimiser="cmaes", nmi=nmi, objective=-nmi,
+                        evaluations=evaluations, failed=0, seconds=1.0, stopped="budget", landmark_errors=None,
+                        materials={"breast": {"E": E, "nu": 0.45, "eta": 0.0}}, truth={}, in_family=True)
+
+    first = [fit("case1", 1.20, 1000.0), fit("case2", 1.10, 2000.0)]
+    assert _study_differences(first, first) == {"nmi": 0.0, "objective": 0.0, "materials_relative": 0.0,
+                                                "fits_with_other_solve_counts": 0, "fits_in_one_only": []}
+    other = [fit("case1", 1.2001, 1010.0, evaluations=13), fit("case3", 1.0, 500.0)]
+    differences = _study_differences(other, first)
+    assert differences["nmi"] == pytest.approx(1e-4) and differences["objective"] == pytest.approx(1e-4)
+    assert differences["materials_relative"] == pytest.approx(10 / 1010)
+    assert differences["fits_with_other_solve_counts"] == 1
+    assert differences["fits_in_one_only"] == ["case2/iso-homo/cmaes", "case3/iso-homo/cmaes"]
+
+
+def test_gpu_usage_summarises_each_gpus_samples(tmp_path, monkeypatch):
+    """nvidia-smi's CSV samples -> per-GPU mean and peak utilisation, busy share and peak memory,
+    unreadable lines skipped; where the machine has no nvidia-smi nothing is sampled (None)."""
+    from BreastBiomechLib.cli.gpu_usage import GpuUsage, summarise_samples
+
+    text = "0, 100, 900\n1, 0, 500\n0, 50, 1200\n1, [N/A], 510\n1, 30, 700\n0, 7"
+    assert summarise_samples(text) == {
+        "0": {"samples": 2, "mean_utilisation_percent": 75.0, "peak_utilisation_percent": 100.0,
+              "busy_fraction": 1.0, "peak_memory_mib": 1200.0},
+        "1": {"samples": 2, "mean_utilisation_percent": 15.0, "peak_utilisation_percent": 30.0,
+              "busy_fraction": 0.5, "peak_memory_mib": 700.0}}
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with GpuUsage() as usage:
+        pass
+    assert usage.summary is None

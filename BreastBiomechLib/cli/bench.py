@@ -348,19 +348,44 @@ def _bench_optimise(args) -> dict:
             "max_relative_error": max(errors.values()), "relative_errors": errors}
 
 
+def _study_differences(rows, reference) -> dict:
+    """How far a study's fits (``read_study`` rows) are from a reference study's of the same
+    cases and models: the largest absolute NMI and objective differences, the largest relative
+    difference of any fitted E, nu or eta, the fits whose solve counts differ, and the fits found
+    in only one of the two."""
+    mine, theirs = ({(r.case, r.model, r.optimiser): r for r in study} for study in (rows, reference))
+    shared = sorted(mine.keys() & theirs.keys())
+    nmi = objective = material = 0.0
+    for key in shared:
+        a, b = mine[key], theirs[key]
+        nmi, objective = max(nmi, abs(a.nmi - b.nmi)), max(objective, abs(a.objective - b.objective))
+        for tissue, values in a.materials.items():
+            for name, value in values.items():
+                other = b.materials.get(tissue, {}).get(name)
+                if other is None:
+                    material = float("inf")
+                elif value != other:
+                    material = max(material, abs(value - other) / max(abs(value), abs(other)))
+    return {"nmi": nmi, "objective": objective, "materials_relative": material,
+            "fits_with_other_solve_counts": sum(mine[k].evaluations != theirs[k].evaluations for k in shared),
+            "fits_in_one_only": sorted("/".join(k) for k in mine.keys() ^ theirs.keys())}
+
+
 def _bench_cohort(args) -> dict:
     """The study of ``--case-dirs`` (``--models``, ``--budget`` solves per fit, fitting meshes of
     ``--fit-edge-mm``) run each way of ``--modes`` into a fresh folder: "serial" (every task in
-    this process), "dask" (a local cluster of ``--workers``, default one per GPU or core),
-    "processes" (one ``breastbiomech study CASE --workers 0`` process per case, side by side: how
-    the study ran before it had Dask). Wall seconds, fits per hour, the failed tasks (or
-    processes) with their errors, and whether every mode's rows equal the first mode's (NMI,
-    objective, materials, solves; on a GPU, atomic sums make NMI differ in its last digits from
-    run to run)."""
+    this process), "dask" (a local cluster of ``--workers``, default one per GPU or core; several
+    counts run the mode once per count, "dask-W"), "processes" (one ``breastbiomech study CASE
+    --workers 0`` process per case, side by side: how the study ran before it had Dask). Per mode:
+    wall seconds, fits per hour, the failed tasks (or processes) with their errors, each GPU's
+    utilisation over the run (where nvidia-smi exists), and how far its fits are from the first
+    mode's (NMI, objective, materials, solves; on a GPU, atomic sums make NMI differ in its last
+    digits from run to run, on the CPU the rows are equal)."""
     import subprocess
     import sys
     import tempfile
 
+    from BreastBiomechLib.cli.gpu_usage import GpuUsage
     from BreastBiomechLib.cohort import place
     from BreastBiomechLib.optimisation.study import StudySettings, read_study, run_study
 
@@ -369,36 +394,39 @@ def _bench_cohort(args) -> dict:
     base = Path(args.out or tempfile.mkdtemp(prefix="bench-cohort-"))
     figures = {"benchmark": "cohort", "version": __version__, "cases": len(args.case_dirs),
                "models": list(args.models), "budget": args.budget, "fit_edge_mm": args.fit_edge_mm, "modes": {}}
+    worker_counts = args.workers or [None]
+    runs = [(f"dask-{w}" if len(worker_counts) > 1 else mode, w) if mode == "dask" else (mode, None)
+            for mode in args.modes for w in (worker_counts if mode == "dask" else [None])]
     reference = None
-    for mode in args.modes:
-        out = base / mode
+    for name, workers in runs:
+        out = base / name
         if out.exists():
             raise FileExistsError(f"{out} exists: give a new --out (the benchmark times fits from scratch)")
         started = time.perf_counter()
-        if mode == "processes":
-            device = ["--device", args.device] if args.device else []
-            runs = [subprocess.Popen([sys.executable, "-c", "import sys; from BreastBiomechLib.cli import main; "
-                                      "sys.exit(main())", "study", str(case), "--out", str(out), "--models",
-                                      *args.models, "--budget", *(f"{m}={args.budget}" for m in args.models),
-                                      "--edge-mm", str(args.fit_edge_mm), "--workers", "0", "--quiet", *device],
-                                     stdout=subprocess.DEVNULL) for case in args.case_dirs]
-            codes = [run.wait() for run in runs]
-            failed = {str(case): f"exit code {code}" for case, code in zip(args.case_dirs, codes) if code}
-            where = f"{len(runs)} processes side by side"
-        else:
-            placement = place(None, 0 if mode == "serial" else args.workers, args.device)
-            run = run_study(args.case_dirs, out, settings, placement=placement)
-            failed = {o.key: o.error for o in run.failed}
-            where = placement.describe()
+        with GpuUsage() as usage:
+            if name == "processes":
+                device = ["--device", args.device] if args.device else []
+                processes = [subprocess.Popen([sys.executable, "-c", "import sys; from BreastBiomechLib.cli import main; "
+                                               "sys.exit(main())", "study", str(case), "--out", str(out), "--models",
+                                               *args.models, "--budget", *(f"{m}={args.budget}" for m in args.models),
+                                               "--edge-mm", str(args.fit_edge_mm), "--workers", "0", "--quiet",
+                                               *device], stdout=subprocess.DEVNULL) for case in args.case_dirs]
+                codes = [process.wait() for process in processes]
+                failed = {str(case): f"exit code {code}" for case, code in zip(args.case_dirs, codes) if code}
+                where = f"{len(processes)} processes side by side"
+            else:
+                placement = place(None, 0 if name == "serial" else workers, args.device)
+                run = run_study(args.case_dirs, out, settings, placement=placement)
+                failed = {o.key: o.error for o in run.failed}
+                where = placement.describe()
         seconds = time.perf_counter() - started
-        rows = sorted((r.case, r.model, r.evaluations, r.nmi, r.objective, json.dumps(r.materials, sort_keys=True))
-                      for r in read_study(out))
+        rows = read_study(out)
         reference = rows if reference is None else reference
-        figures["modes"][mode] = {"where": where, "fits": len(rows), "failed": failed, "seconds": round(seconds, 1),
-                                  "fits_per_hour": round(3600 * len(rows) / seconds, 1),
-                                  "rows_equal_first_mode": rows == reference}
-    first = figures["modes"][args.modes[0]]["seconds"]
-    for mode, entry in figures["modes"].items():
+        figures["modes"][name] = {"where": where, "fits": len(rows), "failed": failed, "seconds": round(seconds, 1),
+                                  "fits_per_hour": round(3600 * len(rows) / seconds, 1), "gpu_usage": usage.summary,
+                                  "differences_from_first_mode": _study_differences(rows, reference)}
+    first = next(iter(figures["modes"].values()))["seconds"]
+    for entry in figures["modes"].values():
         entry["seconds_over_first_mode"] = round(entry["seconds"] / first, 3)
     figures["device"] = args.device or "default"
     return figures
@@ -505,7 +533,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=["iso-homo"], help="cohort: models fitted")
     p.add_argument("--modes", nargs="+", choices=("serial", "dask", "processes"), default=["serial", "dask"],
                    help="cohort: how the study runs (the first is the reference)")
-    p.add_argument("--workers", type=non_negative_int, help="cohort: the dask mode's local workers (default one per GPU or core)")
+    p.add_argument("--workers", type=non_negative_int, nargs="+",
+                   help="cohort: the dask mode's local workers (default one per GPU or core); several counts run the "
+                        "dask mode once per count (dask-W), e.g. --workers 1 2 on a two-GPU machine")
     p.add_argument("--sweep", action="store_true",
                    help="segment, mesh: the robustness sweep over phantom variants (anatomy options x image quality; "
                         "mesh: truth and segmentation meshed at every --edges size)")
