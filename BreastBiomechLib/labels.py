@@ -39,3 +39,18 @@ def tissue(key: int | str) -> Tissue:
     except KeyError:
         choices = ", ".join(f"{t.label}={t.name}" for t in TISSUES)
         raise KeyError(f"unknown tissue {key!r}; the label table has {choices}") from None
+
+
+def present_labels(values) -> list[int]:
+    """The tissue labels present among a label map's voxel ``values`` (integers), in order.
+    ValueError when none is (all background) or when a value is outside the label table."""
+    import numpy as np
+
+    present = [int(v) for v in np.unique(values) if v != BACKGROUND]
+    if not present:
+        raise ValueError("the label map has no labelled voxels (all background); segment the breast first")
+    unknown = [v for v in present if v not in BY_LABEL]
+    if unknown:
+        raise ValueError(f"the label map holds values {unknown[:8]} outside the label table "
+                         f"({', '.join(f'{t.label}={t.name}' for t in TISSUES)}); relabel it to those values")
+    return present

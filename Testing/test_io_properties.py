@@ -43,9 +43,10 @@ def test_mrk_json_errors_name_the_problem(tmp_path):
 @settings(max_examples=25, deadline=None)
 @given(st.integers(min_value=1, max_value=30), st.integers(min_value=0, max_value=2**31 - 1))
 def test_vtu_round_trip(tmp_path_factory, n_tets, seed):
-    rng = np.random.default_rng(seed)
-    nodes = rng.normal(size=(n_tets + 3, 3)) * 50
-    tets = np.array([rng.choice(len(nodes), 4, replace=False) for _ in range(n_tets)])
+    rng = np.random.default_rng(seed)  # a valid mesh to simulate: distinct, positive tets using every node
+    nodes = rng.normal(size=(4 * n_tets, 3)) * 50
+    tets = rng.permutation(len(nodes)).reshape(n_tets, 4)
+    tets[TetMesh(nodes, tets).volumes < 0, :2] = tets[TetMesh(nodes, tets).volumes < 0, 1::-1]
     mesh = TetMesh(nodes, tets, point_data={"chest_wall": rng.integers(0, 2, len(nodes)).astype(np.uint8)},
                    cell_data={"tissue": rng.integers(1, 5, n_tets).astype(np.uint8),
                               "fibre_direction": rng.normal(size=(n_tets, 3))})

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from BreastBiomechLib import __version__
 from BreastBiomechLib.cli.common import device_argument, positive_int
+from BreastBiomechLib.io.atomic import write_text_atomically
 
 
 def clear_earlier_result(folder: Path, marker: str = "settings.json", what: str = "fit") -> None:
@@ -233,9 +234,7 @@ residual fields as .nrrd).
 
 {_diagnosis_section(diagnosis)}
 """
-    path = out / "report.md"
-    path.write_text(text)
-    return path
+    return write_text_atomically(out / "report.md", text)
 
 
 def add_parsers(sub) -> None:

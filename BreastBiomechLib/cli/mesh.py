@@ -6,19 +6,20 @@ import json
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import end_progress, fraction, non_negative, positive, progress_line
+from BreastBiomechLib.io.atomic import write_text_atomically
 
 
 def cmd_mesh(args) -> int:
     """Mesh a label map; write the mesh, its surfaces, a report, a compression case and its
     NiftySim model."""
     from BreastBiomechLib.io.cases import case_from_dict, compression_case
-    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.images import read_label_map
     from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import write_surface, write_vtu
     from BreastBiomechLib.cli.niftysim import export_for_niftysim
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
-    labels = read_image(args.labels)
+    labels = read_label_map(args.labels)
     nipple = None
     if args.landmarks:
         marks = read_markups(args.landmarks)
@@ -38,11 +39,11 @@ def cmd_mesh(args) -> int:
     case = compression_case(result.mesh, "mesh.vtu", args.axis, args.compression,
                             chest_clearance_mm=args.chest_clearance_mm)
     paths["case"] = out / "case.json"
-    paths["case"].write_text(json.dumps(case, indent=1) + "\n")
+    write_text_atomically(paths["case"], json.dumps(case, indent=1) + "\n")
     model, _ = case_from_dict(case, result.mesh, paths["case"])
     paths["niftysim"], niftysim_notes = export_for_niftysim(out / "model.xml", model)
     paths["report"] = out / "mesh_report.json"
-    paths["report"].write_text(json.dumps(summary, indent=1) + "\n")
+    write_text_atomically(paths["report"], json.dumps(summary, indent=1) + "\n")
     failing = summary["quality"]["failing"]["any"]
     print(f"mesh written to {out}: {summary['nodes']} nodes, {summary['elements']} tets, "
           f"{summary['volume_cm3']:.0f} cm3, {summary['seconds']['total']:.1f} s")

@@ -9,6 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import device_argument
+from BreastBiomechLib.io.atomic import write_text_atomically
 
 
 def export_for_niftysim(path: Path, model, solved_displacement=None, formulation: str | None = None):
@@ -87,7 +88,7 @@ def cmd_run(args) -> int:
                "time_step_s": solution.time_step, "wall_s": solution.wall_time,
                "max_displacement_mm": float(np.linalg.norm(solution.displacement, axis=1).max()),
                "notes": [str(w.message) for w in caught], "units": "mm, s"}
-    (out / "solution.json").write_text(json.dumps(summary, indent=1, allow_nan=True))
+    write_text_atomically(out / "solution.json", json.dumps(summary, indent=1, allow_nan=True))
     print(f"{solution.status}: {solution.message}")
     print(f"  {solution.steps} steps in {solution.wall_time:.2f} s; max displacement {summary['max_displacement_mm']:.3f} mm")
     print(f"  written to {out}")

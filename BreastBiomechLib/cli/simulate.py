@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import device_argument
+from BreastBiomechLib.io.atomic import write_text_atomically
 
 
 def cmd_simulate(args) -> int:
@@ -71,7 +72,7 @@ def cmd_simulate(args) -> int:
         "supports": list(model.loading.notes),
         "units": "mm, N, J, s (plate forces: force of the plate on the tissue, LPS)",
     }
-    (out / "solution.json").write_text(json.dumps(summary, indent=1, allow_nan=True))
+    write_text_atomically(out / "solution.json", json.dumps(summary, indent=1, allow_nan=True))
     print(f"{solution.status}: {solution.message}")
     print(f"  {solution.steps} steps in {solution.wall_time:.2f} s; max displacement "
           f"{summary['max_displacement_mm']:.2f} mm")

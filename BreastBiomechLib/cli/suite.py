@@ -8,6 +8,7 @@ from pathlib import Path
 
 from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, fraction, non_negative,
                                          positive, positive_int, report_failures)
+from BreastBiomechLib.io.atomic import write_text_atomically
 
 
 def cmd_suite(args) -> int:
@@ -38,8 +39,8 @@ def cmd_suite(args) -> int:
                else None for c in cases]
     finished = [r for r in results if r is not None]
     scores = suite_scores(finished)
-    (out / "scores.json").write_text(json.dumps(scores, indent=1) + "\n")
-    (out / "scores.md").write_text(scores_markdown(scores, finished))
+    write_text_atomically(out / "scores.json", json.dumps(scores, indent=1) + "\n")
+    write_text_atomically(out / "scores.md", scores_markdown(scores, finished))
     if args.json:
         print(json.dumps({k: scores[k] for k in ("cases", "finished", "right_verdicts", "false_alarms",
                                                   "landmark_error_fall", "nmi_gap_closed", "seconds_per_case")}))

@@ -5,7 +5,8 @@ address (docs/cohorts.md)."""
 
 from BreastBiomechLib.cohort.cluster import SCHEDULER_ENVIRONMENT, Placement, cohort_client, place
 from BreastBiomechLib.cohort.runner import CohortCancelled, CohortProgress, run_tasks
-from BreastBiomechLib.cohort.tasks import Task, TaskOutcome, ordered, write_json_atomically
+from BreastBiomechLib.cohort.tasks import Task, TaskOutcome, ordered
+from BreastBiomechLib.io.atomic import write_json_atomically
 
 __all__ = ["CohortCancelled", "CohortProgress", "Placement", "SCHEDULER_ENVIRONMENT", "Task", "TaskOutcome",
            "cohort_client", "ordered", "place", "run_tasks", "write_json_atomically"]

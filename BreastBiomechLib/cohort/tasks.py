@@ -5,18 +5,15 @@ A task's function is a module-level function (Dask ships it to a worker by refer
 ``function(**kwargs, device=..., progress=...)``: ``device`` is the warp device it solves on in
 that worker, ``progress(message)`` reports where it is (a short line; returning False asks it to
 stop at the next chance, keeping what it has written) and its return value is a small JSON-able
-summary. The function writes its result beside its inputs with :func:`write_json_atomically`
+summary. The function writes its result beside its inputs with :func:`~BreastBiomechLib.io.atomic.write_json_atomically`
 (or renames a finished folder into place), so that a file that exists is complete: a rerun skips
 the tasks whose results exist, and a worker lost mid-task costs that one task.
 """
 
 from __future__ import annotations
 
-import json
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 
 @dataclass(frozen=True)
@@ -50,20 +47,6 @@ class TaskOutcome:
     error: str = ""
     seconds: float = 0.0
     traceback: str = ""
-
-
-def write_json_atomically(path: str | Path, document: dict) -> Path:
-    """Write ``document`` as JSON to ``path`` through a temporary file beside it renamed over it,
-    so that a reader never meets a half-written file (the rename is atomic on one file system)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    with open(temporary, "w") as stream:
-        stream.write(json.dumps(document, indent=2, default=float) + "\n")
-        stream.flush()
-        os.fsync(stream.fileno())
-    os.replace(temporary, path)
-    return path
 
 
 def ordered(tasks: list[Task]) -> list[Task]:

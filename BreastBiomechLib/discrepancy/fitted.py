@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from BreastBiomechLib.errors import InputError, reading
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.forward import FittingProblem
@@ -99,19 +100,22 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
     if missing:
         raise FileNotFoundError(f"{fit}: not a finished fit (no {', '.join(missing)}); run `breastbiomech optimise` "
                                 "to the end first")
-    recorded = fit / "case.json"
-    if recorded.is_file():
-        fingerprint = json.loads(recorded.read_text()).get("fingerprint")
-        if fingerprint != case_fingerprint(case):
-            raise ValueError(f"{fit} is a fit of another case ({json.loads(recorded.read_text()).get('case_dir')}): "
-                             f"its measured image or plates differ from {case}'s")
+    with reading(fit, "finished fit folder (case.json, settings.json, result.json)",
+                 "run `breastbiomech optimise` to the end again into a new folder"):
+        recorded = fit / "case.json"
+        if recorded.is_file():
+            written = json.loads(recorded.read_text())
+            if written.get("fingerprint") != case_fingerprint(case):
+                raise InputError(f"{fit} is a fit of another case ({written.get('case_dir')}): its measured image or "
+                                 f"plates differ from {case}'s")
+        settings = json.loads((fit / "settings.json").read_text())
+        result = json.loads((fit / "result.json").read_text())
+        space = ParameterSpace.from_dict(settings["space"])
+        z = np.asarray(result["best"]["z"], float)
+        if z.shape != (space.dimension,) or not np.isfinite(z).all():
+            raise InputError(f"{fit}: result.json's best position is {result['best']['z']}, not {space.dimension} finite "
+                             "coordinates of the fit's space")
     measured = read_compressed(case)
-    settings = json.loads((fit / "settings.json").read_text())
-    result = json.loads((fit / "result.json").read_text())
-    space = ParameterSpace.from_dict(settings["space"])
-    z = np.asarray(result["best"]["z"], float)
-    if z.shape != (space.dimension,):
-        raise ValueError(f"{fit}: result.json's best position has {z.size} coordinates, the fit's space {space.dimension}")
     if (fit / "predicted.nrrd").is_file():
         predicted = sitk.ReadImage(str(fit / "predicted.nrrd"))
         if predicted.GetSize() != measured.image.GetSize() or not np.allclose(

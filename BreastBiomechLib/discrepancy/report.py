@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from BreastBiomechLib.io.atomic import write_text_atomically
+
 
 def _number(value, digits: int = 3) -> str:
     if value is None:
@@ -113,6 +115,4 @@ def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
         parts += [""]
     if pictures:
         parts += ["## Views", ""] + [f"![{caption}]({name})\n" for caption, name in pictures]
-    path = Path(path)
-    path.write_text("\n".join(parts) + "\n")
-    return path
+    return write_text_atomically(path, "\n".join(parts) + "\n")

@@ -26,7 +26,6 @@ by a new one.
 from __future__ import annotations
 
 import json
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -40,6 +39,7 @@ from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
 from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.io.atomic import atomic_path, write_text_atomically
 from BreastBiomechLib.io.claims import CLAIM_FILE
 
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
@@ -47,13 +47,6 @@ DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open 
 
 class DiagnosisCancelled(RuntimeError):
     """The progress callback answered False: the step stopped before writing anything."""
-
-
-def write_atomically(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file renamed over it: never half written."""
-    temporary = path.with_name(path.name + ".partial")
-    temporary.write_text(text)
-    os.replace(temporary, path)
 
 
 def measures(fitted: FittedCase, observations: Observations, displacement: np.ndarray, regions) -> dict:
@@ -109,8 +102,8 @@ class FieldRecorder:
         from BreastBiomechLib.discrepancy.registration import field_by_region
 
         image = sitk.Cast(field.image(), sitk.sitkVectorFloat32)
-        sitk.WriteImage(image, str(path.with_name(path.name + ".partial.nrrd")), useCompression=True)
-        os.replace(path.with_name(path.name + ".partial.nrrd"), path)
+        with atomic_path(path) as temporary:
+            sitk.WriteImage(image, str(temporary), useCompression=True)
         magnitude = field.magnitude[field.mask]
         return {"file": path.name, "mean_mm": float(magnitude.mean()), "p95_mm": float(np.percentile(magnitude, 95)),
                 "accuracy": field.accuracy,
@@ -338,9 +331,9 @@ class DiagnosisSession:
         from BreastBiomechLib.discrepancy.report import write_report
         from BreastBiomechLib.discrepancy.workflow import DiagnosisRun
 
-        write_atomically(self.path(record["round"]), json.dumps(record, indent=1, default=float) + "\n")
+        write_text_atomically(self.path(record["round"]), json.dumps(record, indent=1, default=float) + "\n")
         run = DiagnosisRun(self.rounds, self.out)
-        write_atomically(self.out / "diagnosis.json", json.dumps(
+        write_text_atomically(self.out / "diagnosis.json", json.dumps(
             {"case_dir": str(self.case_dir), "fit_dir": str(self.fit_dir), "settings": self.settings.__dict__,
              "rounds": self.rounds, "final": run.final["verdict"], "added": run.added}, indent=1, default=float) + "\n")
         write_report(run, self.out / "report.md")

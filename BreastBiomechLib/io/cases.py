@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.errors import InputError, reading
 from BreastBiomechLib.labels import tissue as lookup_tissue
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material
@@ -336,13 +337,18 @@ def read_case(path: str | Path) -> tuple[Model, SolverSettings]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such case file")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: not valid JSON ({error})") from None
-    if "mesh" not in data:
-        raise ValueError(f"{path}: the case must name its mesh file (\"mesh\": \"breast.vtu\")")
-    return case_from_dict(data, read_vtu(path.parent / data["mesh"]), path)
+    with reading(path, "case file", "docs/solver.md lists its fields; `breastbiomech mesh` writes one"):
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as error:
+            raise InputError(f"{path}: not valid JSON ({error})") from None
+        if not isinstance(data, dict) or not isinstance(data.get("mesh"), str):
+            raise InputError(f"{path}: the case must name its mesh file (\"mesh\": \"breast.vtu\")")
+        mesh_path = path.parent / data["mesh"]
+        if not mesh_path.is_file():
+            raise InputError(f"{path}: its mesh {data['mesh']!r} is not a file ({mesh_path}); give the .vtu's path "
+                             "relative to the case file")
+        return case_from_dict(data, read_vtu(mesh_path), path)
 
 
 def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compression: float = 0.25,

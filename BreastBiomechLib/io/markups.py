@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.errors import InputError, reading
+from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.landmarks import Landmarks
 
 SCHEMA = (
@@ -58,31 +60,45 @@ def write_markups(path: str | Path, landmarks: Landmarks, name: str = "Landmarks
             }
         ],
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(document, indent=2) + "\n")
+    write_text_atomically(path, json.dumps(document, indent=2) + "\n")
     return path
 
 
 def read_markups(path: str | Path) -> Landmarks:
-    """Read the first point list of a ``.mrk.json`` file; positions returned in LPS mm."""
+    """Read the first point list of a ``.mrk.json`` file; positions returned in LPS mm. A file
+    that is not one, or a point without three finite coordinates, raises
+    :class:`~BreastBiomechLib.errors.InputError` naming the file and the point."""
     path = Path(path)
-    try:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such markups file")
+    remedy = "save the point list again from Slicer's Markups module (.mrk.json)"
+    with reading(path, "Slicer markups .mrk.json file", remedy):
         document = json.loads(path.read_text())
+        if not isinstance(document, dict) or not isinstance(document.get("markups"), list) or not document["markups"]:
+            raise InputError(f"{path}: not a Slicer markups .mrk.json file (no \"markups\" list); {remedy}")
         markup = document["markups"][0]
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: no such markups file") from None
-    except (json.JSONDecodeError, KeyError, IndexError, TypeError) as exc:
-        raise ValueError(f"{path}: not a Slicer markups .mrk.json file ({exc})") from None
-    system = markup.get("coordinateSystem", "LPS")
-    if system not in ("LPS", "RAS"):
-        raise ValueError(f"{path}: unknown coordinateSystem {system!r} (expected LPS or RAS)")
-    units = markup.get("coordinateUnits", "mm")
-    if units != "mm":
-        raise ValueError(f"{path}: coordinates in {units!r}; only millimetres are supported")
-    points = [p for p in markup.get("controlPoints", []) if p.get("positionStatus", "defined") == "defined"]
-    positions = np.array([p["position"] for p in points], dtype=np.float64).reshape(-1, 3)
-    if system == "RAS":
-        positions = positions * _LPS_TO_RAS
-    labels = [p.get("label") or f"P-{i + 1}" for i, p in enumerate(points)]
-    descriptions = [p.get("description", "") for p in points]
-    return Landmarks(positions, labels, descriptions)
+        if not isinstance(markup, dict):
+            raise InputError(f"{path}: markups[0] is not a markup object; {remedy}")
+        system = markup.get("coordinateSystem", "LPS")
+        if system not in ("LPS", "RAS"):
+            raise InputError(f"{path}: unknown coordinateSystem {system!r} (expected LPS or RAS)")
+        units = markup.get("coordinateUnits", "mm")
+        if units != "mm":
+            raise InputError(f"{path}: coordinates in {units!r}; only millimetres are supported")
+        points = markup.get("controlPoints", [])
+        if not isinstance(points, list) or not all(isinstance(p, dict) for p in points):
+            raise InputError(f"{path}: controlPoints must be a list of point objects; {remedy}")
+        points = [p for p in points if p.get("positionStatus", "defined") == "defined"]
+        for i, point in enumerate(points):
+            position = point.get("position")
+            if (not isinstance(position, list) or len(position) != 3
+                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in position)
+                    or not np.isfinite(np.asarray(position, dtype=np.float64)).all()):
+                raise InputError(f"{path}: control point {i + 1} ({point.get('label', 'unlabelled')!r}) has position "
+                                 f"{position!r}; a position is three finite numbers (mm)")
+        positions = np.array([p["position"] for p in points], dtype=np.float64).reshape(-1, 3)
+        if system == "RAS":
+            positions = positions * _LPS_TO_RAS
+        labels = [str(p.get("label") or f"P-{i + 1}") for i, p in enumerate(points)]
+        descriptions = [str(p.get("description", "")) for p in points]
+        return Landmarks(positions, labels, descriptions)

@@ -37,7 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
+from BreastBiomechLib.errors import InputError, reading
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, check_mesh
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Constraint, Loading, Model, Plate, PlateEdge
 from BreastBiomechLib.solver.tled import constraint_load_shapes, critical_time_step, merged_constraints
@@ -66,7 +67,10 @@ MATERIAL_PARAMS = {"NH": 2, "NHV": 2, "TI": 6, "TIV": 6}
 CONSTRAINT_TYPES = ("Fix", "Disp", "Gravity")
 
 
-class NiftySimFormatError(ValueError):
+PLAUSIBLE = 1e30  # larger numbers in a model file are mistakes (and overflow once scaled to mm)
+
+
+class NiftySimFormatError(InputError):
     """A NiftySim file this project cannot read or a model it cannot write: the message names the
     file, the element and what to do."""
 
@@ -317,7 +321,11 @@ class _Reader:
             raise self.fail(f"{what} holds text that is not a number: {(raw or '').strip()[:60]!r}") from None
         if not np.all(np.isfinite(values)):
             raise self.fail(f"{what} holds values that are not finite numbers")
+        if np.any(np.abs(values) > PLAUSIBLE):
+            raise self.fail(f"{what} holds values beyond {PLAUSIBLE:g}, which no model quantity in SI units reaches")
         if dtype is not float:
+            if np.any(np.abs(values) > 2**53):
+                raise self.fail(f"{what} holds an index too large to be one: {values[np.abs(values) > 2**53][:3]}")
             if np.any(values != np.round(values)):
                 raise self.fail(f"{what} must list whole numbers (indices), not {values[values != np.round(values)][:3]}")
             return values.astype(np.int64)
@@ -371,6 +379,13 @@ def read_niftysim(path: str | Path) -> Model:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such NiftySim model")
+    with reading(path, "NiftySim XML model", "check it against NiftySim's model schema (docs/solver.md, NiftySim "
+                 "interchange)"):
+        return _read_model(path)
+
+
+def _read_model(path: Path) -> Model:
+    """:func:`read_niftysim`'s body (its errors made :class:`InputError` by the caller)."""
     r = _Reader(path)
     try:
         root = ET.parse(path).getroot()
@@ -400,9 +415,10 @@ def read_niftysim(path: str | Path) -> Model:
         loading = Loading(constraints, plates, gravity=gravity, total_time=system["TotalTime"],
                           load_shape=gravity_shape or "POLY345")
         mesh = TetMesh(nodes, tets, cell_data={"material_set": material_set})
+        check_mesh(mesh, str(path))
         return Model(mesh, materials, loading, formulation=formulation, damping=system["DampingCoeff"],
                      time_step=system["TimeStep"], anp_across_materials=formulation == "T4ANP")
-    except NiftySimFormatError:
+    except InputError:
         raise
     except ValueError as error:
         raise r.fail(str(error)) from None

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.io.images import write_image
 from BreastBiomechLib.segmentation.pipeline import TissueSegmentation
 
@@ -26,5 +27,5 @@ def write_segmentation(result: TissueSegmentation, out_dir: str | Path, extra: d
         paths[f"probability_{name}"] = write_image(out / f"probability_{name}.nrrd", image)
     paths["bias_field"] = write_image(out / "bias_field.nrrd", result.bias_field)
     paths["summary"] = out / "segmentation.json"
-    paths["summary"].write_text(json.dumps({**result.summary, **(extra or {})}, indent=2) + "\n")
+    write_text_atomically(paths["summary"], json.dumps({**result.summary, **(extra or {})}, indent=2) + "\n")
     return paths

@@ -138,13 +138,7 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
         clock = now
 
     array = label_array(labels)
-    present = [int(v) for v in np.unique(array) if v > 0]
-    if not present:
-        raise ValueError("the label map has no labelled voxels (all background); segment the breast first")
-    unknown = [v for v in present if v not in lt.BY_LABEL]
-    if unknown:
-        raise ValueError(f"the label map holds values {unknown} outside the label table "
-                         f"({', '.join(f'{t.label}={t.name}' for t in lt.TISSUES)})")
+    present = lt.present_labels(array)
     report(0.0, "body surface")
     surface_settings = settings.surface()
     body, islands = _body_surface(labels, surface_settings, notes)

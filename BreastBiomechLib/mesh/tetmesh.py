@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from BreastBiomechLib.errors import InputError
+
 
 def _signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     p = nodes[tets]
@@ -117,3 +119,34 @@ class TetMesh:
                     for i in range(data.GetNumberOfArrays()) if data.GetArray(i) is not None}
 
         return cls(nodes, conn, arrays(grid.GetPointData()), arrays(grid.GetCellData()))
+
+
+def check_mesh(mesh: TetMesh, where: str) -> None:
+    """Refuse a mesh that cannot be simulated (:class:`~BreastBiomechLib.errors.InputError`,
+    ``where`` naming its source): no elements, non-finite coordinates or point and cell data,
+    inverted or flat elements, an element given twice, nodes in no element (they would have no
+    mass)."""
+    if len(mesh.tets) == 0:
+        raise InputError(f"{where}: the mesh has no tetrahedra")
+    bad = np.flatnonzero(~np.isfinite(mesh.nodes).all(axis=1))
+    if len(bad):
+        raise InputError(f"{where}: {len(bad)} node(s) have coordinates that are not finite (first: node "
+                         f"{bad[0]}); fix or remove them")
+    for kind, data in (("point", mesh.point_data), ("cell", mesh.cell_data)):
+        for name, values in data.items():
+            if np.issubdtype(values.dtype, np.number) and not np.isfinite(values).all():
+                raise InputError(f"{where}: the {kind} array {name!r} holds values that are not finite")
+    volumes = mesh.volumes
+    bad = np.flatnonzero(~(volumes > 0))
+    if len(bad):
+        raise InputError(f"{where}: {len(bad)} of {len(volumes)} elements are inverted or flat (signed volume <= 0; "
+                         f"first: element {bad[0]}, {volumes[bad[0]]:.3g} mm^3); re-mesh, or reorder each "
+                         "element's nodes so its volume is positive")
+    _, first, counts = np.unique(np.sort(mesh.tets, axis=1), axis=0, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        raise InputError(f"{where}: {int((counts > 1).sum())} element(s) appear more than once (first: element "
+                         f"{first[counts > 1].min()}); remove the duplicates")
+    unused = np.setdiff1d(np.arange(len(mesh.nodes)), mesh.tets.ravel())
+    if len(unused):
+        raise InputError(f"{where}: {len(unused)} node(s) belong to no element (first: node {unused[0]}); a node "
+                         "without an element has no mass: remove them")

@@ -16,13 +16,13 @@ Output folder (besides the optimisation's settings.json, evaluations.jsonl, resu
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.io.atomic import write_json_atomically
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation.forward import FittingProblem
 from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solve_best
@@ -71,7 +71,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     results to ``out_dir``. The fitting mesh is ``mesh_path`` (a ``breastbiomech mesh`` .vtu), or
     made from ``labels`` (default: the case's labels.nrrd; a segmentation's label map fits the
     real workflow) at ``settings.edge_mm``."""
-    from BreastBiomechLib.io.images import read_image, write_image
+    from BreastBiomechLib.io.images import read_image, read_label_map, write_image
     from BreastBiomechLib.io.markups import read_markups, write_markups
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
     from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
@@ -86,8 +86,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
     with claimed(out, "a fit of a compressed case"):
         out.mkdir(parents=True, exist_ok=True)
-        (out / "case.json").write_text(json.dumps({"case_dir": str(case.resolve()),
-                                                   "fingerprint": case_fingerprint(case)}, indent=2) + "\n")
+        write_json_atomically(out / "case.json", {"case_dir": str(case.resolve()), "fingerprint": case_fingerprint(case)})
         mesh_file = out / "fitting_mesh.vtu"
         if mesh_path is not None:
             mesh = read_vtu(mesh_path)
@@ -97,7 +96,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
             from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
             nipple = reference.position("nipple") if reference is not None and "nipple" in reference.labels else None
-            mesh = mesh_labels(read_image(labels or case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
+            mesh = mesh_labels(read_label_map(labels or case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
                                nipple_mm=nipple).mesh
         write_vtu(mesh_file, mesh)
         space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
@@ -121,9 +120,9 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
             write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
             table = landmark_errors(reference, moved, measured.landmarks)
             errors = table.summary()
-            (out / "landmark_errors.json").write_text(json.dumps({**errors, "per_landmark": {
+            write_json_atomically(out / "landmark_errors.json", {**errors, "per_landmark": {
                 label: {"displacement_mm": float(d), "error_mm": float(e)}
-                for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}}, indent=2) + "\n")
+                for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}})
         save_convergence(out / "convergence.png", result)
         return CaseFit(result, errors, out)
 

@@ -3,8 +3,10 @@ is made, the evaluation budget (count and wall time), progress and cancel, and r
 
 Resume replays: the optimisers are deterministic for a given seed, so a rerun with the same
 settings asks for the same positions in the same order, and those already in the results file
-are answered from it without a solve. An interruption loses at most the batch in flight (a
-record cut short by a kill mid-write is dropped on resume).
+are answered from it without a solve. A position asked for again within a run is answered from
+its first evaluation too (it counts against the budget, and is not written twice), so a resumed
+run solves exactly the batches an uninterrupted one does. An interruption loses at most the batch
+in flight (a record cut short by a kill mid-write is dropped on resume).
 """
 
 from __future__ import annotations
@@ -17,7 +19,37 @@ from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.errors import InputError, one_line
+from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.optimisation.forward import Evaluation
+
+
+def read_evaluations(path: str | Path) -> list[Evaluation]:
+    """Every evaluation recorded in a results file (JSON lines). A last line without its newline
+    (a run killed mid-write) is left out; any other line that is not a whole evaluation record
+    raises :class:`~BreastBiomechLib.errors.InputError` naming the file and the line."""
+    path = Path(path)
+    evaluations = []
+    for number, line in enumerate(path.read_text().splitlines(keepends=True), 1):
+        if not line.endswith("\n"):
+            break
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+            record.pop("index", None)
+            record.pop("phase", None)
+            evaluation = Evaluation(**record)
+            z = np.asarray(evaluation.z, dtype=np.float64)
+            if z.ndim != 1 or not np.isfinite(z).all() or not isinstance(evaluation.values, dict):
+                raise ValueError("its position z is not a list of finite numbers")
+            if isinstance(evaluation.objective, bool) or not isinstance(evaluation.objective, (int, float)):
+                raise ValueError(f"its objective is {evaluation.objective!r}, not a number")
+        except (ValueError, TypeError, AttributeError) as error:
+            raise InputError(f"{path}: line {number} is not an evaluation record ({one_line(error)}); the file was "
+                             "changed by something other than the fit: move it away and fit again") from None
+        evaluations.append(evaluation)
+    return evaluations
 
 
 class BudgetExhausted(Exception):
@@ -60,14 +92,9 @@ class EvaluationLog:
                 text = self.path.read_text()
                 if text and not text.endswith("\n"):  # a run killed mid-line: drop the half-written record
                     text = text[: text.rfind("\n") + 1]
-                    self.path.write_text(text)
-                for line in text.splitlines():
-                    if line.strip():
-                        record = json.loads(line)
-                        record.pop("index", None)
-                        record.pop("phase", None)
-                        evaluation = Evaluation(**record)
-                        self._cache.setdefault(tuple(evaluation.z), evaluation)
+                    write_text_atomically(self.path, text)
+                for evaluation in read_evaluations(self.path):
+                    self._cache.setdefault(tuple(evaluation.z), evaluation)
 
     @property
     def best(self) -> Evaluation | None:
@@ -108,6 +135,10 @@ class EvaluationLog:
 
     def _record(self, evaluation: Evaluation, fresh: bool) -> None:
         self.evaluations.append(evaluation)
+        # a position asked for again is answered from here, in a fresh run as in a resumed one: a
+        # resumed run then solves the same batches as an uninterrupted one (a batch's solves
+        # depend, in their last digits, on the models solved beside them)
+        self._cache.setdefault(tuple(float(v) for v in evaluation.z), evaluation)
         if fresh and self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             with open(self.path, "a") as stream:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from BreastBiomechLib.io.atomic import write_json_atomically
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation import search
 from BreastBiomechLib.optimisation.forward import Evaluation, FittingProblem
@@ -26,10 +27,10 @@ from BreastBiomechLib.optimisation.record import EvaluationLog
 class OptimisationResult:
     """``best``: the best evaluation; ``materials``: every material's {"E", "nu", "eta"} there;
     ``evaluations``: all, in order; ``stopped``: why the run ended ("converged", "budget",
-    "time", "cancelled"); ``replayed``: evaluations answered from a resumed results file;
-    ``seconds``: wall time of this run; ``geometry``: the free fibre direction and plate
-    offsets there (:meth:`ParameterSpace.geometry`; empty when none is free); ``stand_in``:
-    empty, or why ``best`` is not the best evaluation (see :func:`solve_best`)."""
+    "time", "cancelled"); ``replayed``: evaluations answered without a solve (from a resumed
+    results file, or a position asked for again); ``seconds``: wall time of this run;
+    ``geometry``: the free fibre direction and plate offsets there
+    (:meth:`ParameterSpace.geometry`; empty when none is free); ``stand_in``: empty, or why ``best`` is not the best evaluation (see :func:`solve_best`)."""
 
     best: Evaluation
     materials: dict[str, dict[str, float]]
@@ -80,7 +81,7 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
                 if changed:
                     raise ValueError(f"{out}: cannot resume with other settings ({', '.join(changed)} differ); "
                                      "resume with the same ones or start a new output folder")
-            settings_path.write_text(json.dumps(settings, indent=2) + "\n")
+            write_json_atomically(settings_path, settings)
         started = time.perf_counter()
         log = EvaluationLog(problem.evaluate, budget, seconds, path, resume, progress)
         if optimiser == "hybrid":
@@ -93,7 +94,7 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
                                     log.stopped or ("budget" if len(log.evaluations) >= budget else "converged"),
                                     log.replayed, time.perf_counter() - started, space.geometry(log.best.z))
         if out_dir is not None:
-            (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
+            write_json_atomically(Path(out_dir) / "result.json", result.summary())
         return result
 
 
@@ -129,5 +130,5 @@ def solve_best(problem: FittingProblem, result: OptimisationResult, out_dir: str
                                 result.stopped, result.replayed, result.seconds,
                                 space.geometry(evaluation.z), stand_in)
     if out_dir is not None:
-        (Path(out_dir) / "result.json").write_text(json.dumps(result.summary(), indent=2) + "\n")
+        write_json_atomically(Path(out_dir) / "result.json", result.summary())
     return result, solution

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.errors import InputError, reading
+from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
 from BreastBiomechLib.optimisation.search import OPTIMISERS
@@ -175,7 +177,7 @@ def make_fitting_mesh(case_dir: str, mesh_file: str, edge_mm: float, device=None
     to ``mesh_file`` through a temporary file renamed into place. Returns its size."""
     import os
 
-    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.images import read_label_map
     from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
@@ -183,7 +185,7 @@ def make_fitting_mesh(case_dir: str, mesh_file: str, edge_mm: float, device=None
     case, target = Path(case_dir), Path(mesh_file)
     reference = read_markups(case / "landmarks.mrk.json")
     nipple = reference.position("nipple") if "nipple" in reference.labels else None
-    mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=edge_mm), nipple_mm=nipple).mesh
+    mesh = mesh_labels(read_label_map(case / "labels.nrrd"), MeshSettings(edge_mm=edge_mm), nipple_mm=nipple).mesh
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = target.with_name(f".{target.stem}.{os.getpid()}.partial.vtu")
     write_vtu(temporary, mesh)
@@ -279,7 +281,16 @@ def _read_row(folder: Path) -> StudyFit | None:
 
 def read_study(out_dir: str | Path) -> list[StudyFit]:
     """Every fit's row in a study folder (none when there is none)."""
-    return [StudyFit(**json.loads(p.read_text())) for p in sorted(Path(out_dir).glob(f"*/*/{ROW_FILE}"))]
+    rows = []
+    for path in sorted(Path(out_dir).glob(f"*/*/{ROW_FILE}")):
+        with reading(path, "study row", "remove that fit's folder and run the study again to refit it"):
+            row = StudyFit(**json.loads(path.read_text()))
+            if not (isinstance(row.nmi, (int, float)) and isinstance(row.objective, (int, float))
+                    and isinstance(row.materials, dict) and isinstance(row.truth, dict)):
+                raise InputError(f"{path}: its nmi, objective, materials or truth is of the wrong kind; remove that "
+                                 "fit's folder and run the study again to refit it")
+        rows.append(row)
+    return rows
 
 
 def best_fits(rows: list[StudyFit]) -> dict[tuple[str, str], StudyFit]:
@@ -419,7 +430,7 @@ def write_report(path: str | Path, tables: str) -> Path:
         after = rest.split(end, 1)[1]
     else:
         before, after = (text.rstrip() + "\n\n" if text.strip() else ""), "\n"
-    path.write_text(f"{before}{begin}\n{tables.strip()}\n{end}{after}")
+    write_text_atomically(path, f"{before}{begin}\n{tables.strip()}\n{end}{after}")
     return path
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.io.images import read_image, write_image
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.landmarks import Landmarks
@@ -50,10 +51,10 @@ def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview:
         "truth": out / "truth.json",
         "truth_mesh": write_vtu(out / "truth_mesh.vtu", compressed.mesh),
     }
-    paths["plates"].write_text(json.dumps({"axis": truth.axis, "compression": truth.compression,
+    write_text_atomically(paths["plates"], json.dumps({"axis": truth.axis, "compression": truth.compression,
                                            "plates": compressed.plates,
                                            "gravity": [float(g) for g in compressed.gravity]}, indent=2) + "\n")
-    paths["truth"].write_text(json.dumps({"truth": truth.to_dict(), "summary": compressed.summary}, indent=2) + "\n")
+    write_text_atomically(paths["truth"], json.dumps({"truth": truth.to_dict(), "summary": compressed.summary}, indent=2) + "\n")
     if overview:
         from BreastBiomechLib.visualisation import save_overview
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.io.images import read_image, write_image
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.phantom.generate import PhantomCase
@@ -47,7 +48,7 @@ def write_phantom(case: PhantomCase, out_dir: str | Path, overview: bool = True)
             paths[f"seeds_{tissue}"] = write_markups(out / f"seeds_{tissue}.mrk.json", seeds, name=f"Seeds {tissue}")
     document = {"parameters": case.parameters.to_dict(), "summary": case.summary}
     paths["parameters"] = out / "parameters.json"
-    paths["parameters"].write_text(json.dumps(document, indent=2) + "\n")
+    write_text_atomically(paths["parameters"], json.dumps(document, indent=2) + "\n")
     if overview:
         from BreastBiomechLib.visualisation import save_overview
 

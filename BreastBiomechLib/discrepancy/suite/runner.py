@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
+from BreastBiomechLib.io.atomic import write_json_atomically
 
 # what a clinic has of a compressed case: the fit and the diagnosis see nothing else
 MEASURED_FILES = ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json",
@@ -96,10 +97,8 @@ class SuiteSettings:
 
 
 def write_json(path: Path, document: dict) -> None:
-    """Write ``document`` to ``path`` atomically (a temporary file renamed over it)."""
-    temporary = path.with_name(path.name + ".partial")
-    temporary.write_text(json.dumps(document, indent=1, default=float) + "\n")
-    os.replace(temporary, path)
+    """Write ``document`` to ``path`` atomically (:mod:`BreastBiomechLib.io.atomic`)."""
+    write_json_atomically(path, document, indent=1)
 
 
 class _Lock:

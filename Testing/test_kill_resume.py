@@ -1,0 +1,129 @@
+"""Kill and resume: a fit and a study killed with SIGKILL at random moments and run again end with
+exactly what an uninterrupted run writes (the CPU is deterministic), and no half-written file is
+ever taken for a finished one.
+
+``BREASTBIOMECH_KILL_TRIALS`` sets the kill points per command (default 2, CI's; the long run of
+docs/reliability.md uses 20) and ``BREASTBIOMECH_KILL_SEED`` their random draw.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+TRIALS = int(os.environ.get("BREASTBIOMECH_KILL_TRIALS", "2"))
+SEED = int(os.environ.get("BREASTBIOMECH_KILL_SEED", "0"))
+CLI = [sys.executable, "-c", "import sys; from BreastBiomechLib.cli import main; sys.exit(main())"]
+
+
+def run(argv: list[str]) -> float:
+    """Run the command to its end (it must succeed); its wall seconds."""
+    started = time.perf_counter()
+    done = subprocess.run(CLI + argv, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return time.perf_counter() - started
+
+
+def kill_after(argv: list[str], seconds: float) -> bool:
+    """Start the command and SIGKILL it after ``seconds``; whether it was still running."""
+    process = subprocess.Popen(CLI + argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               start_new_session=True)
+    try:
+        process.wait(timeout=seconds)
+        return False
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+        return True
+
+
+def kill_points(reference_seconds: float, salt: int) -> list[float]:
+    draw = random.Random(SEED * 1000 + salt)
+    return sorted(draw.uniform(0.15, 1.0) * reference_seconds for _ in range(TRIALS))
+
+
+def fit_outputs(out) -> dict:
+    """What a fit wrote, less what differs between any two runs (wall times, replay counts)."""
+    import SimpleITK as sitk
+
+    result = json.loads((out / "result.json").read_text())
+    for key in ("seconds", "replayed"):
+        result.pop(key)
+    result["best"].pop("seconds")
+    evaluations = [json.loads(line) for line in (out / "evaluations.jsonl").read_text().splitlines()]
+    for evaluation in evaluations:
+        evaluation.pop("seconds")
+    predicted = sitk.GetArrayFromImage(sitk.ReadImage(str(out / "predicted.nrrd")))
+    return {"result": result, "evaluations": evaluations, "predicted": predicted.tobytes(),
+            "landmarks": (out / "landmark_errors.json").read_text(), "mesh": (out / "fitting_mesh.vtu").read_bytes()}
+
+
+def assert_no_partial_files(out) -> None:
+    assert not [p for p in out.rglob("*") if p.name.startswith(".partial-")], "a temporary file was left behind"
+
+
+@pytest.mark.slow
+def test_a_fit_killed_anywhere_resumes_to_the_uninterrupted_result(compressed_case_dir, tmp_path):
+    def fit(out, resume=False):
+        return ["optimise", str(compressed_case_dir), "--out", str(out), "--model", "iso-homo", "--budget", "4",
+                "--population", "2", "--edge-mm", "12", "--tolerance-mm", "0.05", "--device", "cpu", "--seed", "4",
+                "--quiet", *(["--resume"] if resume else [])]
+
+    seconds = run(fit(tmp_path / "reference"))
+    reference = fit_outputs(tmp_path / "reference")
+    killed = 0
+    for k, delay in enumerate(kill_points(seconds, 1)):
+        out = tmp_path / f"killed{k}"
+        killed += kill_after(fit(out), delay)
+        run(fit(out, resume=True))
+        outputs = fit_outputs(out)
+        for key, value in reference.items():
+            assert outputs[key] == value, f"kill at {delay:.1f} s of {seconds:.1f} s: {key} differs after the resume"
+        assert_no_partial_files(out)
+    assert killed, "every run ended before its kill: the test tested no interruption"
+
+
+@pytest.mark.slow
+def test_a_study_killed_anywhere_resumes_to_the_uninterrupted_result(compressed_case_dir, tmp_path):
+    from BreastBiomechLib.optimisation.study import read_study
+
+    def study(out):
+        return ["study", str(compressed_case_dir), "--out", str(out), "--models", "iso-homo", "aniso-homo",
+                "--budget", "iso-homo=3", "aniso-homo=3", "--edge-mm", "12", "--tolerance-mm", "0.05",
+                "--device", "cpu", "--workers", "0", "--quiet"]
+
+    def rows(out):
+        return sorted((r.case, r.model, r.optimiser, r.nmi, r.objective, r.evaluations, r.failed, r.stopped,
+                       json.dumps(r.materials, sort_keys=True)) for r in read_study(out))
+
+    seconds = run(study(tmp_path / "reference"))
+    reference = rows(tmp_path / "reference")
+    assert len(reference) == 2
+    killed = 0
+    for k, delay in enumerate(kill_points(seconds, 2)):
+        out = tmp_path / f"killed{k}"
+        killed += kill_after(study(out), delay)
+        run(study(out))
+        assert rows(out) == reference, f"kill at {delay:.1f} s of {seconds:.1f} s: the study differs after the rerun"
+        assert_no_partial_files(out)
+    assert killed, "every run ended before its kill: the test tested no interruption"
+
+
+def test_a_write_that_fails_leaves_the_old_file_and_no_partial_one(tmp_path):
+    """Atomic writes: a writer that dies half way leaves the previous file whole and no temporary."""
+    from BreastBiomechLib.io.atomic import atomic_path, write_json_atomically
+
+    path = write_json_atomically(tmp_path / "out" / "result.json", {"nmi": 1.2, "e": np.float64(3.0)})
+    with pytest.raises(RuntimeError), atomic_path(path) as temporary:
+        temporary.write_text('{"nmi": 1.')
+        raise RuntimeError("killed mid-write")
+    assert json.loads(path.read_text()) == {"nmi": 1.2, "e": 3.0}
+    assert sorted(p.name for p in path.parent.iterdir()) == ["result.json"]
