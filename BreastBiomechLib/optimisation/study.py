@@ -174,9 +174,7 @@ def study_tasks(case_dirs, out_dir: str | Path, settings: StudySettings) -> list
 
 def make_fitting_mesh(case_dir: str, mesh_file: str, edge_mm: float, device=None, progress=None) -> dict:
     """A study task: the fitting mesh of the case's labels at ``edge_mm`` (nipple-aware), written
-    to ``mesh_file`` through a temporary file renamed into place. Returns its size."""
-    import os
-
+    to ``mesh_file`` (atomically). Returns its size."""
     from BreastBiomechLib.io.images import read_label_map
     from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import write_vtu
@@ -186,10 +184,7 @@ def make_fitting_mesh(case_dir: str, mesh_file: str, edge_mm: float, device=None
     reference = read_markups(case / "landmarks.mrk.json")
     nipple = reference.position("nipple") if "nipple" in reference.labels else None
     mesh = mesh_labels(read_label_map(case / "labels.nrrd"), MeshSettings(edge_mm=edge_mm), nipple_mm=nipple).mesh
-    target.parent.mkdir(parents=True, exist_ok=True)
-    temporary = target.with_name(f".{target.stem}.{os.getpid()}.partial.vtu")
-    write_vtu(temporary, mesh)
-    os.replace(temporary, target)
+    write_vtu(target, mesh)
     return {"nodes": len(mesh.nodes), "tets": len(mesh.tets)}
 
 
@@ -275,22 +270,23 @@ def device_name(device=None) -> str:
 
 
 def _read_row(folder: Path) -> StudyFit | None:
+    """The row (:data:`ROW_FILE`) of the fit in ``folder``, None where there is none yet; a file
+    that is not a row raises InputError naming it."""
     path = folder / ROW_FILE
-    return StudyFit(**json.loads(path.read_text())) if path.is_file() else None
+    if not path.is_file():
+        return None
+    with reading(path, "study row", "remove that fit's folder and run the study again to refit it"):
+        row = StudyFit(**json.loads(path.read_text()))
+        if not (isinstance(row.nmi, (int, float)) and isinstance(row.objective, (int, float))
+                and isinstance(row.materials, dict) and isinstance(row.truth, dict)):
+            raise InputError(f"{path}: its nmi, objective, materials or truth is of the wrong kind; remove that "
+                             "fit's folder and run the study again to refit it")
+    return row
 
 
 def read_study(out_dir: str | Path) -> list[StudyFit]:
     """Every fit's row in a study folder (none when there is none)."""
-    rows = []
-    for path in sorted(Path(out_dir).glob(f"*/*/{ROW_FILE}")):
-        with reading(path, "study row", "remove that fit's folder and run the study again to refit it"):
-            row = StudyFit(**json.loads(path.read_text()))
-            if not (isinstance(row.nmi, (int, float)) and isinstance(row.objective, (int, float))
-                    and isinstance(row.materials, dict) and isinstance(row.truth, dict)):
-                raise InputError(f"{path}: its nmi, objective, materials or truth is of the wrong kind; remove that "
-                                 "fit's folder and run the study again to refit it")
-        rows.append(row)
-    return rows
+    return [_read_row(path.parent) for path in sorted(Path(out_dir).glob(f"*/*/{ROW_FILE}"))]
 
 
 def best_fits(rows: list[StudyFit]) -> dict[tuple[str, str], StudyFit]:
