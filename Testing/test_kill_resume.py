@@ -1,66 +1,16 @@
-"""Kill and resume: a fit and a study killed with SIGKILL at random moments and run again end with
-exactly what an uninterrupted run writes (the CPU is deterministic), and no half-written file is
-ever taken for a finished one.
-
-``BREASTBIOMECH_KILL_TRIALS`` sets the kill points per command (default 2, CI's; the long run of
-docs/reliability.md uses 20) and ``BREASTBIOMECH_KILL_SEED`` their random draw.
+"""Kill and resume: a fit and a study killed with SIGKILL at random moments and run again end
+with exactly what an uninterrupted run writes (the CPU is deterministic), and no half-written
+file is ever taken for a finished one (the diagnosis: test_kill_resume_diagnosis.py). Kill points:
+Testing/kill_resume.py.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import random
-import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
-
-TRIALS = int(os.environ.get("BREASTBIOMECH_KILL_TRIALS", "2"))
-SEED = int(os.environ.get("BREASTBIOMECH_KILL_SEED", "0"))
-CLI = [sys.executable, "-c", "import sys; from BreastBiomechLib.cli import main; sys.exit(main())"]
-
-
-def run(argv: list[str]) -> float:
-    """Run the command to its end (it must succeed); its wall seconds."""
-    started = time.perf_counter()
-    done = subprocess.run(CLI + argv, capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr[-2000:]
-    return time.perf_counter() - started
-
-
-def kill_after(argv: list[str], seconds: float) -> bool:
-    """Start the command and SIGKILL it after ``seconds``; whether it was still running."""
-    process = subprocess.Popen(CLI + argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                               start_new_session=True)
-    try:
-        process.wait(timeout=seconds)
-        return False
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait()
-        return True
-
-
-def kill_points(reference_seconds: float, salt: int) -> list[float]:
-    draw = random.Random(SEED * 1000 + salt)
-    return sorted(draw.uniform(0.1, 0.9) * reference_seconds for _ in range(TRIALS))
-
-
-def interrupt(argv_in, delay: float, tmp_path, name: str):
-    """Kill the command writing to a fresh folder after ``delay`` seconds; where it ended first (a run
-    after the reference is faster: warp's kernels are compiled and cached by then), try again in a
-    fresh folder at half the delay, so that every trial interrupts something. The folder and the
-    delay at which it was killed."""
-    for attempt in range(6):
-        out = tmp_path / f"{name}-{attempt}"
-        if kill_after(argv_in(out), delay):
-            return out, delay
-        delay /= 2
-    raise AssertionError(f"{name}: the command ended before every kill down to {delay:.2f} s")
+from kill_resume import assert_no_partial_files, interrupt, kill_points, run
 
 
 def fit_outputs(out) -> dict:
@@ -78,9 +28,6 @@ def fit_outputs(out) -> dict:
     return {"result": result, "evaluations": evaluations, "predicted": predicted.tobytes(),
             "landmarks": (out / "landmark_errors.json").read_text(), "mesh": (out / "fitting_mesh.vtu").read_bytes()}
 
-
-def assert_no_partial_files(out) -> None:
-    assert not [p for p in out.rglob("*") if p.name.startswith(".partial-")], "a temporary file was left behind"
 
 
 @pytest.mark.slow

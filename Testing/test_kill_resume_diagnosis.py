@@ -1,0 +1,58 @@
+"""Kill and resume of a diagnosis: killed with SIGKILL at random moments and run again with
+--resume, it ends with exactly what an uninterrupted run writes (the CPU is deterministic), and no
+half-written file is left. Kill points: Testing/kill_resume.py.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+from kill_resume import assert_no_partial_files, interrupt, kill_points, run
+
+
+def without_wall_times(value):
+    """A diagnosis record less its wall times (every key ending in "seconds")."""
+    if isinstance(value, dict):
+        return {k: without_wall_times(v) for k, v in value.items() if not k.endswith("seconds")}
+    if isinstance(value, list):
+        return [without_wall_times(v) for v in value]
+    return value
+
+
+def diagnosis_outputs(out) -> dict:
+    """What a diagnosis wrote, less its wall times; NaN (a candidate that cannot be tested) is
+    written as text so that two equal records compare equal."""
+    import SimpleITK as sitk
+
+    outputs = {name: json.dumps(without_wall_times(json.loads((out / name).read_text())), sort_keys=True)
+               for name in ("diagnosis.json", "round-1.json")}
+    outputs["report.md"] = re.sub(r"; \d+ s\.", "; (wall time) s.", (out / "report.md").read_text())
+    for field in sorted(out.glob("round-*-residual-*.nrrd")):
+        outputs[field.name] = sitk.GetArrayFromImage(sitk.ReadImage(str(field))).tobytes()
+    outputs["files"] = sorted(p.name for p in out.iterdir() if p.name != "round-1-residual.png")
+    return outputs
+
+
+@pytest.mark.slow
+def test_a_diagnosis_killed_anywhere_resumes_to_the_uninterrupted_result(friction_case, tmp_path):
+    """The hidden-friction case: one round that names friction, adds it and refits; a kill before
+    the round is written repeats it, one during the refit diagnoses the open round again."""
+    case, fit = friction_case
+
+    def diagnosis(out, resume=False):
+        return ["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--effects", "friction", "gravity",
+                "--rounds", "1", "--refine-iterations", "1", "--device", "cpu", "--quiet",
+                *(["--resume"] if resume else [])]
+
+    seconds = run(diagnosis(tmp_path / "reference"))
+    reference = diagnosis_outputs(tmp_path / "reference")
+    assert "round-1-residual-after.nrrd" in reference["files"], "the reference run added no effect"
+    for k, delay in enumerate(kill_points(seconds, 3)):
+        out, delay = interrupt(diagnosis, delay, tmp_path, f"killed{k}")
+        run(diagnosis(out, resume=True))
+        outputs = diagnosis_outputs(out)
+        for key, value in reference.items():
+            assert outputs[key] == value, f"kill at {delay:.1f} s of {seconds:.1f} s: {key} differs after the resume"
+        assert_no_partial_files(out)
