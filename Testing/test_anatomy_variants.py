@@ -12,7 +12,7 @@ from scipy import ndimage
 from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
 from BreastBiomechLib.phantom.seeds import seed_points
 from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
-from BreastBiomechLib.segmentation.seeded import Surroundings, border_fractions
+from BreastBiomechLib.segmentation.seeded import OutsideTissues, Surroundings, border_fractions
 from BreastBiomechLib.segmentation.volume import check_volume
 
 SMALL = dict(seed=3, volume_cm3=420.0, tumour_diameter_mm=12.0)
@@ -114,8 +114,8 @@ def test_border_voxels_are_unmixed_against_the_tissue_actually_outside():
     plain = border_fractions(image, region, within, grid)
     assert np.mean(plain.probability[gland_next] >= 0.5) > 0.3  # the contaminated average: gland reads as tumour
     unmixed = border_fractions(image, region, within, grid,
-                               surroundings=Surroundings(levels=(np.full(shape, fat), np.full(shape, gland)),
-                                                         where=within))
+                               surroundings=Surroundings(tissues=(OutsideTissues((np.full(shape, fat),
+                                                                                  np.full(shape, gland)), within),)))
     assert np.mean(unmixed.probability[gland_next] >= 0.5) < 0.15  # left: gland voxels whose outside is fat
     assert np.all(unmixed.probability[region] >= 0.95)
 

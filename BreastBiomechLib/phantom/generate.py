@@ -161,6 +161,8 @@ def generate_phantom(params: PhantomParameters | None = None,
     grid = _Grid(lo, spacing, size)
     factors = np.maximum(1, np.rint(spacing / _FINE_MM)).astype(int)
     factors += factors % 2  # even, so the half-resolution grid below lands on fine voxels
+    while np.any(spacing / factors > params.subvoxel_mm):
+        factors[spacing / factors > params.subvoxel_mm] += 2
     fine = grid.refined(factors)
     half = _Grid(fine.origin, fine.spacing * 2, (fine.size + 1) // 2)
     x, y, z = fine.broadcast(np.float32)  # float32 halves the memory traffic of the fine grid

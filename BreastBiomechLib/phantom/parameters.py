@@ -39,6 +39,9 @@ class PhantomParameters:
     aspect_depth: float = 0.95         # anterior projection / left-right base radius (pendulous > 0.8)
     ptosis: float = 0.12               # inferior droop of the nipple, fraction of the depth
     margin_mm: float = 15.0            # field of view beyond the breast
+    subvoxel_mm: float = 0.75          # largest edge of the sub-voxels the tissues are drawn on (voxel =
+                                       # their average, truth label = their majority); 0.75 keeps every
+                                       # earlier case; finer means fewer exact ties in the truth labels
     # anatomy the default case does not make (all off by default, so older cases stay bit for bit):
     gland_texture: float = 0.0         # 0-1: fat interleaved with the gland at ~1 mm and thin fibrous septa
                                        # (Cooper's ligaments) crossing the subcutaneous fat
@@ -60,6 +63,7 @@ class PhantomParameters:
             (0.0 <= self.bias_strength <= 0.45, "bias_strength must lie in 0-0.45"),
             (len(self.spacing_mm) == 3 and all(0.3 <= s <= 4.0 for s in self.spacing_mm),
              "spacing_mm needs three voxel sizes of 0.3-4 mm"),
+            (0.2 <= self.subvoxel_mm <= 1.0, "subvoxel_mm must lie in 0.2-1 mm"),
             (0.0 <= self.gland_texture <= 1.0, "gland_texture must lie in 0-1"),
             (self.tumour_site in TUMOUR_SITES, f"tumour_site must be one of {', '.join(TUMOUR_SITES)}"),
             (isinstance(self.gland_on_muscle, bool) and isinstance(self.thorax, bool),

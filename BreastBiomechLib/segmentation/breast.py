@@ -38,13 +38,22 @@ def breast_mask(body: np.ndarray, muscle: np.ndarray, grid: VoxelGrid) -> np.nda
     return body & np.moveaxis(anterior, -1, grid.ap_axis) & ~muscle
 
 
-def skin_layer(body: np.ndarray, breast: np.ndarray, grid: VoxelGrid, thickness_mm: float) -> np.ndarray:
+def skin_layer(body: np.ndarray, breast: np.ndarray, grid: VoxelGrid, thickness_mm: float,
+               muscle: np.ndarray | None = None) -> np.ndarray:
     """Breast voxels closer than ``thickness_mm`` to the nearest air voxel (the body surface; where
-    the body is cut by the field of view's edge there is no surface)."""
+    the body is cut by the field of view's edge there is no surface). With the ``muscle`` mask,
+    also the voxels where the muscle lies so close under the surface (the chest beside the
+    breast) that there is no room for more than the skin and a voxel of partial volume: depth
+    plus distance to the muscle under ``thickness_mm`` + 2 voxels (the tissue there is skin and
+    its mixtures with muscle, which read as gland)."""
     if thickness_mm <= 0:
         return np.zeros_like(breast)
     depth = ndimage.distance_transform_edt(body, sampling=grid.spacing_zyx)
-    return breast & (depth < thickness_mm)
+    skin = breast & (depth < thickness_mm)
+    if muscle is not None and muscle.any():
+        to_muscle = ndimage.distance_transform_edt(~muscle, sampling=grid.spacing_zyx)
+        skin |= breast & (depth + to_muscle < thickness_mm + 2 * float(grid.spacing_zyx.max()))
+    return skin
 
 
 SKIN_SHELL_MM = 0.5       # depth resolution of the skin profile

@@ -13,13 +13,15 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import SimpleITK as sitk
+from scipy import ndimage
 
 from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import body_mask
 from BreastBiomechLib.segmentation.breast import breast_mask, skin_depth, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
-from BreastBiomechLib.segmentation.seeded import (GrowSettings, SeededRegion, Surroundings, agreeing_probability,
-                                                  border_fractions, grow_from_seeds, grow_to_midpoint)
+from BreastBiomechLib.segmentation.seeded import (GrowSettings, OutsideTissues, SeededRegion, Surroundings,
+                                                  agreeing_probability,
+                                                  border_fractions, grow_from_seeds, grow_to_midpoint, refine_border)
 from BreastBiomechLib.segmentation.volume import VoxelGrid, check_volume, seed_voxels
 
 Progress = Callable[[float, str], None]
@@ -36,7 +38,7 @@ class SegmentationSettings:
 
     em: EMSettings = field(default_factory=EMSettings)
     muscle: GrowSettings = field(default_factory=GrowSettings)
-    tumour: GrowSettings = field(default_factory=lambda: GrowSettings(multiplier=2.0))
+    tumour: GrowSettings = field(default_factory=lambda: GrowSettings(multiplier=2.0, border_smoothing_mm=0.8))
     skin_mm: float = 3.0
     measure_skin: bool = True
     keep_skin: bool = False
@@ -101,9 +103,19 @@ def segment_tissues(image: sitk.Image, muscle_seeds, tumour_seeds=None,
 def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
                  settings: SegmentationSettings) -> SeededRegion:
     """The pectoral muscle grown from its seeds, its border unmixed against air where it lies on
-    the body surface (no thorax imaged behind it)."""
-    return grow_from_seeds(array, seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body"),
-                           body, grid, settings.muscle, Surroundings(empty=~body))
+    the body surface (no thorax imaged behind it); then, once the breast in front of it is
+    known, its border unmixed again against pure levels from a first fat/glandular fit: in
+    front the fat or gland its outside neighbours show, behind it the fat of the subpectoral
+    plane (thinner than a voxel at 1.5 mm, so no voxel of that plane is pure fat)."""
+    seed_index = seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body")
+    muscle = grow_from_seeds(array, seed_index, body, grid, settings.muscle, Surroundings(empty=~body))
+    breast, skin, _ = _breast_and_skin(grid, array, body, muscle.mask, settings)
+    if not (breast & ~skin).any():
+        return muscle
+    fat, glandular = _fat_glandular_levels(grid, array, breast, skin, settings, muscle)
+    front = ndimage.binary_dilation(breast)
+    return refine_border(array, muscle.mask, body, seed_index, grid, settings.muscle, Surroundings(
+        empty=~body, tissues=(OutsideTissues((fat, glandular), front), OutsideTissues((fat,), body & ~front))))
 
 
 def _fat_glandular_levels(grid: VoxelGrid, array: np.ndarray, breast: np.ndarray, skin: np.ndarray,
@@ -123,7 +135,7 @@ def _breast_and_skin(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscl
     thickness = settings.skin_mm
     if settings.measure_skin:
         thickness = max(thickness, skin_depth(array, body, breast, grid))
-    return breast, skin_layer(body, breast, grid, thickness), thickness
+    return breast, skin_layer(body, breast, grid, thickness, muscle_mask), thickness
 
 
 def _grow_tumour(grid: VoxelGrid, array: np.ndarray, muscle: SeededRegion, breast: np.ndarray, skin: np.ndarray,
@@ -136,7 +148,7 @@ def _grow_tumour(grid: VoxelGrid, array: np.ndarray, muscle: SeededRegion, breas
     seed_index = seed_voxels(grid, seeds, breast, "tumour", "inside the breast (anterior to the pectoral muscle)")
     fat, glandular = _fat_glandular_levels(grid, array, breast, skin, settings, muscle)
     return grow_to_midpoint(array, seed_index, breast, grid, glandular, settings.tumour,
-                            Surroundings(levels=(fat, glandular), where=breast))
+                            Surroundings(tissues=(OutsideTissues((fat, glandular), breast),)))
 
 
 @dataclass
