@@ -4,6 +4,7 @@ the largest batch that fits, on warp's CPU device."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
@@ -56,3 +57,26 @@ def test_a_refusal_is_a_value_error_the_command_line_reports_in_one_line():
     wp.init()
     with pytest.raises(ValueError):
         check_fits(SolveSize(10_000, 10**6, 6 * 10**6, 10**6), wp.get_device("cpu"), limit_bytes=10**9)
+
+
+def test_warping_onto_a_grid_too_large_for_the_limit_is_refused_before_it_allocates():
+    """The predicted image's grid (issue 28, resource limits): the estimate counts a position,
+    flag and value per output voxel and the undeformed image, so a grid beyond the limit is
+    refused with the voxel counts, and one within it warps."""
+    import SimpleITK as sitk
+    import warp as wp
+
+    from BreastBiomechLib.solver.memory import warp_bytes
+    from BreastBiomechLib.warping.predict import ImageWarper
+
+    wp.init()
+    mesh = hemi_ellipsoid_compression(20.0).mesh
+    image = sitk.Image([40, 40, 20], sitk.sitkFloat32)
+    image.SetOrigin([float(v) for v in mesh.nodes.min(axis=0)])
+    image.SetSpacing([float(v) for v in np.ptp(mesh.nodes, axis=0) / [39, 39, 19]])
+    needed = warp_bytes(32_000, 32_000, len(mesh.nodes), len(mesh.tets), on_cuda=False)
+    assert needed >= 32_000 * 28
+    with pytest.raises(TooLargeForMemory, match="onto a grid of 32000 voxels needs about .* crop or resample"):
+        ImageWarper(mesh, image, image, device="cpu", memory_limit_bytes=needed - 1)
+    warper = ImageWarper(mesh, image, image, device="cpu", memory_limit_bytes=needed)
+    assert warper.warp(np.zeros_like(mesh.nodes)).shape == (32_000,)

@@ -75,6 +75,16 @@ def free_bytes(device) -> int | None:
     return None
 
 
+def _allowed(device, limit_bytes: int | None) -> tuple[float | None, str]:
+    """What a run on ``device`` may allocate (bytes; None: unknown) and how to say where that comes from."""
+    free = free_bytes(device) if limit_bytes is None else int(limit_bytes)
+    if free is None:
+        return None, ""
+    if limit_bytes is not None:
+        return float(free), f"the memory limit given is {free / GB:.2f} GB"
+    return MEMORY_MARGIN * free, f"{device} has {free / GB:.2f} GB free, of which it uses at most {MEMORY_MARGIN:.0%}"
+
+
 def check_fits(size: SolveSize, device, limit_bytes: int | None = None) -> int:
     """Refuse (:class:`TooLargeForMemory`) a solve of ``size`` on the warp ``device`` that needs
     more than :data:`MEMORY_MARGIN` of what is free there, or more than ``limit_bytes`` when given
@@ -82,19 +92,39 @@ def check_fits(size: SolveSize, device, limit_bytes: int | None = None) -> int:
     that fits. Returns the estimate (bytes). Nothing is checked where the free memory is unknown
     and no limit is given."""
     needed = size.device_bytes() + (0 if getattr(device, "is_cuda", False) else size.host_bytes())
-    free = free_bytes(device) if limit_bytes is None else int(limit_bytes)
-    if free is None:
-        return needed
-    allowed = MEMORY_MARGIN * free if limit_bytes is None else float(free)
-    if needed <= allowed:
+    allowed, limit = _allowed(device, limit_bytes)
+    if allowed is None or needed <= allowed:
         return needed
     one = SolveSize(1, size.nodes, size.elements, size.slots, size.prony_terms, size.contact_slots, size.plates)
     per_model = one.device_bytes() + (0 if getattr(device, "is_cuda", False) else one.host_bytes())
     fitting = int(allowed // per_model) if per_model else 0
-    limit = (f"the memory limit given is {allowed / GB:.2f} GB" if limit_bytes is not None else
-             f"{device} has {free / GB:.2f} GB free, of which it uses at most {MEMORY_MARGIN:.0%}")
     remedy = (f"solve at most {fitting} model(s) at once" if fitting >= 1 else
               "use a coarser mesh (one model of this one does not fit)")
     raise TooLargeForMemory(
         f"a solve of {size.models} model(s) on {size.nodes} nodes and {size.elements} elements needs about "
         f"{needed / GB:.2f} GB, and {limit}; {remedy}, or free memory on the device")
+
+
+def warp_bytes(output_voxels: int, input_voxels: int, nodes: int, elements: int, on_cuda: bool) -> int:
+    """What :class:`~BreastBiomechLib.warping.predict.ImageWarper` allocates on its device (bytes):
+    the undeformed image (float32), per output voxel its reference position, inside flag and value,
+    the mesh's reference and deformed nodes and its connectivity; on the CPU also the float32 copy
+    of the undeformed image the upload makes and the predicted image read back."""
+    device = input_voxels * 4 + output_voxels * (12 + 4 + 4) + nodes * 2 * 12 + elements * 16
+    host = 0 if on_cuda else input_voxels * 4 + output_voxels * 4
+    return int(device + host)
+
+
+def check_warp_fits(output_voxels: int, input_voxels: int, nodes: int, elements: int, device,
+                    limit_bytes: int | None = None) -> int:
+    """Refuse (:class:`TooLargeForMemory`) warping an image of ``input_voxels`` through a mesh onto
+    an output grid of ``output_voxels`` when it needs more than the ``device`` has free (or
+    ``limit_bytes``); the message names the grids and what to do. Returns the estimate (bytes)."""
+    needed = warp_bytes(output_voxels, input_voxels, nodes, elements, getattr(device, "is_cuda", False))
+    allowed, limit = _allowed(device, limit_bytes)
+    if allowed is None or needed <= allowed:
+        return needed
+    raise TooLargeForMemory(
+        f"warping an image of {input_voxels} voxels onto a grid of {output_voxels} voxels needs about "
+        f"{needed / GB:.2f} GB, and {limit}; crop or resample the images to fewer voxels, or free memory on "
+        "the device")

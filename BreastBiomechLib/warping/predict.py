@@ -19,6 +19,7 @@ import SimpleITK as sitk
 import warp as wp
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.solver.memory import check_warp_fits
 from BreastBiomechLib.warping import kernels
 
 
@@ -45,10 +46,12 @@ class ImageWarper:
 
     ``mesh``: the reference mesh (LPS mm); ``undeformed``: the image the mesh was built from (or
     any image of the undeformed breast); ``like``: the output grid (the measured deformed image);
-    ``background``: the value outside the deformed body."""
+    ``background``: the value outside the deformed body. Grids too large for the memory the
+    device has free (or ``memory_limit_bytes``) are refused before anything is allocated
+    (:class:`~BreastBiomechLib.solver.memory.TooLargeForMemory`)."""
 
     def __init__(self, mesh: TetMesh, undeformed: sitk.Image, like: sitk.Image, device=None,
-                 background: float = 0.0):
+                 background: float = 0.0, memory_limit_bytes: int | None = None):
         for name, image in (("undeformed", undeformed), ("output grid", like)):
             if image.GetDimension() != 3:
                 raise ValueError(f"the {name} image must be 3D, not {image.GetDimension()}D")
@@ -63,6 +66,8 @@ class ImageWarper:
         self.voxels = int(np.prod(self.size))
         self._out_grid = _grid(like)
         self._in_grid = _grid(undeformed)
+        check_warp_fits(self.voxels, int(np.prod(undeformed.GetSize())), len(mesh.nodes), len(mesh.tets), self.device,
+                        memory_limit_bytes)
         with wp.ScopedDevice(self.device):
             self._reference = wp.array(mesh.nodes.astype(np.float32), dtype=wp.vec3)
             self._tets = wp.array(mesh.tets.astype(np.int32), dtype=int)
