@@ -70,8 +70,50 @@ def test_a_failing_task_is_reported_and_the_others_finish(placement, tmp_path):
     assert by_key["after-three"].error == "not run: it needs square/3, which failed"
     assert by_key["total"].ok and by_key["total"].result == {"total": 0 + 1 + 4 + 16}
     assert all(by_key[f"square/{x}"].result["device"] == "cpu" for x in (0, 1, 2, 4))
+    ran = [by_key[f"square/{x}"] for x in (0, 1, 2, 4)]  # where and when each ran (bench cohort's timeline)
+    workers = {"here"} if placement is HERE else {"breastbiomech-0", "breastbiomech-1"}
+    assert {o.worker for o in ran} <= workers and all(o.seconds >= 0.9 and o.started_at > 1e9 for o in ran)
     assert lines[-1].startswith("[########################] 7/7 tasks, 2 failed")
     assert any("square/1: " in line for line in lines)  # the tasks' own progress lines reached the client
+
+
+def test_a_cluster_starts_the_ready_tasks_of_higher_priority_first(tmp_path):
+    """On one worker, four tasks made ready together by a first one start in priority order,
+    not in the order they were submitted."""
+    gate = Task("square/0", cohort_tasks.square, {"x": 0, "out": str(tmp_path)})
+    tasks = [gate] + [Task(f"square/{x}", cohort_tasks.square, {"x": x, "out": str(tmp_path)}, needs=("square/0",),
+                           priority=priority) for x, priority in ((1, 0), (2, 30), (4, 10), (5, 20))]
+    outcomes = run_tasks(tasks, Placement(None, 1, (), "cpu"), dashboard=None)
+    assert [o.key for o in sorted(outcomes, key=lambda o: o.started_at)] == [
+        "square/0", "square/2", "square/5", "square/4", "square/1"]
+
+
+def test_a_studys_meshes_go_first_then_its_longest_fits():
+    """The study's task priorities: every fitting mesh before any fit (each lets four fits start),
+    then fits by budget, heterogeneous before homogeneous at equal budgets."""
+    from BreastBiomechLib.optimisation.study import StudySettings, study_tasks
+
+    settings = StudySettings(models=("iso-homo", "iso-hetero", "aniso-homo"),
+                             budgets={"iso-homo": 40, "iso-hetero": 20, "aniso-homo": 20}, edge_mm=8.0)
+    tasks = study_tasks(["/data/case1", "/data/case2"], "/tmp/never-written", settings)
+    by_priority = [t.key for t in sorted(tasks, key=lambda t: -t.priority)]
+    assert by_priority[:2] == ["mesh/case1", "mesh/case2"]
+    assert [k.split("/")[2] for k in by_priority[2:]] == ["iso-homo-cmaes"] * 2 + ["iso-hetero-cmaes"] * 2 + [
+        "aniso-homo-cmaes"] * 2
+
+
+def test_bench_cohort_timeline_per_worker():
+    """`bench cohort`'s per-worker figures: tasks, busy seconds, first start and last end (s after
+    the run started)."""
+    from BreastBiomechLib.cli.bench import _worker_timeline
+    from BreastBiomechLib.cohort import TaskOutcome
+
+    outcomes = [TaskOutcome("a", "a", True, seconds=10.0, worker="w0", started_at=1005.0),
+                TaskOutcome("b", "b", True, seconds=4.0, worker="w1", started_at=1006.0),
+                TaskOutcome("c", "c", False, seconds=2.5, worker="w0", started_at=1015.0)]
+    assert _worker_timeline(outcomes, 1000.0) == {
+        "w0": {"tasks": 2, "busy_seconds": 12.5, "first_start_s": 5.0, "last_end_s": 17.5},
+        "w1": {"tasks": 1, "busy_seconds": 4.0, "first_start_s": 6.0, "last_end_s": 10.0}}
 
 
 def test_a_worker_lost_mid_task_costs_only_that_task(tmp_path):

@@ -371,6 +371,23 @@ def _study_differences(rows, reference) -> dict:
             "fits_in_one_only": sorted("/".join(k) for k in mine.keys() ^ theirs.keys())}
 
 
+def _worker_timeline(outcomes, started_at: float) -> dict:
+    """Per worker of a cohort run: its tasks, the seconds it spent in them, and when (s after the
+    run started) its first task started and its last one ended — the cluster's start and the
+    run's tail, where workers idle. (Tasks that raised on a cluster, which do not say where they
+    ran, are left out.)"""
+    timeline: dict = {}
+    for outcome in (o for o in outcomes if o.worker):
+        entry = timeline.setdefault(outcome.worker, {"tasks": 0, "busy_seconds": 0.0, "first_start_s": None,
+                                                     "last_end_s": 0.0})
+        start = outcome.started_at - started_at
+        entry["tasks"] += 1
+        entry["busy_seconds"] = round(entry["busy_seconds"] + outcome.seconds, 1)
+        entry["first_start_s"] = round(start if entry["first_start_s"] is None else min(entry["first_start_s"], start), 1)
+        entry["last_end_s"] = round(max(entry["last_end_s"], start + outcome.seconds), 1)
+    return dict(sorted(timeline.items()))
+
+
 def _bench_cohort(args) -> dict:
     """The study of ``--case-dirs`` (``--models``, ``--budget`` solves per fit, fitting meshes of
     ``--fit-edge-mm``) run each way of ``--modes`` into a fresh folder: "serial" (every task in
@@ -380,7 +397,8 @@ def _bench_cohort(args) -> dict:
     wall seconds, fits per hour, the failed tasks (or processes) with their errors, each GPU's
     utilisation over the run (where nvidia-smi exists), and how far its fits are from the first
     mode's (NMI, objective, materials, solves; on a GPU, atomic sums make NMI differ in its last
-    digits from run to run, on the CPU the rows are equal)."""
+    digits from run to run, on the CPU the rows are equal), and per worker its tasks, busy
+    seconds and first start and last end (``workers``; empty for "processes")."""
     import subprocess
     import sys
     import tempfile
@@ -402,7 +420,8 @@ def _bench_cohort(args) -> dict:
         out = base / name
         if out.exists():
             raise FileExistsError(f"{out} exists: give a new --out (the benchmark times fits from scratch)")
-        started = time.perf_counter()
+        started, started_at = time.perf_counter(), time.time()
+        outcomes = []
         with GpuUsage() as usage:
             if name == "processes":
                 device = ["--device", args.device] if args.device else []
@@ -418,12 +437,14 @@ def _bench_cohort(args) -> dict:
                 placement = place(None, 0 if name == "serial" else workers, args.device)
                 run = run_study(args.case_dirs, out, settings, placement=placement)
                 failed = {o.key: o.error for o in run.failed}
+                outcomes = run.outcomes
                 where = placement.describe()
         seconds = time.perf_counter() - started
         rows = read_study(out)
         reference = rows if reference is None else reference
         figures["modes"][name] = {"where": where, "fits": len(rows), "failed": failed, "seconds": round(seconds, 1),
                                   "fits_per_hour": round(3600 * len(rows) / seconds, 1), "gpu_usage": usage.summary,
+                                  "workers": _worker_timeline(outcomes, started_at),
                                   "differences_from_first_mode": _study_differences(rows, reference)}
     first = next(iter(figures["modes"].values()))["seconds"]
     for entry in figures["modes"].values():

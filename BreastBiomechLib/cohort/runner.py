@@ -108,17 +108,17 @@ def _run_here(tasks, device, state, progress, on_outcome) -> list[TaskOutcome]:
                 return not cancelled[0]
 
             report("started")
-            started = time.perf_counter()
+            started, started_at = time.perf_counter(), time.time()
             try:
                 result = task.function(**task.kwargs, device=device, progress=report)
             except Exception as error:  # noqa: BLE001 - reported, and the run goes on
                 failed.add(task.key)
                 _record(TaskOutcome(task.key, task.name, False, error=f"{type(error).__name__}: {error}",
-                                    seconds=time.perf_counter() - started, traceback=traceback.format_exc()),
-                        state, outcomes, on_outcome)
+                                    seconds=time.perf_counter() - started, traceback=traceback.format_exc(),
+                                    worker="here", started_at=started_at), state, outcomes, on_outcome)
             else:
-                _record(TaskOutcome(task.key, task.name, True, result, seconds=time.perf_counter() - started),
-                        state, outcomes, on_outcome)
+                _record(TaskOutcome(task.key, task.name, True, result, seconds=time.perf_counter() - started,
+                                    worker="here", started_at=started_at), state, outcomes, on_outcome)
         if progress is not None and progress(state) is False:
             cancelled[0] = True
         if cancelled[0]:
@@ -145,10 +145,11 @@ def _execute(label: str, function, kwargs: dict, device, cancel_name: str, *need
         return not stop[0]
 
     report("started")
-    started = time.perf_counter()
+    started, started_at = time.perf_counter(), time.time()
     result = function(**kwargs, device=device, progress=report)
     worker.log_event(PROGRESS_TOPIC, {"run": cancel_name, "label": label, "message": None})
-    return {"result": result, "seconds": time.perf_counter() - started}
+    return {"result": result, "seconds": time.perf_counter() - started, "worker": str(worker.name),
+            "started_at": started_at}
 
 
 def _failure(error: BaseException) -> str:
@@ -182,7 +183,7 @@ def _run_on(client, tasks, device, state, progress, on_outcome, poll_s) -> list[
     for task in tasks:
         needed = [futures[k] for k in task.needs if k in futures]
         future = client.submit(_execute, task.name, task.function, task.kwargs, device, cancel.name,
-                               *needed, key=f"{task.key}@{token}", pure=False)
+                               *needed, key=f"{task.key}@{token}", pure=False, priority=task.priority)
         futures[task.key] = future
         by_future[future.key] = task
     outcomes: list[TaskOutcome] = []
@@ -196,7 +197,8 @@ def _run_on(client, tasks, device, state, progress, on_outcome, poll_s) -> list[
                     continue
                 if future.status == "finished":
                     value = future.result()
-                    _record(TaskOutcome(task.key, task.name, True, value["result"], seconds=value["seconds"]),
+                    _record(TaskOutcome(task.key, task.name, True, value["result"], seconds=value["seconds"],
+                                        worker=value["worker"], started_at=value["started_at"]),
                             state, outcomes, on_outcome)
                     continue
                 missing = [k for k in task.needs if k in futures and futures[k].status == "error"]

@@ -21,13 +21,17 @@ class Task:
     """One unit of a cohort: ``key`` (unique and stable across runs, e.g. "fit/case1/iso-homo-cmaes"),
     the ``function`` and its ``kwargs`` (paths as strings, numbers, small dicts: they travel to
     the worker), the keys of the tasks it ``needs`` done first (keys not in the run are taken as
-    done earlier), and a ``label`` for progress lines (default: the key)."""
+    done earlier), a ``label`` for progress lines (default: the key) and a ``priority``: of the
+    tasks ready to run, a cluster starts those of higher priority first (give long tasks, and
+    tasks that others need, a higher one, so a run does not end on one long task while the other
+    workers idle); a run in one process keeps the given order."""
 
     key: str
     function: Callable
     kwargs: dict = field(default_factory=dict)
     needs: tuple[str, ...] = ()
     label: str = ""
+    priority: int = 0
 
     @property
     def name(self) -> str:
@@ -38,7 +42,9 @@ class Task:
 class TaskOutcome:
     """What became of a task: ``ok`` with the function's ``result``, or its ``error`` ("Type:
     message") and where it was raised (``traceback``, for a log file); ``seconds`` of wall time in
-    the worker (0 where it never started)."""
+    the worker (0 where it never started), the ``worker`` that ran it (its Dask name; "here" for
+    a run in one process) and when it started (``started_at``, Unix time in s) — what a benchmark
+    needs to say how busy each worker was (a task that raised on a cluster has neither: "", 0)."""
 
     key: str
     label: str
@@ -47,6 +53,8 @@ class TaskOutcome:
     error: str = ""
     seconds: float = 0.0
     traceback: str = ""
+    worker: str = ""
+    started_at: float = 0.0
 
 
 def ordered(tasks: list[Task]) -> list[Task]:

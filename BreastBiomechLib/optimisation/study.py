@@ -129,16 +129,28 @@ def truth_in_family(truth: dict, model: str, fibre) -> bool:
 @dataclass
 class StudyRun:
     """What a study run leaves: every fit's ``rows`` (also those of earlier runs into the
-    folder) and the tasks of this run that ``failed`` (:class:`~BreastBiomechLib.cohort.TaskOutcome`,
-    with their errors; their tracebacks are in the folder's failures.log)."""
+    folder), the tasks of this run that ``failed`` (:class:`~BreastBiomechLib.cohort.TaskOutcome`,
+    with their errors; their tracebacks are in the folder's failures.log) and the ``outcomes`` of
+    all its tasks (where and when each ran)."""
 
     rows: list[StudyFit]
     failed: list
+    outcomes: list = field(default_factory=list)
 
 
 def _fit_done(folder: Path, budget: int) -> bool:
     row = _read_row(folder)
     return row is not None and (row.evaluations >= budget or row.stopped == "converged")
+
+
+MESH_PRIORITY = 1_000_000  # meshes first: each one lets its case's fits start on any worker
+
+
+def fit_priority(model: str, budget: int) -> int:
+    """A fit's task priority: the larger the budget, the earlier; at equal budgets heterogeneous
+    models (more parameters, slower solves) before homogeneous ones. Long fits first keep a
+    cluster's workers busy to the end of a study (longest-first scheduling)."""
+    return 2 * budget + (0 if model.endswith("homo") else 1)
 
 
 def study_tasks(case_dirs, out_dir: str | Path, settings: StudySettings) -> list:
@@ -159,7 +171,7 @@ def study_tasks(case_dirs, out_dir: str | Path, settings: StudySettings) -> list
         if not mesh_file.is_file():
             tasks.append(Task(f"mesh/{case.name}", make_fitting_mesh, {"case_dir": str(case), "mesh_file": str(mesh_file),
                                                                        "edge_mm": settings.edge_mm},
-                              label=f"{case.name} fitting mesh"))
+                              label=f"{case.name} fitting mesh", priority=MESH_PRIORITY))
         for model in settings.models:
             for optimiser in settings.optimisers:
                 folder = out / case.name / f"{model}-{optimiser}"
@@ -168,7 +180,8 @@ def study_tasks(case_dirs, out_dir: str | Path, settings: StudySettings) -> list
                 tasks.append(Task(f"fit/{case.name}/{model}-{optimiser}", fit_study_case,
                                   {"case_dir": str(case), "folder": str(folder), "mesh_file": str(mesh_file),
                                    "settings": settings, "model": model, "optimiser": optimiser},
-                                  needs=(f"mesh/{case.name}",), label=f"{case.name} {model} {optimiser}"))
+                                  needs=(f"mesh/{case.name}",), label=f"{case.name} {model} {optimiser}",
+                                  priority=fit_priority(model, settings.budget(model))))
     return tasks
 
 
@@ -246,7 +259,7 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
 
         outcomes = run_tasks(tasks, placement, progress=progress, on_outcome=ended)
         summarise()
-        return StudyRun(read_study(out), [o for o in outcomes if not o.ok])
+        return StudyRun(read_study(out), [o for o in outcomes if not o.ok], outcomes)
 
 
 def log_failure(path: Path, outcome) -> None:
