@@ -59,5 +59,19 @@ def interrupt(argv_in, delay: float, tmp_path, name: str):
     raise AssertionError(f"{name}: the command ended before every kill down to {delay:.2f} s")
 
 
+def assert_resumes_to(reference: dict, seconds: float, command, outputs, tmp_path, salt: int) -> None:
+    """Run the kill-and-resume trials: for each kill point, interrupt ``command(out)``, run
+    ``command(out, resume=True)`` to its end, and require ``outputs(out)`` to equal ``reference``
+    key by key (``reference`` is ``outputs`` of an uninterrupted run of ``seconds`` s) with no
+    temporary file left behind."""
+    for k, delay in enumerate(kill_points(seconds, salt)):
+        out, delay = interrupt(command, delay, tmp_path, f"killed{k}")
+        run(command(out, resume=True))
+        resumed = outputs(out)
+        for key, value in reference.items():
+            assert resumed[key] == value, f"kill at {delay:.1f} s of {seconds:.1f} s: {key} differs after the resume"
+        assert_no_partial_files(out)
+
+
 def assert_no_partial_files(out) -> None:
     assert not [p for p in out.rglob("*") if p.name.startswith(".partial-")], "a temporary file was left behind"
