@@ -398,7 +398,8 @@ def _bench_cohort(args) -> dict:
     utilisation over the run (where nvidia-smi exists), and how far its fits are from the first
     mode's (NMI, objective, materials, solves; on a GPU, atomic sums make NMI differ in its last
     digits from run to run, on the CPU the rows are equal), and per worker its tasks, busy
-    seconds and first start and last end (``workers``; empty for "processes")."""
+    seconds and first start and last end (``workers``) and each task's key, worker, start (s
+    after the run's start) and seconds (``tasks``; both empty for "processes")."""
     import subprocess
     import sys
     import tempfile
@@ -445,6 +446,8 @@ def _bench_cohort(args) -> dict:
         figures["modes"][name] = {"where": where, "fits": len(rows), "failed": failed, "seconds": round(seconds, 1),
                                   "fits_per_hour": round(3600 * len(rows) / seconds, 1), "gpu_usage": usage.summary,
                                   "workers": _worker_timeline(outcomes, started_at),
+                                  "tasks": [[o.key, o.worker, round(o.started_at - started_at, 1), round(o.seconds, 1)]
+                                            for o in sorted(outcomes, key=lambda o: o.started_at) if o.worker],
                                   "differences_from_first_mode": _study_differences(rows, reference)}
     first = next(iter(figures["modes"].values()))["seconds"]
     for entry in figures["modes"].values():
