@@ -35,3 +35,9 @@ def dies_once(out: str, device=None, progress=None) -> dict:
 def total(out: str, device=None, progress=None) -> dict:
     """Sum the squares written by :func:`square` (a task that needs them)."""
     return {"total": sum(json.loads(p.read_text())["square"] for p in sorted(Path(out).glob("[0-9]*.json")))}
+
+
+def pause(seconds: float, device=None, progress=None) -> dict:
+    """Take ``seconds`` (a mesh or a fit of a given length)."""
+    time.sleep(seconds)
+    return {"seconds": seconds}

@@ -95,6 +95,7 @@ def place(scheduler: str | None = None, workers: int | None = None, device: str 
 def _local_cluster(placement: Placement, dashboard: str | None):
     """A Dask cluster on this machine with ``placement.workers`` single-threaded worker
     processes, worker i pinned to GPU ``gpus[i % len(gpus)]``, host memory shared out evenly."""
+    import dask
     import psutil
     from distributed import Nanny, Scheduler, SpecCluster
 
@@ -107,7 +108,10 @@ def _local_cluster(placement: Placement, dashboard: str | None):
                                                                    "silence_logs": logging.CRITICAL}}
     scheduler = {"cls": Scheduler, "options": {"dashboard_address": dashboard or ":0",
                                                "dashboard": dashboard is not None}}
-    return SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR)
+    # a worker is sent a task only when it is free, so a long task never waits in a busy worker's
+    # queue while another worker idles (Dask's default, 1.1, queues one more per thread)
+    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
+        return SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR)
 
 
 @contextlib.contextmanager

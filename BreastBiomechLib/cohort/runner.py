@@ -1,6 +1,6 @@
 """Run a cohort's tasks where :func:`~BreastBiomechLib.cohort.cluster.place` says: submit them
-(each after the tasks it needs), follow their progress, report each outcome as it comes, and
-cancel cleanly.
+(each once the tasks it needs have finished; of the tasks ready, those of higher priority
+first), follow their progress, report each outcome as it comes, and cancel cleanly.
 
 - A task that raises is reported with its error; the others go on (those that need it are
   reported as not run).
@@ -126,9 +126,9 @@ def _run_here(tasks, device, state, progress, on_outcome) -> list[TaskOutcome]:
     return outcomes
 
 
-def _execute(label: str, function, kwargs: dict, device, cancel_name: str, *needed) -> dict:
+def _execute(label: str, function, kwargs: dict, device, cancel_name: str) -> dict:
     """In a worker: run one task, sending its progress lines as events and stopping it when the
-    run's cancel event is set (``needed``: the results of the tasks it needs, only waited for)."""
+    run's cancel event is set."""
     from distributed import Event, get_worker
 
     worker = get_worker()
@@ -162,13 +162,21 @@ def _failure(error: BaseException) -> str:
 
 
 def _run_on(client, tasks, device, state, progress, on_outcome, poll_s) -> list[TaskOutcome]:
-    """Submit every task to ``client``'s cluster and follow them to the end (or the cancel)."""
+    """Submit each task to ``client``'s cluster once the tasks it needs have finished, and follow
+    them to the end (or the cancel). Tasks reach Dask without dependencies between them (their
+    inputs are on disk), so a ready task goes to whichever worker is free — given as Dask
+    dependencies, a case's fits would all queue on the worker that made its mesh."""
     from distributed import Event, as_completed
 
     state.dashboard = dashboard_link(client)
     token = uuid.uuid4().hex[:8]  # keys of this run, apart from any other run on a shared scheduler
     cancel = Event(f"breastbiomech-cancel-{token}", client=client)
-    by_future, futures = {}, {}
+    in_run = {task.key for task in tasks}
+    waiting = list(tasks)  # in an order that puts each task after those it needs
+    succeeded: dict[str, bool] = {}
+    by_future, futures = {}, []
+    finished = as_completed()
+    outcomes: list[TaskOutcome] = []
 
     def on_event(event) -> None:
         _, message = event
@@ -179,32 +187,40 @@ def _run_on(client, tasks, device, state, progress, on_outcome, poll_s) -> list[
         else:
             state.running[message["label"]] = message["message"]
 
+    def submit_ready() -> None:
+        ready = []
+        for task in list(waiting):
+            needs = [k for k in task.needs if k in in_run]
+            missing = [k for k in needs if succeeded.get(k) is False]
+            if missing:
+                waiting.remove(task)
+                succeeded[task.key] = False
+                _record(TaskOutcome(task.key, task.name, False, error=f"not run: it needs {', '.join(missing)}, "
+                                                                      "which failed"), state, outcomes, on_outcome)
+            elif all(succeeded.get(k) for k in needs):
+                waiting.remove(task)
+                ready.append(task)
+        for task in sorted(ready, key=lambda t: -t.priority):  # a free worker takes the first to arrive
+            future = client.submit(_execute, task.name, task.function, task.kwargs, device, cancel.name,
+                                   key=f"{task.key}@{token}", pure=False, priority=task.priority)
+            by_future[future.key] = task
+            futures.append(future)
+            finished.add(future)
+
     client.subscribe_topic(PROGRESS_TOPIC, on_event)
-    for task in tasks:
-        needed = [futures[k] for k in task.needs if k in futures]
-        future = client.submit(_execute, task.name, task.function, task.kwargs, device, cancel.name,
-                               *needed, key=f"{task.key}@{token}", pure=False, priority=task.priority)
-        futures[task.key] = future
-        by_future[future.key] = task
-    outcomes: list[TaskOutcome] = []
-    finished = as_completed(list(futures.values()))
     try:
         while state.done < state.total:
+            submit_ready()
             for future in finished.next_batch(block=False):
                 task = by_future[future.key]
                 if future.status not in ("finished", "error"):  # lost with its worker: Dask runs it again
                     finished.add(future)
                     continue
+                succeeded[task.key] = future.status == "finished"
                 if future.status == "finished":
                     value = future.result()
-                    _record(TaskOutcome(task.key, task.name, True, value["result"], seconds=value["seconds"],
-                                        worker=value["worker"], started_at=value["started_at"]),
-                            state, outcomes, on_outcome)
-                    continue
-                missing = [k for k in task.needs if k in futures and futures[k].status == "error"]
-                if missing:
-                    outcome = TaskOutcome(task.key, task.name, False, error=f"not run: it needs {', '.join(missing)}, "
-                                                                            "which failed")
+                    outcome = TaskOutcome(task.key, task.name, True, value["result"], seconds=value["seconds"],
+                                          worker=value["worker"], started_at=value["started_at"])
                 else:
                     outcome = TaskOutcome(task.key, task.name, False, error=_failure(future.exception()),
                                           traceback="".join(traceback.format_tb(future.traceback())))
@@ -215,7 +231,7 @@ def _run_on(client, tasks, device, state, progress, on_outcome, poll_s) -> list[
                 time.sleep(poll_s)
     except (CohortCancelled, KeyboardInterrupt):
         cancel.set()  # running tasks stop at their next progress report, keeping what they wrote
-        client.cancel(list(futures.values()))
+        client.cancel(futures)  # tasks not yet submitted are dropped
         raise
     finally:
         client.unsubscribe_topic(PROGRESS_TOPIC)

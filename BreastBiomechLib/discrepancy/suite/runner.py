@@ -330,12 +330,13 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
 
 def suite_tasks(out: Path, cases: list[SuiteCase], settings: SuiteSettings) -> list:
     """The suite's tasks (:class:`~BreastBiomechLib.cohort.Task`) not yet done in ``out``: each
-    anatomy its cases need, then each case (made, fitted, diagnosed, scored), which needs it."""
+    anatomy its cases need, then each case (made, fitted, diagnosed, scored), which needs it. The
+    anatomies have the higher priority: on a cluster each one lets its cases start on any worker."""
     from BreastBiomechLib.cohort import Task
 
     todo = [case for case in cases if not (out / case.name / "result.json").is_file()]
     tasks = [Task(f"anatomy/{number}", prepare_anatomy_task, {"number": number, "out": str(out), "settings": settings},
-                  label=f"anatomy {number}")
+                  label=f"anatomy {number}", priority=1)
              for number in sorted({case.anatomy for case in todo})
              if not (out / f"anatomy{number}" / "prepared.json").is_file()]
     tasks += [Task(f"case/{case.name}", run_case_task, {"case": case, "out": str(out), "settings": settings},
