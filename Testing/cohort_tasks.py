@@ -41,3 +41,8 @@ def pause(seconds: float, device=None, progress=None) -> dict:
     """Take ``seconds`` (a mesh or a fit of a given length)."""
     time.sleep(seconds)
     return {"seconds": seconds}
+
+
+def environment(name: str, device=None, progress=None) -> dict:
+    """The worker's value of the environment variable ``name`` (None: not set)."""
+    return {"value": os.environ.get(name)}

@@ -33,6 +33,8 @@ def test_placement_choices(monkeypatch):
     assert place(workers=3, device="cpu") == Placement(None, 3, (), "cpu")
     assert place(device="cpu").workers >= 1  # one per core
     assert place("tcp://10.0.0.1:8786").describe() == "the Dask cluster at tcp://10.0.0.1:8786"
+    assert Placement(None, 1, (0, 1), "cuda").describe() == "a local Dask cluster of 1 worker on GPU 0"
+    assert Placement(None, 4, (0, 1), "cuda").describe() == "a local Dask cluster of 4 workers on GPUs 0, 1"
     monkeypatch.setenv("BREASTBIOMECH_SCHEDULER", "tcp://10.0.0.2:8786")
     assert place(device="cuda").scheduler == "tcp://10.0.0.2:8786"  # the cluster's workers own the GPUs
     with pytest.raises(ValueError, match="--workers sizes a local cluster"):
@@ -103,6 +105,15 @@ def test_a_tasks_dependents_go_to_whichever_worker_is_free(tmp_path):
     # 4 each when shared evenly (5 and 3 if one goes the other way); 6 and 2 with Dask's dependencies
     # (Dask's work stealing moved two of them; 5 and 3 at times)
     assert min(fits.values()) >= 3, fits
+
+
+def test_local_workers_share_the_cores_out_for_itk():
+    """Each of two local workers runs ITK's filters on half the cores (not one thread per core each)."""
+    import os
+
+    outcomes = run_tasks([Task(f"env/{k}", cohort_tasks.environment, {"name": "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"})
+                          for k in range(2)], TWO_CPU_WORKERS, dashboard=None)
+    assert {o.result["value"] for o in outcomes} == {str(max(1, len(os.sched_getaffinity(0)) // 2))}
 
 
 def test_a_studys_meshes_go_first_then_its_longest_fits():

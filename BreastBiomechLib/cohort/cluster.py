@@ -37,8 +37,9 @@ class Placement:
         if self.workers == 0:
             return "this process, one task after another"
         if self.gpus:
+            used = self.gpus[:self.workers]  # worker i on GPU gpus[i % len(gpus)]
             return (f"a local Dask cluster of {self.workers} worker{'s' * (self.workers != 1)} on GPU"
-                    f"{'s' * (len(self.gpus) != 1)} {', '.join(map(str, self.gpus))}")
+                    f"{'s' * (len(used) != 1)} {', '.join(map(str, used))}")
         return f"a local Dask cluster of {self.workers} CPU worker{'s' * (self.workers != 1)}"
 
 
@@ -94,15 +95,21 @@ def place(scheduler: str | None = None, workers: int | None = None, device: str 
 
 def _local_cluster(placement: Placement, dashboard: str | None):
     """A Dask cluster on this machine with ``placement.workers`` single-threaded worker
-    processes, worker i pinned to GPU ``gpus[i % len(gpus)]``, host memory shared out evenly."""
+    processes, worker i pinned to GPU ``gpus[i % len(gpus)]``, host memory and ITK's threads
+    shared out evenly."""
     import dask
     import psutil
     from distributed import Nanny, Scheduler, SpecCluster
 
     memory = int(psutil.virtual_memory().total // placement.workers)
+    # the cores shared out too: ITK (SimpleITK's filters) otherwise starts a thread per core in
+    # every worker (Dask's nanny already sets OpenMP and BLAS to one thread)
+    itk_threads = str(max(1, _cores() // placement.workers))
     workers = {}
     for i in range(placement.workers):
-        env = {"CUDA_VISIBLE_DEVICES": str(placement.gpus[i % len(placement.gpus)])} if placement.gpus else {}
+        env = {"ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS": itk_threads}
+        if placement.gpus:
+            env["CUDA_VISIBLE_DEVICES"] = str(placement.gpus[i % len(placement.gpus)])
         workers[f"breastbiomech-{i}"] = {"cls": Nanny, "options": {"nthreads": 1, "env": env,
                                                                    "memory_limit": memory,
                                                                    "silence_logs": logging.CRITICAL}}
