@@ -126,6 +126,26 @@ def test_defective_surface_is_refused_before_tetgen():
         tetrahedralize(holed, np.zeros((0, 3)), TetGenSettings(edge_mm=4.0))
 
 
+def test_a_mesh_too_fine_for_the_memory_is_refused_before_tetgen_with_the_edge_that_fits():
+    """Resource limits (issue 28): TetGen's elements are bounded by the volume over the largest
+    element allowed; a request beyond the memory limit is refused before TetGen starts, naming the
+    smallest edge that fits, and that edge then meshes under the same limit."""
+    import re
+
+    from BreastBiomechLib.solver.memory import TooLargeForMemory, check_meshing_fits, meshing_elements
+
+    surface, _ = body_surface(breast_labels(), SurfaceSettings(edge_mm=4.0))
+    volume = abs(surface.volume_mm3)
+    limit = check_meshing_fits(volume, 4.0) + 1  # just enough for 4 mm
+    with pytest.raises(TooLargeForMemory, match=r"meshing the body surface \(\d+ cm3\) at 1 mm edges makes up to "
+                                                r"about [\d,]+ elements .* memory limit given .* at least [\d.]+ mm") as refused:
+        tetrahedralize(surface, np.zeros((0, 3)), TetGenSettings(edge_mm=1.0), memory_limit_bytes=limit)
+    edge = float(re.search(r"at least ([\d.]+) mm", str(refused.value)).group(1))
+    assert 1.0 < edge <= 4.1
+    mesh = tetrahedralize(surface, np.zeros((0, 3)), TetGenSettings(edge_mm=edge), memory_limit_bytes=limit)
+    assert 0 < len(mesh.tets) <= meshing_elements(volume, edge)  # the bound holds
+
+
 # -- quality ----------------------------------------------------------------------------------------
 
 def test_quality_measures_of_known_tetrahedra():

@@ -89,16 +89,22 @@ def _in_scratch_folder():
             os.chdir(previous)
 
 
-def tetrahedralize(boundary: TriSurface, extra_points: np.ndarray, settings: TetGenSettings) -> TetMesh:
+def tetrahedralize(boundary: TriSurface, extra_points: np.ndarray, settings: TetGenSettings,
+                   memory_limit_bytes: int | None = None) -> TetMesh:
     """TetGen quality mesh of the region inside ``boundary`` (a closed, oriented 2-manifold)
     with ``extra_points`` (K, 3) mm inside it as vertices. Tets positively oriented. Clear
-    errors for a defective surface or a TetGen failure."""
+    errors for a defective surface, a mesh too fine for the host's available memory (or
+    ``memory_limit_bytes``; :class:`~BreastBiomechLib.solver.memory.TooLargeForMemory`, before
+    TetGen starts) or a TetGen failure."""
     import tetgen
+
+    from BreastBiomechLib.solver.memory import check_meshing_fits
 
     problems = check_surface(boundary).problems()
     if problems:
         raise ValueError(f"the {boundary.name} surface cannot be meshed: {'; '.join(problems)}. "
                          "Smooth the label map more (blur_mm) or fill its holes.")
+    check_meshing_fits(abs(boundary.volume_mm3), settings.edge_mm, f"the {boundary.name} surface", memory_limit_bytes)
     points = np.concatenate([boundary.points, np.asarray(extra_points, float).reshape(-1, 3)])
     generator = tetgen.TetGen(points, boundary.triangles.astype(np.int32))
     max_volume = settings.edge_mm**3 / (6 * np.sqrt(2))

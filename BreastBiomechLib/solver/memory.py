@@ -1,6 +1,7 @@
 """Will a solve fit in memory? The estimate of what ``solve_batch`` allocates, checked against
 what the device has free before anything is allocated, so that a mesh or batch too large is
 refused with the figures and what to do instead of failing in an out-of-memory crash midway.
+The image warping and TetGen's meshing are estimated and checked the same way.
 
 Sizes in bytes. The estimate counts the solver's arrays (float32 and int32 on the device: the
 state and its monitors per node and model, the materials and visco state per element and model,
@@ -12,8 +13,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 MEMORY_MARGIN = 0.9  # use at most this share of what is free
 GB = 1024.0 ** 3
+# TetGen's meshing of a breast, host bytes per element: ~450 measured at 2.5-1.8 mm edges on the
+# phantom (peak resident memory over element count, above a fixed ~0.6 GB), doubled for safety
+MESHING_BYTES_PER_ELEMENT = 1000
+MESHING_FIXED_BYTES = int(0.6 * GB)
 
 # bytes per entry of the device arrays of a solve (float32 / int32), see tled.solve_batch
 _PER_MODEL_NODE = (5 * 12  # displacement, rounding remainder, increment, scratch state, forces
@@ -76,13 +83,15 @@ def free_bytes(device) -> int | None:
 
 
 def _allowed(device, limit_bytes: int | None) -> tuple[float | None, str]:
-    """What a run on ``device`` may allocate (bytes; None: unknown) and how to say where that comes from."""
+    """What a run on ``device`` (None: the host) may allocate (bytes; None: unknown) and how to say
+    where that comes from."""
     free = free_bytes(device) if limit_bytes is None else int(limit_bytes)
     if free is None:
         return None, ""
     if limit_bytes is not None:
         return float(free), f"the memory limit given is {free / GB:.2f} GB"
-    return MEMORY_MARGIN * free, f"{device} has {free / GB:.2f} GB free, of which it uses at most {MEMORY_MARGIN:.0%}"
+    where = "this machine" if device is None else device
+    return MEMORY_MARGIN * free, f"{where} has {free / GB:.2f} GB free, of which it uses at most {MEMORY_MARGIN:.0%}"
 
 
 def check_fits(size: SolveSize, device, limit_bytes: int | None = None) -> int:
@@ -128,3 +137,29 @@ def check_warp_fits(output_voxels: int, input_voxels: int, nodes: int, elements:
         f"warping an image of {input_voxels} voxels onto a grid of {output_voxels} voxels needs about "
         f"{needed / GB:.2f} GB, and {limit}; crop or resample the images to fewer voxels, or free memory on "
         "the device")
+
+
+def meshing_elements(volume_mm3: float, edge_mm: float) -> int:
+    """At most about how many elements TetGen makes of ``volume_mm3`` at ``edge_mm``: the volume
+    over the largest element volume it is allowed (a regular tetrahedron of that edge); quality
+    meshes of the phantom had 0.35-0.8 of that count at 8-1.8 mm edges."""
+    return int(np.ceil(volume_mm3 / (edge_mm ** 3 / (6 * np.sqrt(2)))))
+
+
+def check_meshing_fits(volume_mm3: float, edge_mm: float, what: str = "the body",
+                       limit_bytes: int | None = None) -> int:
+    """Refuse (:class:`TooLargeForMemory`) meshing ``volume_mm3`` (mm³) at ``edge_mm`` when TetGen
+    would need more host memory than is available (or ``limit_bytes``); the message gives the
+    estimate and the smallest edge that fits. Returns the estimate (bytes)."""
+    elements = meshing_elements(volume_mm3, edge_mm)
+    needed = MESHING_FIXED_BYTES + elements * MESHING_BYTES_PER_ELEMENT
+    allowed, limit = _allowed(None, limit_bytes)
+    if allowed is None or needed <= allowed:
+        return needed
+    fitting = (allowed - MESHING_FIXED_BYTES) / MESHING_BYTES_PER_ELEMENT
+    smallest = (6 * np.sqrt(2) * volume_mm3 / fitting) ** (1 / 3) if fitting > 0 else float("inf")
+    remedy = (f"use an element edge of at least {np.ceil(smallest * 10) / 10:.1f} mm" if np.isfinite(smallest)
+              else "free memory on this machine")
+    raise TooLargeForMemory(
+        f"meshing {what} ({volume_mm3 / 1000:.0f} cm3) at {edge_mm:g} mm edges makes up to about {elements:,} "
+        f"elements and needs about {needed / GB:.1f} GB, and {limit}; {remedy}")
