@@ -104,3 +104,48 @@ def test_a_tumour_smaller_than_the_edge_refines_the_mesh_around_it():
     assert tumour.sum() >= 4
     assert made.mesh.volumes[tumour].sum() == pytest.approx(np.pi / 6 * 12.0**3, rel=0.5)
     assert made.quality.summary()["failing"]["any"]["count"] == 0
+
+
+def _needle(at_z: float):
+    """A 20 mm box of 5 mm cubes with the node at (15, 10, ``at_z``) pulled to within 0.4 mm of
+    the node at (10, 10, ``at_z``): a needle edge among 5 mm edges."""
+    box = box_mesh((20.0, 20.0, 20.0), (4, 4, 4))
+    nodes = box.nodes.copy()
+    a = int(np.flatnonzero(np.all(np.isclose(nodes, [10.0, 10.0, at_z]), axis=1))[0])
+    b = int(np.flatnonzero(np.all(np.isclose(nodes, [15.0, 10.0, at_z]), axis=1))[0])
+    assert any(a in tet and b in tet for tet in box.tets)
+    nodes[b] = nodes[a] + 0.08 * (nodes[b] - nodes[a])
+    return TetMesh(nodes, box.tets)
+
+
+def _conforming(mesh: TetMesh) -> bool:
+    faces = np.sort(mesh.tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1)
+    return bool(np.unique(faces, axis=0, return_counts=True)[1].max() <= 2)
+
+
+def test_an_interior_needle_is_collapsed():
+    """Two nodes 0.4 mm apart among 5 mm edges (as interface points that lie close make among
+    large interior elements): no node move repairs such a needle; its short edge is collapsed,
+    the mesh stays conforming, the volume is kept and no element fails."""
+    needle = _needle(10.0)
+    assert mesh_quality(needle).failing()["aspect_ratio"].any()
+    repaired, done = improve_quality(needle)
+    assert done["edges_collapsed"] >= 1 and len(repaired.nodes) == len(needle.nodes) - 1
+    assert not mesh_quality(repaired).failing()["any"].any() and _conforming(repaired)
+    assert repaired.volumes.min() > 0 and repaired.volumes.sum() == pytest.approx(20.0**3)
+
+
+def test_a_surface_needle_is_collapsed_along_the_surface():
+    """Two surface nodes 0.4 mm apart: the collapse runs along their surface edge (the link
+    condition holds), so the surface stays closed and the volume is kept."""
+    from BreastBiomechLib.mesh.improve import _collapse_short_edges
+    from BreastBiomechLib.mesh.tetmesh import boundary_faces
+
+    needle = _needle(20.0)
+    nodes = needle.nodes.copy()
+    poor = mesh_quality(needle).failing()["any"]
+    tets, _, collapsed = _collapse_short_edges(nodes, needle.tets, poor, 5.0)
+    repaired = TetMesh(nodes, tets)
+    assert collapsed == 1 and _conforming(repaired)
+    assert len(boundary_faces(tets)[0]) == len(boundary_faces(needle.tets)[0]) - 2
+    assert repaired.volumes.min() > 0 and repaired.volumes.sum() == pytest.approx(20.0**3)

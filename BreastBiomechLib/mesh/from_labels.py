@@ -188,7 +188,8 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
     if repairs["poor_before"] or repairs["caps_removed"]:
         notes.append(f"{repairs['poor_before']} poor elements after TetGen; {repairs['caps_removed']} flat or poor "
                      f"boundary caps removed, {repairs['peeled']} poor elements peeled off the surface, "
-                     f"{repairs['nodes_moved']} nodes moved; {repairs['poor_after']} poor elements left")
+                     f"{repairs['edges_collapsed']} short edges collapsed, {repairs['nodes_moved']} nodes moved; "
+                     f"{repairs['poor_after']} poor elements left")
     lap("repair")
 
     report(0.7, "tissue per element")

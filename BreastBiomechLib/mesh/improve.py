@@ -1,7 +1,8 @@
 """Repair of the few poor elements TetGen leaves at a curved boundary: flat caps (elements with
 two or three faces on the surface, which lie almost in it: all four nodes on the surface, so a
 plate that flattens the surface there flattens them to zero volume) are removed, poor elements
-with one face on the surface peeled off, and the nodes of the remaining poor elements are moved
+with one face on the surface peeled off, needles (an edge a fifth of the element's longest)
+collapsed, and the nodes of the remaining poor elements are moved
 towards their neighbours (boundary nodes along the surface) where that improves every element
 around them (smart Laplacian smoothing), round after round while poor elements remain. Nodes in
 LPS mm."""
@@ -64,7 +65,7 @@ def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0, cap_dihedral_d
     peels what the last left at the boundary and smooths around the rest. Returns the mesh and
     the totals of what was done, ``poor_before`` the poor elements TetGen left and ``poor_after``
     those that remain."""
-    totals = {"caps_removed": 0, "peeled": 0, "nodes_moved": 0}
+    totals = {"caps_removed": 0, "peeled": 0, "edges_collapsed": 0, "nodes_moved": 0}
     poor_before = None
     for _ in range(rounds):
         mesh, done = improve_once(mesh, min_dihedral_deg, cap_dihedral_deg)
@@ -73,7 +74,8 @@ def improve_quality(mesh: TetMesh, min_dihedral_deg: float = 5.0, cap_dihedral_d
             totals[key] += done[key]
         report = mesh_quality(mesh)
         poor_after = int((report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)).sum())
-        if poor_after == 0 or not (done["caps_removed"] or done["peeled"] or done["nodes_moved"]):
+        if poor_after == 0 or not (done["caps_removed"] or done["peeled"] or done["edges_collapsed"]
+                                   or done["nodes_moved"]):
             break
     return mesh, {**totals, "poor_before": poor_before, "poor_after": poor_after}
 
@@ -103,6 +105,7 @@ def improve_once(mesh: TetMesh, min_dihedral_deg: float = 5.0,
     peel[peel] = _apex_edges_inside(mesh.tets, np.flatnonzero(peel))
     tets = mesh.tets[~(caps | peel)]
     poor = poor[~(caps | peel)]
+    tets, poor, collapsed = _collapse_short_edges(nodes, tets, poor, min_dihedral_deg)
     incidence = csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),
                            shape=(len(nodes), len(tets)))
     on_boundary = boundary_nodes(tets, len(nodes))
@@ -134,4 +137,91 @@ def improve_once(mesh: TetMesh, min_dihedral_deg: float = 5.0,
     used[tets.ravel()] = True
     remap = np.cumsum(used) - 1
     return TetMesh(nodes[used], remap[tets]), {"caps_removed": int(caps.sum()), "peeled": int(peel.sum()),
-                                               "nodes_moved": moved, "poor_before": poor_before}
+                                               "edges_collapsed": collapsed, "nodes_moved": moved,
+                                               "poor_before": poor_before}
+
+
+SHORT_EDGE_RATIO = 0.2  # an element's edge this much shorter than its longest is collapsed
+
+
+def _collapse_short_edges(nodes: np.ndarray, tets: np.ndarray, poor: np.ndarray,
+                          min_dihedral_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Collapse the shortest edge of each poor element whose edge is under ``SHORT_EDGE_RATIO``
+    of its longest (a needle: two surface or interface points 1 mm apart among 15-20 mm edges,
+    which no node move repairs): its two nodes become one (at the boundary node's place if one
+    is on the boundary, else at the midpoint; two boundary nodes only along a surface edge that
+    passes the link condition, never across the volume, which would pinch the surface), the
+    elements holding both are removed, and the change is kept only if every
+    element around is positive and the worst of them better than before. ``nodes`` is updated
+    in place; returns the elements, their poor flags and the number of edges collapsed."""
+    p = nodes[tets]
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    lengths = np.stack([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in pairs], axis=1)
+    needles = np.flatnonzero(poor & (lengths.min(axis=1) < SHORT_EDGE_RATIO * lengths.max(axis=1)))
+    if len(needles) == 0:
+        return tets, poor, 0
+    original, original_tets = nodes.copy(), tets
+    tets = tets.copy()
+    on_boundary = boundary_nodes(tets, len(nodes))
+    ring: dict[int, set[int]] = {}  # surface neighbours of each boundary node
+    for face in boundary_faces(tets)[0]:
+        for a in face:
+            ring.setdefault(int(a), set()).update(int(b) for b in face if b != a)
+    alive = np.ones(len(tets), bool)
+    touched = np.zeros(len(nodes), bool)
+    holding: dict[int, set[int]] = {}
+    for element, tet in enumerate(tets):
+        for node in tet:
+            holding.setdefault(int(node), set()).add(element)
+    collapsed = 0
+    for element in needles:
+        if not alive[element]:
+            continue
+        i, j = pairs[int(np.argmin(lengths[element]))]
+        keep, drop = int(tets[element, i]), int(tets[element, j])
+        if touched[keep] or touched[drop]:
+            continue
+        if on_boundary[keep] and on_boundary[drop]:
+            # a surface edge whose ends share exactly the two surface neighbours of its two
+            # triangles (the link condition): collapsing it keeps the surface a manifold
+            if drop not in ring[keep] or len(ring[keep] & ring[drop]) != 2:
+                continue
+            place = 0.5 * (nodes[keep] + nodes[drop])
+        else:
+            if on_boundary[drop]:
+                keep, drop = drop, keep
+            place = nodes[keep] if on_boundary[keep] else 0.5 * (nodes[keep] + nodes[drop])
+        around = sorted(e for e in holding[keep] | holding[drop] if alive[e])
+        both = [e for e in around if keep in tets[e] and drop in tets[e]]
+        rest = [e for e in around if e not in both]
+        before = _score(nodes, tets[around], min_dihedral_deg)
+        trial = tets[rest].copy()
+        trial[trial == drop] = keep
+        saved = nodes[keep].copy()
+        nodes[keep] = place
+        if _score(nodes, trial, min_dihedral_deg) <= before:
+            nodes[keep] = saved
+            continue
+        tets[rest] = trial
+        alive[both] = False
+        holding[keep] |= set(rest)
+        touched[[keep, drop]] = True
+        if on_boundary[drop]:
+            for node in ring.pop(drop):
+                ring[node].discard(drop)
+                if node != keep:
+                    ring[node].add(keep)
+                    ring[keep].add(node)
+            ring[keep].discard(drop)
+        collapsed += 1
+    if collapsed and not _conforming(tets[alive]):  # a collapse the local checks missed: undo them all
+        nodes[:] = original
+        return original_tets, poor, 0
+    return tets[alive], poor[alive], collapsed
+
+
+def _conforming(tets: np.ndarray) -> bool:
+    """Whether every face is shared by at most two elements and no element repeats another."""
+    faces = np.sort(tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1)
+    _, counts = np.unique(faces, axis=0, return_counts=True)
+    return bool(counts.max() <= 2) and len(np.unique(np.sort(tets, axis=1), axis=0)) == len(tets)
