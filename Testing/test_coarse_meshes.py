@@ -149,3 +149,28 @@ def test_a_surface_needle_is_collapsed_along_the_surface():
     assert collapsed == 1 and _conforming(repaired)
     assert len(boundary_faces(tets)[0]) == len(boundary_faces(needle.tets)[0]) - 2
     assert repaired.volumes.min() > 0 and repaired.volumes.sum() == pytest.approx(20.0**3)
+
+
+def test_short_body_surface_edges_are_collapsed_before_tetgen():
+    """The body surface of the test breast at 8 mm has 14 edges under 1 mm (vertices moved onto
+    the boundary land close where it folds); TetGen keeps every surface edge, so each would make
+    needle elements. Collapsed on the surface, few are left, and the surface stays closed,
+    uncrossed and of the same volume. A collapse that would turn two faces into one (a
+    tetrahedron's edge) is refused."""
+    from BreastBiomechLib.surface.collapse import collapse_short_edges, without_short_edges
+
+    def edges_under(surface, mm):
+        t = surface.triangles
+        edges = np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1), axis=0)
+        return int((np.linalg.norm(surface.points[edges[:, 0]] - surface.points[edges[:, 1]], axis=1) < mm).sum())
+
+    surface, _ = body_surface(breast_labels(), SurfaceSettings(edge_mm=8.0))
+    shorter, collapsed, _ = without_short_edges(surface, 8.0)
+    assert edges_under(surface, 1.0) >= 10 and edges_under(shorter, 1.0) <= edges_under(surface, 1.0) // 4
+    assert collapsed >= edges_under(surface, 1.0) - edges_under(shorter, 1.0)
+    assert len(shorter.points) == len(surface.points) - collapsed
+    assert check_surface(shorter).ok and len(intersecting_pairs(shorter)) == 0
+    assert shorter.volume_mm3 == pytest.approx(surface.volume_mm3, rel=0.01)
+    tetrahedron = TriSurface(np.array([[0, 0, 0], [0.5, 0, 0], [0, 10, 0], [0, 0, 10]], float),
+                             [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    assert collapse_short_edges(tetrahedron, 8.0)[1] == []

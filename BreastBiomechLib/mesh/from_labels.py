@@ -101,6 +101,21 @@ def _body_surface(labels: sitk.Image, settings: SurfaceSettings, notes: list[str
     raise AssertionError("unreachable")
 
 
+def _without_short_edges(body: TriSurface, edge_mm: float, notes: list[str]) -> TriSurface:
+    """The body surface with its short edges collapsed where that keeps it from crossing itself
+    (:func:`~BreastBiomechLib.surface.collapse.without_short_edges`: TetGen keeps every surface
+    edge, and one much shorter than the element edge makes needle elements); said in ``notes``."""
+    from BreastBiomechLib.surface.collapse import SHORT_EDGE_FRACTION, without_short_edges
+    from BreastBiomechLib.surface.extract import flip_obtuse_triangles
+
+    shorter, collapsed, refused = without_short_edges(body, edge_mm)
+    if collapsed or refused:
+        notes.append(f"body: {collapsed} surface edges under {SHORT_EDGE_FRACTION * edge_mm:.1f} mm collapsed "
+                     "(they would make needle elements)" + (f", {refused} kept where collapsing them would make the "
+                                                           "surface cross itself" if refused else ""))
+    return flip_obtuse_triangles(shorter) if collapsed else body
+
+
 def _interface_surface(labels: sitk.Image, value: int, name: str, spacing: float, settings: SurfaceSettings,
                        notes: list[str]) -> TriSurface | None:
     """The surface of one tissue whose points refine the mesh, at ``spacing`` mm; a tissue
@@ -166,22 +181,31 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
 
     report(0.3, "TetGen")
     interfaces = [s for n, s in surfaces.items() if n != "body"]
-    points = interface_points(body, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
-    for attempt in range(_RETRIES + 1):
+    attempt, edge = 0, surface_settings.edge_mm
+    bound = _without_short_edges(body, edge, notes)
+    while True:
+        points = interface_points(bound, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
         try:
-            mesh = tetrahedralize(body, points, tetgen_settings)
+            mesh = tetrahedralize(bound, points, tetgen_settings)
             break
         except RuntimeError as error:
+            if "self-intersect" not in str(error):
+                raise
+            if bound is not body:  # TetGen is stricter than the collapses' own check: mesh without them
+                notes.append(f"TetGen found the body surface with its short edges collapsed touching itself; "
+                             "meshed it without the collapses")
+                bound = body
+                continue
             # a surface coarser than a thin part of the body (a chest layer at the edge of the
             # field of view) can touch itself there: retry with finer triangles
-            if attempt == _RETRIES or "self-intersect" not in str(error):
+            if attempt == _RETRIES:
                 raise
-            edge = body.mean_edge_mm * 0.7
+            attempt, edge = attempt + 1, body.mean_edge_mm * 0.7
             notes.append(f"TetGen found the body surface intersecting itself at a {body.mean_edge_mm:.1f} mm edge; "
                          f"remade it at {edge:.1f} mm")
             body, _ = _body_surface(labels, replace(surface_settings, edge_mm=edge), notes)
-            surfaces["body"] = body
-            points = interface_points(body, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
+            bound = _without_short_edges(body, edge, notes)
+    surfaces["body"] = bound
     lap("tetgen")
     report(0.6, "repairing poor boundary elements")
     mesh, repairs = improve_quality(mesh)
