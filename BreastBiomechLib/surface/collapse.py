@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from BreastBiomechLib.surface.trisurface import TriSurface
+from BreastBiomechLib.surface.trisurface import TriSurface, corner_angles
 
 SHORT_EDGE_FRACTION = 0.3  # edges under this share of the target edge are collapsed
 MAX_TURN_DEG = 35.0
@@ -29,13 +29,7 @@ def _normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 def _widest_corner_deg(points: np.ndarray, triangles: np.ndarray) -> float:
-    p = points[triangles]
-    widest = 0.0
-    for k in range(3):
-        u, v = p[:, (k + 1) % 3] - p[:, k], p[:, (k + 2) % 3] - p[:, k]
-        cos = (u * v).sum(-1) / np.maximum(np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1), 1e-30)
-        widest = max(widest, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max()))
-    return widest
+    return float(corner_angles(points[triangles]).max())
 
 
 def collapse_short_edges(surface: TriSurface, target_edge_mm: float, fraction: float = SHORT_EDGE_FRACTION,

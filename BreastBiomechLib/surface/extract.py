@@ -15,7 +15,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from BreastBiomechLib.surface.trisurface import TriSurface
+from BreastBiomechLib.surface.trisurface import TriSurface, corner_angles
 
 _PAD = 2  # background voxels added on every side
 
@@ -185,22 +185,12 @@ def untangled(surface: TriSurface, fallback: np.ndarray, edge_mm: float, rounds:
                      "or a larger blur")
 
 
-def _corner_angles(p: np.ndarray) -> np.ndarray:
-    """Corner angles (..., 3) in degrees of triangles p (..., 3, 3)."""
-    angles = []
-    for k in range(3):
-        u, v = p[..., (k + 1) % 3, :] - p[..., k, :], p[..., (k + 2) % 3, :] - p[..., k, :]
-        cos = (u * v).sum(-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
-        angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-    return np.stack(angles, axis=-1)
-
-
 def flip_obtuse_triangles(surface: TriSurface, limit_deg: float = 130.0) -> TriSurface:
     """Flip the edge opposite each corner wider than ``limit_deg`` where that lowers the widest
     corner of both triangles (the few obtuse triangles the relaxation leaves would give elements
     with face angles over 150 degrees). Orientation and manifoldness are kept."""
     tri = surface.triangles.copy()
-    widest = _corner_angles(surface.points[tri]).max(axis=1)
+    widest = corner_angles(surface.points[tri]).max(axis=1)
     if not (widest > limit_deg).any():
         return surface
     edges = {}
@@ -208,7 +198,7 @@ def flip_obtuse_triangles(surface: TriSurface, limit_deg: float = 130.0) -> TriS
         for u, v in ((a, b), (b, c), (c, a)):
             edges[(u, v)] = t
     for t in np.flatnonzero(widest > limit_deg):
-        angles = _corner_angles(surface.points[tri[t]])
+        angles = corner_angles(surface.points[tri[t]])
         k = int(np.argmax(angles))
         c, a, b = tri[t][k], tri[t][(k + 1) % 3], tri[t][(k + 2) % 3]  # edge a->b opposite c
         other = edges.get((b, a))
@@ -218,8 +208,8 @@ def flip_obtuse_triangles(surface: TriSurface, limit_deg: float = 130.0) -> TriS
         if (c, d) in edges or (d, c) in edges:
             continue  # the flipped edge exists already: flipping would make it non-manifold
         new = np.array([(a, d, c), (d, b, c)])
-        old_worst = max(angles.max(), _corner_angles(surface.points[tri[other]]).max())
-        if _corner_angles(surface.points[new]).max() >= old_worst:
+        old_worst = max(angles.max(), corner_angles(surface.points[tri[other]]).max())
+        if corner_angles(surface.points[new]).max() >= old_worst:
             continue
         for u, v in ((a, b), (b, c), (c, a)):
             edges.pop((u, v), None)

@@ -10,6 +10,16 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def corner_angles(p: np.ndarray) -> np.ndarray:
+    """Corner angles (..., 3) in degrees of triangles p (..., 3, 3)."""
+    angles = []
+    for k in range(3):
+        u, v = p[..., (k + 1) % 3, :] - p[..., k, :], p[..., (k + 2) % 3, :] - p[..., k, :]
+        cos = (u * v).sum(-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
+        angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    return np.stack(angles, axis=-1)
+
+
 @dataclass
 class TriSurface:
     """Points (K, 3) LPS mm and triangles (T, 3) int64; ``name`` says what it bounds."""
