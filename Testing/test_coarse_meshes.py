@@ -151,6 +151,20 @@ def test_a_surface_needle_is_collapsed_along_the_surface():
     assert repaired.volumes.min() > 0 and repaired.volumes.sum() == pytest.approx(20.0**3)
 
 
+def test_corner_angles_of_a_triangle_with_two_points_in_one_place_are_zero():
+    """Two surface points can land in one place; their triangle's corners count as 0 degrees
+    (no division by a zero length), a proper triangle's as they are."""
+    import warnings
+
+    from BreastBiomechLib.surface.trisurface import corner_angles
+
+    triangles = np.array([[[0, 0, 0], [0, 0, 0], [1, 0, 0]], [[0, 0, 0], [1, 0, 0], [0, 1, 0]]], float)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        angles = corner_angles(triangles)
+    assert angles[0].tolist() == [0.0, 0.0, 0.0] and np.allclose(angles[1], [90.0, 45.0, 45.0])
+
+
 def test_a_flat_surface_face_is_collapsed():
     """A surface node 0.8 mm from the middle of its face's 7 mm diagonal (as the repair's cap
     removal can leave on a skin): the face's corner there is over 150 degrees, no edge is a

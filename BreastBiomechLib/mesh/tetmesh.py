@@ -14,6 +14,12 @@ import numpy as np
 from BreastBiomechLib.errors import InputError
 
 
+def regular_tet_volume_mm3(edge_mm: float) -> float:
+    """Volume (mm³) of the regular tetrahedron of edge ``edge_mm`` (mm): edge³ / (6 √2), the
+    largest element TetGen is allowed at that edge."""
+    return edge_mm**3 / (6.0 * np.sqrt(2.0))
+
+
 def _signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     p = nodes[tets]
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0

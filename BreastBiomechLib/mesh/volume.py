@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.mesh.tetmesh import TetMesh, regular_tet_volume_mm3
 from BreastBiomechLib.surface.checks import check_surface
 from BreastBiomechLib.surface.trisurface import TriSurface
 
@@ -107,7 +107,7 @@ def tetrahedralize(boundary: TriSurface, extra_points: np.ndarray, settings: Tet
     check_meshing_fits(abs(boundary.volume_mm3), settings.edge_mm, f"the {boundary.name} surface", memory_limit_bytes)
     points = np.concatenate([boundary.points, np.asarray(extra_points, float).reshape(-1, 3)])
     generator = tetgen.TetGen(points, boundary.triangles.astype(np.int32))
-    max_volume = settings.edge_mm**3 / (6 * np.sqrt(2))
+    max_volume = regular_tet_volume_mm3(settings.edge_mm)
     try:
         with _in_scratch_folder():  # TetGen writes _skipped.* files where it fails: not in the user's folder
             nodes, tets, *_ = generator.tetrahedralize(quality=True, minratio=settings.min_radius_edge,

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from BreastBiomechLib.mesh.tetmesh import regular_tet_volume_mm3
+
 MEMORY_MARGIN = 0.9  # use at most this share of what is free
 GB = 1024.0 ** 3
 # TetGen's meshing of a breast, host bytes per element: ~450 measured at 2.5-1.8 mm edges on the
@@ -143,7 +145,7 @@ def meshing_elements(volume_mm3: float, edge_mm: float) -> int:
     """At most about how many elements TetGen makes of ``volume_mm3`` at ``edge_mm``: the volume
     over the largest element volume it is allowed (a regular tetrahedron of that edge); quality
     meshes of the phantom had 0.35-0.8 of that count at 8-1.8 mm edges."""
-    return int(np.ceil(volume_mm3 / (edge_mm ** 3 / (6 * np.sqrt(2)))))
+    return int(np.ceil(volume_mm3 / regular_tet_volume_mm3(edge_mm)))
 
 
 def check_meshing_fits(volume_mm3: float, edge_mm: float, what: str = "the body",
@@ -157,7 +159,7 @@ def check_meshing_fits(volume_mm3: float, edge_mm: float, what: str = "the body"
     if allowed is None or needed <= allowed:
         return needed
     fitting = (allowed - MESHING_FIXED_BYTES) / MESHING_BYTES_PER_ELEMENT
-    smallest = (6 * np.sqrt(2) * volume_mm3 / fitting) ** (1 / 3) if fitting > 0 else float("inf")
+    smallest = (volume_mm3 / fitting / regular_tet_volume_mm3(1.0)) ** (1 / 3) if fitting > 0 else float("inf")
     remedy = (f"use an element edge of at least {np.ceil(smallest * 10) / 10:.1f} mm" if np.isfinite(smallest)
               else "free memory on this machine")
     raise TooLargeForMemory(

@@ -11,11 +11,13 @@ import numpy as np
 
 
 def corner_angles(p: np.ndarray) -> np.ndarray:
-    """Corner angles (..., 3) in degrees of triangles p (..., 3, 3)."""
+    """Corner angles (..., 3) in degrees of triangles p (..., 3, 3); a corner at an edge of zero
+    length (two points in one place) counts as 0."""
     angles = []
     for k in range(3):
         u, v = p[..., (k + 1) % 3, :] - p[..., k, :], p[..., (k + 2) % 3, :] - p[..., k, :]
-        cos = (u * v).sum(-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
+        lengths = np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1)
+        cos = np.divide((u * v).sum(-1), lengths, out=np.ones_like(lengths), where=lengths > 0)
         angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
     return np.stack(angles, axis=-1)
 
