@@ -35,7 +35,9 @@ def body_mask(array: np.ndarray, grid: VoxelGrid, smoothing_mm: float = 1.0,
     the surface a voxel then belongs to the body when its intensity reaches ``surface_fraction``
     of the local intensity of the tissue 2-5 mm beneath (averaged over ``surface_level_mm``): the
     outermost tissue is skin, about 0.55 of fat in T1-weighted images, so 0.3 is half of the skin
-    signal, i.e. the voxel-majority rule of the label maps, and it holds under a bias field."""
+    signal, i.e. the voxel-majority rule of the label maps, and it holds under a bias field.
+    Once the breast is known its surface is placed again for whatever tissue is outermost
+    (:func:`~BreastBiomechLib.segmentation.breast.breast_surface`)."""
     if not 0 < surface_fraction < 1:
         raise ValueError("surface_fraction must lie between 0 and 1")
     sigma = smoothing_mm / grid.spacing_zyx

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from BreastBiomechLib.segmentation.morphology import ball, largest_component, local_mean
 from BreastBiomechLib.segmentation.volume import VoxelGrid
 
 
@@ -80,3 +81,41 @@ def skin_depth(array: np.ndarray, body: np.ndarray, breast: np.ndarray, grid: Vo
         if np.count_nonzero(inside) >= 20 and np.percentile(values[inside], 90) < 0.9 * reference:
             deepest = (shell + 1) * SKIN_SHELL_MM
     return min(deepest, MAX_SKIN_MM)
+
+
+SKIN_SIGNAL = 0.55  # T1-weighted skin signal over fat signal
+SKIN_CONTRAST = 0.9  # a first layer whose bright voxels are darker than this share of fat's holds skin
+FAT_TREND_MM = 20.0  # the scale over which the fat level may change (a bias field's)
+
+
+def breast_surface(array: np.ndarray, body: np.ndarray, breast: np.ndarray, grid: VoxelGrid) -> np.ndarray:
+    """``body`` with the surface of its breast part placed where a voxel is half tissue, for any
+    outermost tissue. Whether a skin is imaged is read from the breast's first voxel layer: its
+    bright voxels (90th percentile) are under :data:`SKIN_CONTRAST` of those 6-12 mm deep (the
+    fat) with any skin of 0.8 mm or more, and as bright without one. With a skin, a voxel along
+    the breast's surface belongs to the body when its intensity reaches half of skin's signal
+    (:data:`SKIN_SIGNAL` of the local fat level: the brightest quarter of the breast 6-12 mm deep,
+    averaged over ``FAT_TREND_MM``); without, half of the tissue 2-5 mm beneath. (The body's first
+    rule, 0.3 of the tissue 2-5 mm beneath, is half of skin's signal only where that tissue is
+    fat: not under a 3 mm skin, and not where no skin is imaged.) Voxels within 2 mm of the
+    breast's surface are decided again; the rest of the body is kept as it is."""
+    depth = ndimage.distance_transform_edt(body, sampling=grid.spacing_zyx)
+    deep = breast & (depth >= SKIN_REFERENCE_MM[0]) & (depth < SKIN_REFERENCE_MM[1])
+    first_mm = float(grid.spacing_zyx.min())
+    first = breast & (depth >= first_mm) & (depth < first_mm + SKIN_SHELL_MM)
+    if np.count_nonzero(deep) < 100 or np.count_nonzero(first) < 20:
+        return body
+    values = array.astype(np.float32)
+    reference = np.percentile(values[deep], 90)
+    if np.percentile(values[first], 90) < SKIN_CONTRAST * reference:
+        bright = deep & (values >= np.percentile(values[deep], 75))
+        level = SKIN_SIGNAL * local_mean(values, bright, FAT_TREND_MM / grid.spacing_zyx)
+    else:
+        inner = ndimage.binary_erosion(body, ball(grid.spacing_zyx, 2.0), border_value=1)
+        shell = inner & breast & ~ndimage.binary_erosion(inner, ball(grid.spacing_zyx, 3.0), border_value=1)
+        level = local_mean(values, shell, 6.0 / grid.spacing_zyx)
+    near = ndimage.binary_dilation(breast & (depth < 4.0), ball(grid.spacing_zyx, 3.0))
+    band = near & ndimage.binary_dilation(body, ball(grid.spacing_zyx, 2.0)) & (depth < 2.0)
+    band &= level > 0  # (no level where no tissue is near: left as it was)
+    refined = (body & ~band) | (band & (values >= 0.5 * level))
+    return ndimage.binary_fill_holes(largest_component(refined))

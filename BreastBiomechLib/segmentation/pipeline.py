@@ -17,7 +17,7 @@ from scipy import ndimage
 
 from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import body_mask
-from BreastBiomechLib.segmentation.breast import breast_mask, skin_depth, skin_layer
+from BreastBiomechLib.segmentation.breast import breast_mask, breast_surface, skin_depth, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
 from BreastBiomechLib.segmentation.seeded import (GrowSettings, OutsideTissues, SeededRegion, Surroundings,
                                                   agreeing_probability,
@@ -128,9 +128,12 @@ def _fat_glandular_levels(grid: VoxelGrid, array: np.ndarray, breast: np.ndarray
 
 def _breast_and_skin(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, muscle_mask: np.ndarray,
                      settings: SegmentationSettings) -> tuple[np.ndarray, np.ndarray, float]:
-    """The breast in front of the muscle, its outer skin layer (both independent of the tumour)
+    """The breast in front of the muscle (its surface placed for its outermost tissue,
+    :func:`breast_surface`), its outer skin layer (both independent of the tumour)
     and that layer's thickness (mm): ``settings.skin_mm``, or deeper where the image shows the
     skin reaching deeper (:func:`skin_depth`) when ``settings.measure_skin``."""
+    breast = breast_mask(body, muscle_mask, grid)
+    body = breast_surface(array, body, breast, grid)
     breast = breast_mask(body, muscle_mask, grid)
     thickness = settings.skin_mm
     if settings.measure_skin:
