@@ -25,6 +25,17 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     return float(centres[int(np.argmax(between[:-1]))])
 
 
+def tissue_beneath(array: np.ndarray, inner: np.ndarray, grid: VoxelGrid, level_mm: float = 6.0,
+                   within: np.ndarray | None = None) -> np.ndarray:
+    """The local mean intensity (over ``level_mm``) of the tissue 2-5 mm beneath the body surface:
+    the outer 3 mm of ``inner`` (the body eroded by 2 mm), within ``within`` if given; 0 where none
+    of it is near."""
+    shell = inner & ~ndimage.binary_erosion(inner, ball(grid.spacing_zyx, 3.0), border_value=1)
+    if within is not None:
+        shell &= within
+    return local_mean(array.astype(np.float32), shell, level_mm / grid.spacing_zyx)
+
+
 def body_mask(array: np.ndarray, grid: VoxelGrid, smoothing_mm: float = 1.0,
               surface_fraction: float = 0.3, surface_level_mm: float = 6.0) -> np.ndarray:
     """The body as a boolean array: the largest connected foreground region, holes filled, with
@@ -53,8 +64,7 @@ def body_mask(array: np.ndarray, grid: VoxelGrid, smoothing_mm: float = 1.0,
     inner = ndimage.binary_erosion(body, ball(grid.spacing_zyx, 2.0), border_value=1)
     if not inner.any():
         return body
-    shell = inner & ~ndimage.binary_erosion(inner, ball(grid.spacing_zyx, 3.0), border_value=1)
-    tissue = local_mean(array.astype(np.float32), shell, surface_level_mm / grid.spacing_zyx)
+    tissue = tissue_beneath(array, inner, grid, surface_level_mm)
     band = ndimage.binary_dilation(body, ball(grid.spacing_zyx, 2.0)) & ~inner
     keep = inner | (band & (tissue > 0) & (array >= surface_fraction * tissue))
     return ndimage.binary_fill_holes(largest_component(keep))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from BreastBiomechLib.segmentation.body import tissue_beneath
 from BreastBiomechLib.segmentation.morphology import ball, largest_component, local_mean
 from BreastBiomechLib.segmentation.volume import VoxelGrid
 
@@ -112,8 +113,7 @@ def breast_surface(array: np.ndarray, body: np.ndarray, breast: np.ndarray, grid
         level = SKIN_SIGNAL * local_mean(values, bright, FAT_TREND_MM / grid.spacing_zyx)
     else:
         inner = ndimage.binary_erosion(body, ball(grid.spacing_zyx, 2.0), border_value=1)
-        shell = inner & breast & ~ndimage.binary_erosion(inner, ball(grid.spacing_zyx, 3.0), border_value=1)
-        level = local_mean(values, shell, 6.0 / grid.spacing_zyx)
+        level = tissue_beneath(values, inner, grid, within=breast)
     near = ndimage.binary_dilation(breast & (depth < 4.0), ball(grid.spacing_zyx, 3.0))
     band = near & ndimage.binary_dilation(body, ball(grid.spacing_zyx, 2.0)) & (depth < 2.0)
     band &= level > 0  # (no level where no tissue is near: left as it was)
