@@ -188,13 +188,21 @@ def test_mesh_sweep_resumes_and_reports(tmp_path, capsys):
     from BreastBiomechLib.cli import main
 
     out = tmp_path / "sweep.jsonl"
-    assert main(["bench", "mesh", "--sweep", "--variants", "1", "--edges", "15", "--out", str(out), "--json"]) == 0
+    assert main(["bench", "mesh", "--sweep", "--variants", "1", "--edges", "15", "--out", str(out), "--json",
+                 "--compression", "0.25", "--device", "cpu"]) == 0
     figures = json.loads(capsys.readouterr().out)
-    assert figures["by_mesh"]["truth@15"] == {"meshed": 1, "with_failing_elements": 0, "refused": 0, "errors": 0}
-    assert figures["by_mesh"]["segmentation@15"]["meshed"] == 1
+    assert {k: v for k, v in figures["by_mesh"]["truth@15"].items() if k != "compression_not_solved"} == {
+        "meshed": 1, "with_failing_elements": 0, "compressed": 1, "refused": 0, "errors": 0}
+    assert figures["by_mesh"]["segmentation@15"]["meshed"] == 1 and figures["compression"] == 0.25
+    for entry in figures["rows"][0]["meshes"].values():  # each mesh also compressed between two plates
+        assert entry["compression"]["status"] in ("completed", "inverted elements", "not converged")
+        assert entry["compression"]["steps"] > 0 and entry["compression"]["inverted"] >= 0
+        assert (entry["compression"]["inverted"] > 0) == (entry["compression"]["status"] == "inverted elements")
     assert figures["rows"][0]["dice"]["tumour"] > 0.85
     out.write_text(out.read_text() + '{"variant": 1, "cut off')  # a line cut by a kill is run again, not read
     assert main(["bench", "mesh", "--sweep", "--variants", "1", "--edges", "15", "--out", str(out), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rows"] == figures["rows"]  # nothing recomputed
     assert main(["bench", "warp", "--sweep"]) == 2
     assert "--sweep applies to segment and mesh only" in capsys.readouterr().err
+    assert main(["bench", "segment", "--sweep", "--compression", "0.3"]) == 2
+    assert "--compression applies to the mesh sweep only" in capsys.readouterr().err

@@ -165,6 +165,74 @@ def test_corner_angles_of_a_triangle_with_two_points_in_one_place_are_zero():
     assert angles[0].tolist() == [0.0, 0.0, 0.0] and np.allclose(angles[1], [90.0, 45.0, 45.0])
 
 
+def test_a_flat_surface_face_is_collapsed():
+    """A surface node 0.8 mm from the middle of its face's 7 mm diagonal (as the repair's cap
+    removal can leave on a skin): the face's corner there is over 150 degrees, no edge is a
+    needle, and boundary nodes may only move along the surface; an edge at the flat corner is
+    collapsed along the surface, leaving no failing element and the volume as it was."""
+    from BreastBiomechLib.mesh.improve import _collapse_short_edges
+    from BreastBiomechLib.mesh.tetmesh import boundary_faces
+
+    box = box_mesh((20.0, 20.0, 20.0), (4, 4, 4))
+    nodes = box.nodes.copy()
+    for face in boundary_faces(box.tets)[0]:
+        p = nodes[face]
+        sides = [np.linalg.norm(p[(k + 1) % 3] - p[(k + 2) % 3]) for k in range(3)]
+        k = int(np.argmax(sides))
+        if np.allclose(p[:, 2], 20.0) and (np.abs(p[:, :2] - 10.0).max(axis=1) < 6.0).all() and sides[k] > 7.0:
+            corner, middle = face[k], 0.5 * (p[(k + 1) % 3] + p[(k + 2) % 3])
+            break
+    nodes[corner] = middle + 0.8 * (nodes[corner] - middle) / np.linalg.norm(nodes[corner] - middle)
+    flat = TetMesh(nodes, box.tets)
+    failing = mesh_quality(flat).failing()
+    assert failing["face_angle"].sum() == 1 and not failing["aspect_ratio"].any() and flat.volumes.min() > 0
+    tets, _, collapsed = _collapse_short_edges(nodes, flat.tets, failing["any"], 5.0)
+    repaired = TetMesh(nodes, tets)
+    assert collapsed == 1 and _conforming(repaired)
+    assert not mesh_quality(repaired).failing()["any"].any()
+    assert repaired.volumes.min() > 0 and repaired.volumes.sum() == pytest.approx(20.0**3)
+
+
+def test_a_short_surface_edge_is_collapsed_to_an_end_where_the_midpoint_widens_a_corner():
+    """Of a short surface edge (a, b) whose b has a 125-degree corner, collapsing to the midpoint
+    would widen that corner to 143 degrees, past the widest there; collapsed onto b it stays
+    125 (as at the fold of a sweep variant's surface at 8 mm, where a 1.2 mm edge had been kept
+    and made two needle elements)."""
+    from BreastBiomechLib.surface.collapse import _normals, _placement
+
+    half = np.radians(62.5)
+    points = np.array([[0.0, 0, 0], [1.0, 0, 0], [1.0 - 3 * np.cos(half), 3 * np.sin(half), 0],
+                       [1.0 - 3 * np.cos(half), -3 * np.sin(half), 0]])
+    moved = np.array([[0, 3, 2]])  # b's triangle (1, 3, 2) with b replaced by a
+    before = _normals(points, np.array([[1, 3, 2]]))
+    place = _placement(points, 0, 1, moved, before, np.cos(np.radians(35.0)), 125.0 + 1e-9)
+    assert place is not None and np.allclose(place, points[1])
+    assert _placement(points, 0, 1, moved, before, np.cos(np.radians(35.0)), 120.0) is None
+
+
+def test_interior_slivers_are_smoothed_although_they_pass_the_quality_criteria():
+    """An interior node moved most of the way towards the face opposite it in one of its elements
+    makes slivers of 7 degrees that fail no criterion of the seed's (a coarse fitting mesh's
+    5.9-degree interior sliver under a plate inverted in the first second of its solve); the
+    repair moves the interior nodes until no interior element is under 10 degrees, the volume
+    unchanged."""
+    box = box_mesh((20.0, 20.0, 20.0), (4, 4, 4))
+    nodes = box.nodes.copy()
+    centre = int(np.argmin(np.linalg.norm(nodes - 10.0, axis=1)))
+    element = int(np.flatnonzero((box.tets == centre).any(axis=1))[0])
+    base = nodes[[n for n in box.tets[element] if n != centre]]
+    normal = np.cross(base[1] - base[0], base[2] - base[0])
+    normal /= np.linalg.norm(normal)
+    nodes[centre] -= 0.78 * ((nodes[centre] - base.mean(axis=0)) @ normal) * normal
+    slivered = TetMesh(nodes, box.tets)
+    before = mesh_quality(slivered)
+    assert not before.failing()["any"].any() and 5.0 < before.min_dihedral_deg.min() < 8.0
+    repaired, done = improve_quality(slivered)
+    assert done["poor_before"] == 0 and done["nodes_moved"] > 0 and done["slivers_after"] == 0
+    assert mesh_quality(repaired).min_dihedral_deg.min() >= 10.0
+    assert repaired.volumes.sum() == pytest.approx(20.0**3) and len(repaired.tets) == len(box.tets)
+
+
 def test_short_body_surface_edges_are_collapsed_before_tetgen():
     """The body surface of the test breast at 8 mm has 14 edges under 1 mm (vertices moved onto
     the boundary land close where it folds); TetGen keeps every surface edge, so each would make

@@ -9,8 +9,8 @@ import time
 from pathlib import Path
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, non_negative, non_negative_int, positive,
-                                         positive_int)
+from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, fraction, non_negative, non_negative_int,
+                                         positive, positive_int)
 
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
@@ -470,7 +470,10 @@ def cmd_bench(args) -> int:
             raise ValueError(f"--sweep applies to segment and mesh only, not to {args.what}")
         from BreastBiomechLib.cli.sweeps import MESH_EDGES_MM, run_sweep
 
-        figures = run_sweep(args.what, args.variants, args.processes, args.out, args.edges or MESH_EDGES_MM)
+        if args.compression is not None and args.what != "mesh":
+            raise ValueError("--compression applies to the mesh sweep only")
+        figures = run_sweep(args.what, args.variants, args.processes, args.out, args.edges or MESH_EDGES_MM,
+                            args.compression, args.device)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items() if k != "rows"))
         return 0
     if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "diagnose", "cohort"):
@@ -566,5 +569,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--variants", type=positive_int, default=24, help="sweep: how many variants (default 24)")
     p.add_argument("--processes", type=positive_int, default=1, help="sweep: variants run side by side")
     p.add_argument("--edges", type=positive, nargs="+", help="mesh sweep: element edges in mm (default 3 4 6 8 10 12 15)")
+    p.add_argument("--compression", type=fraction, default=None,
+                   help="mesh sweep: also compress every mesh between two plates by this fraction of its thickness "
+                        "(e.g. 0.4) and count the elements it inverts (with --device)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)

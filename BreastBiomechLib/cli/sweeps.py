@@ -3,7 +3,9 @@ the phantom variants of :mod:`BreastBiomechLib.phantom.variants`.
 
 Each variant is generated, segmented from its seed points (as a user would click them) and, for
 the mesh sweep, both its ground-truth label map and its segmentation are meshed at every
-element edge asked. A variant that raises is recorded, not fatal: a ``ValueError`` (the
+element edge asked; with a compression fraction, each mesh is also compressed between two
+plates (:func:`compression_check`), since a mesh whose elements pass every quality criterion
+can still turn one inside out under a plate. A variant that raises is recorded, not fatal: a ``ValueError`` (the
 project's way of refusing with a message) counts as a refusal, anything else as a raw error.
 With ``--out FILE`` every finished variant is appended as one JSON line and a rerun skips the
 variants already there (resumable). Variants run in ``--processes`` worker processes.
@@ -59,9 +61,26 @@ def segment_variant(index: int, params) -> dict:
     return row
 
 
-def mesh_variant(index: int, params, edges=MESH_EDGES_MM) -> dict:
+def compression_check(mesh, compression: float, device=None) -> dict:
+    """A plate compression of a breast mesh of :func:`~BreastBiomechLib.mesh.from_labels.mesh_labels`:
+    plates closing by ``compression`` of the breast's left-right thickness, the chest wall and
+    field-of-view cut held, the default tissue materials, dynamic relaxation
+    (:func:`~BreastBiomechLib.io.cases.compression_case`); the solve's status and the elements
+    it leaves inverted (volume <= 0 in the configuration it returns)."""
+    from BreastBiomechLib.io.cases import case_from_dict, compression_case
+    from BreastBiomechLib.mesh.tetmesh import TetMesh
+    from BreastBiomechLib.solver import solve_batch
+
+    model, settings = case_from_dict(compression_case(mesh, "mesh.vtu", compression=compression), mesh)
+    solution = solve_batch(model, [model.materials], device=device, relaxation=settings.relaxation)[0]
+    deformed = TetMesh(mesh.nodes + solution.displacement, mesh.tets)
+    return {"status": solution.status, "inverted": int((deformed.volumes <= 0).sum()), "steps": int(solution.steps)}
+
+
+def mesh_variant(index: int, params, edges=MESH_EDGES_MM, compression: float | None = None, device=None) -> dict:
     """One variant of the mesh sweep: its truth labels and its segmentation meshed at each edge:
-    elements, elements failing the quality criteria and seconds, or the refusal or error."""
+    elements, elements failing the quality criteria and seconds, or the refusal or error; with
+    ``compression``, the :func:`compression_check` of each mesh on ``device``."""
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.phantom.variants import describe
 
@@ -76,19 +95,26 @@ def mesh_variant(index: int, params, edges=MESH_EDGES_MM) -> dict:
         for edge in edges:
             started = time.perf_counter()
             try:
-                mesh = mesh_labels(labels, MeshSettings(edge_mm=edge)).summary()
-                entry = {"tets": mesh["elements"], "failing": mesh["quality"]["failing"]["any"]["count"]}
+                mesh = mesh_labels(labels, MeshSettings(edge_mm=edge))
+                summary = mesh.summary()
+                entry = {"tets": summary["elements"], "failing": summary["quality"]["failing"]["any"]["count"]}
             except Exception as error:
                 entry = _outcome(error)
+            if compression is not None and "tets" in entry:
+                try:
+                    entry["compression"] = compression_check(mesh.mesh, compression, device)
+                except Exception as error:
+                    entry["compression"] = _outcome(error)
             entry["seconds"] = round(time.perf_counter() - started, 1)
             row["meshes"][f"{source}@{edge:g}"] = entry
     return row
 
 
 def run_sweep(what: str, count: int, processes: int, out: str | None = None,
-              edges=MESH_EDGES_MM) -> dict:
+              edges=MESH_EDGES_MM, compression: float | None = None, device=None) -> dict:
     """Run the ``what`` ("segment" or "mesh") sweep over the first ``count`` variants; figures
-    as one dict (per-variant rows under ``variants``)."""
+    as one dict (per-variant rows under ``variants``). ``compression``, ``device``: the mesh
+    sweep's :func:`compression_check` (None: none)."""
     from BreastBiomechLib.phantom.variants import sweep_variants
 
     variants = sweep_variants(count)
@@ -104,7 +130,7 @@ def run_sweep(what: str, count: int, processes: int, out: str | None = None,
     todo = [i for i in range(count) if i not in done]
     started = time.perf_counter()
     work = segment_variant if what == "segment" else mesh_variant
-    extra = () if what == "segment" else (tuple(edges),)
+    extra = () if what == "segment" else (tuple(edges), compression, device)
     with ProcessPoolExecutor(max_workers=max(1, processes)) as pool:
         futures = {pool.submit(work, i, variants[i], *extra): i for i in todo}
         for future in futures:
@@ -117,6 +143,8 @@ def run_sweep(what: str, count: int, processes: int, out: str | None = None,
     figures = {"benchmark": f"{what}-sweep", "version": __version__, "machine": platform.machine(),
                "cores": os.cpu_count(), "processes": processes, "variants": count,
                "wall_s": round(time.perf_counter() - started, 1)}
+    if what == "mesh":
+        figures["compression"] = compression
     figures.update(_segment_summary(rows) if what == "segment" else _mesh_summary(rows, edges))
     figures["rows"] = rows
     return figures
@@ -139,6 +167,9 @@ def _mesh_summary(rows, edges) -> dict:
             summary[f"{source}@{edge:g}"] = {
                 "meshed": sum("tets" in e for e in entries),
                 "with_failing_elements": sum(e.get("failing", 0) > 0 for e in entries),
+                "compressed": sum("compression" in e for e in entries),
+                "compression_not_solved": sum(e["compression"].get("status") != "completed"
+                                              for e in entries if "compression" in e),
                 "refused": sum("refused" in e for e in entries),
                 "errors": sum("error" in e for e in entries)}
     return {"by_mesh": summary, "variant_failures": [r["variant"] for r in rows if "meshes" not in r]}

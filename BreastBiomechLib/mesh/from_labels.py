@@ -209,11 +209,12 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
     lap("tetgen")
     report(0.6, "repairing poor boundary elements")
     mesh, repairs = improve_quality(mesh)
-    if repairs["poor_before"] or repairs["caps_removed"]:
+    if repairs["poor_before"] or repairs["caps_removed"] or repairs["nodes_moved"]:
         notes.append(f"{repairs['poor_before']} poor elements after TetGen; {repairs['caps_removed']} flat or poor "
                      f"boundary caps removed, {repairs['peeled']} poor elements peeled off the surface, "
                      f"{repairs['edges_collapsed']} short edges collapsed, {repairs['nodes_moved']} nodes moved; "
-                     f"{repairs['poor_after']} poor elements left")
+                     f"{repairs['poor_after']} poor elements and {repairs['slivers_after']} interior slivers "
+                     "(under 10 degrees) left")
     lap("repair")
 
     report(0.7, "tissue per element")

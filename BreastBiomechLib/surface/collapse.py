@@ -4,10 +4,10 @@ Surface nets sample the body on a grid of the element edge and each vertex is th
 the tissue boundary; where the boundary folds (the corners of a field of view, a thin layer) two
 neighbouring vertices can land a millimetre apart. TetGen keeps every surface edge (no points are
 added on the boundary), so a 1.3 mm edge among 13 mm ones makes needle elements (aspect ratio
-over 10) that no node move repairs. Such an edge is collapsed to its midpoint where that keeps the
-surface a closed 2-manifold (the link condition), turns no triangle around it by more than
-``max_turn_deg`` and widens no corner there beyond ``MAX_CORNER_DEG`` (or beyond the widest
-corner there already); a collapse that
+over 10) that no node move repairs. Such an edge is collapsed to its midpoint (or, where the
+midpoint is refused, to one of its ends) where that keeps the surface a closed 2-manifold (the
+link condition), turns no triangle around it by more than ``max_turn_deg`` and widens no corner
+there beyond ``MAX_CORNER_DEG`` (or beyond the widest corner there already); a collapse that
 makes the surface cross itself is undone (:func:`without_short_edges`). Lengths in mm, in the
 surface's frame.
 """
@@ -30,6 +30,27 @@ def _normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 def _widest_corner_deg(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(corner_angles(points[triangles]).max())
+
+
+def _placement(points: np.ndarray, a: int, b: int, moved: np.ndarray, before: np.ndarray, cos_turn: float,
+               widest_deg: float) -> np.ndarray | None:
+    """Where the point of a collapsed edge (a, b) goes: the midpoint, else the end of the two that
+    keeps the surface's corners narrower, among the places that turn none of the triangles
+    ``moved`` (their normals ``before``) by more than the turn limit and widen no corner past
+    ``widest_deg``; None when no place does. (At the edge of a curved patch the midpoint can
+    widen a corner that one end leaves as it is.)"""
+    allowed = []
+    for rank, place in enumerate((0.5 * (points[a] + points[b]), points[a], points[b])):
+        trial = points.copy()
+        trial[a] = place
+        after = _normals(trial, moved)
+        scale = np.linalg.norm(before, axis=1) * np.linalg.norm(after, axis=1)
+        if (scale <= 0).any() or ((before * after).sum(axis=1) < cos_turn * scale).any():
+            continue
+        widest = _widest_corner_deg(trial, moved)
+        if widest <= widest_deg:
+            allowed.append((rank > 0, widest, rank, place))
+    return min(allowed, key=lambda entry: entry[:3])[3] if allowed else None
 
 
 def collapse_short_edges(surface: TriSurface, target_edge_mm: float, fraction: float = SHORT_EDGE_FRACTION,
@@ -73,15 +94,11 @@ def collapse_short_edges(surface: TriSurface, target_edge_mm: float, fraction: f
             moved[moved == b] = a
             if len({tuple(sorted(t)) for t in moved.tolist()}) < len(moved):  # two faces become one (a tetrahedron)
                 continue
-            trial = points.copy()
-            trial[a] = 0.5 * (points[a] + points[b])
-            after = _normals(trial, moved)
-            scale = np.linalg.norm(before, axis=1) * np.linalg.norm(after, axis=1)
-            if (scale <= 0).any() or ((before * after).sum(axis=1) < cos_turn * scale).any():
+            place = _placement(points, a, b, moved, before, cos_turn,
+                               max(MAX_CORNER_DEG, _widest_corner_deg(points, triangles[changed])))
+            if place is None:
                 continue
-            if _widest_corner_deg(trial, moved) > max(MAX_CORNER_DEG, _widest_corner_deg(points, triangles[changed])):
-                continue  # no corner wider than the limit, or than the widest there already
-            points[a] = trial[a]
+            points[a] = place
             triangles[changed] = moved
             alive[shared] = False
             for t in changed:
