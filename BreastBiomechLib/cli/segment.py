@@ -11,7 +11,8 @@ def _segmentation_settings(args):
 
     return SegmentationSettings(
         em=EMSettings(mrf_strength=args.mrf, bias_order=args.bias_order, max_iterations=args.iterations,
-                      tolerance=args.tolerance, partial_volume=not args.no_partial_volume),
+                      tolerance=args.tolerance, partial_volume=not args.no_partial_volume,
+                      noise_bound=not args.no_noise_bound),
         skin_mm=args.skin_mm, measure_skin=not args.fixed_skin, keep_skin=args.keep_skin)
 
 
@@ -60,6 +61,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--iterations", type=positive_int, default=40, help="EM iterations at most (default 40)")
     p.add_argument("--tolerance", type=positive, default=1e-5, help="EM stop: relative log-likelihood change (default 1e-5)")
     p.add_argument("--no-partial-volume", action="store_true", help="two pure classes only (no mixed-voxel class)")
+    p.add_argument("--no-noise-bound", action="store_true",
+                   help="let a pure class spread more than the noise the other shows (mixed voxels then broaden it)")
     p.add_argument("--skin-mm", type=non_negative, default=3.0,
                    help="outer breast layer labelled skin (default 3 mm; deeper where the image shows the skin deeper)")
     p.add_argument("--fixed-skin", action="store_true",
