@@ -26,6 +26,7 @@ from BreastBiomechLib.surface.intersections import SurfaceCrossesItself
 from BreastBiomechLib.surface.trisurface import TriSurface
 
 _RETRIES = 2  # finer body surfaces tried when TetGen finds the surface intersecting itself
+REMAKE_FACTOR = 0.9  # the body surface's edge, as a fraction of the asked, tried where failing elements remain
 
 
 @dataclass
@@ -136,6 +137,49 @@ def _interface_surface(labels: sitk.Image, value: int, name: str, spacing: float
             return None
 
 
+
+def _repaired_volume_mesh(labels: sitk.Image, body: TriSurface, interfaces: list[TriSurface],
+                          surface_settings: SurfaceSettings, tetgen_settings: TetGenSettings,
+                          notes: list[str]) -> tuple[TetMesh, TriSurface, int]:
+    """TetGen's mesh of ``body`` (short edges collapsed; remade finer, up to ``_RETRIES`` times,
+    where TetGen finds it intersecting itself) refined by the ``interfaces``' points, repaired
+    (:func:`improve_quality`); returns the mesh, the body surface it was made from and its
+    elements failing the quality criteria. What was done goes to ``notes``."""
+    spacing = tetgen_settings.interface_spacing_mm
+    attempt, edge = 0, surface_settings.edge_mm
+    bound = _without_short_edges(body, edge, notes)
+    while True:
+        points = interface_points(bound, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
+        try:
+            mesh = tetrahedralize(bound, points, tetgen_settings)
+            break
+        except RuntimeError as error:
+            if "self-intersect" not in str(error):
+                raise
+            if bound is not body:  # TetGen is stricter than the collapses' own check: mesh without them
+                notes.append("TetGen found the body surface with its short edges collapsed touching itself; "
+                             "meshed it without the collapses")
+                bound = body
+                continue
+            # a surface coarser than a thin part of the body (a chest layer at the edge of the
+            # field of view) can touch itself there: retry with finer triangles
+            if attempt == _RETRIES:
+                raise
+            attempt, edge = attempt + 1, body.mean_edge_mm * 0.7
+            notes.append(f"TetGen found the body surface intersecting itself at a {body.mean_edge_mm:.1f} mm edge; "
+                         f"remade it at {edge:.1f} mm")
+            body, _ = _body_surface(labels, replace(surface_settings, edge_mm=edge), notes)
+            bound = _without_short_edges(body, edge, notes)
+    mesh, repairs = improve_quality(mesh)
+    if repairs["poor_before"] or repairs["caps_removed"] or repairs["nodes_moved"]:
+        notes.append(f"{repairs['poor_before']} poor elements after TetGen; {repairs['caps_removed']} flat or poor "
+                     f"boundary caps removed, {repairs['peeled']} poor elements peeled off the surface, "
+                     f"{repairs['edges_collapsed']} short edges collapsed, {repairs['nodes_moved']} nodes moved; "
+                     f"{repairs['poor_after']} poor elements and {repairs['slivers_after']} interior slivers "
+                     "(under 10 degrees) left")
+    return mesh, bound, int(mesh_quality(mesh).failing()["any"].sum())
+
+
 def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple_mm=None,
                 progress: Callable[[float, str], None] | None = None) -> BreastMesh:
     """Mesh the labelled region of ``labels`` (see the module notes). ``nipple_mm`` (3,) LPS
@@ -181,41 +225,28 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
 
     report(0.3, "TetGen")
     interfaces = [s for n, s in surfaces.items() if n != "body"]
-    attempt, edge = 0, surface_settings.edge_mm
-    bound = _without_short_edges(body, edge, notes)
-    while True:
-        points = interface_points(bound, interfaces, spacing, tetgen_settings.boundary_clearance * spacing)
+    made = _repaired_volume_mesh(labels, body, interfaces, surface_settings, tetgen_settings, notes)
+    if made[2]:
+        # elements the repair could not mend (a face left flat where removed caps exposed it): a
+        # body surface sampled a little finer meshes differently
+        edge, trial_notes = REMAKE_FACTOR * surface_settings.edge_mm, []
+        finer = replace(surface_settings, edge_mm=edge)
         try:
-            mesh = tetrahedralize(bound, points, tetgen_settings)
-            break
-        except RuntimeError as error:
-            if "self-intersect" not in str(error):
-                raise
-            if bound is not body:  # TetGen is stricter than the collapses' own check: mesh without them
-                notes.append(f"TetGen found the body surface with its short edges collapsed touching itself; "
-                             "meshed it without the collapses")
-                bound = body
-                continue
-            # a surface coarser than a thin part of the body (a chest layer at the edge of the
-            # field of view) can touch itself there: retry with finer triangles
-            if attempt == _RETRIES:
-                raise
-            attempt, edge = attempt + 1, body.mean_edge_mm * 0.7
-            notes.append(f"TetGen found the body surface intersecting itself at a {body.mean_edge_mm:.1f} mm edge; "
-                         f"remade it at {edge:.1f} mm")
-            body, _ = _body_surface(labels, replace(surface_settings, edge_mm=edge), notes)
-            bound = _without_short_edges(body, edge, notes)
-    surfaces["body"] = bound
-    lap("tetgen")
-    report(0.6, "repairing poor boundary elements")
-    mesh, repairs = improve_quality(mesh)
-    if repairs["poor_before"] or repairs["caps_removed"] or repairs["nodes_moved"]:
-        notes.append(f"{repairs['poor_before']} poor elements after TetGen; {repairs['caps_removed']} flat or poor "
-                     f"boundary caps removed, {repairs['peeled']} poor elements peeled off the surface, "
-                     f"{repairs['edges_collapsed']} short edges collapsed, {repairs['nodes_moved']} nodes moved; "
-                     f"{repairs['poor_after']} poor elements and {repairs['slivers_after']} interior slivers "
-                     "(under 10 degrees) left")
-    lap("repair")
+            remade = _repaired_volume_mesh(labels, _body_surface(labels, finer, trial_notes)[0], interfaces, finer,
+                                           tetgen_settings, trial_notes)
+        except (RuntimeError, ValueError) as error:
+            remade, trial_notes = None, [f"remaking it failed: {error}"]
+        if remade is not None and remade[2] < made[2]:
+            notes.append(f"{made[2]} element(s) failing the quality criteria after the repair; the body surface "
+                         f"remade at {edge:.1f} mm left {remade[2]}")
+            notes.extend(trial_notes)
+            made = remade
+        else:
+            notes.append(f"{made[2]} element(s) failing the quality criteria after the repair; remaking the body "
+                         f"surface at {edge:.1f} mm did not leave fewer"
+                         + (f" ({trial_notes[0]})" if remade is None else ""))
+    mesh, surfaces["body"], _ = made
+    lap("tetgen_and_repair")
 
     report(0.7, "tissue per element")
     assignment = assign_tissues(mesh, labels)
