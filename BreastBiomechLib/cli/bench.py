@@ -571,6 +571,6 @@ def add_parsers(sub) -> None:
     p.add_argument("--edges", type=positive, nargs="+", help="mesh sweep: element edges in mm (default 3 4 6 8 10 12 15)")
     p.add_argument("--compression", type=fraction, default=None,
                    help="mesh sweep: also compress every mesh between two plates by this fraction of its thickness "
-                        "(e.g. 0.4) and count the elements it inverts (with --device)")
+                        "(e.g. 0.4): whether each solve completes and the elements it inverts (on --device)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
     p.set_defaults(func=cmd_bench)

@@ -140,11 +140,11 @@ def _interface_surface(labels: sitk.Image, value: int, name: str, spacing: float
 
 def _repaired_volume_mesh(labels: sitk.Image, body: TriSurface, interfaces: list[TriSurface],
                           surface_settings: SurfaceSettings, tetgen_settings: TetGenSettings,
-                          notes: list[str]) -> tuple[TetMesh, TriSurface, int]:
+                          notes: list[str]) -> tuple[TetMesh, TriSurface, QualityReport]:
     """TetGen's mesh of ``body`` (short edges collapsed; remade finer, up to ``_RETRIES`` times,
     where TetGen finds it intersecting itself) refined by the ``interfaces``' points, repaired
     (:func:`improve_quality`); returns the mesh, the body surface it was made from and its
-    elements failing the quality criteria. What was done goes to ``notes``."""
+    quality report. What was done goes to ``notes``."""
     spacing = tetgen_settings.interface_spacing_mm
     attempt, edge = 0, surface_settings.edge_mm
     bound = _without_short_edges(body, edge, notes)
@@ -177,7 +177,7 @@ def _repaired_volume_mesh(labels: sitk.Image, body: TriSurface, interfaces: list
                      f"{repairs['edges_collapsed']} short edges collapsed, {repairs['nodes_moved']} nodes moved; "
                      f"{repairs['poor_after']} poor elements and {repairs['slivers_after']} interior slivers "
                      "(under 10 degrees) left")
-    return mesh, bound, int(mesh_quality(mesh).failing()["any"].sum())
+    return mesh, bound, mesh_quality(mesh)
 
 
 def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple_mm=None,
@@ -226,7 +226,8 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
     report(0.3, "TetGen")
     interfaces = [s for n, s in surfaces.items() if n != "body"]
     made = _repaired_volume_mesh(labels, body, interfaces, surface_settings, tetgen_settings, notes)
-    if made[2]:
+    failing = int(made[2].failing()["any"].sum())
+    if failing:
         # elements the repair could not mend (a face left flat where removed caps exposed it): a
         # body surface sampled a little finer meshes differently
         edge, trial_notes = REMAKE_FACTOR * surface_settings.edge_mm, []
@@ -236,26 +237,26 @@ def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple
                                            tetgen_settings, trial_notes)
         except (RuntimeError, ValueError) as error:
             remade, trial_notes = None, [f"remaking it failed: {error}"]
-        if remade is not None and remade[2] < made[2]:
-            notes.append(f"{made[2]} element(s) failing the quality criteria after the repair; the body surface "
-                         f"remade at {edge:.1f} mm left {remade[2]}")
+        left = None if remade is None else int(remade[2].failing()["any"].sum())
+        if left is not None and left < failing:
+            notes.append(f"{failing} element(s) failing the quality criteria after the repair; the body surface "
+                         f"remade at {edge:.1f} mm left {left}")
             notes.extend(trial_notes)
             made = remade
         else:
-            notes.append(f"{made[2]} element(s) failing the quality criteria after the repair; remaking the body "
+            notes.append(f"{failing} element(s) failing the quality criteria after the repair; remaking the body "
                          f"surface at {edge:.1f} mm did not leave fewer"
                          + (f" ({trial_notes[0]})" if remade is None else ""))
-    mesh, surfaces["body"], _ = made
+    mesh, surfaces["body"], quality = made
     lap("tetgen_and_repair")
 
     report(0.7, "tissue per element")
     assignment = assign_tissues(mesh, labels)
     representation = assignment.representation(labels)
     lap("tissues")
-    report(0.85, "quality and node sets")
-    quality = mesh_quality(mesh)
+    report(0.85, "node sets")
     node_sets = breast_node_sets(mesh, assignment.tissue, labels, nipple_mm)
-    lap("quality_and_node_sets")
+    lap("node_sets")
     mesh = TetMesh(mesh.nodes, mesh.tets, point_data=node_sets,
                    cell_data={**assignment.cell_data(), **quality.cell_data()})
     seconds["total"] = round(sum(seconds.values()), 3)
