@@ -24,13 +24,7 @@ def boundary_face_counts(tets: np.ndarray) -> np.ndarray:
 def _score(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> float:
     """The worst element of ``tets`` (the smoothing's acceptance test): its shape factor, halved
     if it is poor, -1 if an element is inverted."""
-    p = nodes[tets]
-    volume = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
-    if (volume <= 0).any():
-        return -1.0
-    report = mesh_quality(TetMesh(nodes, tets))
-    poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
-    return float((report.shape_factor * np.where(poor, 0.5, 1.0)).min())
+    return _rank(nodes, tets, min_dihedral_deg)[1]
 
 
 def _rank(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> tuple[int, float]:
@@ -38,11 +32,13 @@ def _rank(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> tuple
     minus the number of poor elements, then :func:`_score`. A collapse that leaves no element
     poor is taken even where its worst element's shape factor falls (it stays above the poor
     limit); an inverted element ranks below everything."""
-    score = _score(nodes, tets, min_dihedral_deg)
-    if score < 0:
-        return (-len(tets) - 1, score)
+    p = nodes[tets]
+    volume = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    if (volume <= 0).any():
+        return (-len(tets) - 1, -1.0)
     report = mesh_quality(TetMesh(nodes, tets))
-    return (-int((report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)).sum()), score)
+    poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
+    return (-int(poor.sum()), float((report.shape_factor * np.where(poor, 0.5, 1.0)).min()))
 
 
 def _apex_edges_inside(tets: np.ndarray, which: np.ndarray) -> np.ndarray:
