@@ -90,6 +90,25 @@ def test_the_truth_maximises_nmi_and_fits_the_landmarks(problem):
     assert at_truth.values["glandular.E"] == pytest.approx(30e3)
 
 
+def test_a_failed_solve_is_logged_with_the_solvers_reason(problem, tmp_path):
+    """A fit's log says why a solve failed, not only that it did: the solver's message is kept
+    with the failed evaluation, written and read back; a completed one carries none."""
+    from BreastBiomechLib.optimisation.record import read_evaluations
+
+    case = synthetic_case((40.0, 35.0, 40.0), element_mm=6.0, voxel_mm=(2.0, 2.0, 2.0))
+    hurried = FittingProblem(problem.space, case.mesh, case.undeformed, case.undeformed, case.planes,
+                             relaxation=DynamicRelaxation(load_iterations=400, max_iterations=600), device="cpu")
+    failed, = hurried.evaluate([problem.space.unit(TRUTH)])
+    assert failed.status == "not converged" and failed.objective == hurried.failed_objective
+    assert "dynamic relaxation stopped after" in failed.message and "raise max_iterations" in failed.message
+    completed, = problem.evaluate([problem.space.unit(TRUTH)])
+    assert completed.status == "completed" and completed.message == ""
+    optimise(hurried, "cmaes", budget=3, seed=1, population=3, out_dir=tmp_path)
+    logged = read_evaluations(tmp_path / "evaluations.jsonl")
+    assert [e.status for e in logged] == ["not converged"] * 3
+    assert all("estimated error" in e.message for e in logged)
+
+
 @pytest.mark.parametrize("optimiser, budget", [("hybrid", 30), ("cmaes", 36)])
 def test_the_optimisers_recover_the_truth(problem, optimiser, budget, tmp_path):
     result = optimise(problem, optimiser, budget=budget, seed=1, out_dir=tmp_path)

@@ -31,7 +31,9 @@ class Evaluation:
     ``objective`` (minimised), NMI and NCC of the prediction against the measured image, the
     landmark errors' mean and max (mm; NaN without landmarks), the solve's status, iterations
     and the batch's wall time (s); the mean distance (mm) of the predicted breast skin to the
-    measured body surface (NaN unless the objective uses it)."""
+    measured body surface (NaN unless the objective uses it); for a failed solve the solver's
+    ``message`` (what failed and where: the step and first element of an inversion, the error
+    estimate of a relaxation that ran out of iterations), empty for a completed one."""
 
     z: list[float]
     values: dict[str, float]
@@ -44,6 +46,7 @@ class Evaluation:
     iterations: int
     seconds: float
     surface_mm: float = float("nan")
+    message: str = ""
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -198,5 +201,5 @@ class FittingProblem:
                              "nmi+surface": -nmi + self.surface_weight * surface}[self.objective]
             out.append(Evaluation([float(v) for v in z], self.space.values(z), float(objective), float(nmi),
                                   float(ncc), mean, worst, solution.status, int(solution.steps),
-                                  round(seconds, 3), surface))
+                                  round(seconds, 3), surface, "" if solution.ok else solution.message))
         return out
