@@ -311,6 +311,23 @@ BENCH_TRUTH = {"glandular.E": 25e3, "muscle.E": 80e3, "tumour.E": 120e3, "fat.nu
                "tumour.eta": 1e3}  # bench optimise's truth: 4 tissues x (E, nu, eta), fat's E the reference
 
 
+def bench_fitting_problem(radii_mm=(70.0, 60.0, 65.0), element_mm: float = 4.0, voxel_mm=(1.0, 1.0, 2.5),
+                          relaxation=None, device=None, measured: bool = True):
+    """The fitting problem ``bench optimise`` fits: the aniso-hetero space (4 tissues x E, nu,
+    eta; fat's E the reference) on the synthetic breast of ``radii_mm`` in cubes of
+    ``element_mm`` (10 mm of muscle, a tumour of 0.3 x the LR radius) imaged at ``voxel_mm``,
+    whose measured image is the prediction at :data:`BENCH_TRUTH` (``measured`` False: the
+    undeformed image stands in, for solves that need no similarity)."""
+    from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace
+    from BreastBiomechLib.optimisation.synthetic import measured_at, synthetic_case
+
+    case = synthetic_case(tuple(radii_mm), element_mm=element_mm, voxel_mm=tuple(voxel_mm), muscle_mm=10.0,
+                          tumour_mm=0.3 * radii_mm[0])
+    space = ParameterSpace.for_model("aniso-hetero", ["fat", "glandular", "muscle", "tumour"])
+    image = measured_at(case, space, BENCH_TRUTH, relaxation, device=device) if measured else case.undeformed
+    return FittingProblem(space, case.mesh, case.undeformed, image, case.planes, relaxation=relaxation, device=device)
+
+
 def _bench_optimise(args) -> dict:
     """An end-to-end aniso-hetero fit (4 tissues x E, nu, eta; fat's E the reference) of the
     synthetic breast (optimisation.synthetic: ``--radii``, ``--element-mm``, ``--voxel-mm``)
@@ -318,17 +335,12 @@ def _bench_optimise(args) -> dict:
     by ``--optimiser``; the case's set-up is not timed."""
     import numpy as np
 
-    from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace, optimise
-    from BreastBiomechLib.optimisation.synthetic import measured_at, synthetic_case
+    from BreastBiomechLib.optimisation import optimise
     from BreastBiomechLib.solver import DynamicRelaxation
 
-    case = synthetic_case(tuple(args.radii), element_mm=args.element_mm, voxel_mm=tuple(args.voxel_mm),
-                          muscle_mm=10.0, tumour_mm=0.3 * args.radii[0])
-    space = ParameterSpace.for_model("aniso-hetero", ["fat", "glandular", "muscle", "tumour"])
     relaxation = DynamicRelaxation(tolerance_mm=0.01 if args.tolerance_mm is None else args.tolerance_mm)
-    measured = measured_at(case, space, BENCH_TRUTH, relaxation, device=args.device)
-    problem = FittingProblem(space, case.mesh, case.undeformed, measured, case.planes, relaxation=relaxation,
-                             device=args.device)
+    problem = bench_fitting_problem(args.radii, args.element_mm, args.voxel_mm, relaxation, args.device)
+    space = problem.space
     started = time.perf_counter()
     result = optimise(problem, args.optimiser, budget=args.budget, seed=args.seed, out_dir=args.out,
                       population=args.population)
@@ -338,8 +350,8 @@ def _bench_optimise(args) -> dict:
     best_so_far = np.maximum.accumulate([e.nmi if e.status == "completed" else 0.0 for e in result.evaluations])
     quarters = sorted({max(1, round(q * len(best_so_far))) for q in (0.25, 0.5, 0.75, 1.0)})
     return {"benchmark": "optimise", "version": __version__, "device": str(problem.warper.device),
-            "optimiser": args.optimiser, "tets": len(case.mesh.tets), "nodes": len(case.mesh.nodes),
-            "voxels": int(measured.GetNumberOfPixels()), "free_parameters": space.dimension,
+            "optimiser": args.optimiser, "tets": len(problem.mesh.tets), "nodes": len(problem.mesh.nodes),
+            "voxels": int(problem.similarity.voxels), "free_parameters": space.dimension,
             "budget": args.budget, "evaluations": len(result.evaluations), "stopped": result.stopped,
             "failed": sum(e.status != "completed" for e in result.evaluations),
             "seconds": round(seconds, 2), "seconds_per_evaluation": round(seconds / len(result.evaluations), 4),
