@@ -470,7 +470,9 @@ class BreastOptimizationLogic(ParameterNodeLogic):
                           output, resume, report, population=p["population"] or None)
         summary = (f"{result.stopped}: best objective {result.best.objective:.5f} (NMI {result.best.nmi:.4f}) after "
                    f"{len(result.evaluations)} solves ({result.replayed} replayed, "
-                   f"{sum(e.status != 'completed' for e in result.evaluations)} failed), {result.seconds:.0f} s")
+                   f"{sum(e.status != 'completed' for e in result.evaluations)} failed"
+                   + "".join(f"; {count} {status}" for status, count in result.failures.items())
+                   + f"), {result.seconds:.0f} s")
         if "fibre" in result.geometry:
             ras = frames.flip(np.asarray(result.geometry["fibre"]))
             summary += "\nfitted fibre direction (RAS): " + " ".join(f"{v:.3f}" for v in ras)

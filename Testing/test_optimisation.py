@@ -103,7 +103,8 @@ def test_a_failed_solve_is_logged_with_the_solvers_reason(problem, tmp_path):
     assert "dynamic relaxation stopped after" in failed.message and "raise max_iterations" in failed.message
     completed, = problem.evaluate([problem.space.unit(TRUTH)])
     assert completed.status == "completed" and completed.message == ""
-    optimise(hurried, "cmaes", budget=3, seed=1, population=3, out_dir=tmp_path)
+    result = optimise(hurried, "cmaes", budget=3, seed=1, population=3, out_dir=tmp_path)
+    assert result.failures == {"not converged": 3} == result.summary()["failures"]
     logged = read_evaluations(tmp_path / "evaluations.jsonl")
     assert [e.status for e in logged] == ["not converged"] * 3
     assert all("estimated error" in e.message for e in logged)
@@ -296,6 +297,8 @@ def test_bench_optimise_figures_agree_with_its_log(tmp_path, capsys):
     log = [json.loads(line) for line in (tmp_path / "fit" / "evaluations.jsonl").read_text().splitlines()]
     assert figures["evaluations"] == len(log) == 4
     assert figures["failed"] == sum(e["status"] != "completed" for e in log)
+    assert figures["failed_by_status"] == {s: sum(e["status"] == s for e in log) for s in {e["status"] for e in log}
+                                           if s != "completed"}
     assert figures["best_nmi"] == pytest.approx(max(e["nmi"] for e in log if e["status"] == "completed"), abs=1e-5)
     assert figures["truth_nmi"] == pytest.approx(2.0, abs=1e-4)
     after = list(figures["best_nmi_after"].values())

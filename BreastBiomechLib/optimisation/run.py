@@ -41,11 +41,22 @@ class OptimisationResult:
     geometry: dict = field(default_factory=dict)
     stand_in: dict = field(default_factory=dict)
 
+    @property
+    def failures(self) -> dict[str, int]:
+        """How many evaluations failed, by the solver's status ("inverted elements", "not
+        converged", ...); each one's reason is its ``message``."""
+        counts: dict[str, int] = {}
+        for e in self.evaluations:
+            if e.status != "completed":
+                counts[e.status] = counts.get(e.status, 0) + 1
+        return counts
+
     def summary(self) -> dict:
         return {"best": self.best.to_dict(), "materials": self.materials, "geometry": self.geometry,
                 "stopped": self.stopped,
                 "evaluations": len(self.evaluations), "replayed": self.replayed,
-                "failed": sum(e.status != "completed" for e in self.evaluations), "seconds": round(self.seconds, 2),
+                "failed": sum(e.status != "completed" for e in self.evaluations), "failures": self.failures,
+                "seconds": round(self.seconds, 2),
                 **({"stand_in": self.stand_in} if self.stand_in else {})}
 
 
