@@ -470,7 +470,7 @@ class BreastOptimizationLogic(ParameterNodeLogic):
                           output, resume, report, population=p["population"] or None)
         summary = (f"{result.stopped}: best objective {result.best.objective:.5f} (NMI {result.best.nmi:.4f}) after "
                    f"{len(result.evaluations)} solves ({result.replayed} replayed, "
-                   f"{sum(e.status != 'completed' for e in result.evaluations)} failed"
+                   f"{sum(result.failures.values())} failed"
                    + "".join(f"; {count} {status}" for status, count in result.failures.items())
                    + f"), {result.seconds:.0f} s")
         if "fibre" in result.geometry:

@@ -353,7 +353,7 @@ def _bench_optimise(args) -> dict:
             "optimiser": args.optimiser, "tets": len(problem.mesh.tets), "nodes": len(problem.mesh.nodes),
             "voxels": int(problem.similarity.voxels), "free_parameters": space.dimension,
             "budget": args.budget, "evaluations": len(result.evaluations), "stopped": result.stopped,
-            "failed": sum(e.status != "completed" for e in result.evaluations), "failed_by_status": result.failures,
+            "failed": sum(result.failures.values()), "failed_by_status": result.failures,
             "seconds": round(seconds, 2), "seconds_per_evaluation": round(seconds / len(result.evaluations), 4),
             "best_nmi": round(result.best.nmi, 5), "truth_nmi": round(truth.nmi, 5),
             "best_nmi_after": {str(n): round(float(best_so_far[n - 1]), 5) for n in quarters},

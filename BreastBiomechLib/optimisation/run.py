@@ -55,7 +55,7 @@ class OptimisationResult:
         return {"best": self.best.to_dict(), "materials": self.materials, "geometry": self.geometry,
                 "stopped": self.stopped,
                 "evaluations": len(self.evaluations), "replayed": self.replayed,
-                "failed": sum(e.status != "completed" for e in self.evaluations), "failures": self.failures,
+                "failed": sum(self.failures.values()), "failures": self.failures,
                 "seconds": round(self.seconds, 2),
                 **({"stand_in": self.stand_in} if self.stand_in else {})}
 
