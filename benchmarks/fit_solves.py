@@ -34,22 +34,16 @@ from BreastBiomechLib import labels
 from BreastBiomechLib.cli.bench import bench_fitting_problem
 from BreastBiomechLib.optimisation.record import read_evaluations
 from BreastBiomechLib.solver import DynamicRelaxation
-from BreastBiomechLib.solver.tled import MM, characteristic_lengths, shape_derivatives, wave_modulus
+from BreastBiomechLib.solver.tled import relaxation_load_iterations
 
 PACES = (1, 4, 16)
 _AT = re.compile(r"at step (\d+) .* first element (\d+)")
 
 
-def load_iterations(problem, materials, relaxation: DynamicRelaxation) -> int:
-    """The load iterations the solver gives one model of ``problem`` (as ``solve_batch`` does)."""
-    model = problem.model
-    nodes = model.mesh.nodes * MM
-    _, vol = shape_derivatives(nodes, model.mesh.tets)
-    length = characteristic_lengths(nodes, model.mesh.tets, vol)
-    mat = materials.long_term()
-    travel = max(np.abs(p.displacement).max() for p in model.loading.plates)
-    return relaxation.load_iterations_for(travel, float(np.max(np.sqrt(wave_modulus(mat) / mat.mu))),
-                                          float(np.median(length)), model.safety)
+def load_iterations(problem, z, relaxation: DynamicRelaxation) -> int:
+    """The load iterations the solver gives the set at unit position ``z`` of ``problem``."""
+    materials = problem.space.element_materials(z, problem.tissue).long_term()
+    return int(relaxation_load_iterations(problem.model, [materials], [problem.model.loading.plates], relaxation)[0])
 
 
 def failures(problem, evaluations, batch: int, out: str | None) -> None:
@@ -68,7 +62,7 @@ def failures(problem, evaluations, batch: int, out: str | None) -> None:
                 found = _AT.search(solution.message)
                 if found:
                     step, element = int(found.group(1)), int(found.group(2))
-                    loads = load_iterations(problem, problem.space.element_materials(row["z"], tissue), slow)
+                    loads = load_iterations(problem, row["z"], slow)
                     entry.update(step=step, load_iterations=loads, load_fraction=round(step / loads, 3),
                                  element_tissue=labels.tissue(int(tissue[element])).name,
                                  element_on_surface=bool(surface[mesh.tets[element]].any()),

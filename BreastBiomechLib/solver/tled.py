@@ -363,6 +363,25 @@ def solve(model: Model, device=None, sample_every: int = 200, ke_ie_limit: float
                        mass_scaling=mass_scaling)[0]
 
 
+def relaxation_load_iterations(model: Model, materials: list[ElementMaterials], plate_sets: list[list[Plate]],
+                               relaxation: DynamicRelaxation, length_m: np.ndarray | None = None) -> np.ndarray:
+    """(B,) the iterations over which dynamic ``relaxation`` applies each variant's load
+    (:meth:`DynamicRelaxation.load_iterations_for` with the variant's fully relaxed
+    ``materials[b]``, plates ``plate_sets[b]``, the model's constraints and extent), as
+    :func:`solve_batch` does; ``length_m``: the elements' altitudes if already computed."""
+    nodes = model.mesh.nodes * MM
+    if length_m is None:
+        length_m = characteristic_lengths(nodes, model.mesh.tets, shape_derivatives(nodes, model.mesh.tets)[1])
+    constrained = max([np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
+    extent = float(np.max(np.ptp(nodes, axis=0)))
+    return np.array([
+        relaxation.load_iterations_for(max([np.abs(p.displacement).max() for p in ps] + [constrained]),
+                                       float(np.max(np.sqrt(wave_modulus(m) / m.mu))),
+                                       float(np.median(length_m)), model.safety,
+                                       extent if any(p.friction > 0 for p in ps) else 0.0)
+        for m, ps in zip(materials, plate_sets)])
+
+
 def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
                 device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
                 initial_displacement: np.ndarray | None = None,
@@ -442,14 +461,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         totals = np.full(B, model.loading.total_time)
         n_steps = int(math.ceil((model.loading.total_time + model.loading.settle_time) / dt))
     else:  # fictitious time: each model loads as slowly as its own materials and travel need
-        constrained = max([np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
-        extent = float(np.max(np.ptp(nodes, axis=0)))
-        load_iterations = np.array([
-            relaxation.load_iterations_for(max([np.abs(p.displacement).max() for p in ps] + [constrained]),
-                                           float(np.max(np.sqrt(wave_modulus(m) / m.mu))),
-                                           float(np.median(length)), model.safety,
-                                           extent if any(p.friction > 0 for p in ps) else 0.0)
-            for m, ps in zip(materials, plate_sets)])
+        load_iterations = relaxation_load_iterations(model, materials, plate_sets, relaxation, length)
         totals = load_iterations * dt
         n_steps = max(relaxation.max_iterations, 2 * int(load_iterations.max()))
         sample_every = relaxation.update_every
