@@ -7,13 +7,14 @@ from BreastBiomechLib.cli.common import (end_progress, non_negative, non_negativ
 
 
 def _segmentation_settings(args):
-    from BreastBiomechLib.segmentation import EMSettings, SegmentationSettings
+    from BreastBiomechLib.segmentation import EMSettings, FasciaSettings, SegmentationSettings
 
     return SegmentationSettings(
         em=EMSettings(mrf_strength=args.mrf, bias_order=args.bias_order, max_iterations=args.iterations,
                       tolerance=args.tolerance, partial_volume=not args.no_partial_volume,
                       noise_bound=not args.no_noise_bound),
-        skin_mm=args.skin_mm, measure_skin=not args.fixed_skin, keep_skin=args.keep_skin)
+        skin_mm=args.skin_mm, measure_skin=not args.fixed_skin, keep_skin=args.keep_skin,
+        fascia=None if args.no_fascia else FasciaSettings())
 
 
 def cmd_segment(args) -> int:
@@ -63,6 +64,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--no-partial-volume", action="store_true", help="two pure classes only (no mixed-voxel class)")
     p.add_argument("--no-noise-bound", action="store_true",
                    help="let a pure class spread more than the noise the other shows (mixed voxels then broaden it)")
+    p.add_argument("--no-fascia", action="store_true",
+                   help="keep in the muscle whatever its growth took in front of it (default: tissue lying on the "
+                        "fascia with no fat plane between, found layer by layer, is given back to the breast)")
     p.add_argument("--skin-mm", type=non_negative, default=3.0,
                    help="outer breast layer labelled skin (default 3 mm; deeper where the image shows the skin deeper)")
     p.add_argument("--fixed-skin", action="store_true",

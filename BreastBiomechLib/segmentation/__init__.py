@@ -8,10 +8,11 @@ edits in between): :func:`segment_muscle`, :func:`segment_tumour` (given the mus
 
 from BreastBiomechLib.segmentation.em import EMResult, EMSettings, classify_fat_glandular
 from BreastBiomechLib.segmentation.evaluation import dice_per_tissue
+from BreastBiomechLib.segmentation.fascia import FasciaSettings, tissue_on_fascia
 from BreastBiomechLib.segmentation.pipeline import (SegmentationSettings, StructureSegmentation, TissueSegmentation,
                                                     classify_tissues, segment_muscle, segment_tissues, segment_tumour)
 from BreastBiomechLib.segmentation.seeded import GrowSettings, SeededRegion, grow_from_seeds
 
-__all__ = ["EMResult", "EMSettings", "GrowSettings", "SeededRegion", "SegmentationSettings", "StructureSegmentation",
+__all__ = ["EMResult", "EMSettings", "FasciaSettings", "GrowSettings", "SeededRegion", "SegmentationSettings", "StructureSegmentation",
            "TissueSegmentation", "classify_fat_glandular", "classify_tissues", "dice_per_tissue", "grow_from_seeds",
-           "segment_muscle", "segment_tissues", "segment_tumour"]
+           "segment_muscle", "segment_tissues", "segment_tumour", "tissue_on_fascia"]

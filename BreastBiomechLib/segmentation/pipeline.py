@@ -19,6 +19,8 @@ from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import body_mask
 from BreastBiomechLib.segmentation.breast import breast_mask, breast_surface, skin_depth, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
+from BreastBiomechLib.segmentation.fascia import FasciaSettings, tissue_on_fascia
+from BreastBiomechLib.segmentation.morphology import seeded_components
 from BreastBiomechLib.segmentation.seeded import (GrowSettings, OutsideTissues, SeededRegion, Surroundings,
                                                   agreeing_probability,
                                                   border_fractions, grow_from_seeds, grow_to_midpoint, refine_border)
@@ -34,7 +36,9 @@ class SegmentationSettings:
     ``keep_skin``), kept out of the EM fit because skin is neither fat nor glandular tissue;
     ``measure_skin``: deepen that layer to where the image shows the skin and its
     partial-volume voxels reaching (a skin 3 mm thick imaged with 2.5 mm slices reaches 4 mm);
-    ``body_surface_fraction``: see :func:`body_mask`."""
+    ``body_surface_fraction``: see :func:`body_mask`; ``fascia``: how tissue lying on the
+    muscle with no fat plane between is told from it (:func:`tissue_on_fascia`; None: not
+    looked for)."""
 
     em: EMSettings = field(default_factory=EMSettings)
     muscle: GrowSettings = field(default_factory=GrowSettings)
@@ -43,6 +47,7 @@ class SegmentationSettings:
     measure_skin: bool = True
     keep_skin: bool = False
     body_surface_fraction: float = 0.3
+    fascia: FasciaSettings | None = field(default_factory=FasciaSettings)
 
     def __post_init__(self) -> None:
         if not 0 <= self.skin_mm <= 10:
@@ -106,7 +111,11 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
     the body surface (no thorax imaged behind it); then, once the breast in front of it is
     known, its border unmixed again against pure levels from a first fat/glandular fit: in
     front the fat or gland its outside neighbours show, behind it the fat of the subpectoral
-    plane (thinner than a voxel at 1.5 mm, so no voxel of that plane is pure fat)."""
+    plane (thinner than a voxel at 1.5 mm, so no voxel of that plane is pure fat). Tissue lying
+    on the fascia with no fat plane between, which the growth takes in (gland is within three
+    noise deviations of muscle at low SNR), is given back to the breast (:func:`tissue_on_fascia`)
+    and the new border's fractions estimated without moving it again (one voxel's unmixing
+    against the glandular level is noisier than the layer average that found it)."""
     seed_index = seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body")
     muscle = grow_from_seeds(array, seed_index, body, grid, settings.muscle, Surroundings(empty=~body))
     breast, skin, _ = _breast_and_skin(grid, array, body, muscle.mask, settings)
@@ -114,8 +123,17 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
         return muscle
     fat, glandular = _fat_glandular_levels(grid, array, breast, skin, settings, muscle)
     front = ndimage.binary_dilation(breast)
-    return refine_border(array, muscle.mask, body, seed_index, grid, settings.muscle, Surroundings(
-        empty=~body, tissues=(OutsideTissues((fat, glandular), front), OutsideTissues((fat,), body & ~front))))
+    surroundings = Surroundings(empty=~body, tissues=(OutsideTissues((fat, glandular), front),
+                                                      OutsideTissues((fat,), body & ~front)))
+    muscle = refine_border(array, muscle.mask, body, seed_index, grid, settings.muscle, surroundings)
+    if settings.fascia is None:
+        return muscle
+    on_fascia = tissue_on_fascia(array, muscle.mask, breast_mask(body, muscle.mask, grid), glandular, grid,
+                                 settings.fascia)
+    if not on_fascia.any():
+        return muscle
+    mask = seeded_components(muscle.mask & ~on_fascia, seed_index)
+    return refine_border(array, mask, body, seed_index, grid, settings.muscle, surroundings, passes=0)
 
 
 def _fat_glandular_levels(grid: VoxelGrid, array: np.ndarray, breast: np.ndarray, skin: np.ndarray,

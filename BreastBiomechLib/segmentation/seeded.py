@@ -159,16 +159,22 @@ def _smoothed(values: np.ndarray, grid: VoxelGrid, settings: GrowSettings) -> np
 
 
 def refine_border(array: np.ndarray, mask: np.ndarray, within: np.ndarray, seeds: np.ndarray, grid: VoxelGrid,
-                  settings: GrowSettings | None = None, surroundings: Surroundings | None = None) -> SeededRegion:
+                  settings: GrowSettings | None = None, surroundings: Surroundings | None = None,
+                  passes: int | None = None) -> SeededRegion:
     """The structure ``mask`` (bool, holding the ``seeds`` voxels) with its border refined again,
-    as :func:`grow_from_seeds` ends, against ``surroundings`` learnt after it was grown."""
-    return _refine(array.astype(np.float32), mask, within, seeds, grid, settings or GrowSettings(), surroundings)
+    as :func:`grow_from_seeds` ends, against ``surroundings`` learnt after it was grown;
+    ``passes``: refinements (default ``settings.border_passes``; 0 keeps the mask as given and
+    only estimates its border's fractions)."""
+    return _refine(array.astype(np.float32), mask, within, seeds, grid, settings or GrowSettings(), surroundings,
+                   passes)
 
 
 def _refine(values, mask, within, seeds, grid: VoxelGrid, settings: GrowSettings,
-            surroundings: Surroundings | None = None) -> SeededRegion:
-    """``border_passes`` partial-volume refinements of ``mask``'s border (see
-    :func:`border_fractions`), worked in its bounding box with room for the levels' blur."""
+            surroundings: Surroundings | None = None, passes: int | None = None) -> SeededRegion:
+    """``passes`` (default ``border_passes``) partial-volume refinements of ``mask``'s border (see
+    :func:`border_fractions`), worked in its bounding box with room for the levels' blur; the
+    fractions made to agree with the mask (:func:`agreeing_probability`)."""
+    passes = settings.border_passes if passes is None else passes
     if not mask.any():
         raise ValueError("the seeds did not grow into a region: they sit on voxels unlike the "
                          "structure; place them well inside it")
@@ -179,13 +185,14 @@ def _refine(values, mask, within, seeds, grid: VoxelGrid, settings: GrowSettings
     around = _cropped(surroundings, box)
     local = values[box]
     estimate = _denoised(border_fractions(local, mask[box], within[box], grid, settings, around), grid, settings)
-    for _ in range(settings.border_passes):
+    for done in range(1, passes + 1):
         estimate.mask = seeded_components(ndimage.binary_fill_holes(estimate.probability >= 0.5) & within[box],
                                           local_seeds)
         estimate.probability = agreeing_probability(estimate.probability, estimate.mask)
-        if _ < settings.border_passes - 1:
+        if done < passes:
             estimate = _denoised(border_fractions(local, estimate.mask, within[box], grid, settings, around), grid,
                                  settings)
+    estimate.probability = agreeing_probability(estimate.probability, estimate.mask)
     out = SeededRegion(np.zeros(values.shape, bool), np.zeros(values.shape, np.float32),
                        np.zeros(values.shape, np.float32))
     out.mask[box], out.probability[box], out.inside_level[box] = estimate.mask, estimate.probability, estimate.inside_level

@@ -1,0 +1,123 @@
+"""Tissue lying on the pectoral fascia with no fat plane between it and the muscle.
+
+Glandular tissue pressed onto the muscle differs from it by little more than the noise (gland
+420, muscle 330 against a noise of 55-67 at SNR 15-18), so the muscle's region growing, whose
+window is three noise deviations wide, takes a glandular slab on the fascia into the muscle.
+One voxel cannot tell them apart, but the slab is a layer: averaged along the muscle's surface,
+at the same depth beneath it, the slab's voxels stand clear of the muscle's level while the
+muscle's own voxels do not. This module finds those layers and gives them back to the breast.
+
+Arrays in SimpleITK's (z, y, x) order; lengths in millimetres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from BreastBiomechLib.segmentation.morphology import ball, local_mean, smooth_trend
+from BreastBiomechLib.segmentation.volume import VoxelGrid
+
+_NEIGHBOURS = np.ones((3, 3, 3), bool)
+
+
+@dataclass
+class FasciaSettings:
+    """``depth_mm``: how deep beneath the fascia tissue may be found (a slab on the muscle);
+    ``core_mm``: muscle deeper than this, away from its other faces, gives the muscle's own level
+    and, averaged the same way layer by layer, what the muscle alone does (its texture, the bias
+    field's drift, the noise): the threshold is the ``null_quantile`` of those averages;
+    ``along_mm``: Gaussian sigma of the average along the surface, within one layer;
+    ``significance``: and at least this many standard errors of that average; ``min_layers``:
+    tissue must reach at least this many voxel layers beneath the surface (the first holds the
+    muscle's partial volume with whatever lies in front); ``min_volume_mm3``: smaller patches
+    are left to the muscle."""
+
+    depth_mm: float = 8.0
+    core_mm: float = 6.0
+    along_mm: float = 2.5
+    null_quantile: float = 0.999
+    significance: float = 4.0
+    min_layers: int = 3
+    min_volume_mm3: float = 60.0
+
+
+def tissue_on_fascia(array: np.ndarray, muscle: np.ndarray, breast: np.ndarray, front_level: np.ndarray,
+                     grid: VoxelGrid, settings: FasciaSettings | None = None) -> np.ndarray:
+    """The voxels of the ``muscle`` mask (bool) that hold the tissue in front of it rather than
+    muscle: layers just beneath its surface towards the ``breast`` whose intensity, averaged
+    along the surface at one depth, departs from the muscle's own level towards ``front_level``
+    (the bias-corrected level of the tissue that may lie on the fascia, e.g. the glandular level
+    of a fat/glandular fit; an array on the grid) by more than the muscle's own layers deeper
+    down ever do (the ``null_quantile`` of theirs, and ``significance`` standard errors), and
+    that reach the surface through such layers. The surface layer itself, which holds the
+    muscle's partial volume with whatever lies in front, goes with the layer beneath it. Only
+    where muscle lies deeper than ``core_mm`` within about 15 mm (its level to compare with)."""
+    settings = settings or FasciaSettings()
+    spacing = grid.spacing_zyx
+    empty = np.zeros_like(muscle)
+    if not breast.any():
+        return empty
+    depth = ndimage.distance_transform_edt(~breast, sampling=spacing)
+    # away from the muscle's other faces (the fat plane or air behind it, its edges), whose
+    # partial volume would brighten the averages
+    interior = muscle & ndimage.binary_erosion(muscle | breast, ball(spacing, 2.0))
+    core = interior & (depth > settings.core_mm)
+    if core.sum() < 50:
+        return empty
+    # the muscle's own level, only where deep muscle lies near (elsewhere a wider trend would
+    # miss the bias field's drift by more than the tissue on the fascia stands out)
+    level = smooth_trend(array, core, 15.0, spacing)
+    interior &= level > 0
+    residual = (array - level)[core]
+    noise = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    # layers counted in voxel faces from the breast, not in millimetres: across thick slices
+    # the voxel next to the breast is 3 mm deep yet holds the surface's partial volume
+    layer_of = np.where(muscle, ndimage.distance_transform_cdt(~breast, metric="taxicab"), 0)
+    towards = np.sign(front_level - level)
+    sigma = settings.along_mm / spacing
+
+    def excess(layer):
+        return towards * (local_mean(array, layer, sigma) - level), noise * _mean_error_factor(layer, sigma)
+
+    null = [excess(core & (layer_of == k))[0][core & (layer_of == k)] for k in np.unique(layer_of[core])[:6]]
+    if sum(len(n) for n in null) < 50:
+        return empty
+    threshold = float(np.quantile(np.concatenate(null), settings.null_quantile))
+    kept = muscle & (layer_of == 1)
+    removed = np.zeros_like(muscle)
+    for k in range(2, int(layer_of.max()) + 1):
+        layer = interior & (layer_of == k) & (depth <= settings.depth_mm)
+        if not layer.any():
+            break
+        above, error = excess(layer)
+        kept = layer & (above > np.maximum(threshold, settings.significance * error)) \
+            & ndimage.binary_dilation(kept, _NEIGHBOURS)
+        if not kept.any():
+            break
+        removed |= kept
+    if not removed.any():
+        return empty
+    removed |= muscle & (layer_of == 1) & ndimage.binary_dilation(removed & (layer_of == 2), _NEIGHBOURS)
+    labels, count = ndimage.label(removed, _NEIGHBOURS)
+    index = np.arange(count + 1)
+    volume = ndimage.sum_labels(np.ones_like(labels), labels, index) * float(np.prod(spacing))
+    reach = ndimage.maximum(np.where(removed, layer_of, 0), labels, index)
+    keep = index[(volume >= settings.min_volume_mm3) & (reach >= settings.min_layers)]
+    return np.isin(labels, keep[keep > 0])
+
+
+def _mean_error_factor(weights: np.ndarray, sigma_vox) -> np.ndarray:
+    """sqrt(sum w_i^2) / sum w_i of the Gaussian-weighted mean over ``weights`` (the standard
+    error of :func:`local_mean` per unit noise), from the discrete kernels themselves."""
+    w = weights.astype(np.float32)
+    total, squares = w, w
+    for axis, s in enumerate(np.broadcast_to(np.asarray(sigma_vox, dtype=float), (3,))):
+        radius = max(int(np.ceil(4 * s)), 1)
+        kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / max(s, 1e-6)) ** 2)
+        kernel /= kernel.sum()
+        total = ndimage.correlate1d(total, kernel, axis=axis, mode="nearest")
+        squares = ndimage.correlate1d(squares, kernel**2, axis=axis, mode="nearest")
+    return np.where(total > 1e-3, np.sqrt(squares) / np.maximum(total, 1e-3), np.inf).astype(np.float32)
