@@ -16,11 +16,11 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from BreastBiomechLib import labels as lt
-from BreastBiomechLib.segmentation.body import body_mask
+from BreastBiomechLib.segmentation.body import air_level, body_mask
 from BreastBiomechLib.segmentation.breast import breast_mask, breast_surface, skin_depth, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
 from BreastBiomechLib.segmentation.fascia import FasciaSettings, tissue_on_fascia
-from BreastBiomechLib.segmentation.morphology import seeded_components
+from BreastBiomechLib.segmentation.morphology import ball, seeded_components
 from BreastBiomechLib.segmentation.seeded import (GrowSettings, OutsideTissues, SeededRegion, Surroundings,
                                                   agreeing_probability,
                                                   border_fractions, grow_from_seeds, grow_to_midpoint, refine_border)
@@ -111,7 +111,9 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
     the body surface (no thorax imaged behind it); then, once the breast in front of it is
     known, its border unmixed again against pure levels from a first fat/glandular fit: in
     front the fat or gland its outside neighbours show, behind it the fat of the subpectoral
-    plane (thinner than a voxel at 1.5 mm, so no voxel of that plane is pure fat). Tissue lying
+    plane (thinner than a voxel at 1.5 mm, so no voxel of that plane is pure fat) or, with no
+    thorax imaged, the air that the body's surface rule took in (its noise reads about a quarter
+    of muscle at SNR 15, and against fat every such voxel unmixed to pure muscle). Tissue lying
     on the fascia with no fat plane between, which the growth takes in (gland is within three
     noise deviations of muscle at low SNR), is given back to the breast (:func:`tissue_on_fascia`)
     and the new border's fractions estimated without moving it again (one voxel's unmixing
@@ -123,8 +125,11 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
         return muscle
     fat, glandular = _fat_glandular_levels(grid, array, breast, skin, settings, muscle)
     front = ndimage.binary_dilation(breast)
-    surroundings = Surroundings(empty=~body, tissues=(OutsideTissues((fat, glandular), front),
-                                                      OutsideTissues((fat,), body & ~front)))
+    near_air = ndimage.binary_dilation(~body, ball(grid.spacing_zyx, 3.0))
+    behind = body & ~front
+    surroundings = Surroundings(empty=~body, tissues=(
+        OutsideTissues((fat, glandular), front), OutsideTissues((fat,), behind & ~near_air),
+        OutsideTissues((fat, 0.0), behind & near_air, reads=(fat, air_level(array, body, grid)))))
     muscle = refine_border(array, muscle.mask, body, seed_index, grid, settings.muscle, surroundings)
     if settings.fascia is None:
         return muscle

@@ -52,12 +52,15 @@ class GrowSettings:
 
 @dataclass
 class OutsideTissues:
-    """The pure intensities ``levels`` (arrays on the grid, e.g. bias-corrected fat and glandular
-    levels of an EM fit) of the tissues that may lie just outside a structure on the voxels of
-    ``where``."""
+    """The pure intensities ``levels`` (arrays on the grid or numbers, e.g. bias-corrected fat and
+    glandular levels of an EM fit) of the tissues that may lie just outside a structure on the
+    voxels of ``where``. ``reads``: what each tissue reads in the image where that differs from
+    the signal it adds to a mixed voxel (air: the mean of its noise's magnitude, but no signal,
+    level 0); by default its level."""
 
     levels: tuple[np.ndarray, ...]
     where: np.ndarray
+    reads: tuple[np.ndarray, ...] | None = None
 
 
 @dataclass
@@ -211,8 +214,13 @@ def _cropped(surroundings: Surroundings | None, box) -> Surroundings | None:
     if surroundings is None:
         return None
     return Surroundings(None if surroundings.empty is None else surroundings.empty[box],
-                        tuple(OutsideTissues(tuple(np.broadcast_to(level, t.where.shape)[box] for level in t.levels),
-                                             t.where[box]) for t in surroundings.tissues))
+                        tuple(OutsideTissues(_crop_levels(t.levels, t.where.shape, box), t.where[box],
+                                             _crop_levels(t.reads, t.where.shape, box))
+                              for t in surroundings.tissues))
+
+
+def _crop_levels(levels, shape, box):
+    return None if levels is None else tuple(np.broadcast_to(level, shape)[box] for level in levels)
 
 
 def agreeing_probability(probability: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -247,7 +255,8 @@ def border_fractions(values: np.ndarray, region: np.ndarray, within: np.ndarray,
     level_out = local_mean(outside_values, outer_layer, sigma)
     has_outside = local_mean(np.ones_like(values), outer_layer, sigma) > 0
     for tissues in surroundings.tissues:
-        level_out = _nearest_level(outside_values, outer_layer, level_out, band & tissues.where, tissues.levels)
+        level_out = _nearest_level(outside_values, outer_layer, level_out, band & tissues.where, tissues.levels,
+                                   tissues.reads)
     contrast = level_in - level_out
     usable = band & (level_in > 0) & has_outside & (level_out >= 0) & \
         (np.abs(contrast) > 1e-6 * max(float(np.abs(values).max()), 1.0))
@@ -258,11 +267,14 @@ def border_fractions(values: np.ndarray, region: np.ndarray, within: np.ndarray,
 
 
 def _nearest_level(values: np.ndarray, outer_layer: np.ndarray, level_out: np.ndarray, where: np.ndarray,
-                   levels: tuple[np.ndarray, ...]) -> np.ndarray:
-    """``level_out`` with, on the voxels of ``where``, the one of ``levels`` nearest to the mean
-    of the voxel's own outside neighbours (the outer layer within one voxel)."""
+                   levels: tuple[np.ndarray, ...], reads: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
+    """``level_out`` with, on the voxels of ``where``, the one of ``levels`` whose reading
+    (``reads``, default the levels) is nearest to the mean of the voxel's own outside neighbours
+    (the outer layer within one voxel)."""
     near = local_mean(values, outer_layer, 0.7)
     stacked = np.stack([np.broadcast_to(level, values.shape) for level in levels])
-    nearest = np.take_along_axis(stacked, np.argmin(np.abs(stacked - near[None]), axis=0)[None], axis=0)[0]
-    usable = where & (near > 0) & (nearest > 0)
+    read = stacked if reads is None else np.stack([np.broadcast_to(r, values.shape) for r in reads])
+    choice = np.argmin(np.abs(read - near[None]), axis=0)[None]
+    nearest = np.take_along_axis(stacked, choice, axis=0)[0]
+    usable = where & (near > 0) & (np.take_along_axis(read, choice, axis=0)[0] > 0) & (nearest >= 0)
     return np.where(usable, nearest, level_out).astype(np.float32)
