@@ -101,7 +101,7 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
         for spinBox in (self.ui.mrfSpinBox, self.ui.biasOrderSpinBox, self.ui.iterationsSpinBox, self.ui.skinSpinBox):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        for checkBox in (self.ui.partialVolumeCheckBox, self.ui.keepSkinCheckBox):
+        for checkBox in (self.ui.partialVolumeCheckBox, self.ui.keepSkinCheckBox, self.ui.fasciaCheckBox):
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
         self.ui.muscleButton.clicked.connect(lambda: self.onStep(self.logic.segmentMuscle, "Muscle segmentation failed."))
         self.ui.tumourButton.clicked.connect(lambda: self.onStep(self.logic.segmentTumour, "Tumour segmentation failed."))
@@ -126,6 +126,7 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             self.ui.partialVolumeCheckBox.checked = p["partialVolume"]
             self.ui.skinSpinBox.value = p["skinMm"]
             self.ui.keepSkinCheckBox.checked = p["keepSkin"]
+            self.ui.fasciaCheckBox.checked = p["tissueOnFascia"]
             self.ui.volumesTableView.setMRMLTableNode(p.reference("volumesTable"))
             # a step runs alone: while one runs (it processes events) the others wait, Cancel stops it
             ready = p.reference("inputVolume") is not None and not self._running
@@ -153,6 +154,7 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["partialVolume"] = self.ui.partialVolumeCheckBox.checked
         p["skinMm"] = self.ui.skinSpinBox.value
         p["keepSkin"] = self.ui.keepSkinCheckBox.checked
+        p["tissueOnFascia"] = self.ui.fasciaCheckBox.checked
         p.node.EndModify(wasModifying)
 
     def onCancelButton(self):
@@ -204,7 +206,7 @@ class BreastSegmentationLogic(ParameterNodeLogic):
 
     MODULE_NAME = "BreastSegmentation"
     DEFAULTS = {"mrfStrength": 0.4, "biasOrder": 3, "maxIterations": 40, "partialVolume": True,
-                "skinMm": 3.0, "keepSkin": False}
+                "skinMm": 3.0, "keepSkin": False, "tissueOnFascia": True}
     ROLES = ("inputVolume", "muscleSeeds", "tumourSeeds", "outputSegmentation", "biasField", "volumesTable",
              "probabilityFat", "probabilityGlandular", "probabilityMuscle", "probabilityTumour", "probabilitySkin")
 
@@ -212,13 +214,14 @@ class BreastSegmentationLogic(ParameterNodeLogic):
 
     def settings(self, parameterNode):
         """The library SegmentationSettings of the current choices."""
-        from BreastBiomechLib.segmentation import EMSettings, SegmentationSettings
+        from BreastBiomechLib.segmentation import EMSettings, FasciaSettings, SegmentationSettings
 
         p = parameterNode
         return SegmentationSettings(
             em=EMSettings(mrf_strength=p["mrfStrength"], bias_order=int(p["biasOrder"]),
                           max_iterations=int(p["maxIterations"]), partial_volume=p["partialVolume"]),
-            skin_mm=p["skinMm"], keep_skin=p["keepSkin"])
+            skin_mm=p["skinMm"], keep_skin=p["keepSkin"],
+            fascia=FasciaSettings() if p["tissueOnFascia"] else None)
 
     def inputImage(self, parameterNode):
         """The MR volume as a SimpleITK image (LPS)."""

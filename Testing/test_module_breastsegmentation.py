@@ -115,6 +115,17 @@ def test_steps_read_the_segments_as_edited(scene, case):
     assert dice["tumour"] >= 0.85 and dice["glandular"] >= 0.85
 
 
+def test_the_fascia_option_reaches_the_library(scene, case):
+    """The panel's "Give tissue lying on the muscle back to the breast" (on by default, saved in
+    the parameter node) switches the library's fascia step."""
+    logic, p = _set_up(scene, case)
+    assert p["tissueOnFascia"] is True
+    assert logic.settings(p).fascia is not None
+    p["tissueOnFascia"] = False
+    assert logic.settings(p).fascia is None
+    assert p.node.GetParameter("tissueOnFascia") == "False"
+
+
 def test_missing_inputs_are_named(scene, case):
     logic, p = _set_up(scene, case, tumour=False)
     with pytest.raises(ValueError, match="tumour"):
