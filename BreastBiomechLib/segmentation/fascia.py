@@ -56,7 +56,22 @@ def tissue_on_fascia(array: np.ndarray, muscle: np.ndarray, breast: np.ndarray, 
     muscle's partial volume with whatever lies in front, goes with the layer beneath it. Only
     where muscle lies deeper than ``core_mm`` within about 15 mm (its level to compare with)."""
     settings = settings or FasciaSettings()
-    spacing = grid.spacing_zyx
+    found = np.zeros_like(muscle)
+    if not breast.any() or not muscle.any():
+        return found
+    # worked in the muscle's bounding box with room for the trend and the depths looked at
+    margin = np.ceil(20.0 / grid.spacing_zyx).astype(int)
+    hits = np.nonzero(muscle)
+    box = tuple(slice(max(int(h.min()) - m, 0), int(h.max()) + m + 1) for h, m in zip(hits, margin))
+    found[box] = _on_fascia(array[box], muscle[box], breast[box],
+                            np.broadcast_to(np.asarray(front_level, dtype=np.float32), array.shape)[box],
+                            grid.spacing_zyx, settings)
+    return found
+
+
+def _on_fascia(array: np.ndarray, muscle: np.ndarray, breast: np.ndarray, front_level: np.ndarray,
+               spacing: np.ndarray, settings: FasciaSettings) -> np.ndarray:
+    """:func:`tissue_on_fascia` on one box of the volume."""
     empty = np.zeros_like(muscle)
     if not breast.any():
         return empty
