@@ -5,7 +5,10 @@ Glandular tissue pressed onto the muscle differs from it by little more than the
 window is three noise deviations wide, takes a glandular slab on the fascia into the muscle.
 One voxel cannot tell them apart, but the slab is a layer: averaged along the muscle's surface,
 at the same depth beneath it, the slab's voxels stand clear of the muscle's level while the
-muscle's own voxels do not. This module finds those layers and gives them back to the breast.
+muscle's own voxels do not. This module finds those layers and gives them back to the breast,
+and keeps the muscle one layer along every anterior-posterior line: the border refinement,
+reaching over a slab from neighbouring lines, can take the slab's front face (textured gland
+mixed with fat reads as muscle mixed with fat) and leave the slab in a pocket behind it.
 
 Arrays in SimpleITK's (z, y, x) order; lengths in millimetres.
 """
@@ -136,3 +139,53 @@ def _mean_error_factor(weights: np.ndarray, sigma_vox) -> np.ndarray:
         total = ndimage.correlate1d(total, kernel, axis=axis, mode="nearest")
         squares = ndimage.correlate1d(squares, kernel**2, axis=axis, mode="nearest")
     return np.where(total > 1e-3, np.sqrt(squares) / np.maximum(total, 1e-3), np.inf).astype(np.float32)
+
+
+
+def one_layer(muscle: np.ndarray, body: np.ndarray, grid: VoxelGrid, film_mm: float = 3.0) -> np.ndarray:
+    """The pectoral muscle ``muscle`` (bool) made one layer along every anterior-posterior line
+    of voxels, as the breast in front of it is delimited (:func:`~BreastBiomechLib.segmentation.
+    breast.breast_mask`): a thin first run lying in front of breast tissue that lies in front of
+    more muscle (:func:`film_in_front`) is given back to the breast, then the ``body`` voxels
+    left between the muscle's front and its back on a line (cavities open to the side, which
+    hole filling cannot close) are filled: the breast, delimited by the muscle's front, would
+    leave them with no tissue at all."""
+    mask = muscle & ~film_in_front(muscle, body, grid, film_mm)
+    axis = grid.ap_axis
+    ahead = np.cumsum(mask, axis=axis) > 0
+    behind = np.flip(np.cumsum(np.flip(mask, axis), axis=axis), axis) > 0
+    return mask | (body & ahead & behind)
+
+
+def film_in_front(muscle: np.ndarray, body: np.ndarray, grid: VoxelGrid, thickness_mm: float) -> np.ndarray:
+    """The voxels of ``muscle`` (bool) that lie, along their anterior-posterior line of voxels, in
+    front of breast tissue that lies in front of more muscle: a first run of muscle voxels no
+    thicker than ``thickness_mm``, then body voxels that are not muscle, then a thicker run.
+
+    The pectoral muscle lies behind all of the breast, so such a film cannot be muscle: it is the
+    front face of tissue on the fascia (a textured glandular slab mixed with fat reads as muscle
+    mixed with fat) that the border refinement took in over the slab by way of the neighbouring
+    lines, and left the slab itself in a pocket that belongs to neither."""
+    def to_ap(a):
+        a = np.moveaxis(a, grid.ap_axis, -1)
+        return a[..., ::-1] if grid.ap_sign < 0 else a
+
+    m, inside = to_ap(muscle), to_ap(body)
+    n = m.shape[-1]
+    position = np.arange(n)
+    hit = m.any(axis=-1, keepdims=True)
+    start = np.argmax(m, axis=-1)[..., None]
+    after = position > start
+    end = np.where(hit & (~m & after).any(axis=-1, keepdims=True),
+                   np.argmax(~m & after, axis=-1)[..., None], n)
+    behind = m & (position >= end)
+    second = np.where(behind.any(axis=-1, keepdims=True), np.argmax(behind, axis=-1)[..., None], n)
+    gap = (position >= end) & (position < second)
+    past = ~m & (position > second)
+    second_end = np.where(past.any(axis=-1, keepdims=True), np.argmax(past, axis=-1)[..., None], n)
+    thickness = (end - start) * float(grid.spacing_zyx[grid.ap_axis])
+    film = (hit & (second < n) & (inside | ~gap).all(axis=-1, keepdims=True)
+            & (thickness <= thickness_mm) & (second_end - second > end - start))
+    out = film & (position >= start) & (position < end)
+    out = out[..., ::-1] if grid.ap_sign < 0 else out
+    return np.moveaxis(out, -1, grid.ap_axis)

@@ -19,7 +19,7 @@ from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import air_level, body_mask
 from BreastBiomechLib.segmentation.breast import breast_mask, breast_surface, skin_depth, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
-from BreastBiomechLib.segmentation.fascia import FasciaSettings, tissue_on_fascia
+from BreastBiomechLib.segmentation.fascia import FasciaSettings, one_layer, tissue_on_fascia
 from BreastBiomechLib.segmentation.morphology import ball, seeded_components
 from BreastBiomechLib.segmentation.seeded import (GrowSettings, OutsideTissues, SeededRegion, Surroundings,
                                                   agreeing_probability,
@@ -116,8 +116,11 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
     of muscle at SNR 15, and against fat every such voxel unmixed to pure muscle). Tissue lying
     on the fascia with no fat plane between, which the growth takes in (gland is within three
     noise deviations of muscle at low SNR), is given back to the breast (:func:`tissue_on_fascia`)
-    and the new border's fractions estimated without moving it again (one voxel's unmixing
-    against the glandular level is noisier than the layer average that found it)."""
+    and the muscle made one layer along every anterior-posterior line (:func:`one_layer`: a film
+    over breast tissue goes back to the breast, cavities open to the side are filled, so that no
+    body voxel is left between the breast and the muscle with neither); the new border's
+    fractions are then estimated without moving it again (one voxel's unmixing against the
+    glandular level is noisier than the layer average that found it)."""
     seed_index = seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body")
     muscle = grow_from_seeds(array, seed_index, body, grid, settings.muscle, Surroundings(empty=~body))
     breast, skin, _ = _breast_and_skin(grid, array, body, muscle.mask, settings)
@@ -131,13 +134,13 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
         OutsideTissues((fat, glandular), front), OutsideTissues((fat,), behind & ~near_air),
         OutsideTissues((fat, 0.0), behind & near_air, reads=(fat, air_level(array, body, grid)))))
     muscle = refine_border(array, muscle.mask, body, seed_index, grid, settings.muscle, surroundings)
-    if settings.fascia is None:
+    mask = muscle.mask
+    if settings.fascia is not None:
+        mask = mask & ~tissue_on_fascia(array, mask, breast_mask(body, mask, grid), glandular, grid, settings.fascia)
+    mask = one_layer(mask, body, grid)
+    if np.array_equal(mask, muscle.mask):
         return muscle
-    on_fascia = tissue_on_fascia(array, muscle.mask, breast_mask(body, muscle.mask, grid), glandular, grid,
-                                 settings.fascia)
-    if not on_fascia.any():
-        return muscle
-    mask = seeded_components(muscle.mask & ~on_fascia, seed_index)
+    mask = seeded_components(mask, seed_index)
     return refine_border(array, mask, body, seed_index, grid, settings.muscle, surroundings, passes=0)
 
 
