@@ -23,21 +23,22 @@ def breast_mask(body: np.ndarray, muscle: np.ndarray, grid: VoxelGrid) -> np.nda
     if not muscle.any():
         raise ValueError("the pectoral muscle is empty: the breast is delimited by it, so segment "
                          "the muscle (seed points on it) before the breast")
-    # work with the anterior-posterior axis last, increasing posteriorly
-    def to_ap(a):
-        a = np.moveaxis(a, grid.ap_axis, -1)
-        return a[..., ::-1] if grid.ap_sign < 0 else a
+    m = grid.posterior_last(muscle)
+    anterior = np.arange(m.shape[-1]) < muscle_front(m)[..., None]
+    return body & grid.from_posterior_last(anterior) & ~muscle
 
-    m = to_ap(muscle)
-    n = m.shape[-1]
-    hit = m.any(axis=-1)
-    front = np.argmax(m, axis=-1)
+
+def muscle_front(muscle_ap_last: np.ndarray) -> np.ndarray:
+    """The index of the first muscle voxel on every anterior-posterior line of a muscle mask laid
+    out by :meth:`~BreastBiomechLib.segmentation.volume.VoxelGrid.posterior_last`; lines that
+    miss the muscle (the field of view's edge, gaps in the segmentation) take the front of the
+    nearest line that meets it."""
+    hit = muscle_ap_last.any(axis=-1)
+    front = np.argmax(muscle_ap_last, axis=-1)
     if not hit.all():
         _, nearest = ndimage.distance_transform_edt(~hit, return_indices=True)
         front = front[tuple(nearest)]
-    anterior = np.arange(n)[None, None, :] < front[..., None]
-    anterior = anterior[..., ::-1] if grid.ap_sign < 0 else anterior
-    return body & np.moveaxis(anterior, -1, grid.ap_axis) & ~muscle
+    return front
 
 
 def skin_layer(body: np.ndarray, breast: np.ndarray, grid: VoxelGrid, thickness_mm: float,

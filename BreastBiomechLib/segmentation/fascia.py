@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from BreastBiomechLib.segmentation.breast import muscle_front
 from BreastBiomechLib.segmentation.morphology import ball, local_mean, smooth_trend
 from BreastBiomechLib.segmentation.volume import VoxelGrid
 
@@ -166,11 +167,7 @@ def film_in_front(muscle: np.ndarray, body: np.ndarray, grid: VoxelGrid, thickne
     front face of tissue on the fascia (a textured glandular slab mixed with fat reads as muscle
     mixed with fat) that the border refinement took in over the slab by way of the neighbouring
     lines, and left the slab itself in a pocket that belongs to neither."""
-    def to_ap(a):
-        a = np.moveaxis(a, grid.ap_axis, -1)
-        return a[..., ::-1] if grid.ap_sign < 0 else a
-
-    m, inside = to_ap(muscle), to_ap(body)
+    m, inside = grid.posterior_last(muscle), grid.posterior_last(body)
     n = m.shape[-1]
     position = np.arange(n)
     hit = m.any(axis=-1, keepdims=True)
@@ -186,6 +183,24 @@ def film_in_front(muscle: np.ndarray, body: np.ndarray, grid: VoxelGrid, thickne
     thickness = (end - start) * float(grid.spacing_zyx[grid.ap_axis])
     film = (hit & (second < n) & (inside | ~gap).all(axis=-1, keepdims=True)
             & (thickness <= thickness_mm) & (second_end - second > end - start))
-    out = film & (position >= start) & (position < end)
-    out = out[..., ::-1] if grid.ap_sign < 0 else out
-    return np.moveaxis(out, -1, grid.ap_axis)
+    return grid.from_posterior_last(film & (position >= start) & (position < end))
+
+
+def ahead_of_fascia(muscle: np.ndarray, grid: VoxelGrid, window_mm: float = 30.0) -> np.ndarray:
+    """The voxels of ``muscle`` (bool) lying more than one voxel in front of the fascia as the
+    muscle's own front shows it: on every anterior-posterior line of voxels the first muscle
+    voxel, its running median over ``window_mm`` across the coronal plane, and what lies at
+    least two voxels in front of that.
+
+    The fascia is smooth over centimetres (a chest's curvature moves it by under a millimetre
+    across 30 mm), the muscle's front only as rough as its partial-volume voxel; tissue lying on
+    the fascia that the growth took in makes the front jut out in patches, one to three voxels
+    at a time, where the deep layers' test (:func:`tissue_on_fascia`) sees too few layers. A
+    patch wider than about half the window moves the median with it and is kept."""
+    m = grid.posterior_last(muscle)
+    if not m.any():
+        return np.zeros_like(muscle)
+    across = [s for axis, s in enumerate(grid.spacing_zyx) if axis != grid.ap_axis]
+    size = [max(1, int(round(window_mm / s))) for s in across]
+    fascia = ndimage.median_filter(muscle_front(m), size=size, mode="nearest")
+    return grid.from_posterior_last(m & (np.arange(m.shape[-1]) < fascia[..., None] - 1))

@@ -19,7 +19,7 @@ from BreastBiomechLib import labels as lt
 from BreastBiomechLib.segmentation.body import air_level, body_mask
 from BreastBiomechLib.segmentation.breast import breast_mask, breast_surface, skin_depth, skin_layer
 from BreastBiomechLib.segmentation.em import FAT, GLANDULAR, EMSettings, classify_fat_glandular
-from BreastBiomechLib.segmentation.fascia import FasciaSettings, one_layer, tissue_on_fascia
+from BreastBiomechLib.segmentation.fascia import FasciaSettings, ahead_of_fascia, one_layer, tissue_on_fascia
 from BreastBiomechLib.segmentation.morphology import ball, seeded_components
 from BreastBiomechLib.segmentation.seeded import (GrowSettings, OutsideTissues, SeededRegion, Surroundings,
                                                   agreeing_probability,
@@ -115,12 +115,14 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
     thorax imaged, the air that the body's surface rule took in (its noise reads about a quarter
     of muscle at SNR 15, and against fat every such voxel unmixed to pure muscle). Tissue lying
     on the fascia with no fat plane between, which the growth takes in (gland is within three
-    noise deviations of muscle at low SNR), is given back to the breast (:func:`tissue_on_fascia`)
-    and the muscle made one layer along every anterior-posterior line (:func:`one_layer`: a film
-    over breast tissue goes back to the breast, cavities open to the side are filled, so that no
-    body voxel is left between the breast and the muscle with neither); the new border's
-    fractions are then estimated without moving it again (one voxel's unmixing against the
-    glandular level is noisier than the layer average that found it)."""
+    noise deviations of muscle at low SNR), is given back to the breast (:func:`tissue_on_fascia`
+    for slabs several voxels deep, :func:`ahead_of_fascia` for patches jutting out of the
+    muscle's smooth front), and the muscle made one layer along every anterior-posterior line
+    (:func:`one_layer`: a film over breast tissue goes back to the breast, cavities open to the
+    side are filled, so that no body voxel is left between the breast and the muscle with
+    neither); the new border's fractions are then estimated without moving it again (one
+    voxel's unmixing against the glandular level is noisier than the layer average that found
+    it)."""
     seed_index = seed_voxels(grid, seeds, body, "pectoral muscle", "inside the body")
     muscle = grow_from_seeds(array, seed_index, body, grid, settings.muscle, Surroundings(empty=~body))
     breast, skin, _ = _breast_and_skin(grid, array, body, muscle.mask, settings)
@@ -137,6 +139,7 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
     mask = muscle.mask
     if settings.fascia is not None:
         mask = mask & ~tissue_on_fascia(array, mask, breast_mask(body, mask, grid), glandular, grid, settings.fascia)
+        mask = mask & ~ahead_of_fascia(mask, grid)
     mask = one_layer(mask, body, grid)
     if np.array_equal(mask, muscle.mask):
         return muscle

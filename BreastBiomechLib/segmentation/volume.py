@@ -36,6 +36,16 @@ class VoxelGrid:
                 out[i] = ijk[::-1]
         return out
 
+    def posterior_last(self, array: np.ndarray) -> np.ndarray:
+        """A view of ``array`` (z, y, x) with the anterior-posterior axis last, its index growing
+        posteriorly (undone by :meth:`from_posterior_last`)."""
+        moved = np.moveaxis(array, self.ap_axis, -1)
+        return moved[..., ::-1] if self.ap_sign < 0 else moved
+
+    def from_posterior_last(self, array: np.ndarray) -> np.ndarray:
+        """An array laid out as :meth:`posterior_last` gives it, back in (z, y, x) order."""
+        return np.moveaxis(array[..., ::-1] if self.ap_sign < 0 else array, -1, self.ap_axis)
+
     def to_image(self, array: np.ndarray) -> sitk.Image:
         """``array`` (z, y, x) as an image on this grid."""
         image = sitk.GetImageFromArray(array)
