@@ -5,10 +5,12 @@ Glandular tissue pressed onto the muscle differs from it by little more than the
 window is three noise deviations wide, takes a glandular slab on the fascia into the muscle.
 One voxel cannot tell them apart, but the slab is a layer: averaged along the muscle's surface,
 at the same depth beneath it, the slab's voxels stand clear of the muscle's level while the
-muscle's own voxels do not. This module finds those layers and gives them back to the breast,
-and keeps the muscle one layer along every anterior-posterior line: the border refinement,
-reaching over a slab from neighbouring lines, can take the slab's front face (textured gland
-mixed with fat reads as muscle mixed with fat) and leave the slab in a pocket behind it.
+muscle's own voxels do not. This module finds those layers and gives them back to the breast;
+gives back, too, what juts out of the muscle's front, which is smooth over centimetres where
+the fascia is (patches of a slab too thin for the layers to show); and keeps the muscle one
+layer along every anterior-posterior line: the border refinement, reaching over a slab from
+neighbouring lines, can take the slab's front face (textured gland mixed with fat reads as
+muscle mixed with fat) and leave the slab in a pocket behind it.
 
 Arrays in SimpleITK's (z, y, x) order; lengths in millimetres.
 """
@@ -140,7 +142,6 @@ def _mean_error_factor(weights: np.ndarray, sigma_vox) -> np.ndarray:
         total = ndimage.correlate1d(total, kernel, axis=axis, mode="nearest")
         squares = ndimage.correlate1d(squares, kernel**2, axis=axis, mode="nearest")
     return np.where(total > 1e-3, np.sqrt(squares) / np.maximum(total, 1e-3), np.inf).astype(np.float32)
-
 
 
 def one_layer(muscle: np.ndarray, body: np.ndarray, grid: VoxelGrid, film_mm: float = 3.0) -> np.ndarray:
