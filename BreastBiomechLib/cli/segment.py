@@ -66,7 +66,8 @@ def add_parsers(sub) -> None:
                    help="let a pure class spread more than the noise the other shows (mixed voxels then broaden it)")
     p.add_argument("--no-fascia", action="store_true",
                    help="keep in the muscle whatever its growth took in front of it (default: tissue lying on the "
-                        "fascia with no fat plane between, found layer by layer, is given back to the breast)")
+                        "fascia with no fat plane between, found layer by layer or jutting out of the muscle's smooth front, is "
+                        "given back to the breast)")
     p.add_argument("--skin-mm", type=non_negative, default=3.0,
                    help="outer breast layer labelled skin (default 3 mm; deeper where the image shows the skin deeper)")
     p.add_argument("--fixed-skin", action="store_true",

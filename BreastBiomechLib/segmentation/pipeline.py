@@ -37,8 +37,8 @@ class SegmentationSettings:
     ``measure_skin``: deepen that layer to where the image shows the skin and its
     partial-volume voxels reaching (a skin 3 mm thick imaged with 2.5 mm slices reaches 4 mm);
     ``body_surface_fraction``: see :func:`body_mask`; ``fascia``: how tissue lying on the
-    muscle with no fat plane between is told from it (:func:`tissue_on_fascia`; None: not
-    looked for)."""
+    muscle with no fat plane between is told from it (:func:`tissue_on_fascia`, then
+    :func:`ahead_of_fascia`; None: neither looked for)."""
 
     em: EMSettings = field(default_factory=EMSettings)
     muscle: GrowSettings = field(default_factory=GrowSettings)
