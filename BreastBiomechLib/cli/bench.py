@@ -30,6 +30,7 @@ def _bench_solver(args) -> dict:
 
     from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
     from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+    from BreastBiomechLib.solver.warm import WarmStart
 
     spacing = _hemi_ellipsoid_spacing(args.tets)
     settle = 0.25 * args.total_time if args.settle_time is None else args.settle_time
@@ -44,11 +45,20 @@ def _bench_solver(args) -> dict:
                          for f in rng.uniform(0.7, 1.3, args.batch - 1)]
     warm = hemi_ellipsoid_compression(20.0, total_time=0.05, settle_time=0.0)
     solve_batch(warm, [warm.materials], device=device)  # compile the kernels once, outside the timing
-    started = time.perf_counter()
     load = {} if args.load_iterations is None else {"load_iterations": args.load_iterations}
     relaxation = DynamicRelaxation(tolerance_mm=0.01, **load) if args.relaxation else None
+    start = None
+    if args.warm_start is not None:  # a fit's nearby parameter set, solved outside the timing
+        if relaxation is None:
+            raise ValueError("--warm-start is a start of dynamic relaxation: add --relaxation")
+        nearby = type(base)(base.mu * args.warm_start, base.kappa, base.eta, base.fibre, base.density)
+        start = solve_batch(model, [nearby], device=device, relaxation=relaxation)[0]
+        if not start.ok:
+            raise RuntimeError(f"the warm start's solve failed: {start.message}")
+    started = time.perf_counter()
     solutions = solve_batch(model, variants, device=device, relaxation=relaxation,
-                            steady_state_mm=args.steady_state_mm)
+                            steady_state_mm=args.steady_state_mm,
+                            warm_start=None if start is None else WarmStart.from_solution(start))
     wall = time.perf_counter() - started
     s = solutions[0]
     memory_mb = None
@@ -61,6 +71,7 @@ def _bench_solver(args) -> dict:
         "nodes": n, "tets": m, "batch": args.batch, "formulation": model.formulation, "friction": args.friction,
         "method": "dynamic relaxation" if args.relaxation else "physical time",
         "load_iterations": relaxation.load_iterations if relaxation else None,
+        "warm_start_mu_factor": args.warm_start, "warm_start_steps": None if start is None else start.steps,
         "estimated_error_mm": s.estimated_error_mm,
         "steps": s.steps, "time_step_s": s.time_step, "simulated_s": s.steps * s.time_step,
         "wall_s": round(wall, 4), "solve_wall_s": round(s.wall_time, 4),
@@ -542,6 +553,9 @@ def add_parsers(sub) -> None:
                    help="solver, physical time: stop settling once this close to rest (mm)")
     p.add_argument("--relaxation", action="store_true", help="solver: dynamic relaxation (tolerance 0.01 mm)")
     p.add_argument("--friction", type=non_negative, default=0.0, help="solver: the plates' Coulomb friction mu")
+    p.add_argument("--warm-start", type=positive, default=None, metavar="FACTOR",
+                   help="solver, dynamic relaxation: start at the equilibrium of the same breast with its shear "
+                        "modulus times FACTOR (a fit's nearby parameter set; solved first, outside the timing)")
     p.add_argument("--load-iterations", type=positive_int, default=None,
                    help="solver, dynamic relaxation: iterations over which the load is applied, at least "
                         "(default: DynamicRelaxation's)")

@@ -25,6 +25,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.stability import StableStepMonitor
+from BreastBiomechLib.solver.warm import WarmStart, ramp_iterations, start_time, started_plates
 
 MM = 1e-3  # metres per millimetre
 ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
@@ -154,6 +155,11 @@ class Solution:
     stable_time_step: float = float("inf")  # last power-iteration estimate for the deformed model (s)
     plate_normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (P, 3) towards the tissue
     attempts: int = 1  # solves it took: more where :mod:`~BreastBiomechLib.solver.retries` slowed the load
+    # dynamic relaxation: the lowest eigenvalue of M^-1 K it found (1/s^2, the least Rayleigh quotient
+    # after the load) and the volume-weighted mean mu / rho of its fictitious masses (m^2/s^2) that
+    # the eigenvalue scales with; a warm start from this solve carries both (NaN: not a relaxation)
+    lowest_eigenvalue: float = float("nan")
+    shear_speed_squared: float = float("nan")
 
     @property
     def plate_normal_forces(self) -> np.ndarray:
@@ -385,7 +391,7 @@ def relaxation_load_iterations(model: Model, materials: list[ElementMaterials], 
 def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
                 device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
                 initial_displacement: np.ndarray | None = None,
-                relaxation: DynamicRelaxation | None = None,
+                relaxation: DynamicRelaxation | None = None, warm_start: WarmStart | None = None,
                 progress: Callable[[float], bool | None] | None = None,
                 steady_state_mm: float | None = None, mass_scaling: bool = False,
                 plates: list[list[Plate]] | None = None, memory_limit_bytes: int | None = None) -> list[Solution]:
@@ -395,6 +401,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     the same order with the same contact nodes as the model's, which they replace). All variants
     use the smallest critical step of the batch, so results equal separate solves at that step.
     ``initial_displacement`` (N, 3) mm starts every variant from rest in that configuration.
+    ``warm_start`` (dynamic relaxation, frictionless plates): every variant starts at that
+    nearby equilibrium (:class:`~BreastBiomechLib.solver.warm.WarmStart`) with the constraints
+    and gravity in full and the plates moving only by their travel's difference from the
+    start's; the static solution is the same within the tolerance, reached in fewer iterations.
     Every ``sample_every`` steps the energies, plate forces and the stable step are sampled and
     ``progress(fraction done)`` is called; returning False cancels the solve (status "cancelled",
     the displacement returned is the last configuration). Dynamic relaxation finds the
@@ -422,6 +432,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     ValueError) with the estimate and the largest batch that fits."""
     wp.init()
     device = _device(device)
+    if warm_start is not None and (relaxation is None or initial_displacement is not None):
+        raise ValueError("a warm start is a start of dynamic relaxation: give a relaxation and no initial_displacement")
     if initial_displacement is not None and model.prestate is not None:
         raise ValueError("the model starts from its pre-stressed reference state; give no initial_displacement")
     if steady_state_mm is not None and (relaxation is not None or steady_state_mm <= 0):
@@ -464,6 +476,15 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         load_iterations = relaxation_load_iterations(model, materials, plate_sets, relaxation, length)
         totals = load_iterations * dt
         n_steps = max(relaxation.max_iterations, 2 * int(load_iterations.max()))
+        cold_load_time = totals  # sets the damping before the first update, warm or cold
+        if warm_start is not None:
+            plate_sets = started_plates(model, warm_start, plate_sets)
+            ratios = [float(np.max(np.sqrt(wave_modulus(m) / m.mu))) for m in materials]
+            totals = start_time(ramp_iterations(relaxation, plate_sets, ratios, float(np.median(length)),
+                                                model.safety), dt)
+        # the scale of each model's lowest eigenvalue: mean mu / rho over the volume (m^2/s^2)
+        speed_squared = np.array([float(np.sum(vol * mat.mu / rho) / np.sum(vol))
+                                  for mat, rho in zip(materials, densities)])
         sample_every = relaxation.update_every
     total = float(totals.max())  # the batch's loading ends with its slowest model's
     def lumped(element_density):
@@ -509,6 +530,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         visco_state = wp.zeros(max(B * M * K, 1), dtype=wp.mat33)
         if model.prestate is not None:  # at rest in the pre-stressed state
             initial_displacement = model.prestate.displacement
+        if warm_start is not None:
+            initial_displacement = warm_start.displacement
         u0 = np.zeros((B * N, 3)) if initial_displacement is None else np.repeat(
             np.asarray(initial_displacement, float).reshape(N, 3) * MM, B, axis=0)
         # the state: displacement u (m), its float32 rounding remainder and the last increment
@@ -526,7 +549,14 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         d_body_start = arr(weight[:, None] * start_gravity, wp.vec3)
         d_body_force = arr(weight[:, None] * (model.loading.gravity - start_gravity), wp.vec3)
         # dynamic relaxation starts critically damped for a mode of period ~ the loading time
-        damping = np.full(B, model.damping) if relaxation is None else 4.0 * np.pi / totals
+        damping = np.full(B, model.damping) if relaxation is None else 4.0 * np.pi / cold_load_time
+        # a warm start's damping never exceeds its start's lowest mode critical damping: the first
+        # Rayleigh quotients after it measure the start's local misfit (high modes), not the lowest
+        # mode, and would overdamp the approach (and mislead the distance estimate)
+        damping_cap = np.full(B, np.inf)
+        if warm_start is not None and np.isfinite(warm_start.lowest_eigenvalue):
+            damping_cap = warm_start.critical_damping(speed_squared)
+            damping = np.minimum(damping, damping_cap)
         d_totals = arr(totals, float)
         d_damping = arr(damping, float)
         loads = k.NodeLoads()
@@ -654,6 +684,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         estimated_error = np.full(B, np.nan)
         updates = np.zeros(B, int)  # relaxation updates since each model's load was complete
         checks_below = np.zeros(B, int)
+        lowest = np.full(B, np.inf)  # the least Rayleigh quotient after each model's load (1/s^2)
+        mass_growth = np.ones(B)
         converged_at = np.zeros(B, int)
         converged_forces = np.zeros((B, P, 3))
         settled_checks = 0
@@ -689,6 +721,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 return stable
             grow = np.maximum((dt / (0.8 * stable)) ** 2, 1.0)
             mass[:] = mass * np.tile(grow, N)
+            mass_growth[:] = mass_growth * grow
             d_mass.assign(mass.astype(f32))
             monitor.omega_squared /= grow
             mass_rescales += 1
@@ -787,7 +820,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 loaded = done * dt >= totals
                 if loaded.any():
                     ok = (lam > 0) & loaded
-                    damping[ok] = np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt)
+                    damping[ok] = np.minimum(np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt), damping_cap[ok])
+                    lowest[ok & (active == 1)] = np.minimum(lowest, lam)[ok & (active == 1)]
                     d_damping.assign(damping.astype(f32))
                     remaining = distance_to_rest.estimate()
                     if remaining is not None:
@@ -851,5 +885,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             status=statuses[b], message=messages[b], steps=steps[b], time_step=dt, wall_time=wall,
             ke_ie_at_end_of_loading=ke_ie_end_of_loading, history=hist,
             estimated_error_mm=float(estimated_error[b]), stable_time_step=float(stable_step[b]),
-            plate_normals=np.array([p.normal for p in plate_sets[b]]).reshape(P, 3)))
+            plate_normals=np.array([p.normal for p in plate_sets[b]]).reshape(P, 3),
+            lowest_eigenvalue=float(lowest[b]) if relaxation is not None and np.isfinite(lowest[b]) else float("nan"),
+            shear_speed_squared=float(speed_squared[b] / mass_growth[b]) if relaxation is not None else float("nan")))
     return solutions
