@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
@@ -17,6 +18,7 @@ import SimpleITK as sitk
 from BreastBiomechLib.landmarks import LandmarkMapper, Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.space import ParameterSpace
+from BreastBiomechLib.optimisation.warm_starts import FitWarmStarts
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 from BreastBiomechLib.solver.retries import RETRIES, solve_batch_with_retries
 
@@ -67,13 +69,17 @@ class FittingProblem:
     body mask for the surface objectives (default: found in ``measured``); ``mask``: the
     measured voxels compared (default: all); ``bins``: NMI histogram bins; ``relaxation``: the
     dynamic relaxation settings of every forward solve; ``device``: warp device. Plate offsets
-    free in ``space`` move the measured ``plates`` along their normals, model by model."""
+    free in ``space`` move the measured ``plates`` along their normals, model by model.
+    ``warm_starts``: each batch starts at the equilibrium of the best completed evaluation so
+    far (:mod:`~BreastBiomechLib.optimisation.warm_starts`; not with plate friction, whose
+    equilibrium depends on the path); a model that fails from there is solved again cold, so
+    warm starts change no outcome beyond the relaxation's tolerance."""
 
     def __init__(self, space: ParameterSpace, mesh: TetMesh, undeformed: sitk.Image, measured: sitk.Image,
                  plates: list[dict], landmarks: tuple[Landmarks, Landmarks] | None = None,
                  objective: str = "nmi", landmark_weight: float = 0.01, surface_weight: float = 0.01,
                  body: sitk.Image | None = None, mask=None, bins: int = 64,
-                 relaxation: DynamicRelaxation | None = None, device=None):
+                 relaxation: DynamicRelaxation | None = None, device=None, warm_starts: bool = True):
         from BreastBiomechLib.io.cases import case_from_dict, compression_case
         from BreastBiomechLib.similarity import Similarity
         from BreastBiomechLib.solver.placement import plates_to_final_planes
@@ -102,6 +108,7 @@ class FittingProblem:
         self._landmark_mapper = LandmarkMapper(mesh, landmarks[0]) if landmarks is not None else None
         self.device = device
         self.relaxation = relaxation or DynamicRelaxation()
+        self.warm_starts = FitWarmStarts() if warm_starts else None
         # the loading of `breastbiomech mesh`'s case (chest wall, field-of-view cuts), with the
         # measured plates in place of placed ones
         # (its default materials stand in until each evaluation sets its own)
@@ -149,16 +156,45 @@ class FittingProblem:
             raise ValueError("no breast skin node lies inside the measured image after the deformation")
         return float(np.nanmean(distances))
 
-    def solve(self, positions, relaxation: DynamicRelaxation | None = None) -> list:
+    def solve(self, positions, relaxation: DynamicRelaxation | None = None, warm_start=None) -> list:
         """The FE solutions (:class:`~BreastBiomechLib.solver.Solution`) at unit positions (B, d),
-        in one batched solve (``relaxation``: other settings than the problem's)."""
+        in one batched solve (``relaxation``: other settings than the problem's; ``warm_start``:
+        a :class:`~BreastBiomechLib.solver.warm.WarmStart`, None: cold)."""
         from BreastBiomechLib.solver import solve_batch
 
         positions = np.atleast_2d(np.asarray(positions, float))
         materials = [self.space.element_materials(z, self.tissue) for z in positions]
         plates = [self.plate_displacements(z) for z in positions] if self.space.plates else None
         return solve_batch(self.model, materials, plates, device=self.device,
-                           relaxation=relaxation or self.relaxation)
+                           relaxation=relaxation or self.relaxation, warm_start=warm_start)
+
+    def start_fit(self, folder: str | Path | None = None, recorded: list | None = None) -> None:
+        """A new fit begins (or a resumed one goes on): its first batch starts cold, or at the
+        best of the ``recorded`` evaluations it resumes; with a results ``folder`` the starts
+        are kept there (see :mod:`~BreastBiomechLib.optimisation.warm_starts`)."""
+        if self.warm_starts is None:
+            return
+        self.warm_starts = FitWarmStarts()
+        if folder is not None:
+            self.warm_starts.attach(folder, recorded or [])
+
+    @property
+    def warm_start(self):
+        """The start of the next batch (None: cold): warm starts on and the plates frictionless."""
+        if self.warm_starts is None or any(p.friction > 0 for p in self.model.loading.plates):
+            return None
+        return self.warm_starts.current
+
+    def _solve_batch(self, positions) -> list:
+        """:meth:`solve` from :attr:`warm_start`; the models that fail from there solved again
+        cold in one batch (a warm start adds no failure)."""
+        start = self.warm_start
+        solutions = self.solve(positions, warm_start=start)
+        failed = [i for i, s in enumerate(solutions) if not s.ok]
+        if start is not None and failed:
+            for i, solution in zip(failed, self.solve(positions[failed])):
+                solutions[i] = solution
+        return solutions
 
     def solve_alone(self, z, retries: int = RETRIES):
         """The solution at one unit position ``z``, solved by itself (the outputs of a fit's best
@@ -181,7 +217,7 @@ class FittingProblem:
         :attr:`failed_objective` and their status."""
         positions = np.atleast_2d(np.asarray(positions, float))
         started = time.perf_counter()
-        solutions = self.solve(positions)
+        solutions = self._solve_batch(positions)
         seconds = time.perf_counter() - started
         out = []
         for z, solution in zip(positions, solutions):
@@ -202,4 +238,7 @@ class FittingProblem:
             out.append(Evaluation([float(v) for v in z], self.space.values(z), float(objective), float(nmi),
                                   float(ncc), mean, worst, solution.status, int(solution.steps),
                                   round(seconds, 3), surface, "" if solution.ok else solution.message))
+        if self.warm_starts is not None:
+            for z, evaluation, solution in zip(positions, out, solutions):
+                self.warm_starts.offer(z, evaluation.objective, solution, self.plate_displacements(z))
         return out

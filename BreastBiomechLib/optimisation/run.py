@@ -5,6 +5,7 @@ Results folder::
 
     settings.json      the parameter space, optimiser, seed, budget and objective (checked on resume)
     evaluations.jsonl  every evaluation, one JSON object per line, appended as it is made
+    warm_starts/       the equilibrium the next batch starts at (see optimisation/warm_starts.py)
     result.json        the best evaluation, its materials, the stop reason and the figures
 """
 
@@ -20,7 +21,7 @@ from BreastBiomechLib.io.atomic import write_json_atomically
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation import search
 from BreastBiomechLib.optimisation.forward import Evaluation, FittingProblem
-from BreastBiomechLib.optimisation.record import EvaluationLog
+from BreastBiomechLib.optimisation.record import EvaluationLog, read_evaluations
 
 
 @dataclass
@@ -95,6 +96,8 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
             write_json_atomically(settings_path, settings)
         started = time.perf_counter()
         log = EvaluationLog(problem.evaluate, budget, seconds, path, resume, progress)
+        problem.start_fit(None if out_dir is None else Path(out_dir) / "warm_starts",
+                          read_evaluations(path) if resume and path is not None and path.exists() else [])
         if optimiser == "hybrid":
             search.hybrid(log, z0, seed)
         else:
