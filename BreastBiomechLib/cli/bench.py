@@ -323,7 +323,7 @@ BENCH_TRUTH = {"glandular.E": 25e3, "muscle.E": 80e3, "tumour.E": 120e3, "fat.nu
 
 
 def bench_fitting_problem(radii_mm=(70.0, 60.0, 65.0), element_mm: float = 4.0, voxel_mm=(1.0, 1.0, 2.5),
-                          relaxation=None, device=None, measured: bool = True, warm_starts: bool = True):
+                          relaxation=None, device=None, measured: bool = True, warm_starts: bool = False):
     """The fitting problem ``bench optimise`` fits: the aniso-hetero space (4 tissues x E, nu,
     eta; fat's E the reference) on the synthetic breast of ``radii_mm`` in cubes of
     ``element_mm`` (10 mm of muscle, a tumour of 0.3 x the LR radius) imaged at ``voxel_mm``,
@@ -353,7 +353,7 @@ def _bench_optimise(args) -> dict:
 
     relaxation = DynamicRelaxation(tolerance_mm=0.01 if args.tolerance_mm is None else args.tolerance_mm)
     problem = bench_fitting_problem(args.radii, args.element_mm, args.voxel_mm, relaxation, args.device,
-                                    warm_starts=not args.cold_starts)
+                                    warm_starts=args.warm_starts)
     space = problem.space
     started = time.perf_counter()
     result = optimise(problem, args.optimiser, budget=args.budget, seed=args.seed, out_dir=args.out,
@@ -365,7 +365,7 @@ def _bench_optimise(args) -> dict:
     best_so_far = np.maximum.accumulate([e.nmi if e.status == "completed" else 0.0 for e in result.evaluations])
     quarters = sorted({max(1, round(q * len(best_so_far))) for q in (0.25, 0.5, 0.75, 1.0)})
     return {"benchmark": "optimise", "version": __version__, "device": str(problem.warper.device),
-            "optimiser": args.optimiser, "warm_starts": not args.cold_starts,
+            "optimiser": args.optimiser, "warm_starts": args.warm_starts,
             "tets": len(problem.mesh.tets), "nodes": len(problem.mesh.nodes),
             "voxels": int(problem.similarity.voxels), "free_parameters": space.dimension,
             "budget": args.budget, "evaluations": len(result.evaluations), "stopped": result.stopped,
@@ -558,8 +558,9 @@ def add_parsers(sub) -> None:
                    help="solver, physical time: stop settling once this close to rest (mm)")
     p.add_argument("--relaxation", action="store_true", help="solver: dynamic relaxation (tolerance 0.01 mm)")
     p.add_argument("--friction", type=non_negative, default=0.0, help="solver: the plates' Coulomb friction mu")
-    p.add_argument("--cold-starts", action="store_true",
-                   help="optimise: every forward solve from the undeformed breast (no warm starts)")
+    p.add_argument("--warm-starts", action="store_true",
+                   help="optimise: each batch of solves starts at the best evaluation's equilibrium (see "
+                        "docs/benchmarks.md: not yet faster on this benchmark)")
     p.add_argument("--warm-start", type=positive, default=None, metavar="FACTOR",
                    help="solver, dynamic relaxation: start at the equilibrium of the same breast with its shear "
                         "modulus times FACTOR (a fit's nearby parameter set; solved first, outside the timing)")

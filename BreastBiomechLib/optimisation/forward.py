@@ -72,14 +72,15 @@ class FittingProblem:
     free in ``space`` move the measured ``plates`` along their normals, model by model.
     ``warm_starts``: each batch starts at the equilibrium of the best completed evaluation so
     far (:mod:`~BreastBiomechLib.optimisation.warm_starts`; not with plate friction, whose
-    equilibrium depends on the path); a model that fails from there is solved again cold, so
-    warm starts change no outcome beyond the relaxation's tolerance."""
+    equilibrium depends on the path); a model that fails from there is solved again cold. Off
+    by default: on ``bench optimise`` (11 free parameters, CMA-ES) the warm solves took longer
+    than cold ones and converged less often (docs/benchmarks.md, "Warm starts")."""
 
     def __init__(self, space: ParameterSpace, mesh: TetMesh, undeformed: sitk.Image, measured: sitk.Image,
                  plates: list[dict], landmarks: tuple[Landmarks, Landmarks] | None = None,
                  objective: str = "nmi", landmark_weight: float = 0.01, surface_weight: float = 0.01,
                  body: sitk.Image | None = None, mask=None, bins: int = 64,
-                 relaxation: DynamicRelaxation | None = None, device=None, warm_starts: bool = True):
+                 relaxation: DynamicRelaxation | None = None, device=None, warm_starts: bool = False):
         from BreastBiomechLib.io.cases import case_from_dict, compression_case
         from BreastBiomechLib.similarity import Similarity
         from BreastBiomechLib.solver.placement import plates_to_final_planes
