@@ -65,13 +65,13 @@ class FitWarmStarts:
         start = WarmStart.from_solution(solution, plate_displacements)
         if self.folder is not None:
             self.folder.mkdir(parents=True, exist_ok=True)
-            with atomic_path(self.folder / _file_name(z)) as temporary:
+            path = self.folder / _file_name(z)
+            with atomic_path(path) as temporary:
                 with open(temporary, "wb") as stream:
                     np.savez(stream, displacement=start.displacement,
                              plate_displacements=np.zeros((0, 3)) if plate_displacements is None
                              else np.asarray(plate_displacements, float),
                              lowest_eigenvalue=start.lowest_eigenvalue, shear_speed_squared=start.shear_speed_squared)
-            path = self.folder / _file_name(z)
             self._written = [p for p in self._written if p != path][-(KEPT - 1):] + [path]
             for old in set(self.folder.glob("*.npz")) - set(self._written):
                 old.unlink()

@@ -201,6 +201,12 @@ def wave_modulus(mat: ElementMaterials) -> np.ndarray:
     return mat.kappa + 4.0 * mat.mu / 3.0 + 16.0 * mat.eta / 9.0
 
 
+def wave_speed_ratio(mat: ElementMaterials) -> float:
+    """The largest c_dilatational / c_shear = sqrt(wave_modulus / mu) over the elements: how many
+    times faster than the slowest shear wave the loads' prescribed motion must stay below."""
+    return float(np.max(np.sqrt(wave_modulus(mat) / mat.mu)))
+
+
 def critical_time_step(model: Model, materials: list[ElementMaterials], length_m: np.ndarray | None = None) -> float:
     """min over elements and batch of L_e / c_d, c_d = sqrt(wave_modulus / rho) (s), the fibres
     counted; ``length_m`` the element altitudes if already computed."""
@@ -382,7 +388,7 @@ def relaxation_load_iterations(model: Model, materials: list[ElementMaterials], 
     extent = float(np.max(np.ptp(nodes, axis=0)))
     return np.array([
         relaxation.load_iterations_for(max([np.abs(p.displacement).max() for p in ps] + [constrained]),
-                                       float(np.max(np.sqrt(wave_modulus(m) / m.mu))),
+                                       wave_speed_ratio(m),
                                        float(np.median(length_m)), model.safety,
                                        extent if any(p.friction > 0 for p in ps) else 0.0)
         for m, ps in zip(materials, plate_sets)])
@@ -479,7 +485,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         cold_load_time = totals  # sets the damping before the first update, warm or cold
         if warm_start is not None:
             plate_sets = started_plates(model, warm_start, plate_sets)
-            ratios = [float(np.max(np.sqrt(wave_modulus(m) / m.mu))) for m in materials]
+            ratios = [wave_speed_ratio(m) for m in materials]
             totals = start_time(ramp_iterations(relaxation, plate_sets, ratios, float(np.median(length)),
                                                 model.safety), dt)
         # the scale of each model's lowest eigenvalue: mean mu / rho over the volume (m^2/s^2)
