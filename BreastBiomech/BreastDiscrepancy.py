@@ -65,8 +65,8 @@ class BreastDiscrepancy(ScriptedLoadableModule):
         self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Find where a fitted breast model and the measured compressed scan disagree, which physical effect "
-            "(plate friction, gravity and the unloaded state, chest-wall sliding, skin, anisotropy, heterogeneity, "
-            "tumour stiffness, plate tilt or offset) is missing, with the evidence on the images; accept it, refit "
+            "(plate friction, gravity and the unloaded state, the chest wall holding the breast, skin, anisotropy, "
+            "heterogeneity, tumour stiffness, plate tilt or offset) is missing, with the evidence on the images; accept it, refit "
             "and see the gap shrink. Each round stays in the scene. From the Python console: "
             "logic = slicer.util.getModuleLogic('BreastDiscrepancy'), then logic.diagnose(p), "
             "logic.showCandidate(p, name), logic.accept(p, name), logic.reject(p, name), logic.saveReport(p). "

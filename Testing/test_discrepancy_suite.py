@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from BreastBiomechLib.discrepancy.suite import (HIDDEN_EFFECTS, MEASURED_FILES, SuiteCase, case_result,
+from BreastBiomechLib.discrepancy.suite import (HIDDEN_EFFECTS, MEASURED_FILES, SuiteCase, SuiteSettings, case_result,
                                                 measured_copy, scores_markdown, suite_cases, suite_scores)
 from BreastBiomechLib.phantom.compressed import TruthModel
 
@@ -66,6 +66,40 @@ def test_the_unknown_effects_change_the_truth_where_they_say(truth_model):
         np.testing.assert_allclose(after.values[after.mask], np.broadcast_to([0.0, -4.0, 0.0], after.values.shape)[after.mask])
     assert TruthModel(stiff_band=[4, 15], chest_wall_shift_mm=[0, -4, 0]).hidden_effects == [
         "stiff band x4, 15 mm", "chest-wall shift [0.0, -4.0, 0.0] mm"]
+
+
+def test_the_seed_s_rig_holds_one_plate_against_the_breast(compressed_case_dir):
+    """moving_plate "second": the first plate stays where it starts, touching the nearest skin it
+    can touch (not the breast's widest point in the band by the chest that plates leave free);
+    the second travels the whole closure."""
+    from BreastBiomechLib.io.cases import case_from_dict, compression_case
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    mesh = read_vtu(compressed_case_dir / "compressed" / "truth_mesh.vtu")
+    both, _ = case_from_dict(compression_case(mesh, "truth_mesh.vtu", "LR", 0.25), mesh)
+    seed, _ = case_from_dict(compression_case(mesh, "truth_mesh.vtu", "LR", 0.25, moving="second"), mesh)
+    held, moving = seed.loading.plates
+    assert not np.any(held.displacement)
+    np.testing.assert_allclose(moving.displacement, 2 * both.loading.plates[1].displacement)
+    gaps = held.gaps(mesh.nodes[held.slave_nodes])
+    assert gaps.min() == pytest.approx(0.0, abs=1e-5)
+    assert held.point[0] >= both.loading.plates[0].point[0]  # moved onto the tissue it can touch
+    with pytest.raises(ValueError, match="moving plate is one of"):
+        TruthModel(moving_plate="lateral")
+    with pytest.raises(ValueError, match="moving_plate is one of"):
+        SuiteSettings(moving_plate="lateral")
+
+
+def test_the_hidden_chest_wall_holds_the_breast_along_the_chest(truth_model):
+    """The suite's hidden chest wall: held across the local chest surface, with springs of
+    3.4 kPa/mm along it, in place of the seed's anterior-posterior hold."""
+    from BreastBiomechLib.phantom.compressed import _with_hidden_effects
+
+    model, settings = truth_model
+    held, _ = _with_hidden_effects(model, TruthModel(**HIDDEN_EFFECTS["chest-wall"].truth), settings.relaxation, "cpu")
+    (support,) = held.loading.supports
+    assert support.mode == "sliding" and support.tangential_stiffness == 3400.0
+    np.testing.assert_array_equal(support.nodes, np.unique(model.mesh.node_set("chest_wall")))
 
 
 def test_bad_unknown_effects_are_refused():

@@ -41,7 +41,7 @@ def _add_phantom_options(p: argparse.ArgumentParser) -> None:
 def _truth_model(args):
     """The truth of ``phantom --compressed``: the Table 1 preset of ``--case`` (else the
     default truth), with ``--compression``, ``--axis``, ``--truth-edge-mm``,
-    ``--chest-clearance-mm`` and the hidden effects applied."""
+    ``--chest-clearance-mm``, ``--moving-plate`` and the hidden effects applied."""
     from dataclasses import replace
 
     from BreastBiomechLib.phantom.compressed import TruthModel, table1_truth
@@ -50,7 +50,7 @@ def _truth_model(args):
     compression = truth.compression if args.compression is None else args.compression
     tilt = None if args.plate_tilt is None else [list(args.plate_tilt), [0.0, 0.0]]
     return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm,  # checked again
-                   chest_clearance_mm=args.chest_clearance_mm,
+                   chest_clearance_mm=args.chest_clearance_mm, moving_plate=args.moving_plate,
                    friction=args.friction, gravity=args.gravity, compression_gravity=args.compression_gravity,
                    chest_wall=args.chest_wall, chest_wall_stiffness=list(args.chest_wall_stiffness),
                    plate_tilt_deg=tilt, skin=None if args.skin is None else list(args.skin),
@@ -65,6 +65,7 @@ def cmd_phantom(args) -> int:
     if not args.compressed and args.compression is not None:
         raise ValueError("--compression applies to a compressed case: add --compressed")
     effects = {"--chest-clearance-mm": args.chest_clearance_mm is not None or None,
+               "--moving-plate": args.moving_plate != "both" or None,
                "--friction": args.friction, "--gravity": args.gravity, "--compression-gravity": args.compression_gravity,
                "--plate-tilt": args.plate_tilt, "--chest-wall": args.chest_wall != "fixed" or None,
                "--skin": args.skin, "--stiff-band": args.stiff_band, "--chest-wall-shift": args.chest_wall_shift}
@@ -135,6 +136,10 @@ def add_parsers(sub) -> None:
     p.add_argument("--chest-clearance-mm", type=non_negative,
                    help="how far anterior to the chest the plates' flat faces end (mm; default: the plate travel, "
                         "at least 5 mm); their edges are rounded")
+    p.add_argument("--moving-plate", choices=("both", "first", "second"), default="both",
+                   help="which plate closes on the breast: both (half the travel each; default), or only the first "
+                        "or second (lower or higher LPS coordinate) towards the other, held one, as the seed's rig "
+                        "(its lateral movable plate is the second of LR for the phantom's left breast)")
     p.add_argument("--device", type=device_argument, help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
     effects.add_argument("--friction", type=non_negative, default=0.0, help="the plates' Coulomb friction mu")

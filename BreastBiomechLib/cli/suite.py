@@ -24,7 +24,8 @@ def cmd_suite(args) -> int:
                              fit_surface_edge_mm=args.fit_surface_edge_mm,
                              refine_interfaces=not args.no_refine, fit_blur_mm=args.fit_blur_mm, fit_budget=args.fit_budget,
                              fit_population=args.fit_population, rounds=args.rounds,
-                             landmark_noise_mm=args.landmark_noise_mm, chest_clearance_mm=args.chest_clearance_mm)
+                             landmark_noise_mm=args.landmark_noise_mm, chest_clearance_mm=args.chest_clearance_mm,
+                             moving_plate=args.moving_plate)
     if args.score_only:
         if not (out / "settings.json").is_file():
             raise FileNotFoundError(f"{out}: no suite run to score (no settings.json); run "
@@ -80,6 +81,9 @@ def add_parsers(sub) -> None:
                    help=f"CMA-ES population (default {d.fit_population})")
     p.add_argument("--chest-clearance-mm", type=non_negative,
                    help="how far anterior to the chest the plates' flat faces end (mm; default: the plate travel)")
+    p.add_argument("--moving-plate", choices=("both", "first", "second"), default=d.moving_plate,
+                   help=f"which plate closes on the breast (default {d.moving_plate}: half the travel each; second: "
+                        "the lateral one towards the held medial one, the seed's rig)")
     p.add_argument("--rounds", type=positive_int, default=d.rounds, help=f"diagnosis rounds at most (default {d.rounds})")
     p.add_argument("--landmark-noise-mm", type=non_negative, default=d.landmark_noise_mm,
                    help="localisation error (sd per coordinate, mm) put on the measured landmarks of each image "

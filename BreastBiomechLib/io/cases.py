@@ -363,12 +363,16 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
     :func:`~BreastBiomechLib.solver.supports.support_constraints` stop rigid motion); the
     default tissue materials; dynamic relaxation. ``mesh_file`` is written as the case's mesh.
 
-    The plates touch the skin nodes that start between them and lie more than
+    ``moving``: "both" plates close (half the travel each), or only the "first" or "second"
+    towards the other, held one, which is placed touching the nearest skin it can touch
+    (:func:`~BreastBiomechLib.solver.placement.held_plates_touching`). The plates touch the skin
+    nodes that start between them and lie more than
     ``chest_clearance_mm`` anterior to the chest (None: the plate travel per side, at least
     5 mm), listed in the case: see :func:`~BreastBiomechLib.solver.placement.plate_contacts`."""
     from BreastBiomechLib.labels import BY_LABEL
     from BreastBiomechLib.solver.materials import default_tissue_materials
-    from BreastBiomechLib.solver.placement import PLATE_SIDES, compression_plates, plate_contacts
+    from BreastBiomechLib.solver.placement import (PLATE_SIDES, compression_plates, held_plates_touching,
+                                                   plate_contacts)
     from BreastBiomechLib.solver.supports import support_constraints
 
     for name in ("chest_wall", "skin", "breast_skin", "fov_cut"):
@@ -381,6 +385,7 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
                                 names=PLATE_SIDES.get(str(axis).upper(), ("plate1", "plate2")), moving=moving,
                                 extent_nodes=mesh.node_set("breast_skin"))
     contacts = plate_contacts(mesh, skin, plates, chest_clearance_mm)
+    plates = held_plates_touching(mesh.nodes, plates, contacts)
     for plate in plates:
         plate.slave_nodes = contacts
     cut = mesh.node_set("fov_cut")

@@ -19,6 +19,7 @@ from BreastBiomechLib.landmarks import Landmarks, map_landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.phantom.generate import PhantomCase, _bias_field, _Grid
 from BreastBiomechLib.phantom.parameters import INTENSITY, PRONE_GRAVITY, TABLE1_COMPRESSION
+from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
 
 # Hidden truth materials (ours; within the seed's bounds): E in Pa, nu, eta in Pa.
 DEFAULT_TRUTH_MATERIALS = {
@@ -39,7 +40,12 @@ class TruthModel:
     -> {"E" (Pa), "nu", optional "eta" (Pa) and "fibre" (unit vector, LPS)}; ``edge_mm``: the
     truth mesh's element size; ``snr`` and ``bias_strength``: the measured image's noise and
     bias (None: the undeformed scan's); ``seed``: its random numbers;
-    ``chest_clearance_mm``: see :func:`BreastBiomechLib.solver.placement.plate_contacts`.
+    ``chest_clearance_mm``: see :func:`BreastBiomechLib.solver.placement.plate_contacts`;
+    ``moving_plate``: "both" plates close on the breast (half the travel each), or only the
+    "first" or "second" (lower or higher LPS coordinate along the axis) moves towards the other,
+    held one, as the seed's rig (a fixed and a movable plate; the phantoms are left breasts, so
+    the seed's lateral movable plate is the second of LR). The compressed case records only where
+    the plates end, as an image shows them: a fit finds the held plate's travel to be zero.
 
     Effects the seed's model leaves out, hidden in the truth (each off by default):
     ``friction``: the plates' Coulomb mu; ``gravity``: the gravity (m/s^2, LPS) the undeformed
@@ -68,6 +74,7 @@ class TruthModel:
     bias_strength: float | None = None
     seed: int = 1000
     chest_clearance_mm: float | None = None
+    moving_plate: str = "both"
     friction: float = 0.0
     gravity: list | None = None
     compression_gravity: list | None = None
@@ -83,6 +90,8 @@ class TruthModel:
             raise ValueError("compression must lie between 0 and 0.7 of the breast thickness")
         if self.edge_mm <= 0:
             raise ValueError("the truth mesh's element size must be positive (mm)")
+        if self.moving_plate not in MOVING_PLATES:
+            raise ValueError(f"the truth's moving plate is one of {MOVING_PLATES}, not {self.moving_plate!r}")
         if not (np.isfinite(self.friction) and self.friction >= 0):
             raise ValueError(f"the truth's plate friction must be a finite number >= 0, not {self.friction}")
         for name in ("gravity", "compression_gravity"):
@@ -193,7 +202,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         mesh = mesh_labels(case.labels, MeshSettings(edge_mm=truth.edge_mm),
                            nipple_mm=case.landmarks.position("nipple")).mesh
     report(0.3, "truth simulation")
-    spec = compression_case(mesh, "truth_mesh.vtu", truth.axis, truth.compression,
+    spec = compression_case(mesh, "truth_mesh.vtu", truth.axis, truth.compression, moving=truth.moving_plate,
                             chest_clearance_mm=truth.chest_clearance_mm)
     present = set(spec["materials"])
     missing = present - set(truth.materials)

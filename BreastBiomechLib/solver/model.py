@@ -148,7 +148,8 @@ class SurfaceSupport:
     ``normals`` (K, 3, unit; the direction's sign does not matter), each standing for the surface
     ``areas`` (K,) mm^2 around it. ``mode`` "sliding": zero normal displacement (kinematic,
     bilateral) and free along the surface, or held there by ``tangential_stiffness``; "elastic":
-    springs of ``normal_stiffness`` (> 0) and ``tangential_stiffness`` across and along it. The
+    springs of ``normal_stiffness`` and ``tangential_stiffness`` across and along it (at least
+    one > 0; springs along it only where a fixed constraint holds the nodes across it). The
     stiffnesses are per area, Pa/mm (the spring force on a node is the stiffness x its area x its
     displacement's part; 1 kPa/mm holds 1 mm^2 with 1 mN per mm). Fixed supports are
     constraints (:class:`Constraint`); :func:`BreastBiomechLib.solver.supports.chest_wall_support` makes
@@ -178,8 +179,8 @@ class SurfaceSupport:
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"the support's {name} must be a finite number >= 0 (Pa/mm), not {value}")
             setattr(self, name, value)
-        if self.mode == "elastic" and self.normal_stiffness == 0:
-            raise ValueError("an elastic support needs a normal stiffness > 0 (Pa/mm); with none it is sliding")
+        if self.mode == "elastic" and self.normal_stiffness == 0 and self.tangential_stiffness == 0:
+            raise ValueError("an elastic support needs a spring (normal or tangential stiffness > 0, Pa/mm)")
         if self.mode == "sliding" and self.normal_stiffness:
             raise ValueError("a sliding support has no normal stiffness (its normal displacement is zero); "
                              "use mode 'elastic' for a spring across the surface")

@@ -54,6 +54,30 @@ def within_reach(nodes_mm: np.ndarray, candidates, plates: list[Plate]) -> np.nd
     return candidates[keep]
 
 
+def held_plates_touching(nodes_mm: np.ndarray, plates: list[Plate], contacts) -> list[Plate]:
+    """``plates`` with each held one (no displacement) moved along its normal until it touches the
+    nearest of its ``contacts`` (node ids): a held plate placed against the breast's widest
+    point, where that lies in the band by the chest that plates do not touch, would otherwise
+    stand off the tissue it is meant to hold, and the moving plate would push the breast over
+    instead of pressing it against the held one. Moving plates are returned as they are."""
+    from dataclasses import replace
+
+    contacts = np.asarray(contacts, dtype=np.int64).ravel()
+    placed = []
+    for plate in plates:
+        if np.any(plate.displacement) or len(contacts) == 0:
+            placed.append(plate)
+            continue
+        points = nodes_mm[contacts]
+        for _ in range(50):  # a node facing the rounded edge closes by less than the plate moves
+            gap = float(plate.gaps(points).min())
+            if gap <= 1e-6:
+                break
+            plate = replace(plate, point=plate.point + gap * plate.normal)
+        placed.append(plate)
+    return placed
+
+
 def final_planes(plates: list[Plate]) -> list[dict]:
     """Where ``plates`` end (what a compressed image shows, and plates.json holds): name, final
     ``point`` and ``normal`` (LPS mm, towards the tissue), the travel along the normal (mm) and

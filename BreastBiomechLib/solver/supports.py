@@ -122,6 +122,8 @@ def chest_wall_support(mesh, nodes, kind: str = "fixed", components=(False, True
         held = (f"; rigid motion stopped by {sum(len(c.nodes) for c in constraints[1:])} anchor nodes"
                 if len(constraints) > 1 else "")
         return constraints, [], f"chest wall fixed in {axes} ({len(nodes)} nodes){held}"
+    if kind == "elastic" and not normal_stiffness > 0:
+        raise ValueError("an elastic chest wall needs a normal stiffness > 0 (Pa/mm); with none it is sliding")
     normals, areas = surface_normals_and_areas(mesh, nodes)
     support = SurfaceSupport(nodes, normals, areas, kind, normal_stiffness, tangential_stiffness)
     springs = (f"springs {normal_stiffness:g} Pa/mm across, {tangential_stiffness:g} Pa/mm along" if kind == "elastic"

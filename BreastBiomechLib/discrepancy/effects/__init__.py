@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from BreastBiomechLib.discrepancy.effects.anisotropy import Anisotropy
 from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
-from BreastBiomechLib.discrepancy.effects.chest_wall import ChestWallSliding
+from BreastBiomechLib.discrepancy.effects.chest_wall import ChestWallHold
 from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
 from BreastBiomechLib.discrepancy.effects.gravity import GravityPrestress
 from BreastBiomechLib.discrepancy.effects.heterogeneity import Heterogeneity
@@ -28,12 +28,12 @@ def library(fitted, names=None) -> list[Effect]:
     if unknown:
         raise ValueError(f"unknown effects {unknown}; the library has {list(NAMES)}")
     plates = max(len(fitted.plates), 1)
-    made = {"friction": PlateFriction, "gravity": GravityPrestress, "chest-wall": ChestWallSliding,
+    made = {"friction": PlateFriction, "gravity": GravityPrestress, "chest-wall": ChestWallHold,
             "skin": SkinLayer, "anisotropy": Anisotropy, "heterogeneity": lambda: Heterogeneity.for_fit(fitted),
             "tumour": TumourStiffness, "plate-tilt": lambda: PlateTilt(plates),
             "plate-offset": lambda: PlateOffset(plates)}
     return [made[name]() for name in NAMES if name in names]
 
 
-__all__ = ["Effect", "EffectParameter", "NAMES", "library", "Anisotropy", "ChestWallSliding", "PlateFriction",
+__all__ = ["Effect", "EffectParameter", "NAMES", "library", "Anisotropy", "ChestWallHold", "PlateFriction",
            "GravityPrestress", "Heterogeneity", "PlateOffset", "PlateTilt", "SkinLayer", "TumourStiffness"]

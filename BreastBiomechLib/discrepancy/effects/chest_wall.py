@@ -1,4 +1,12 @@
-"""The breast sliding on the chest wall instead of being held by it."""
+"""The chest wall holding the breast along itself, where the fitted model lets it slide.
+
+The fitted model's chest wall is the seed's: its nodes held anterior-posteriorly only, so the
+breast base slides freely along a chest that faces the anterior direction (the supports' tests:
+sliding on a flat chest is that wall). What such a model can miss is the opposite: a chest wall
+that holds the tissue on it (the pectoral muscle attached to the ribs, an adherent
+retromammary fascia), which matters most where one plate moves and pushes the whole breast
+towards the other (the seed's rig): a free base follows, a held one does not.
+"""
 
 from __future__ import annotations
 
@@ -9,22 +17,29 @@ import numpy as np
 from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
 from BreastBiomechLib.discrepancy.variants import Variant
 
-REFERENCE_STIFFNESS = 340.0  # Pa/mm: about fat's shear modulus over a 10 mm layer
+REFERENCE_STIFFNESS = 340.0  # Pa/mm: about fat's shear modulus (3.4 kPa) over a 10 mm layer
 
 
-class ChestWallSliding(Effect):
-    """The chest wall's nodes held along the local chest-surface normal only, free along it but
-    for tangential springs of k_ref (1 - s) / s Pa/mm (:func:`~BreastBiomechLib.solver.supports.chest_wall_support`,
-    k_ref = :data:`REFERENCE_STIFFNESS`): s = 0 is the fit's chest wall (held
-    anterior-posteriorly, the seed's), s = 1 free sliding on the loose retromammary fascia. The
-    field-of-view cut stays fixed and holds the model."""
+def hold_stiffness(hold: float) -> float:
+    """The tangential spring stiffness (Pa/mm per area) of a chest-wall ``hold`` h in [0, 1):
+    k_ref h / (1 - h), k_ref = :data:`REFERENCE_STIFFNESS` (0 free, 1 tied)."""
+    return REFERENCE_STIFFNESS * hold / (1.0 - hold)
+
+
+class ChestWallHold(Effect):
+    """The chest wall's nodes keep the fit's anterior-posterior hold and gain springs along the
+    local chest surface of k_ref h / (1 - h) Pa/mm per area (:func:`hold_stiffness`): h = 0 is the
+    fit's chest wall (the breast free to slide on it, the nested case exactly), h = 0.9 about
+    fat's shear modulus over a 1 mm layer, h -> 1 a tied chest wall. The field-of-view cut stays
+    fixed."""
 
     name = "chest-wall"
-    title = "chest-wall sliding"
+    title = "chest-wall hold"
     acts_in = "the posterior band at the chest wall"
     own_model = True
     order = 2
-    parameters = (EffectParameter("s", "", 0.0, 0.0, 1.0, 1.0, "sliding freedom on the chest wall (1: free)"),)
+    parameters = (EffectParameter("h", "", 0.0, 0.0, 0.99, 0.9,
+                                  "hold of the chest wall along itself (0: free sliding, the fit's; 1: tied)"),)
 
     def unavailable(self, fitted) -> str | None:
         if "chest_wall" not in fitted.mesh.point_data or not len(fitted.mesh.node_set("chest_wall")):
@@ -32,19 +47,19 @@ class ChestWallSliding(Effect):
         return None
 
     def apply(self, variant: Variant, values, fitted) -> Variant:
-        from BreastBiomechLib.solver.supports import chest_wall_support
+        from BreastBiomechLib.solver.model import SurfaceSupport
+        from BreastBiomechLib.solver.supports import surface_normals_and_areas
 
-        s = float(np.clip(values[0], 0.0, 1.0))
-        if s == 0.0:
+        hold = float(np.clip(values[0], 0.0, self.parameters[0].upper))
+        if hold == 0.0:
             return variant
         mesh = variant.model.mesh
         chest = mesh.node_set("chest_wall")
-        cut = mesh.node_set("fov_cut") if "fov_cut" in mesh.point_data else np.zeros(0, np.int64)
-        held, supports, note = chest_wall_support(mesh, chest, "sliding",
-                                                  tangential_stiffness=REFERENCE_STIFFNESS * (1.0 - s) / s,
-                                                  anchor=not len(cut),
-                                                  held_by="the fixed field-of-view cut" if len(cut) else "")
+        normals, areas = surface_normals_and_areas(mesh, chest)
+        stiffness = hold_stiffness(hold)
+        springs = SurfaceSupport(chest, normals, areas, "elastic", 0.0, stiffness)
         loading = variant.model.loading
-        others = [c for c in loading.constraints if not np.array_equal(np.unique(c.nodes), np.unique(chest))]
-        loading = replace(loading, constraints=others + held, supports=supports, notes=[note])
+        loading = replace(loading, supports=list(loading.supports) + [springs],
+                          notes=list(loading.notes) + [f"chest wall held along itself by {stiffness:.0f} Pa/mm "
+                                                       f"(hold {hold:.2f}; {len(chest)} nodes)"])
         return replace(variant, model=replace(variant.model, loading=loading))

@@ -12,7 +12,9 @@ null                nothing beyond the fitted family                            
 friction            Coulomb mu 0.6 on both plates (skin on polycarbonate)       friction
 gravity             prone MR, compressed upright (gravity inferior; the         gravity
                     postures are in the case's record)
-chest-wall          the chest wall slides freely along itself                   chest-wall
+chest-wall          the chest wall holds the breast along itself: springs of    chest-wall
+                    3.4 kPa/mm (fat's shear modulus over a 1 mm layer), where
+                    the fitted (the seed's) model lets it slide freely
 skin                a 2 mm skin layer of 100 kPa                                skin
 plate-tilt          the first plate tilted 4° about its first tilt axis (the    plate-tilt
                     case records the nominal, parallel plates)
@@ -60,7 +62,7 @@ HIDDEN_EFFECTS: dict[str, HiddenEffect] = {h.name: h for h in (
     HiddenEffect("null"),
     HiddenEffect("friction", {"friction": 0.6}, ("friction",)),
     HiddenEffect("gravity", {"gravity": [0.0, -9.81, 0.0], "compression_gravity": [0.0, 0.0, -9.81]}, ("gravity",)),
-    HiddenEffect("chest-wall", {"chest_wall": "sliding"}, ("chest-wall",)),
+    HiddenEffect("chest-wall", {"chest_wall": "sliding", "chest_wall_stiffness": [0.0, 3400.0]}, ("chest-wall",)),
     HiddenEffect("skin", {"skin": [100e3, 2.0]}, ("skin",)),
     HiddenEffect("plate-tilt", {"plate_tilt_deg": [[4.0, 0.0], [0.0, 0.0]]}, ("plate-tilt",)),
     HiddenEffect("friction+plate-tilt", {"friction": 0.6, "plate_tilt_deg": [[4.0, 0.0], [0.0, 0.0]]},

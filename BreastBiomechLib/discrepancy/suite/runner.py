@@ -37,6 +37,7 @@ import numpy as np
 
 from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
 from BreastBiomechLib.io.atomic import write_json_atomically
+from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
 
 # what a clinic has of a compressed case: the fit and the diagnosis see nothing else
 MEASURED_FILES = ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json",
@@ -57,7 +58,10 @@ class SuiteSettings:
     ``landmark_noise_mm`` per coordinate (one sd; a person marking them), so that the fit and
     the diagnosis meet landmarks as uncertain as a clinic's. The plates' flat faces end
     ``chest_clearance_mm`` anterior to the chest (None: the plate travel, see
-    :func:`~BreastBiomechLib.solver.placement.plate_contacts`), in rounded edges."""
+    :func:`~BreastBiomechLib.solver.placement.plate_contacts`), in rounded edges. ``moving_plate``:
+    which plate closes on the breast (:class:`~BreastBiomechLib.phantom.compressed.TruthModel`):
+    both by default, half the travel each; "second" is the seed's rig for the phantoms' left
+    breasts (the lateral plate towards the held medial one)."""
 
     compression: float = 0.4
     spacing_mm: tuple[float, float, float] | None = None
@@ -72,6 +76,7 @@ class SuiteSettings:
     landmark_noise_mm: float = 0.35
     effects: list[str] | None = field(default=None)
     chest_clearance_mm: float | None = None
+    moving_plate: str = "both"
 
     def __post_init__(self) -> None:
         """Refuse settings no case could be made or fitted with, before anything runs (and
@@ -87,7 +92,9 @@ class SuiteSettings:
                   (self.rounds >= 1, f"the diagnosis needs at least one round, not {self.rounds}"),
                   (self.landmark_noise_mm >= 0, f"landmark_noise_mm must be >= 0, not {self.landmark_noise_mm}"),
                   (self.chest_clearance_mm is None or self.chest_clearance_mm >= 0,
-                   f"chest_clearance_mm must be >= 0 (mm), not {self.chest_clearance_mm}")]
+                   f"chest_clearance_mm must be >= 0 (mm), not {self.chest_clearance_mm}"),
+                  (self.moving_plate in MOVING_PLATES,
+                   f"moving_plate is one of {MOVING_PLATES}, not {self.moving_plate!r}")]
         if self.spacing_mm is not None:
             checks.append((len(self.spacing_mm) == 3 and all(0.3 <= v <= 4.0 for v in self.spacing_mm),
                            f"spacing_mm needs three voxel sizes of 0.3-4 mm, not {self.spacing_mm}"))
@@ -293,7 +300,8 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
         t = time.perf_counter()
         phantom = read_phantom(anatomy / "phantom")
         truth = TruthModel(compression=settings.compression, edge_mm=settings.truth_edge_mm, seed=case.seed,
-                           chest_clearance_mm=settings.chest_clearance_mm, **case.hidden.truth)
+                           chest_clearance_mm=settings.chest_clearance_mm, moving_plate=settings.moving_plate,
+                           **case.hidden.truth)
         compressed = compress_phantom(phantom, truth, device=device, mesh=read_vtu(anatomy / "truth_mesh.vtu"))
         for name in ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json"):
             if (anatomy / "phantom" / name).is_file():
