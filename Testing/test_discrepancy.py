@@ -152,3 +152,44 @@ def test_a_refit_whose_every_trial_fails_falls_back_on_the_solved_secant(null_ca
     # a secant that does not lower the residual is no refit: the failure stands
     [failed] = refit_module.refit(state, observed, sens, [friction])
     assert not failed.ok and failed.rss_after == float("inf") and not failed.note
+
+
+def test_a_refit_takes_the_shorter_step_where_the_full_one_overshoots(null_case, monkeypatch):
+    """A secant from the off value can overstate the step an effect needs (a chest-wall hold
+    saturates): once a trial lowers the residual, the refit tries the half step too and keeps the
+    best. Here the solved response is 1.5 times the linear one, so the full step lands at 1.5x
+    the measured shift (a residual sum of squares of about a quarter of before), the half step at
+    0.75x (about a sixteenth), the quarter step at 0.375x (worse again): the half step stands."""
+    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case, observations_of
+    from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+    from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
+    from BreastBiomechLib.discrepancy.variants import Outcome
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    case, fit = null_case
+    fitted = load_fitted_case(case, fit, device="cpu")
+    state = ModelState(fitted, fitted.z)
+    base = read_vtu(fit / "deformed_mesh.vtu").point_data["displacement"]
+    observed = observations_of(fitted, base)
+    friction = next(e for e in library(fitted) if e.name == "friction")
+    step = 0.3
+    shift = np.tile([0.0, 1.0, 0.0], (len(base), 1))
+    features = observed.predicted(base)
+    measured = observed.predicted(base + shift)
+    sens = Sensitivities(base, features, [k for k, *_ in state.nuisance()],
+                         np.zeros((len(features), len(state.nuisance()))),
+                         {"friction": ((measured - features) / step)[:, None]},
+                         {"friction": (shift / step)[None]}, {"friction": np.array([step])})
+    fractions = iter([1.0, 0.5, 0.25, 0.125])
+
+    def saturating(variants, *args, **kwargs):
+        return [Outcome(base + 1.5 * next(fractions) * shift, "completed", "") for _ in variants]
+
+    monkeypatch.setattr(refit_module, "solve_variants", saturating)
+    [result] = refit_module.refit(state, Observations(observed.labels, observed.channel, measured, observed.sigma,
+                                                      observed.points, observed._parts), sens, [friction])
+    assert result.ok and not result.note
+    np.testing.assert_allclose(result.values, [step / 2])
+    np.testing.assert_allclose(result.displacement, base + 0.75 * shift)
+    assert result.rss_after < 0.15 * result.rss_before  # about a sixteenth; the full step's about a quarter

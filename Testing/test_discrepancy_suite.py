@@ -71,7 +71,8 @@ def test_the_unknown_effects_change_the_truth_where_they_say(truth_model):
 def test_the_seed_s_rig_holds_one_plate_against_the_breast(compressed_case_dir):
     """moving_plate "second": the first plate stays where it starts, touching the nearest skin it
     can touch (not the breast's widest point in the band by the chest that plates leave free);
-    the second travels the whole closure."""
+    the second travels the whole closure, and the suite tilts that one where it hides a tilt."""
+    from BreastBiomechLib.discrepancy.suite.runner import hidden_truth
     from BreastBiomechLib.io.cases import case_from_dict, compression_case
     from BreastBiomechLib.io.meshes import read_vtu
 
@@ -84,6 +85,9 @@ def test_the_seed_s_rig_holds_one_plate_against_the_breast(compressed_case_dir):
     gaps = held.gaps(mesh.nodes[held.slave_nodes])
     assert gaps.min() == pytest.approx(0.0, abs=1e-5)
     assert held.point[0] >= both.loading.plates[0].point[0]  # moved onto the tissue it can touch
+    tilt = SuiteCase(1, HIDDEN_EFFECTS["plate-tilt"])
+    assert hidden_truth(tilt, SuiteSettings())["plate_tilt_deg"] == [[4.0, 0.0], [0.0, 0.0]]
+    assert hidden_truth(tilt, SuiteSettings(moving_plate="second"))["plate_tilt_deg"] == [[0.0, 0.0], [4.0, 0.0]]
     with pytest.raises(ValueError, match="moving plate is one of"):
         TruthModel(moving_plate="lateral")
     with pytest.raises(ValueError, match="moving_plate is one of"):

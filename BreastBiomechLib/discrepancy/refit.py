@@ -1,6 +1,7 @@
 """Adding a candidate effect and refitting: a bounded Gauss-Newton step of the nuisance and the
 effect's parameters together from their sensitivities (warm start at the current fit), checked
-by a forward solve at the step (halved while it does not lower the residual); then, for the
+by a forward solve at the step, halved while it does not lower the residual and, once it does,
+while the shorter step lowers it further (the best of the trials stands); then, for the
 effect that is added, further Gauss-Newton iterations from fresh sensitivities (:func:`refine`),
 since a secant from the off value is only the first guess of a nonlinear effect's size."""
 
@@ -70,6 +71,7 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities, ef
     rss_before = float(np.sum((weights * residual) ** 2))
     plans = [(effect, *_step(state, sens, effect, weights, residual)) for effect in effects]
     fraction = {effect.name: 1.0 for effect in effects}
+    best: dict[str, Refit] = {}  # the trial that lowered the residual most so far
     results: dict[str, Refit] = {}
     fitted = state.fitted
     for _ in range(HALVINGS + 1):
@@ -88,18 +90,32 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities, ef
             trials.append((effect, trial, values[p:], sd, rss_linear))
         outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
         for (effect, trial, values, sd, rss_linear), outcome in zip(trials, outcomes):
+            name, last = effect.name, fraction[effect.name] <= 0.5 ** HALVINGS
             if outcome.ok:
                 after = observations.residual(outcome.displacement)
                 rss_after = float(np.sum((weights * after) ** 2))
-                if rss_after < rss_before or fraction[effect.name] <= 0.5 ** HALVINGS:
-                    results[effect.name] = Refit(effect, values, sd, trial, rss_before, rss_after, rss_linear,
-                                                 outcome.displacement, after, outcome.status)
+                if rss_after < (best[name].rss_after if name in best else rss_before):
+                    # lower than before: keep it, and try the shorter step too (a step from the
+                    # secant overshoots where the effect saturates, as a chest-wall hold does)
+                    best[name] = Refit(effect, values, sd, trial, rss_before, rss_after, rss_linear,
+                                       outcome.displacement, after, outcome.status)
+                    if last:
+                        results[name] = best[name]
+                    fraction[name] /= 2
                     continue
-            elif fraction[effect.name] <= 0.5 ** HALVINGS:
-                results[effect.name] = Refit(effect, values, sd, trial, rss_before, float("inf"), rss_linear,
-                                             sens.displacement, residual, outcome.status)
+                if name in best or last:
+                    results[name] = best.get(name) or Refit(effect, values, sd, trial, rss_before, rss_after,
+                                                            rss_linear, outcome.displacement, after, outcome.status)
+                    continue
+            elif name in best:
+                results[name] = best[name]
                 continue
-            fraction[effect.name] /= 2
+            elif last:
+                results[name] = Refit(effect, values, sd, trial, rss_before, float("inf"), rss_linear,
+                                      sens.displacement, residual, outcome.status)
+                continue
+            fraction[name] /= 2
+    results = best | results
     for effect, _, _, sd, rss_linear, _ in plans:
         if effect.name not in results or not results[effect.name].ok:
             secant = _best_secant(state, sens, effect, observations, weights, rss_before, sd, rss_linear)

@@ -17,7 +17,8 @@ chest-wall          the chest wall holds the breast along itself: springs of    
                     the fitted (the seed's) model lets it slide freely
 skin                a 2 mm skin layer of 100 kPa                                skin
 plate-tilt          the first plate tilted 4° about its first tilt axis (the    plate-tilt
-                    case records the nominal, parallel plates)
+                    case records the nominal, parallel plates; where only the
+                    second plate moves, that one)
 friction+plate-tilt both                                                        both, in rounds
 stiff-band          a 15 mm oblique band of 4x stiffer breast tissue the MR     unexplained
                     does not show (not in the library)

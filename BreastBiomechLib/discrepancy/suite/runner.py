@@ -186,6 +186,16 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
         return figures
 
 
+def hidden_truth(case: SuiteCase, settings: SuiteSettings) -> dict:
+    """The :class:`~BreastBiomechLib.phantom.compressed.TruthModel` fields that hide ``case``'s
+    effect under ``settings``: a hidden plate tilt is put on the plate that moves where only the
+    second one does (a held plate tilted about its final point would stand off the tissue)."""
+    truth = dict(case.hidden.truth)
+    if truth.get("plate_tilt_deg") is not None and settings.moving_plate == "second":
+        truth["plate_tilt_deg"] = list(reversed(truth["plate_tilt_deg"]))
+    return truth
+
+
 def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, seed: int = 0) -> Path:
     """Copy of the compressed case in ``case_dir`` holding only :data:`MEASURED_FILES` (what a
     clinic would have: no labels, no truth), in ``into``; its landmarks (undeformed and
@@ -301,7 +311,7 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
         phantom = read_phantom(anatomy / "phantom")
         truth = TruthModel(compression=settings.compression, edge_mm=settings.truth_edge_mm, seed=case.seed,
                            chest_clearance_mm=settings.chest_clearance_mm, moving_plate=settings.moving_plate,
-                           **case.hidden.truth)
+                           **hidden_truth(case, settings))
         compressed = compress_phantom(phantom, truth, device=device, mesh=read_vtu(anatomy / "truth_mesh.vtu"))
         for name in ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json"):
             if (anatomy / "phantom" / name).is_file():
