@@ -110,16 +110,12 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     assert summary["added"] == []
 
 
-def test_a_refit_whose_every_trial_fails_falls_back_on_the_solved_secant(null_case, monkeypatch):
-    """Friction sticking at a plate's rounded edge can invert an element in every Gauss-Newton
-    trial of its refit; the effect's secant model, solved for the sensitivities, then stands as
-    the refit (noted), provided it lowers the residual. Here the measurement is made to be that
-    secant model (the current solution shifted 1 mm posteriorly), and every trial solve fails."""
+def _friction_secant(null_case, step: float = 0.3):
+    """(state, observed, friction, base, shift, secant_features, sens): the null case's
+    fit, its observations, the friction effect and sensitivities whose secant at ``step`` is the
+    current solution ``base`` shifted 1 mm posteriorly (``shift``)."""
     from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case, observations_of
-    from BreastBiomechLib.discrepancy import refit as refit_module
-    from BreastBiomechLib.discrepancy.observations import Observations
     from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
-    from BreastBiomechLib.discrepancy.variants import Outcome
     from BreastBiomechLib.io.meshes import read_vtu
 
     case, fit = null_case
@@ -128,14 +124,26 @@ def test_a_refit_whose_every_trial_fails_falls_back_on_the_solved_secant(null_ca
     base = read_vtu(fit / "deformed_mesh.vtu").point_data["displacement"]
     observed = observations_of(fitted, base)
     friction = next(e for e in library(fitted) if e.name == "friction")
-    step = 0.3
     shift = np.tile([0.0, 1.0, 0.0], (len(base), 1))
-    secant_features = observed.predicted(base + shift)
-    features = observed.predicted(base)
+    features, secant_features = observed.predicted(base), observed.predicted(base + shift)
     sens = Sensitivities(base, features, [k for k, *_ in state.nuisance()],
                          np.zeros((len(features), len(state.nuisance()))),
                          {"friction": ((secant_features - features) / step)[:, None]},
                          {"friction": (shift / step)[None]}, {"friction": np.array([step])})
+    return state, observed, friction, base, shift, secant_features, sens
+
+
+def test_a_refit_whose_every_trial_fails_falls_back_on_the_solved_secant(null_case, monkeypatch):
+    """Friction sticking at a plate's rounded edge can invert an element in every Gauss-Newton
+    trial of its refit; the effect's secant model, solved for the sensitivities, then stands as
+    the refit (noted), provided it lowers the residual. Here the measurement is made to be that
+    secant model (the current solution shifted 1 mm posteriorly), and every trial solve fails."""
+    from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+    from BreastBiomechLib.discrepancy.variants import Outcome
+
+    step = 0.3
+    state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case, step)
 
     def failing(variants, *args, **kwargs):
         return [Outcome(base, "inverted elements", "an element inverted at step 900") for _ in variants]
@@ -160,27 +168,13 @@ def test_a_refit_takes_the_shorter_step_where_the_full_one_overshoots(null_case,
     best. Here the solved response is 1.5 times the linear one, so the full step lands at 1.5x
     the measured shift (a residual sum of squares of about a quarter of before), the half step at
     0.75x (about a sixteenth), the quarter step at 0.375x (worse again): the half step stands."""
-    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case, observations_of
     from BreastBiomechLib.discrepancy import refit as refit_module
     from BreastBiomechLib.discrepancy.observations import Observations
-    from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
     from BreastBiomechLib.discrepancy.variants import Outcome
-    from BreastBiomechLib.io.meshes import read_vtu
 
-    case, fit = null_case
-    fitted = load_fitted_case(case, fit, device="cpu")
-    state = ModelState(fitted, fitted.z)
-    base = read_vtu(fit / "deformed_mesh.vtu").point_data["displacement"]
-    observed = observations_of(fitted, base)
-    friction = next(e for e in library(fitted) if e.name == "friction")
     step = 0.3
-    shift = np.tile([0.0, 1.0, 0.0], (len(base), 1))
-    features = observed.predicted(base)
-    measured = observed.predicted(base + shift)
-    sens = Sensitivities(base, features, [k for k, *_ in state.nuisance()],
-                         np.zeros((len(features), len(state.nuisance()))),
-                         {"friction": ((measured - features) / step)[:, None]},
-                         {"friction": (shift / step)[None]}, {"friction": np.array([step])})
+    state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case, step)
+    measured = secant_features
     fractions = iter([1.0, 0.5, 0.25, 0.125])
 
     def saturating(variants, *args, **kwargs):
