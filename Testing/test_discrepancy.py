@@ -164,26 +164,32 @@ def test_a_refit_whose_every_trial_fails_falls_back_on_the_solved_secant(null_ca
 
 def test_a_refit_takes_the_shorter_step_where_the_full_one_overshoots(null_case, monkeypatch):
     """A secant from the off value can overstate the step an effect needs (a chest-wall hold
-    saturates): once a trial lowers the residual, the refit tries the half step too and keeps the
-    best. Here the solved response is 1.5 times the linear one, so the full step lands at 1.5x
-    the measured shift (a residual sum of squares of about a quarter of before), the half step at
-    0.75x (about a sixteenth), the quarter step at 0.375x (worse again): the half step stands."""
+    saturates): where a trial lowers the residual by less than half of the linearised fall, the
+    refit tries the half step too and keeps the best. Here the solved response is 1.8 times the
+    linear one, so the full step lands at 1.8x the measured shift (a residual sum of squares of
+    0.64 of before: 36 % removed of a predicted 100 %), the half step at 0.9x (0.01 of before,
+    above half of its predicted 75 %): the half step stands and no quarter step is solved. Where
+    the response is 1.2x (0.04 of before after the full step) the full step stands at once."""
     from BreastBiomechLib.discrepancy import refit as refit_module
     from BreastBiomechLib.discrepancy.observations import Observations
     from BreastBiomechLib.discrepancy.variants import Outcome
 
     step = 0.3
     state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case, step)
-    measured = secant_features
-    fractions = iter([1.0, 0.5, 0.25, 0.125])
+    measured = Observations(observed.labels, observed.channel, secant_features, observed.sigma,
+                            observed.points, observed._parts)
+    for gain, taken in ((1.8, 0.5), (1.2, 1.0)):
+        solved = []
 
-    def saturating(variants, *args, **kwargs):
-        return [Outcome(base + 1.5 * next(fractions) * shift, "completed", "") for _ in variants]
+        def saturating(variants, *args, **kwargs):
+            fraction = 0.5 ** len(solved)
+            solved.append(fraction)
+            return [Outcome(base + gain * fraction * shift, "completed", "") for _ in variants]
 
-    monkeypatch.setattr(refit_module, "solve_variants", saturating)
-    [result] = refit_module.refit(state, Observations(observed.labels, observed.channel, measured, observed.sigma,
-                                                      observed.points, observed._parts), sens, [friction])
-    assert result.ok and not result.note
-    np.testing.assert_allclose(result.values, [step / 2])
-    np.testing.assert_allclose(result.displacement, base + 0.75 * shift)
-    assert result.rss_after < 0.15 * result.rss_before  # about a sixteenth; the full step's about a quarter
+        monkeypatch.setattr(refit_module, "solve_variants", saturating)
+        [result] = refit_module.refit(state, measured, sens, [friction])
+        assert result.ok and not result.note
+        assert solved == [1.0, 0.5][:len(solved)] and solved[-1] == taken
+        np.testing.assert_allclose(result.values, [step * taken])
+        np.testing.assert_allclose(result.displacement, base + gain * taken * shift)
+        assert result.rss_after < 0.05 * result.rss_before  # 0.01 and 0.04 of before

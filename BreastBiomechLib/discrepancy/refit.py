@@ -1,7 +1,9 @@
 """Adding a candidate effect and refitting: a bounded Gauss-Newton step of the nuisance and the
 effect's parameters together from their sensitivities (warm start at the current fit), checked
-by a forward solve at the step, halved while it does not lower the residual and, once it does,
-while the shorter step lowers it further (the best of the trials stands); then, for the
+by a forward solve at the step, halved while it does not lower the residual and, where it does
+but by less than half of what the linearisation predicts for that step (a secant overshoots
+where the effect saturates), while the shorter step lowers it further (the best of the trials
+stands); then, for the
 effect that is added, further Gauss-Newton iterations from fresh sensitivities (:func:`refine`),
 since a secant from the off value is only the first guess of a nonlinear effect's size."""
 
@@ -20,6 +22,13 @@ from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants
 
 HALVINGS = 3
+ACCEPTED_RATIO = 0.5  # a step that removes at least this share of its predicted reduction stands
+
+
+def _predicted_reduction(rss_before: float, rss_linear: float, fraction: float) -> float:
+    """The linearised fall of the residual sum of squares at ``fraction`` of the full step (the
+    model is quadratic in the step: (2f - f^2) times the full step's fall)."""
+    return (2.0 * fraction - fraction ** 2) * max(rss_before - rss_linear, 0.0)
 
 
 @dataclass
@@ -95,11 +104,13 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities, ef
                 after = observations.residual(outcome.displacement)
                 rss_after = float(np.sum((weights * after) ** 2))
                 if rss_after < (best[name].rss_after if name in best else rss_before):
-                    # lower than before: keep it, and try the shorter step too (a step from the
-                    # secant overshoots where the effect saturates, as a chest-wall hold does)
+                    # lower than before: keep it; where it fell short of the linearised fall, try
+                    # the shorter step too (a step from the secant overshoots where the effect
+                    # saturates, as a chest-wall hold does)
                     best[name] = Refit(effect, values, sd, trial, rss_before, rss_after, rss_linear,
                                        outcome.displacement, after, outcome.status)
-                    if last:
+                    predicted = _predicted_reduction(rss_before, rss_linear, fraction[name])
+                    if last or rss_before - rss_after >= ACCEPTED_RATIO * predicted:
                         results[name] = best[name]
                     fraction[name] /= 2
                     continue
