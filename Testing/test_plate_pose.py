@@ -45,6 +45,23 @@ def test_tilt_turns_the_final_plane_about_its_point_and_the_plate_starts_touchin
     assert abs(turned.edge.direction @ turned.normal) < 1e-12 and turned.edge.distance == 3.0
 
 
+def test_a_held_plate_placed_onto_the_tissue_to_rounding_takes_a_pose():
+    """The seed's rig's held plate is moved onto the skin until it is within
+    TOUCH_TOLERANCE_MM of it (placement.held_plates_touching); posing it untilted, or tilting it
+    about its final point, must not take that rounding for a plate that never touches."""
+    from BreastBiomechLib.solver.placement import TOUCH_TOLERANCE_MM, held_plates_touching
+
+    mesh = box_mesh((10.0, 10.0, 10.0), (4, 4, 4))
+    top = np.flatnonzero(mesh.point_data["face_zhi"])
+    [held] = held_plates_touching(mesh.nodes, [Plate([5.0, 5.0, 10.0 + 0.5 * TOUCH_TOLERANCE_MM], [0, 0, -1],
+                                                      [0, 0, 0], top, "held")], top)
+    assert 0.0 < held.gaps(mesh.nodes[top]).min() <= TOUCH_TOLERANCE_MM
+    untilted = posed_plate(held, mesh.nodes)
+    np.testing.assert_allclose(untilted.displacement, 0.0)
+    tilted = posed_plate(held, mesh.nodes, (0.5, 0.0))
+    assert tilted.displacement @ tilted.normal > 0.0  # half of it turns into the tissue: it moves
+
+
 @pytest.mark.parametrize("tilt, offset, match", [((11.0, 0.0), 0.0, "more than 10"), ((0.0,), 0.0, "two finite"),
                                                  ((float("nan"), 0.0), 0.0, "two finite"),
                                                  ((0.0, 0.0), -20.0, "short of the tissue")])

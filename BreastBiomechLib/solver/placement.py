@@ -12,6 +12,7 @@ from BreastBiomechLib.solver.model import PENETRATION_TOLERANCE_MM, Plate
 AXES = {"LR": (1.0, 0.0, 0.0), "AP": (0.0, 1.0, 0.0), "SI": (0.0, 0.0, 1.0)}  # LPS x, y, z
 MOVING = ("both", "first", "second")
 PLATE_SIDES = {"LR": ("right", "left"), "AP": ("anterior", "posterior"), "SI": ("inferior", "superior")}
+TOUCH_TOLERANCE_MM = 1e-6  # a plate this close to the tissue touches it
 # the sides of the first and second plate of each axis: the first is at the lower LPS coordinate
 # (BreastSimulation's plate names say the same; that module file does not import the solver)
 
@@ -71,7 +72,7 @@ def held_plates_touching(nodes_mm: np.ndarray, plates: list[Plate], contacts) ->
         points = nodes_mm[contacts]
         for _ in range(50):  # a node facing the rounded edge closes by less than the plate moves
             gap = float(plate.gaps(points).min())
-            if gap <= 1e-6:
+            if gap <= TOUCH_TOLERANCE_MM:
                 break
             plate = replace(plate, point=plate.point + gap * plate.normal)
         placed.append(plate)
@@ -271,6 +272,8 @@ def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_
     if len(gaps) == 0:
         raise ValueError(f"plate {plate.name!r}: none of its contact nodes is within its reach")
     travel = -float(gaps.min())
+    if -TOUCH_TOLERANCE_MM <= travel < 0:  # a held plate placed onto the tissue, to rounding
+        travel = 0.0
     if travel < 0:
         raise ValueError(f"plate {plate.name!r}: in that pose it ends {-travel:.2f} mm short of the tissue and would "
                          "never touch it; lower the offset or check the tilt")
