@@ -193,3 +193,41 @@ def test_a_refit_takes_the_shorter_step_where_the_full_one_overshoots(null_case,
         np.testing.assert_allclose(result.values, [step * taken])
         np.testing.assert_allclose(result.displacement, base + gain * taken * shift)
         assert result.rss_after < 0.05 * result.rss_before  # 0.01 and 0.04 of before
+
+
+def test_an_effect_is_not_credited_with_what_the_fitted_parameters_alone_remove(null_case, monkeypatch):
+    """A fit that has not quite converged on the diagnosis's features lowers its residual by the
+    refit's step of the fitted parameters alone; an effect refitted alongside must not be named
+    for that. Here the measured features are the current ones shifted 1 mm posteriorly; the
+    linearised fitted parameters reach only the landmarks' part of it (so friction's score test,
+    with them profiled out, is significant), but their solved step removes it all, as does the
+    friction refit's: the nested comparison credits friction with nothing, and the sentence says
+    the fitted parameters alone explain it (the old comparison with the unrefitted fit named
+    friction, removing 100 %)."""
+    from BreastBiomechLib.discrepancy import diagnosis as diagnosis_module
+    from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+    from BreastBiomechLib.discrepancy.variants import Outcome
+
+    step = 0.3
+    state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case, step)
+    measured = Observations(observed.labels, observed.channel, secant_features, observed.sigma,
+                            observed.points, observed._parts)
+    landmarks = np.asarray(observed.channel) == "landmarks"
+    assert 0 < landmarks.sum() < len(landmarks)
+    sens.nuisance[:, 0] = np.where(landmarks, (secant_features - sens.features) / step, 0.0)
+    monkeypatch.setattr(diagnosis_module, "sensitivities", lambda *args, **kwargs: sens)
+    solved = []
+
+    def every_trial_removes_it(variants, *args, **kwargs):
+        solved.append(len(variants))
+        return [Outcome(base + shift, "completed", "") for _ in variants]
+
+    monkeypatch.setattr(refit_module, "solve_variants", every_trial_removes_it)
+    result = diagnosis_module.diagnose(state, measured, [friction])
+    [candidate] = [c for c in result.candidates if c.name == "friction"]
+    assert candidate.p_adjusted < 0.01 and solved[0] == 2  # friction's trial and the fitted parameters' alone
+    assert candidate.refit["rss_fitted_only"] < 1e-6 * candidate.refit["rss_before"]
+    assert candidate.refit["removed"] == 0.0
+    assert result.verdict == "unexplained discrepancy" and result.effect is None
+    assert "fitted parameters alone removes 100%" in result.sentence

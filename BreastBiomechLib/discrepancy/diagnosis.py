@@ -40,8 +40,9 @@ VERDICTS = ("missing effect", "ambiguous", "unexplained discrepancy", "no signif
 class DiagnosisSettings:
     """Decision thresholds: ``alpha`` the family-wise significance level, ``refit_top`` how many
     significant candidates are refitted, ``min_explained`` the share of the residual (whitened
-    sum of squares) a named effect's refit must remove, ``bic_threshold`` the largest dBIC that confirms (-10: very strong
-    evidence, Kass and Raftery), ``ambiguity_correlation`` and ``ambiguity_bic`` when two
+    sum of squares) a named effect's refit must remove beyond the same refit of the fitted
+    parameters alone, ``bic_threshold`` the largest dBIC against that nested refit that confirms
+    (-10: very strong evidence, Kass and Raftery), ``ambiguity_correlation`` and ``ambiguity_bic`` when two
     confirmed candidates cannot be told apart, ``min_localisation`` the overlap of residual and
     signature over the regions a candidate needs; ``refine_iterations`` the Gauss-Newton
     iterations of the refit of the effect that is added."""
@@ -62,8 +63,9 @@ class Candidate:
     Bonferroni-corrected ``p_adjusted``), the share of the residual its signature could explain
     (``explained_fraction``), the linearised ``estimate`` and its ``sd``, where its signature
     sits (``signature_regions``: share per region), the ``localisation`` overlap, and after a
-    refit the LR test, dBIC, the share of the residual it removed and the values it refitted to; or the
-    reason it was ``skipped``."""
+    refit the LR test and dBIC against the refit of the fitted parameters alone (the nested null
+    model, stepped the same way), the share of that refit's residual it removed and the values it
+    refitted to; or the reason it was ``skipped``."""
 
     name: str
     title: str
@@ -236,8 +238,12 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     chosen = [c for c in ranked if not c.skipped and c.p_adjusted < settings.alpha][:settings.refit_top]
     by_name = {e.name: e for e in tested}
     say(f"refitting {', '.join(c.name for c in chosen) or 'no candidate'}")
-    refits = {r.effect.name: r for r in refit(state, observations, sens, [by_name[c.name] for c in chosen])}
+    made = refit(state, observations, sens, [by_name[c.name] for c in chosen] + [None])
+    refits = {r.effect.name: r for r in made if r.effect is not None}
     base["refits"] = refits
+    # the nested null model refitted by the same step: what the fitted parameters alone remove
+    fitted_only = next((r for r in made if r.effect is None and r.ok), None)
+    rss_null = min(fitted_only.rss_after, fitted_only.rss_before) if fitted_only else None
     n = len(observations)
     confirmed = []
     for candidate in chosen:
@@ -246,13 +252,15 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
             candidate.refit = {"status": "the refit could not be built"}
             continue
         k = len(r.effect.parameters)
-        lr = statistics.likelihood_ratio(r.rss_before, r.rss_after, k, n)
+        null = r.rss_before if rss_null is None else rss_null
+        lr = statistics.likelihood_ratio(null, r.rss_after, k, n)
         candidate.refit = {"status": r.status, "values": r.values.tolist(), "sd": r.sd.tolist(),
                            "described": r.effect.describe(r.values), "rss_before": r.rss_before,
-                           "rss_after": r.rss_after, "rss_linear": r.rss_linear, "lr": lr["statistic"],
-                           "lr_p_adjusted": min(1.0, lr["p_value"] * m), "delta_bic": lr["delta_bic"],
-                           "removed": max(r.rss_before - r.rss_after, 0.0) / r.rss_before if r.rss_before > 0 else 0.0,
-                           "excess_explained": statistics.excess_explained(r.rss_before, r.rss_after, overall["dof"],
+                           "rss_fitted_only": null, "rss_after": r.rss_after, "rss_linear": r.rss_linear,
+                           "lr": lr["statistic"], "lr_p_adjusted": min(1.0, lr["p_value"] * m),
+                           "delta_bic": lr["delta_bic"],
+                           "removed": max(null - r.rss_after, 0.0) / null if null > 0 else 0.0,
+                           "excess_explained": statistics.excess_explained(null, r.rss_after, overall["dof"],
                                                                            overall["dof"] - k)}
         if r.note:
             candidate.refit["note"] = r.note
@@ -262,16 +270,20 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     if not confirmed:
         tried = ", ".join(f"{c.name} (dBIC {c.refit.get('delta_bic', float('nan')):.1f}, localisation "
                           f"{c.localisation:.2f})" for c in chosen if c.refit) or "none was significant alone"
+        alone = 1.0 - rss_null / fitted_only.rss_before if fitted_only and fitted_only.rss_before > 0 else 0.0
+        hint = (f" Refitting the fitted parameters alone removes {alone:.0%} of it: the fit has not converged on "
+                "these features (landmarks and surface); refit with them before diagnosing."
+                if alone >= settings.min_explained else "")
         return Diagnosis("unexplained discrepancy", None, [],
                          f"Unexplained discrepancy: the residual is significant (T = {overall['statistic']:.1f} on "
                          f"{overall['dof']} dof, p = {overall['p_value']:.3g}) but no candidate effect explains it "
-                         f"(refitted: {tried}).", refitted=None, **base)
+                         f"(refitted: {tried}).{hint}", refitted=None, **base)
     confirmed.sort(key=lambda c: c.refit["delta_bic"])
     best = confirmed[0]
     if best.refit["removed"] < settings.min_explained:
         return Diagnosis("unexplained discrepancy", None, [best.name],
                          f"Unexplained discrepancy: the best candidate, {best.title}, removes only "
-                         f"{best.refit['removed']:.0%} of the residual "
+                         f"{best.refit['removed']:.0%} of the residual beyond the fitted parameters alone "
                          f"(dBIC {best.refit['delta_bic']:.1f}); something the library does not hold is missing.",
                          refitted=None, **base)
     rivals = [c for c in confirmed[1:]
@@ -290,6 +302,6 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     return Diagnosis("missing effect", best.name, [],
                      f"Missing effect: {best.title} ({best.refit['refined_described']}). Score test p = "
                      f"{best.p_adjusted:.2g} (corrected), refit dBIC {best.refit['delta_bic']:.1f}, removing "
-                     f"{best.refit['removed']:.0%} of the residual; its signature and the residual overlap "
+                     f"{best.refit['removed']:.0%} of the residual beyond the fitted parameters alone; its signature and the residual overlap "
                      f"{best.localisation:.0%} over the regions ({best.acts_in}).",
                      refitted=chosen_refit, **base)

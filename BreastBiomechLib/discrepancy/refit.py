@@ -5,7 +5,11 @@ but by less than half of what the linearisation predicts for that step (a secant
 where the effect saturates), while the shorter step lowers it further (the best of the trials
 stands); then, for the
 effect that is added, further Gauss-Newton iterations from fresh sensitivities (:func:`refine`),
-since a secant from the off value is only the first guess of a nonlinear effect's size."""
+since a secant from the off value is only the first guess of a nonlinear effect's size.
+
+The same step of the fitted parameters alone (the "effect" None) is the nested null model's
+refit: a fit that had not quite converged on the diagnosis's features lowers its residual by
+that step with no effect added, and an effect is only credited with what it removes beyond."""
 
 from __future__ import annotations
 
@@ -33,13 +37,13 @@ def _predicted_reduction(rss_before: float, rss_linear: float, fraction: float) 
 
 @dataclass
 class Refit:
-    """A refit with ``effect`` added: its ``values`` (effect units) and their standard deviations
+    """A refit with ``effect`` added (None: the fitted parameters alone): its ``values`` (effect units) and their standard deviations
     ``sd`` (from the linearised information), the refitted ``state``, whitened residual sums of
     squares ``rss_before`` and ``rss_after`` (solved) and ``rss_linear`` (predicted by the
     linearisation), the ``displacement`` (N, 3) mm after, the features' ``residual_after`` (mm)
     the solver's ``status`` and a ``note`` on how it was made when not by the Gauss-Newton step."""
 
-    effect: Effect
+    effect: Effect | None
     values: np.ndarray
     sd: np.ndarray
     state: ModelState
@@ -56,14 +60,19 @@ class Refit:
         return self.status == "completed"
 
 
-def _step(state: ModelState, sens: Sensitivities, effect: Effect, weights: np.ndarray, residual: np.ndarray):
+def _key(effect: Effect | None) -> str:
+    return "" if effect is None else effect.name
+
+
+def _step(state: ModelState, sens: Sensitivities, effect: Effect | None, weights: np.ndarray, residual: np.ndarray):
     nuisance = state.nuisance()
     a = weights[:, None] * sens.nuisance
-    b = weights[:, None] * sens.effects[effect.name]
+    b = weights[:, None] * (sens.effects[effect.name] if effect else np.zeros((len(weights), 0)))
     design = np.hstack([a, b])
-    current = np.array([v for _, v, _, _ in nuisance] + list(effect.off))
-    lower = np.array([lo for _, _, lo, _ in nuisance] + list(effect.lower)) - current
-    upper = np.array([hi for _, _, _, hi in nuisance] + list(effect.upper)) - current
+    off, low, high = (effect.off, effect.lower, effect.upper) if effect else ([], [], [])
+    current = np.array([v for _, v, _, _ in nuisance] + list(off))
+    lower = np.array([lo for _, _, lo, _ in nuisance] + list(low)) - current
+    upper = np.array([hi for _, _, _, hi in nuisance] + list(high)) - current
     whitened = weights * residual
     solution = lsq_linear(design, whitened, bounds=(lower, upper))
     covariance = np.linalg.pinv(design.T @ design)
@@ -72,34 +81,39 @@ def _step(state: ModelState, sens: Sensitivities, effect: Effect, weights: np.nd
     return current, solution.x, sd, rss_linear, len(nuisance)
 
 
-def refit(state: ModelState, observations: Observations, sens: Sensitivities, effects: list[Effect]) -> list[Refit]:
-    """Refit ``state`` with each of ``effects`` added (their sensitivities in ``sens``); the trial
-    solves of all effects are made together, then halved one by one where needed."""
+def refit(state: ModelState, observations: Observations, sens: Sensitivities,
+          effects: list[Effect | None]) -> list[Refit]:
+    """Refit ``state`` with each of ``effects`` added (their sensitivities in ``sens``; None: no
+    effect, the fitted parameters alone); the trial solves of all are made together, then halved
+    one by one where needed."""
     weights = 1.0 / observations.sigma
     residual = observations.measured - sens.features
     rss_before = float(np.sum((weights * residual) ** 2))
     plans = [(effect, *_step(state, sens, effect, weights, residual)) for effect in effects]
-    fraction = {effect.name: 1.0 for effect in effects}
+    fraction = {_key(effect): 1.0 for effect in effects}
     best: dict[str, Refit] = {}  # the trial that lowered the residual most so far
     results: dict[str, Refit] = {}
     fitted = state.fitted
     for _ in range(HALVINGS + 1):
-        pending = [plan for plan in plans if plan[0].name not in results]
+        pending = [plan for plan in plans if _key(plan[0]) not in results]
         if not pending:
             break
         trials, variants = [], []
         for effect, current, delta, sd, rss_linear, p in pending:
-            values = current + fraction[effect.name] * delta
-            trial = state.with_nuisance(values[:p]).with_effect(effect, values[p:])
+            values = current + fraction[_key(effect)] * delta
+            trial = state.with_nuisance(values[:p])
+            if effect is not None:
+                trial = trial.with_effect(effect, values[p:])
             try:
                 variants.append(trial.variant())
             except ValueError:
-                fraction[effect.name] /= 2
+                fraction[_key(effect)] /= 2
                 continue
             trials.append((effect, trial, values[p:], sd, rss_linear))
         outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
         for (effect, trial, values, sd, rss_linear), outcome in zip(trials, outcomes):
-            name, last = effect.name, fraction[effect.name] <= 0.5 ** HALVINGS
+            name = _key(effect)
+            last = fraction[name] <= 0.5 ** HALVINGS
             if outcome.ok:
                 after = observations.residual(outcome.displacement)
                 rss_after = float(np.sum((weights * after) ** 2))
@@ -128,11 +142,11 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities, ef
             fraction[name] /= 2
     results = best | results
     for effect, _, _, sd, rss_linear, _ in plans:
-        if effect.name not in results or not results[effect.name].ok:
+        if effect is not None and (effect.name not in results or not results[effect.name].ok):
             secant = _best_secant(state, sens, effect, observations, weights, rss_before, sd, rss_linear)
             if secant is not None:
                 results[effect.name] = secant
-    return [results[e.name] for e in effects if e.name in results]
+    return [results[_key(e)] for e in effects if _key(e) in results]
 
 
 def _best_secant(state: ModelState, sens: Sensitivities, effect: Effect, observations: Observations,

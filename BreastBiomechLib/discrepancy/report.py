@@ -32,7 +32,13 @@ def _candidates_table(candidates: list[dict]) -> str:
                     f"{_number(refit.get('delta_bic'), 3)} | "
                     + (f"{refit['removed']:.0%}" if "removed" in refit else "-") + " |")
     skipped = [f"{c['title']} ({c['skipped']})" for c in candidates if c["skipped"]]
-    return "\n".join(rows) + ("\n\nNot tested: " + "; ".join(skipped) + "." if skipped else "")
+    refits = [c["refit"] for c in candidates if (c.get("refit") or {}).get("rss_fitted_only") is not None]
+    note = ""
+    if refits and refits[0]["rss_before"] > 0:
+        alone = 1.0 - refits[0]["rss_fitted_only"] / refits[0]["rss_before"]
+        note = (f"\n\ndBIC and the residual removed are counted against the same refit of the fitted parameters "
+                f"alone (the nested model), which removed {max(alone, 0.0):.0%} of the residual by itself.")
+    return "\n".join(rows) + note + ("\n\nNot tested: " + "; ".join(skipped) + "." if skipped else "")
 
 
 def _regions_table(before: dict, after: dict | None) -> str:
