@@ -231,3 +231,29 @@ def test_an_effect_is_not_credited_with_what_the_fitted_parameters_alone_remove(
     assert candidate.refit["removed"] == 0.0
     assert result.verdict == "unexplained discrepancy" and result.effect is None
     assert "fitted parameters alone removes 100%" in result.sentence
+
+
+def test_a_fitted_parameter_at_an_end_of_its_range_is_reported_with_any_verdict(null_case, monkeypatch):
+    """A hidden chest-wall hold fits as a pectoral muscle at the top of its range (the suite's
+    eighth run); whatever the verdict, the diagnosis lists the fit's parameters at an end of
+    their range and says so after the verdict's sentence."""
+    from BreastBiomechLib.discrepancy import diagnosis as diagnosis_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+
+    state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case)
+    exact = Observations(observed.labels, observed.channel, sens.features, observed.sigma, observed.points,
+                         observed._parts)
+    monkeypatch.setattr(diagnosis_module, "sensitivities", lambda *args, **kwargs: sens)
+    inside = diagnosis_module.diagnose(state, exact, [friction])
+    assert inside.verdict == "no significant discrepancy" and inside.edges == []
+    assert "range" not in inside.sentence
+    keys = state.fitted.space.keys
+    z = np.full(len(keys), 0.5)
+    z[-1], z[0] = 0.999, 0.001
+    at_ends = diagnosis_module.diagnose(type(state)(state.fitted, z), exact, [friction])
+    values = state.fitted.space.values(z)
+    assert at_ends.verdict == "no significant discrepancy"
+    assert at_ends.edges == [{"name": keys[0], "value": values[keys[0]], "end": "bottom"},
+                             {"name": keys[-1], "value": values[keys[-1]], "end": "top"}]
+    assert len(keys) >= 2 and f"{keys[-1]} ({values[keys[-1]]:.4g}) at the top" in at_ends.sentence
+    assert at_ends.to_dict()["edges"] == at_ends.edges

@@ -16,6 +16,9 @@ the measured case, which candidate effect explains it, and is the answer clear.
    nearly as good by BIC and its signature correlates above ``ambiguity_correlation``),
    **unexplained discrepancy** (significant, but no candidate confirmed or explains enough: the
    answer when the missing effect is not in the library) or **no significant discrepancy**.
+   Whatever the verdict, a fitted parameter at an end of its range is reported: the data ask
+   for more than the range allows, and a missing effect can hide in it (a chest wall that holds
+   the breast fits as a stiffer pectoral muscle).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivitie
 from BreastBiomechLib.discrepancy.state import ModelState
 
 VERDICTS = ("missing effect", "ambiguous", "unexplained discrepancy", "no significant discrepancy")
+EDGE = 0.005  # a fitted parameter this close to an end of its range (unit coordinates) is at it
 
 
 @dataclass
@@ -106,13 +110,33 @@ class Diagnosis:
     sensitivities: Sensitivities
     feature_regions: np.ndarray
     refits: dict = field(default_factory=dict)
+    edges: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "effect": self.effect, "alternatives": self.alternatives,
-                "sentence": self.sentence, "overall": self.overall,
+                "sentence": self.sentence, "overall": self.overall, "edges": self.edges,
                 "candidates": [c.to_dict() for c in self.candidates], "regions": self.regions,
                 "correlations": self.correlations, "solves": self.sensitivities.solves,
                 "skipped": self.sensitivities.skipped}
+
+
+def parameters_at_edges(state: ModelState) -> list[dict]:
+    """The fit's free parameters of ``state`` within :data:`EDGE` of an end of their range (unit
+    coordinates): {"name", "value" (the parameter's unit: Pa for moduli), "end": "top"|"bottom"}."""
+    space = state.fitted.space
+    values = space.values(state.z)
+    return [{"name": key, "value": values[key], "end": "top" if z >= 0.5 else "bottom"}
+            for key, z in zip(space.keys, state.z) if z <= EDGE or z >= 1.0 - EDGE]
+
+
+def edges_sentence(edges: list[dict]) -> str:
+    """What :func:`parameters_at_edges` found, as a sentence ("" when nothing)."""
+    if not edges:
+        return ""
+    listed = ", ".join(f"{e['name']} ({e['value']:.4g}) at the {e['end']}" for e in edges)
+    return (f"Fitted at an end of its range: {listed}; the data ask for more than the range allows, and a "
+            "missing effect can hide in such a parameter (a chest wall that holds the breast fits as a stiffer "
+            "pectoral muscle) - check the range before trusting the verdict.")
 
 
 def _shares(values: np.ndarray, regions: np.ndarray) -> dict[str, float]:
@@ -178,7 +202,18 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
              progress: Callable[[str], None] | None = None, excluded: dict[str, str] | None = None) -> Diagnosis:
     """One round of the diagnosis of ``state`` against ``observations`` over ``candidates``
     (the library's effects; those already added, unavailable or ``excluded`` ({name: reason},
-    e.g. rejected by the user) are reported as skipped)."""
+    e.g. rejected by the user) are reported as skipped). The fit's parameters at an end of their
+    range are listed in ``edges`` and said after the verdict's sentence."""
+    result = _decide(state, observations, candidates, settings, progress, excluded)
+    result.edges = parameters_at_edges(state)
+    if result.edges:
+        result.sentence = f"{result.sentence} {edges_sentence(result.edges)}"
+    return result
+
+
+def _decide(state: ModelState, observations: Observations, candidates: list[Effect],
+            settings: DiagnosisSettings | None, progress: Callable[[str], None] | None,
+            excluded: dict[str, str] | None) -> Diagnosis:
     settings = settings or DiagnosisSettings()
     say = progress or (lambda message: None)
     fitted = state.fitted
