@@ -97,3 +97,25 @@ def test_an_optimisation_into_a_folder_another_process_writes_is_refused_before_
     finally:
         other.kill()
         other.wait()
+
+
+def test_claiming_a_folder_removes_what_dead_writers_left_mid_write(tmp_path):
+    """A run killed mid-write leaves its atomic write's temporary file (io/atomic.py); the next
+    run that claims the folder removes those of writers on this host that are gone (at any depth),
+    and keeps those of live writers and of other hosts (a shared filesystem). CI's kill-and-resume
+    trial of a fit once killed a write and found the file after the resume."""
+    from BreastBiomechLib.io.atomic import partial_path, write_text_atomically
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    host = socket.gethostname()
+    out = tmp_path / "out"
+    (out / "round-1").mkdir(parents=True)
+    dead = [out / f".partial-{gone.pid}@{host}@evaluations.jsonl", out / "round-1" / f".partial-{gone.pid}@{host}@x.nrrd"]
+    kept = [partial_path(out / "record.json"), out / f".partial-{gone.pid}@elsewhere.example@y.json"]
+    for path in dead + kept:
+        path.write_text("half")
+    with claimed(out, "a fit"):
+        assert [p.exists() for p in dead + kept] == [False, False, True, True]
+        write_text_atomically(out / "record.json", "whole")  # this process's own write goes through
+    assert (out / "record.json").read_text() == "whole" and not partial_path(out / "record.json").exists()

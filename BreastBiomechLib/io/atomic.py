@@ -3,7 +3,9 @@
 A file is written under a temporary name beside it (same folder, so the same file system, and
 the same extension, so SimpleITK and VTK pick the same format) and renamed over the final name
 once complete: a run killed mid-write leaves at most a ``.partial-*`` file that no reader looks
-for, never a truncated file under the real name that a resumed run would take as finished.
+for, never a truncated file under the real name that a resumed run would take as finished. The
+temporary name holds the writer's process id and host, so that the next run claiming the folder
+removes what a dead writer left (:func:`~BreastBiomechLib.io.claims.claimed`).
 """
 
 from __future__ import annotations
@@ -11,7 +13,16 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
+import socket
 from pathlib import Path
+
+PARTIAL = re.compile(r"^\.partial-(?P<pid>\d+)@(?P<host>[^@/]*)@")  # .partial-PID@HOST@NAME
+
+
+def partial_path(path: Path) -> Path:
+    """The temporary name under which this process writes ``path``."""
+    return path.with_name(f".partial-{os.getpid()}@{socket.gethostname()}@{path.name}")
 
 
 @contextlib.contextmanager
@@ -20,7 +31,7 @@ def atomic_path(path: str | Path):
     written file replaces ``path`` (made with its parent folders), else it is removed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".partial-{os.getpid()}-{path.name}")
+    temporary = partial_path(path)
     try:
         yield temporary
         if temporary.exists():

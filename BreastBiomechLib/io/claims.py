@@ -6,7 +6,9 @@ The claim is a file ``.in-use.json`` in the folder, made with O_EXCL and holding
 host, start time and what the run is. It is removed when the run ends, however it ends. A run that
 was killed leaves it behind: the next run on the same host sees that the process is gone and takes
 the folder over (kill and resume must work); a claim from another host (a shared filesystem) is
-never taken over silently: the message says how to clear it.
+never taken over silently: the message says how to clear it. A run that claims a folder removes
+the temporary files (:mod:`~BreastBiomechLib.io.atomic`) that writers on this host, no longer
+running, left in it or below it when they were killed mid-write.
 """
 
 from __future__ import annotations
@@ -45,6 +47,21 @@ def _alive(pid: int) -> bool:
     except (OverflowError, ValueError):
         return False
     return True
+
+
+def remove_dead_partials(folder: Path) -> list[Path]:
+    """Remove the atomic writes' temporary files in ``folder`` and below whose writer, on this
+    host, is no longer running (killed mid-write); those of live writers or other hosts stay.
+    The files removed."""
+    from BreastBiomechLib.io.atomic import PARTIAL
+
+    host, removed = socket.gethostname(), []
+    for path in Path(folder).rglob(".partial-*"):
+        match = PARTIAL.match(path.name)
+        if match and match["host"] == host and not _alive(int(match["pid"])) and path.is_file():
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
 
 
 def _stale(path: Path, holder: dict | None) -> bool:
@@ -93,6 +110,7 @@ def claimed(folder: str | Path | None, what: str):
         break
     else:
         raise FolderInUse(f"{folder}: could not claim it ({path} keeps coming back); is another run starting there?")
+    remove_dead_partials(folder)
     try:
         yield folder
     finally:
