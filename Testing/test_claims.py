@@ -111,7 +111,8 @@ def test_claiming_a_folder_removes_what_dead_writers_left_mid_write(tmp_path):
     host = socket.gethostname()
     out = tmp_path / "out"
     (out / "round-1").mkdir(parents=True)
-    dead = [out / f".partial-{gone.pid}@{host}@evaluations.jsonl", out / "round-1" / f".partial-{gone.pid}@{host}@x.nrrd"]
+    dead = [out / f".partial-{gone.pid}@{host}@evaluations.jsonl",
+            out / "round-1" / f".partial-{gone.pid}@{host}@x.nrrd"]
     kept = [partial_path(out / "record.json"), out / f".partial-{gone.pid}@elsewhere.example@y.json"]
     for path in dead + kept:
         path.write_text("half")

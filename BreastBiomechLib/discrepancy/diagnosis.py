@@ -337,6 +337,7 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     return Diagnosis("missing effect", best.name, [],
                      f"Missing effect: {best.title} ({best.refit['refined_described']}). Score test p = "
                      f"{best.p_adjusted:.2g} (corrected), refit dBIC {best.refit['delta_bic']:.1f}, removing "
-                     f"{best.refit['removed']:.0%} of the residual beyond the fitted parameters alone; its signature and the residual overlap "
+                     f"{best.refit['removed']:.0%} of the residual beyond the fitted parameters alone; its signature "
+                     f"and the residual overlap "
                      f"{best.localisation:.0%} over the regions ({best.acts_in}).",
                      refitted=chosen_refit, **base)

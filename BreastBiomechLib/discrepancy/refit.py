@@ -37,11 +37,12 @@ def _predicted_reduction(rss_before: float, rss_linear: float, fraction: float) 
 
 @dataclass
 class Refit:
-    """A refit with ``effect`` added (None: the fitted parameters alone): its ``values`` (effect units) and their standard deviations
-    ``sd`` (from the linearised information), the refitted ``state``, whitened residual sums of
-    squares ``rss_before`` and ``rss_after`` (solved) and ``rss_linear`` (predicted by the
-    linearisation), the ``displacement`` (N, 3) mm after, the features' ``residual_after`` (mm)
-    the solver's ``status`` and a ``note`` on how it was made when not by the Gauss-Newton step."""
+    """A refit with ``effect`` added (None: the fitted parameters alone): its ``values`` (effect
+    units) and their standard deviations ``sd`` (from the linearised information), the refitted
+    ``state``, whitened residual sums of squares ``rss_before`` and ``rss_after`` (solved) and
+    ``rss_linear`` (predicted by the linearisation), the ``displacement`` (N, 3) mm after, the
+    features' ``residual_after`` (mm), the solver's ``status`` and a ``note`` on how it was made
+    when not by the Gauss-Newton step."""
 
     effect: Effect | None
     values: np.ndarray
