@@ -20,6 +20,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from BreastBiomechLib.io.atomic import PARTIAL
+
 CLAIM_FILE = ".in-use.json"
 UNWRITTEN_CLAIM_S = 10.0  # an empty claim older than this was cut short by a kill
 
@@ -53,8 +55,6 @@ def remove_dead_partials(folder: Path) -> list[Path]:
     """Remove the atomic writes' temporary files in ``folder`` and below whose writer, on this
     host, is no longer running (killed mid-write); those of live writers or other hosts stay.
     The files removed."""
-    from BreastBiomechLib.io.atomic import PARTIAL
-
     host, removed = socket.gethostname(), []
     for path in Path(folder).rglob(".partial-*"):
         match = PARTIAL.match(path.name)
