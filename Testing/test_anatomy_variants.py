@@ -192,22 +192,47 @@ def test_a_glandular_slab_on_the_muscle_is_not_grown_into_it():
 
 
 def test_tissue_jutting_out_of_the_fascia_is_given_back_to_the_breast():
-    """The fascia is smooth over centimetres; a patch of gland the growth took in juts out of it.
-    What lies two voxels or more in front of the front's running median goes back to the breast;
-    the front's own voxel of partial volume, a tilted and curved front, and muscle stay."""
+    """The fascia is smooth over centimetres; tissue the growth took in juts out of it. The
+    front's position to a fraction of a voxel comes from the muscle's partial-volume fractions:
+    their running median, then the local mean of the lines near it with fat in front. What lies
+    a voxel or more in front of the median goes back to the breast (a patch three voxels deep),
+    and so does, where gland lies in front, a single layer the fascia leaves at most 15 % muscle
+    (gland on the fascia unmixes as muscle), the fascia read from the lines around it. Where
+    fat lies in front, the muscle's own fractions stand; the front's partial-volume voxels, a
+    tilted and curved front, and muscle stay."""
     from BreastBiomechLib.segmentation.fascia import ahead_of_fascia
 
     shape = (60, 40, 60)  # z, y (anterior-posterior), x; 1 mm voxels
     z, y, x = np.indices(shape)
-    fascia = 15 + np.floor(0.1 * x + 0.0015 * (z - 30) ** 2)  # the first muscle voxel on each line
-    muscle = y >= fascia
-    patch = (np.abs(z - 20) < 5) & (np.abs(x - 20) < 5) & (y >= fascia - 3) & (y < fascia)
-    thin = (np.abs(z - 40) < 5) & (np.abs(x - 40) < 5) & (y == fascia - 1)
+    fascia = 15.3 + 0.1 * x + 0.0015 * (z - 30) ** 2  # mm from the volume's anterior face
+    fraction = np.clip(y + 1.0 - fascia, 0.0, 1.0)     # each voxel's muscle share
+    muscle = fraction >= 0.5
+    front = np.argmax(muscle, axis=1)[:, None, :]
+    slab = ((np.abs(z - 20) < 5) & (np.abs(x - 20) < 5)) | ((np.abs(z - 40) < 5) & (np.abs(x - 40) < 5))
+    glandular = slab & (y < front)                      # gland on the fascia there, fat elsewhere
+    patch = (np.abs(z - 20) < 5) & (np.abs(x - 20) < 5) & (y >= front - 3) & (y < front)
+    thin = (np.abs(z - 40) < 5) & (np.abs(x - 40) < 5) & (y == front - 1)
+    before_fat = (np.abs(z - 40) < 5) & (np.abs(x - 15) < 5) & (y == front - 1)  # fat in front of it
+    noisy = (fraction >= 0.3) & ~muscle & (np.abs(z - 40) < 5) & (np.abs(x - 25) < 5)  # mostly fat
+    probability = np.where(patch | thin | before_fat, 1.0, np.where(noisy, 0.5, fraction)).astype(np.float32)
     grid = check_volume(sitk.GetImageFromArray(y.astype(np.float32)))  # any volume with contrast
-    found = ahead_of_fascia(muscle | patch | thin, grid)
-    assert found[patch & (y < fascia - 2)].all()
-    assert found[patch & (y < fascia - 1)].mean() > 0.9  # the median's own steps: one voxel either way
-    assert not found[patch & (y == fascia - 1)].any() and not found[thin].any() and not found[muscle].any()
+    found = ahead_of_fascia(muscle | patch | thin | before_fat | noisy, probability, glandular, grid)
+    taken = patch | thin
+    assert found[taken & (fraction < 0.1)].mean() > 0.95  # the median's own steps at the patch's edge
+    assert not found[taken & (fraction > 0.3)].any()  # the fascia placed to about a tenth of a voxel
+    assert not found[muscle & (fraction > 0.6)].any() and found[muscle].sum() <= 2  # (the edges' median)
+    assert not found[noisy].any() and not found[before_fat].any()
+    assert found[patch & (y < front - 1)].all()
+
+    # gland on the crown of a curved chest (radius 100 mm): the window's median lies behind the
+    # crown, and only the local mean around the layer keeps the muscle's front voxels
+    fascia = 12.3 + ((x - 30) ** 2 + (z - 30) ** 2) / 200.0
+    fraction = np.clip(y + 1.0 - fascia, 0.0, 1.0)
+    muscle = fraction >= 0.5
+    crown = (np.abs(z - 30) < 5) & (np.abs(x - 30) < 5)
+    thin = crown & (y == np.argmax(muscle, axis=1)[:, None, :] - 1)
+    found = ahead_of_fascia(muscle | thin, np.where(thin, 1.0, fraction), crown & ~muscle, grid)
+    assert found[thin & (fraction < 0.1)].all() and not found[muscle].any()
 
 
 def test_the_muscle_is_one_layer_along_each_anterior_posterior_line():

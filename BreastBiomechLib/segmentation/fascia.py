@@ -187,21 +187,54 @@ def film_in_front(muscle: np.ndarray, body: np.ndarray, grid: VoxelGrid, thickne
     return grid.from_posterior_last(film & (position >= start) & (position < end))
 
 
-def ahead_of_fascia(muscle: np.ndarray, grid: VoxelGrid, window_mm: float = 30.0) -> np.ndarray:
-    """The voxels of ``muscle`` (bool) lying more than one voxel in front of the fascia as the
-    muscle's own front shows it: on every anterior-posterior line of voxels the first muscle
-    voxel, its running median over ``window_mm`` across the coronal plane, and what lies at
-    least two voxels in front of that.
+def ahead_of_fascia(muscle: np.ndarray, probability: np.ndarray, glandular: np.ndarray, grid: VoxelGrid,
+                    window_mm: float = 30.0, share: float = 0.15, local_mm: float = 5.0) -> np.ndarray:
+    """The voxels of ``muscle`` (bool) lying in front of the fascia as the muscle's own front
+    shows it: on every anterior-posterior line of voxels the front's position to a fraction of a
+    voxel from the muscle's partial-volume ``probability`` (float, the structure's volume
+    fraction per voxel: the first muscle voxel holds muscle behind the fascia for its fraction,
+    the voxel in front for its fraction below one half), and the running median of that
+    position over ``window_mm`` across the coronal plane. Muscle voxels that this smooth fascia
+    leaves wholly in front of it by a voxel or more go back to the breast. So do those that the
+    fascia leaves at most ``share`` muscle where the voxel in front of them reads as gland
+    (``glandular``, bool); there the fascia is the Gaussian-weighted mean (sigma ``local_mm``)
+    of the positions of the lines around with fat in front that lie within a voxel of the
+    median (the median of a curved chest's front over the window lies behind its middle: by
+    half a voxel at 1.5 mm on a 100 mm radius).
 
-    The fascia is smooth over centimetres (a chest's curvature moves it by under a millimetre
+    The fascia is smooth over centimetres (a chest's curvature moves it by about a millimetre
     across 30 mm), the muscle's front only as rough as its partial-volume voxel; tissue lying on
     the fascia that the growth took in makes the front jut out in patches, one to three voxels
     at a time, where the deep layers' test (:func:`tissue_on_fascia`) sees too few layers. A
-    patch wider than about half the window moves the median with it and is kept."""
+    patch wider than about half the window moves the median with it and is kept. Gland on the
+    fascia and the muscle differ by little more than the noise, so the voxel holding both reads
+    alike whichever it mostly is; where the fascia lies there is read from the lines around with
+    fat in front, whose unmixed fractions place it (to about a tenth of a voxel, hence
+    ``share``). Against fat the muscle's own fractions are the better estimate, so there only
+    what lies a voxel or more in front goes."""
     m = grid.posterior_last(muscle)
     if not m.any():
         return np.zeros_like(muscle)
+    p = grid.posterior_last(probability)
+    first_index = muscle_front(m)[..., None]
+    first = np.take_along_axis(p, first_index, axis=-1)[..., 0]
+    before = np.where(first_index > 0, np.take_along_axis(p, np.maximum(first_index - 1, 0), axis=-1), 0.0)[..., 0]
+    # a fraction that disagrees with the mask (a border moved after it was estimated) says nothing
+    first = np.where((first >= 0.5) & (first <= 1.0), first, 1.0)
+    before = np.where((before >= 0.0) & (before < 0.5), before, 0.0)
+    position = first_index[..., 0] + (1.0 - first) - before  # in voxels from the line's anterior end
     across = [s for axis, s in enumerate(grid.spacing_zyx) if axis != grid.ap_axis]
     size = [max(1, int(round(window_mm / s))) for s in across]
-    fascia = ndimage.median_filter(muscle_front(m), size=size, mode="nearest")
-    return grid.from_posterior_last(m & (np.arange(m.shape[-1]) < fascia[..., None] - 1))
+    median = ndimage.median_filter(position, size=size, mode="nearest")
+    gland_in_front = np.zeros_like(m)
+    gland_in_front[..., 1:] = grid.posterior_last(glandular)[..., :-1]
+    # to a fraction of a voxel: the local mean of the lines with fat in front near the median
+    inlier = m.any(axis=-1) & ~np.take_along_axis(gland_in_front, first_index, axis=-1)[..., 0] \
+        & (np.abs(position - median) <= 1.0)
+    sigma = [local_mm / s for s in across]
+    weight = ndimage.gaussian_filter(inlier.astype(float), sigma, mode="nearest")
+    local = ndimage.gaussian_filter(np.where(inlier, position, 0.0), sigma, mode="nearest")
+    fascia = np.where(weight > 0.05, local / np.maximum(weight, 1e-9), median)[..., None]
+    index = np.arange(m.shape[-1])
+    behind = np.clip(index + 1.0 - fascia, 0.0, 1.0)  # each voxel's share behind the fascia
+    return grid.from_posterior_last(m & ((index + 2.0 <= median[..., None]) | ((behind <= share) & gland_in_front)))

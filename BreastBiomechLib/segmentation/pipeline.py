@@ -139,7 +139,10 @@ def _grow_muscle(grid: VoxelGrid, array: np.ndarray, body: np.ndarray, seeds,
     mask = muscle.mask
     if settings.fascia is not None:
         mask = mask & ~tissue_on_fascia(array, mask, breast_mask(body, mask, grid), glandular, grid, settings.fascia)
-        mask = mask & ~ahead_of_fascia(mask, grid)
+        # gland in front: beneath the skin, at least three quarters glandular (a voxel of fat with
+        # the muscle's partial volume below one half reads no darker than half of both)
+        gland = body & ~skin & ~near_air & (array < glandular + 0.25 * (fat - glandular))
+        mask = mask & ~ahead_of_fascia(mask, muscle.probability, gland, grid)
     mask = one_layer(mask, body, grid)
     if np.array_equal(mask, muscle.mask):
         return muscle
