@@ -99,7 +99,8 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         for selector in (self.ui.inputVolumeSelector, self.ui.muscleSeedsSelector, self.ui.tumourSeedsSelector,
                          self.ui.outputSegmentationSelector):
             selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
-        for spinBox in (self.ui.mrfSpinBox, self.ui.biasOrderSpinBox, self.ui.iterationsSpinBox, self.ui.skinSpinBox):
+        for spinBox in (self.ui.mrfSpinBox, self.ui.biasOrderSpinBox, self.ui.iterationsSpinBox,
+                        self.ui.fractionSmoothingSpinBox, self.ui.skinSpinBox):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
         for checkBox in (self.ui.partialVolumeCheckBox, self.ui.keepSkinCheckBox, self.ui.fasciaCheckBox):
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
@@ -124,6 +125,7 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             self.ui.biasOrderSpinBox.value = p["biasOrder"]
             self.ui.iterationsSpinBox.value = p["maxIterations"]
             self.ui.partialVolumeCheckBox.checked = p["partialVolume"]
+            self.ui.fractionSmoothingSpinBox.value = p["fractionSmoothing"]
             self.ui.skinSpinBox.value = p["skinMm"]
             self.ui.keepSkinCheckBox.checked = p["keepSkin"]
             self.ui.fasciaCheckBox.checked = p["tissueOnFascia"]
@@ -152,6 +154,7 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["biasOrder"] = self.ui.biasOrderSpinBox.value
         p["maxIterations"] = self.ui.iterationsSpinBox.value
         p["partialVolume"] = self.ui.partialVolumeCheckBox.checked
+        p["fractionSmoothing"] = self.ui.fractionSmoothingSpinBox.value
         p["skinMm"] = self.ui.skinSpinBox.value
         p["keepSkin"] = self.ui.keepSkinCheckBox.checked
         p["tissueOnFascia"] = self.ui.fasciaCheckBox.checked
@@ -206,7 +209,7 @@ class BreastSegmentationLogic(ParameterNodeLogic):
 
     MODULE_NAME = "BreastSegmentation"
     DEFAULTS = {"mrfStrength": 0.4, "biasOrder": 3, "maxIterations": 40, "partialVolume": True,
-                "skinMm": 3.0, "keepSkin": False, "tissueOnFascia": True}
+                "fractionSmoothing": 0.2, "skinMm": 3.0, "keepSkin": False, "tissueOnFascia": True}
     ROLES = ("inputVolume", "muscleSeeds", "tumourSeeds", "outputSegmentation", "biasField", "volumesTable",
              "probabilityFat", "probabilityGlandular", "probabilityMuscle", "probabilityTumour", "probabilitySkin")
 
@@ -219,7 +222,8 @@ class BreastSegmentationLogic(ParameterNodeLogic):
         p = parameterNode
         return SegmentationSettings(
             em=EMSettings(mrf_strength=p["mrfStrength"], bias_order=int(p["biasOrder"]),
-                          max_iterations=int(p["maxIterations"]), partial_volume=p["partialVolume"]),
+                          max_iterations=int(p["maxIterations"]), partial_volume=p["partialVolume"],
+                          fraction_smoothing=p["fractionSmoothing"]),
             skin_mm=p["skinMm"], keep_skin=p["keepSkin"],
             fascia=FasciaSettings() if p["tissueOnFascia"] else None)
 

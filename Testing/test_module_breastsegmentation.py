@@ -126,6 +126,16 @@ def test_the_fascia_option_reaches_the_library(scene, case):
     assert p.node.GetParameter("tissueOnFascia") == "False"
 
 
+def test_the_fraction_smoothing_reaches_the_library(scene, case):
+    """The panel's "Fraction smoothing" (0.2 by default, as the library's and the command line's)
+    sets the EM's final neighbour average of the glandular fraction; 0 switches it off."""
+    logic, p = _set_up(scene, case)
+    assert logic.settings(p).em.fraction_smoothing == 0.2
+    p["fractionSmoothing"] = 0.0
+    assert logic.settings(p).em.fraction_smoothing == 0.0
+    assert float(p.node.GetParameter("fractionSmoothing")) == 0.0
+
+
 def test_missing_inputs_are_named(scene, case):
     logic, p = _set_up(scene, case, tumour=False)
     with pytest.raises(ValueError, match="tumour"):
