@@ -163,7 +163,7 @@ def test_the_glandular_class_stays_at_its_level_where_most_of_the_gland_is_mixed
     assert found[True][1] > found[False][1] + 0.02 and found[True][2] < found[False][2] / 2
 
 
-@pytest.mark.parametrize("blur, gain", [((2, 8, 8), 0.004), ((2, 2, 10), 0.001), ((3, 3, 3), -0.003)])
+@pytest.mark.parametrize("blur, gain", [((2, 8, 8), 0.004), ((2, 2, 10), 0.0), ((3, 3, 3), -0.004)])
 def test_averaging_the_fraction_with_its_neighbours_helps_on_sheets_and_strands(blur, gain):
     """Fibroglandular tissue is ducts and ligaments: strands and sheets, along which neighbouring
     voxels hold much the same glandular fraction, while one voxel's fraction read from its
