@@ -594,8 +594,9 @@ class BreastDiscrepancyLogic(ParameterNodeLogic):
 
     def _candidatesTable(self, parameterNode, record, folder_item):
         """The round's candidates as a table: rank, effect name and title, score statistic (dof),
-        corrected p, share of the residual it could explain, localisation, refit dBIC and share
-        removed, where it acts, and its part in the verdict."""
+        corrected p, share of the residual it could explain, localisation, share of its signature
+        the fitted parameters reproduce, refit dBIC and share removed, where it acts, and its part
+        in the verdict."""
         from BreastBiomechLib.mrml import columns_to_table_node
 
         d = record["diagnosis"]
@@ -628,6 +629,7 @@ class BreastDiscrepancyLogic(ParameterNodeLogic):
                    "p (corrected)": np.array([c["p_adjusted"] for c in rows], float),
                    "could explain": np.array([c["explained_fraction"] for c in rows], float),
                    "localisation": np.array([c["localisation"] for c in rows], float),
+                   "absorbed by fit": np.array([c.get("absorbed", float("nan")) for c in rows], float),
                    "dBIC": np.array([refit(c, "delta_bic") for c in rows], float),
                    "removed": np.array([refit(c, "removed") for c in rows], float),
                    "acts in": np.array([c.get("acts_in", "") for c in rows], dtype=object),

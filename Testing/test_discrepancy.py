@@ -253,7 +253,53 @@ def test_a_fitted_parameter_at_an_end_of_its_range_is_reported_with_any_verdict(
     at_ends = diagnosis_module.diagnose(type(state)(state.fitted, z), exact, [friction])
     values = state.fitted.space.values(z)
     assert at_ends.verdict == "no significant discrepancy"
-    assert at_ends.edges == [{"name": keys[0], "value": values[keys[0]], "end": "bottom"},
-                             {"name": keys[-1], "value": values[keys[-1]], "end": "top"}]
+    assert at_ends.edges == [{"name": keys[0], "value": values[keys[0]], "end": "bottom", "held": False},
+                             {"name": keys[-1], "value": values[keys[-1]], "end": "top", "held": False}]
     assert len(keys) >= 2 and f"{keys[-1]} ({values[keys[-1]]:.4g}) at the top" in at_ends.sentence
     assert at_ends.to_dict()["edges"] == at_ends.edges
+
+
+def test_an_effect_the_fitted_parameters_reproduce_is_said_hard_to_see_and_found_once_one_is_pushed_out(
+        null_case, monkeypatch):
+    """Friction's signature made the first fitted parameter's exactly (as a held chest wall is a
+    stiffer pectoral muscle to these features), the measured features the friction secant's.
+    Inside its range the parameter absorbs it all: no significant discrepancy, and the sentence
+    says friction is hard to see at this fit, chiefly through that parameter. At the top of its
+    range with the residual asking for more, the parameter is held there: friction's score test
+    sees it, and its refit (the solves: friction moves the tissue, the fitted parameters alone
+    do not) names it."""
+    from BreastBiomechLib.discrepancy import diagnosis as diagnosis_module
+    from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+    from BreastBiomechLib.discrepancy.variants import Outcome
+
+    step = 0.3
+    state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case, step)
+    measured = Observations(observed.labels, observed.channel, secant_features, observed.sigma,
+                            observed.points, observed._parts)
+    sens.nuisance[:, 0] = sens.effects["friction"][:, 0]
+    monkeypatch.setattr(diagnosis_module, "sensitivities", lambda *args, **kwargs: sens)
+
+    def friction_moves_it(variants, *args, **kwargs):
+        return [Outcome(base + shift if any(p.friction > 0 for p in v.plates) else base, "completed", "")
+                for v in variants]
+
+    monkeypatch.setattr(refit_module, "solve_variants", friction_moves_it)
+    keys = state.fitted.space.keys
+    settings = diagnosis_module.DiagnosisSettings(refine_iterations=0)
+    z = np.full(len(keys), 0.5)
+    inside = diagnosis_module.diagnose(type(state)(state.fitted, z), measured, [friction], settings)
+    [candidate] = inside.candidates
+    assert inside.verdict == "no significant discrepancy" and inside.held == []
+    assert candidate.absorbed > 0.999 and candidate.absorbed_by["name"] == keys[0]
+    assert candidate.absorbed_by["correlation"] > 0.999
+    assert "Hard to see at this fit" in inside.sentence and f"chiefly by {keys[0]}" in inside.sentence
+    z[0] = 0.999
+    pushed = diagnosis_module.diagnose(type(state)(state.fitted, z), measured, [friction], settings)
+    [candidate] = pushed.candidates
+    assert pushed.held == [keys[0]] and candidate.absorbed < 1e-9 and candidate.p_adjusted < 0.01
+    assert pushed.verdict == "missing effect" and pushed.effect == "friction", pushed.sentence
+    assert pushed.edges[0] == {"name": keys[0], "value": state.fitted.space.values(z)[keys[0]], "end": "top",
+                               "held": True}
+    assert "pushes" in pushed.sentence and "Hard to see" not in pushed.sentence
+    assert pushed.to_dict()["held"] == [keys[0]]

@@ -74,3 +74,35 @@ def test_likelihood_ratio_bic_and_excess():
     assert lr["p_value"] == stats.chi2.sf(120.0, 2)
     assert statistics.excess_explained(300.0, 198.0, 197, 195) == 1 - 3.0 / 103.0
     assert statistics.excess_explained(150.0, 140.0, 197, 195) == 0.0  # no excess to explain
+
+
+def test_absorbed_share_is_the_part_of_a_signature_the_fitted_parameters_reproduce():
+    rng = np.random.default_rng(5)
+    a, b = _design(rng, k=1)
+    q = statistics.basis(a)
+    assert statistics.absorbed_share(a @ np.array([1.0, -2.0, 0.5]), q) > 1 - 1e-9
+    other = statistics.project_off(b[:, 0], q)
+    assert statistics.absorbed_share(other, q) < 1e-9
+    mixed = other / np.linalg.norm(other) + a[:, 0] / np.linalg.norm(a[:, 0])  # half and half
+    assert abs(statistics.absorbed_share(mixed, q) - 0.5) < 1e-9
+    assert statistics.absorbed_share(np.zeros(200), q) == 0.0
+
+
+def test_a_parameter_pushed_out_of_its_range_is_held_and_cannot_absorb_an_effect():
+    """The effect's signature is the first fitted parameter's: profiled out with it, the effect
+    has no score (dof 0). With that parameter at the top of its range and the residual asking
+    for more of it, it is held there (pushed_out), and the score test finds the effect; asking
+    for less, or at the bottom asking for more, it stays free."""
+    rng = np.random.default_rng(6)
+    a, _ = _design(rng)
+    effect = a[:, 0]
+    r = 0.4 * effect + rng.standard_normal(200)
+    top, bottom = np.array([True, False, False]), np.array([False, False, False])
+    assert statistics.score_test(r, statistics.basis(a), effect)["dof"] == 0
+    held = statistics.pushed_out(a, r, top, bottom)
+    assert held.tolist() == [True, False, False]
+    test = statistics.score_test(r, statistics.basis(a[:, ~held]), effect)
+    assert test["dof"] == 1 and test["p_value"] < 1e-6
+    assert not statistics.pushed_out(a, -r, top, bottom).any()
+    assert not statistics.pushed_out(a, r, bottom, top).any()
+    assert statistics.pushed_out(a, -r, bottom, top).tolist() == [True, False, False]

@@ -18,7 +18,11 @@ the measured case, which candidate effect explains it, and is the answer clear.
    answer when the missing effect is not in the library) or **no significant discrepancy**.
    Whatever the verdict, a fitted parameter at an end of its range is reported: the data ask
    for more than the range allows, and a missing effect can hide in it (a chest wall that holds
-   the breast fits as a stiffer pectoral muscle).
+   the breast fits as a stiffer pectoral muscle). Where the residual pushes such a parameter
+   further out, it is held at its bound in the tests (it cannot move to absorb an effect).
+   Where no effect is named, the candidates whose signature the fitted parameters reproduce
+   (at least :data:`ABSORBED` of it) are said to be hard to see at this fit, with the fitted
+   parameter that takes them up most.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from BreastBiomechLib.discrepancy.state import ModelState
 
 VERDICTS = ("missing effect", "ambiguous", "unexplained discrepancy", "no significant discrepancy")
 EDGE = 0.005  # a fitted parameter this close to an end of its range (unit coordinates) is at it
+ABSORBED = 0.8  # a candidate this much of whose signature the fitted parameters reproduce is hard to see
 
 
 @dataclass
@@ -69,7 +74,10 @@ class Candidate:
     sits (``signature_regions``: share per region), the ``localisation`` overlap, and after a
     refit the LR test and dBIC against the refit of the fitted parameters alone (the nested null
     model, stepped the same way), the share of that refit's residual it removed and the values it
-    refitted to; or the reason it was ``skipped``."""
+    refitted to; ``absorbed`` the share of its signature the fitted parameters reproduce
+    (:func:`~BreastBiomechLib.discrepancy.statistics.absorbed_share`) and ``absorbed_by`` the
+    fitted parameter that alone reproduces most of it ({"name", "correlation"}); or the reason
+    it was ``skipped``."""
 
     name: str
     title: str
@@ -84,6 +92,8 @@ class Candidate:
     signature_regions: dict = field(default_factory=dict)
     localisation: float = float("nan")
     refit: dict | None = None
+    absorbed: float = float("nan")
+    absorbed_by: dict = field(default_factory=dict)
     skipped: str = ""
 
     def to_dict(self) -> dict:
@@ -96,7 +106,9 @@ class Diagnosis:
     alternatives of an ambiguous verdict), a ``sentence`` saying it with the evidence, the
     ``overall`` test, the ``candidates`` ranked by p-value, the residual by ``regions``, their
     ``correlations``, the chosen :class:`~BreastBiomechLib.discrepancy.refit.Refit` (``refitted``)
-    and the ``sensitivities`` (with the solution of the current model)."""
+    and the ``sensitivities`` (with the solution of the current model); ``held`` the nuisance
+    parameters held at a bound of their range in the tests (the residual pushes them out of
+    it) and ``edges`` the fit's parameters at an end of their range."""
 
     verdict: str
     effect: str | None
@@ -110,23 +122,35 @@ class Diagnosis:
     sensitivities: Sensitivities
     feature_regions: np.ndarray
     refits: dict = field(default_factory=dict)
+    held: list = field(default_factory=list)
     edges: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "effect": self.effect, "alternatives": self.alternatives,
-                "sentence": self.sentence, "overall": self.overall, "edges": self.edges,
+                "sentence": self.sentence, "overall": self.overall, "held": self.held, "edges": self.edges,
                 "candidates": [c.to_dict() for c in self.candidates], "regions": self.regions,
                 "correlations": self.correlations, "solves": self.sensitivities.solves,
                 "skipped": self.sensitivities.skipped}
 
 
-def parameters_at_edges(state: ModelState) -> list[dict]:
+def parameters_at_edges(state: ModelState, held: list[str] = ()) -> list[dict]:
     """The fit's free parameters of ``state`` within :data:`EDGE` of an end of their range (unit
-    coordinates): {"name", "value" (the parameter's unit: Pa for moduli), "end": "top"|"bottom"}."""
+    coordinates): {"name", "value" (the parameter's unit: Pa for moduli), "end": "top"|"bottom",
+    "held": whether the residual pushes it further out (``held``: those keys), so that the
+    tests held it there}."""
     space = state.fitted.space
     values = space.values(state.z)
-    return [{"name": key, "value": values[key], "end": "top" if z >= 0.5 else "bottom"}
+    return [{"name": key, "value": values[key], "end": "top" if z >= 0.5 else "bottom", "held": key in held}
             for key, z in zip(space.keys, state.z) if z <= EDGE or z >= 1.0 - EDGE]
+
+
+def ends_of_range(state: ModelState) -> tuple[np.ndarray, np.ndarray]:
+    """Which nuisance parameters of ``state`` (the order of :meth:`ModelState.nuisance`) are within
+    :data:`EDGE` of the top and of the bottom of their range (as a share of the range)."""
+    nuisance = state.nuisance()
+    share = np.array([(value - lower) / (upper - lower) if upper > lower else 0.5
+                      for _, value, lower, upper in nuisance]).reshape(-1)
+    return share >= 1.0 - EDGE, share <= EDGE
 
 
 def edges_sentence(edges: list[dict]) -> str:
@@ -134,9 +158,24 @@ def edges_sentence(edges: list[dict]) -> str:
     if not edges:
         return ""
     listed = ", ".join(f"{e['name']} ({e['value']:.4g}) at the {e['end']}" for e in edges)
+    held = [e["name"] for e in edges if e.get("held")]
+    pushed = (f" The residual pushes {', '.join(held)} further out: the tests held {'it' if len(held) == 1 else 'them'} "
+              "there." if held else "")
     return (f"Fitted at an end of its range: {listed}; the data ask for more than the range allows, and a "
             "missing effect can hide in such a parameter (a chest wall that holds the breast fits as a stiffer "
-            "pectoral muscle) - check the range before trusting the verdict.")
+            f"pectoral muscle) - check the range before trusting the verdict.{pushed}")
+
+
+def absorbed_sentence(candidates: list[Candidate]) -> str:
+    """The tested candidates whose signature the fitted parameters reproduce (at least
+    :data:`ABSORBED` of it), as a sentence ("" when none)."""
+    hidden = [c for c in candidates if not c.skipped and c.absorbed >= ABSORBED]
+    if not hidden:
+        return ""
+    listed = "; ".join(f"{c.title} ({c.absorbed:.0%} of its signature, chiefly by {c.absorbed_by['name']}, "
+                       f"correlation {c.absorbed_by['correlation']:.2f})" for c in hidden)
+    return (f"Hard to see at this fit, since the fitted parameters reproduce what it would change: {listed}; "
+            "such an effect, if present, has been fitted as those parameters.")
 
 
 def _shares(values: np.ndarray, regions: np.ndarray) -> dict[str, float]:
@@ -147,6 +186,19 @@ def _shares(values: np.ndarray, regions: np.ndarray) -> dict[str, float]:
     if total <= 0:
         return {name: 0.0 for name in names}
     return {name: float(positive[regions == name].sum() / total) for name in names}
+
+
+def _absorbed_by(sensitivity: np.ndarray, nuisance: np.ndarray, held: np.ndarray, keys: list[str]) -> dict:
+    """The fitted parameter (of the whitened ``nuisance`` columns not ``held``) whose change
+    alone correlates most with the whitened candidate ``sensitivity``: {"name", "correlation"}
+    ({} when there is none)."""
+    empty = np.zeros((len(sensitivity), 0))
+    scores = [(statistics.canonical_correlation(sensitivity, nuisance[:, [k]], empty), key)
+              for k, key in enumerate(keys) if not held[k]]
+    if not scores:
+        return {}
+    correlation, key = max(scores)
+    return {"name": key, "correlation": correlation}
 
 
 def region_summary(observations: Observations, residual: np.ndarray, regions: np.ndarray) -> dict:
@@ -205,7 +257,9 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     e.g. rejected by the user) are reported as skipped). The fit's parameters at an end of their
     range are listed in ``edges`` and said after the verdict's sentence."""
     result = _decide(state, observations, candidates, settings, progress, excluded)
-    result.edges = parameters_at_edges(state)
+    result.edges = parameters_at_edges(state, result.held)
+    if result.verdict != "missing effect" and absorbed_sentence(result.candidates):
+        result.sentence = f"{result.sentence} {absorbed_sentence(result.candidates)}"
     if result.edges:
         result.sentence = f"{result.sentence} {edges_sentence(result.edges)}"
     return result
@@ -231,7 +285,9 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     weights = 1.0 / observations.sigma
     residual = observations.measured - sens.features
     whitened = weights * residual
-    q_theta = statistics.basis(weights[:, None] * sens.nuisance)
+    nuisance = weights[:, None] * sens.nuisance
+    held = statistics.pushed_out(nuisance, whitened, *ends_of_range(state))
+    q_theta = statistics.basis(nuisance[:, ~held])
     overall = statistics.overall(whitened, q_theta)
     feature_regions = regions_of(fitted, observations.points, sens.displacement)
     excess = whitened ** 2 - 1.0
@@ -248,7 +304,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
         ranked.append(Candidate(effect.name, effect.title, effect.acts_in, test["statistic"], test["dof"],
                                 test["p_value"], min(1.0, test["p_value"] * m), test["explained_fraction"],
                                 np.atleast_1d(test["estimate"]).tolist(), np.atleast_1d(test["sd"]).tolist(),
-                                signature, overlap))
+                                signature, overlap, absorbed=statistics.absorbed_share(b, q_theta),
+                                absorbed_by=_absorbed_by(b, nuisance, held, sens.nuisance_keys)))
     ranked.sort(key=lambda c: (c.p_value, -c.statistic))
     for name, reason in sens.skipped.items():
         effect = next((e for e in candidates if e.name == name), None)
@@ -263,7 +320,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                                                             if not c.skipped)
     regions = region_summary(observations, residual, feature_regions)
     base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
-                sensitivities=sens, feature_regions=feature_regions, refits={})
+                sensitivities=sens, feature_regions=feature_regions, refits={},
+                held=[key for key, h in zip(sens.nuisance_keys, held) if h])
     if not significant:
         return Diagnosis("no significant discrepancy", None, [],
                          f"No significant discrepancy: the residual is what the noise model expects "

@@ -18,9 +18,19 @@ def _number(value, digits: int = 3) -> str:
     return str(value)
 
 
+def _absorbed(candidate: dict) -> str:
+    """The share of a candidate's signature the fitted parameters reproduce, and the one that
+    reproduces most of it ("-" in a record made before it was computed)."""
+    share = candidate.get("absorbed")
+    if share is None or share != share:
+        return "-"
+    by = candidate.get("absorbed_by") or {}
+    return f"{share:.0%}" + (f" ({by['name']} {by['correlation']:.2f})" if by else "")
+
+
 def _candidates_table(candidates: list[dict]) -> str:
-    rows = ["| rank | effect | score S (dof) | p (corrected) | could explain | localisation | refit | dBIC | "
-            "residual removed |", "|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| rank | effect | score S (dof) | p (corrected) | could explain | localisation | absorbed by the fit | "
+            "refit | dBIC | residual removed |", "|---|---|---|---|---|---|---|---|---|---|"]
     rank = 0
     for c in candidates:
         if c["skipped"]:
@@ -28,7 +38,8 @@ def _candidates_table(candidates: list[dict]) -> str:
         rank += 1
         refit = c.get("refit") or {}
         rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {_number(c['p_adjusted'], 2)} | "
-                    f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {refit.get('described', '-')} | "
+                    f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {_absorbed(c)} | "
+                    f"{refit.get('described', '-')} | "
                     f"{_number(refit.get('delta_bic'), 3)} | "
                     + (f"{refit['removed']:.0%}" if "removed" in refit else "-") + " |")
     skipped = [f"{c['title']} ({c['skipped']})" for c in candidates if c["skipped"]]
@@ -38,6 +49,9 @@ def _candidates_table(candidates: list[dict]) -> str:
         alone = 1.0 - refits[0]["rss_fitted_only"] / refits[0]["rss_before"]
         note = (f"\n\ndBIC and the residual removed are counted against the same refit of the fitted parameters "
                 f"alone (the nested model), which removed {max(alone, 0.0):.0%} of the residual by itself.")
+    note += ("\n\n*Absorbed by the fit*: the share of the candidate's signature that the fitted parameters "
+             "reproduce (in brackets the one that alone reproduces most, and its correlation); near 100 % the fit has "
+             "taken the effect up and no test of the residual can see it.")
     return "\n".join(rows) + note + ("\n\nNot tested: " + "; ".join(skipped) + "." if skipped else "")
 
 

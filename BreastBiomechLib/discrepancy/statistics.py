@@ -14,6 +14,12 @@ effect's parameters (0 in the current model, the nested case).
   LR = |r0|^2 - |r1|^2 (chi-square, k dof) and dBIC = |r1|^2 - |r0|^2 + k ln n.
 - How alike two candidates' signatures are: the largest canonical correlation of their
   projected sensitivities (1: the data cannot tell them apart).
+- How much of a candidate's signature the fitted parameters reproduce (``absorbed_share``): the
+  share of its squared norm inside span(J_theta). Near 1 the fit has taken the effect up (a
+  held chest wall fitted as a stiffer pectoral muscle) and no test of the residual can see it.
+- A fitted parameter held at a bound of its range, where the data push it further out (its
+  residual gradient points out of the range), cannot move to absorb anything: it is fixed
+  (an active constraint) and left out of J_theta (``pushed_out``).
 """
 
 from __future__ import annotations
@@ -78,6 +84,26 @@ def canonical_correlation(a: np.ndarray, b: np.ndarray, q_theta: np.ndarray) -> 
     if qa.shape[1] == 0 or qb.shape[1] == 0:
         return 0.0
     return float(min(np.linalg.svd(qa.T @ qb, compute_uv=False).max(), 1.0))
+
+
+def absorbed_share(sensitivity: np.ndarray, q_theta: np.ndarray) -> float:
+    """The share (0-1) of the whitened ``sensitivity`` (n,) or (n, k)'s squared norm inside the
+    span of the orthonormal ``q_theta``: how much of the candidate's signature the fitted
+    parameters reproduce (0 when the sensitivity is zero)."""
+    b = np.atleast_2d(sensitivity.T).T
+    total = float(np.sum(b ** 2))
+    if total <= 0:
+        return 0.0
+    return float(np.clip(np.sum((q_theta.T @ b) ** 2) / total, 0.0, 1.0))
+
+
+def pushed_out(nuisance: np.ndarray, residual: np.ndarray, at_top: np.ndarray, at_bottom: np.ndarray) -> np.ndarray:
+    """Which nuisance parameters (whitened sensitivities ``nuisance`` (n, p), whitened
+    ``residual`` (n,)) are at an end of their range (boolean ``at_top`` / ``at_bottom`` (p,))
+    with the residual asking for more in that direction: moving the parameter up by d changes
+    |r|^2 by -2 d J_k'r, so at the top J_k'r > 0 asks for more, at the bottom J_k'r < 0."""
+    gradient = nuisance.T @ residual
+    return (np.asarray(at_top) & (gradient > 0)) | (np.asarray(at_bottom) & (gradient < 0))
 
 
 def likelihood_ratio(rss_before: float, rss_after: float, k: int, n: int) -> dict:
