@@ -303,3 +303,17 @@ def test_an_effect_the_fitted_parameters_reproduce_is_said_hard_to_see_and_found
                                "held": True}
     assert "pushes" in pushed.sentence and "Hard to see" not in pushed.sentence
     assert pushed.to_dict()["held"] == [keys[0]]
+
+
+def test_an_effect_refitted_to_an_end_of_its_range_is_said_to_be_a_bound():
+    """Friction refitted to the top of its range (beyond sticking more changes nothing) is
+    said to be a bound the data press against, not an estimate; inside its range nothing is said."""
+    from types import SimpleNamespace
+
+    from BreastBiomechLib.discrepancy.diagnosis import _bound_note
+    from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
+
+    friction = PlateFriction()
+    assert _bound_note(SimpleNamespace(effect=friction, values=np.array([0.6]))) == ""
+    note = _bound_note(SimpleNamespace(effect=friction, values=np.array([1.5])))
+    assert "mu at the top of its range (1.5)" in note and "not an estimate" in note

@@ -397,5 +397,21 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                      f"{best.p_adjusted:.2g} (corrected), refit dBIC {best.refit['delta_bic']:.1f}, removing "
                      f"{best.refit['removed']:.0%} of the residual beyond the fitted parameters alone; its signature "
                      f"and the residual overlap "
-                     f"{best.localisation:.0%} over the regions ({best.acts_in}).",
+                     f"{best.localisation:.0%} over the regions ({best.acts_in}).{_bound_note(chosen_refit)}",
                      refitted=chosen_refit, **base)
+
+
+def _bound_note(chosen: Refit) -> str:
+    """A sentence on the added effect's parameters that its refit left within :data:`EDGE` of
+    an end of their range ("" when none): their value is a bound the data press against, not an
+    estimate (friction beyond sticking, for one, changes nothing)."""
+    ends = []
+    for parameter, value in zip(chosen.effect.parameters, chosen.values):
+        share = (value - parameter.lower) / (parameter.upper - parameter.lower)
+        if share >= 1.0 - EDGE or share <= EDGE:
+            ends.append(f"{parameter.name} at the {'top' if share >= 0.5 else 'bottom'} of its range "
+                        f"({value:.4g} {parameter.unit})".replace(" )", ")"))
+    if not ends:
+        return ""
+    return (f" Refitted to an end of its range: {', '.join(ends)}; the value is a bound the data press against, "
+            "not an estimate (its range is where the effect stays physical, or beyond it nothing changes).")
