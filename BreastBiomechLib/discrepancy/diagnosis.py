@@ -258,8 +258,9 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     range are listed in ``edges`` and said after the verdict's sentence."""
     result = _decide(state, observations, candidates, settings, progress, excluded)
     result.edges = parameters_at_edges(state, result.held)
-    if result.verdict != "missing effect" and absorbed_sentence(result.candidates):
-        result.sentence = f"{result.sentence} {absorbed_sentence(result.candidates)}"
+    hidden = absorbed_sentence(result.candidates) if result.verdict != "missing effect" else ""
+    if hidden:
+        result.sentence = f"{result.sentence} {hidden}"
     if result.edges:
         result.sentence = f"{result.sentence} {edges_sentence(result.edges)}"
     return result
@@ -409,8 +410,8 @@ def _bound_note(chosen: Refit) -> str:
     for parameter, value in zip(chosen.effect.parameters, chosen.values):
         share = (value - parameter.lower) / (parameter.upper - parameter.lower)
         if share >= 1.0 - EDGE or share <= EDGE:
-            ends.append(f"{parameter.name} at the {'top' if share >= 0.5 else 'bottom'} of its range "
-                        f"({value:.4g} {parameter.unit})".replace(" )", ")"))
+            unit = f" {parameter.unit}" if parameter.unit else ""
+            ends.append(f"{parameter.name} at the {'top' if share >= 0.5 else 'bottom'} of its range ({value:.4g}{unit})")
     if not ends:
         return ""
     return (f" Refitted to an end of its range: {', '.join(ends)}; the value is a bound the data press against, "
