@@ -133,6 +133,13 @@ class Diagnosis:
                 "skipped": self.sensitivities.skipped}
 
 
+def range_end(value: float, lower: float, upper: float) -> str:
+    """"top" or "bottom" where ``value`` lies within :data:`EDGE` (a share of the range) of that
+    end of [``lower``, ``upper``], else ""."""
+    share = (value - lower) / (upper - lower)
+    return "top" if share >= 1.0 - EDGE else "bottom" if share <= EDGE else ""
+
+
 def parameters_at_edges(state: ModelState, held: list[str] = ()) -> list[dict]:
     """The fit's free parameters of ``state`` within :data:`EDGE` of an end of their range (unit
     coordinates): {"name", "value" (the parameter's unit: Pa for moduli), "end": "top"|"bottom",
@@ -140,17 +147,15 @@ def parameters_at_edges(state: ModelState, held: list[str] = ()) -> list[dict]:
     tests held it there}."""
     space = state.fitted.space
     values = space.values(state.z)
-    return [{"name": key, "value": values[key], "end": "top" if z >= 0.5 else "bottom", "held": key in held}
-            for key, z in zip(space.keys, state.z) if z <= EDGE or z >= 1.0 - EDGE]
+    ends = {key: range_end(z, 0.0, 1.0) for key, z in zip(space.keys, state.z)}
+    return [{"name": key, "value": values[key], "end": end, "held": key in held} for key, end in ends.items() if end]
 
 
 def ends_of_range(state: ModelState) -> tuple[np.ndarray, np.ndarray]:
     """Which nuisance parameters of ``state`` (the order of :meth:`ModelState.nuisance`) are within
     :data:`EDGE` of the top and of the bottom of their range (as a share of the range)."""
-    nuisance = state.nuisance()
-    share = np.array([(value - lower) / (upper - lower) if upper > lower else 0.5
-                      for _, value, lower, upper in nuisance]).reshape(-1)
-    return share >= 1.0 - EDGE, share <= EDGE
+    ends = np.array([range_end(value, lower, upper) for _, value, lower, upper in state.nuisance()], dtype=object)
+    return ends == "top", ends == "bottom"
 
 
 def edges_sentence(edges: list[dict]) -> str:
@@ -408,10 +413,10 @@ def _bound_note(chosen: Refit) -> str:
     estimate (friction beyond sticking, for one, changes nothing)."""
     ends = []
     for parameter, value in zip(chosen.effect.parameters, chosen.values):
-        share = (value - parameter.lower) / (parameter.upper - parameter.lower)
-        if share >= 1.0 - EDGE or share <= EDGE:
+        end = range_end(value, parameter.lower, parameter.upper)
+        if end:
             unit = f" {parameter.unit}" if parameter.unit else ""
-            ends.append(f"{parameter.name} at the {'top' if share >= 0.5 else 'bottom'} of its range ({value:.4g}{unit})")
+            ends.append(f"{parameter.name} at the {end} of its range ({value:.4g}{unit})")
     if not ends:
         return ""
     return (f" Refitted to an end of its range: {', '.join(ends)}; the value is a bound the data press against, "
