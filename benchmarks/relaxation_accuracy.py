@@ -80,9 +80,9 @@ def main() -> None:
             totals["cases"] += 1
             totals["iterations"] += s.steps
             totals["failed"] += not s.ok
-            totals["over_tolerance"] += bool(error > 0.01)
-            totals["largest_error_mm"] = max(totals["largest_error_mm"], round(error, 5)) if error == error else \
-                totals["largest_error_mm"]
+            if np.isfinite(error):
+                totals["over_tolerance"] += error > 0.01
+                totals["largest_error_mm"] = max(totals["largest_error_mm"], round(error, 5))
     totals["solve_s"] = round(totals["solve_s"], 3)
     print(json.dumps({"summary": totals}), flush=True)
 
