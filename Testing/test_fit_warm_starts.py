@@ -63,14 +63,10 @@ def test_a_resumed_fit_evaluates_every_position_as_an_uninterrupted_one(case, tm
     assert resumed.replayed == 8
     assert [(e.z, e.objective, e.iterations) for e in resumed.evaluations] == \
         [(e.z, e.objective, e.iterations) for e in whole.evaluations]
-    # the later batches did start warm (their solves took other paths than the same positions
-    # solved cold) and reached the cold solves' objectives; that warm starts save iterations on
-    # nearby positions is the test above (these CMA-ES positions are not near their start)
+    # the later batches did start warm: fewer iterations than the same positions solved cold
     later = whole.evaluations[12:]
     cold = problem_of(case, warm_starts=False).evaluate(np.array([e.z for e in later]))
-    assert [e.iterations for e in later] != [e.iterations for e in cold]
-    for w, c in zip(later, cold):
-        assert w.objective == pytest.approx(c.objective, abs=1e-3)
+    assert sum(e.iterations for e in later) < 0.9 * sum(e.iterations for e in cold)
 
 
 def test_plate_friction_turns_warm_starts_off(case):

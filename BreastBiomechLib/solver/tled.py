@@ -32,8 +32,6 @@ ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
 SPRING_PA_PER_MM_MM2_TO_N_PER_M = 1e-3  # (Pa/mm) x mm^2 = 1e3 N/m^3 x 1e-6 m^2
 FRICTION_WAVE_CROSSINGS = 6.0  # relaxation with friction loads over this many shear-wave crossings
-QUOTIENT_WINDOW = 5  # relaxation: the Rayleigh quotient's reference state is renewed every this many updates
-CHATTER_QUOTIENT = 10.0  # relaxation: a stalled motion whose quotient is this far above the least is chatter
 
 
 class DistanceToRest:
@@ -85,15 +83,10 @@ class DynamicRelaxation:
     """Fast path to the static solution (Joldes, Wittek & Miller): element densities scaled so
     every element has the same stable step (mass scaling), the load applied over
     ``load_iterations`` steps, then damping set every ``update_every`` steps to twice the square
-    root of the lowest eigenvalue, estimated by the least Rayleigh quotient since the load of the
-    displacement change since a reference state renewed every :data:`QUOTIENT_WINDOW` updates
-    (every such quotient bounds the lowest eigenvalue from above, so the damping only falls,
-    towards the lowest mode's critical value; where the motion has stopped contracting and the
-    quotient is over :data:`CHATTER_QUOTIENT` times the least, the motion is high-frequency
-    chatter - contact, stiffening fibres - that the lowest mode's damping cannot remove, and the
-    damping follows the quotient up); stop when the estimated distance to the static solution
-    (:class:`DistanceToRest`, from the displacement change between updates) is below
-    ``tolerance_mm`` for every model of the batch. Time in a relaxation run is fictitious.
+    root of the lowest eigenvalue, estimated by the Rayleigh quotient of the displacement change
+    since the previous update; stop when the estimated distance to the static solution (:class:`DistanceToRest`,
+    from the displacement change between updates) is below ``tolerance_mm`` for every model of
+    the batch. Time in a relaxation run is fictitious.
 
     ``load_iterations`` is a minimum: the load is applied slowly enough that prescribed boundaries
     (plates, displacements) move at under a third of the shear wave speed of the scaled model,
@@ -712,11 +705,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             internal_force(state, out, pressure_tmp, no_flags)
 
         if relaxation is not None:
-            # the state and forces of a reference renewed every QUOTIENT_WINDOW updates: the
-            # Rayleigh quotient of the change over one to QUOTIENT_WINDOW whole update intervals
-            # (single-step changes near rest are float32 noise, whose quotient grows towards the
-            # highest modes and overdamps the slow ones; over longer windows a slow mode's motion
-            # adds up while faster ones' does not)
+            # the state and forces at the previous update: the Rayleigh quotient of the change over
+            # a whole update interval (single-step changes near rest are float32 noise, whose
+            # quotient grows towards the highest modes and overdamps the slow ones)
             f_curr, f_last = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
             u_last = wp.clone(u)
             probe_force(u_last, f_last)
@@ -742,11 +733,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             mass_rescales += 1
             return stable * np.sqrt(grow)
 
-        def sample(renew: bool = True):
+        def sample():
             """The device work of a sample, before anything is read back: energies, the forces
-            at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms (and,
-            ``renew``, u and its forces as their next reference) and the displacement change
-            since the last sample."""
+            at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms and the
+            displacement change since the last sample."""
             kinetic.zero_()
             internal.zero_()
             # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
@@ -763,18 +753,15 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 for a in (stiffness, inertia):
                     a.zero_()
                 k.reduction_launch(k.relaxation_terms, B, N, [u, u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
-                if renew:
-                    wp.copy(u_last, u)
-                    wp.copy(f_last, f_curr)
+                wp.copy(u_last, u)
+                wp.copy(f_last, f_curr)
             distance_to_rest.measure(u)
 
-        sample_graphs = {}
+        sample_graph = None
         if device.is_cuda:  # one graph launch and one wait per sample instead of some thirty of each
-            for renew in (True, False) if relaxation is not None else (True,):
-                with wp.ScopedCapture() as capture:
-                    sample(renew)
-                sample_graphs[renew] = capture.graph
-        samples = 0
+            with wp.ScopedCapture() as capture:
+                sample()
+            sample_graph = capture.graph
 
         if scaled:
             stable_step = keep_step_stable(stable_step)
@@ -788,12 +775,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 else:
                     two_steps()
             done += 2 * pairs
-            samples += 1
-            renew = relaxation is None or samples % QUOTIENT_WINDOW == 0
-            if sample_graphs:
-                wp.capture_launch(sample_graphs[renew])
+            if sample_graph is not None:
+                wp.capture_launch(sample_graph)
             else:
-                sample(renew)
+                sample()
             ke, ie = kinetic.numpy().astype(float), 0.5 * internal.numpy().astype(float)
             history["time"].append(done * dt)
             history["kinetic"].append(ke)
@@ -841,13 +826,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 loaded = done * dt >= totals
                 if loaded.any():
                     ok = (lam > 0) & loaded
-                    remaining = distance_to_rest.estimate()
-                    following = np.minimum(np.minimum(2.0 * np.sqrt(np.maximum(lam, 0.0)), 1.9 / dt), damping_cap)
-                    stalled = np.zeros(B, bool) if remaining is None else ~np.isfinite(remaining)
-                    chatter = stalled & (lam > CHATTER_QUOTIENT * np.minimum(lowest, lam))
-                    damping[ok] = np.where(chatter, following, np.minimum(damping, following))[ok]
+                    damping[ok] = np.minimum(np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt), damping_cap[ok])
                     lowest[ok & (active == 1)] = np.minimum(lowest, lam)[ok & (active == 1)]
                     d_damping.assign(damping.astype(f32))
+                    remaining = distance_to_rest.estimate()
                     if remaining is not None:
                         running = (active == 1) & loaded
                         estimated_error[running] = remaining[running]
