@@ -317,3 +317,14 @@ def test_an_effect_refitted_to_an_end_of_its_range_is_said_to_be_a_bound():
     assert _bound_note(SimpleNamespace(effect=friction, values=np.array([0.6]))) == ""
     note = _bound_note(SimpleNamespace(effect=friction, values=np.array([1.5])))
     assert "mu at the top of its range (1.5)" in note and "not an estimate" in note
+
+
+def test_range_end_names_the_end_a_value_lies_at():
+    """Within EDGE (a share of the range) of an end: that end; inside, or an empty range: none
+    (before the helper, an empty nuisance range counted as mid-range and must still)."""
+    from BreastBiomechLib.discrepancy.diagnosis import EDGE, range_end
+
+    assert range_end(1.5, 0.0, 1.5) == "top" and range_end(1.5 * (1 - EDGE / 2), 0.0, 1.5) == "top"
+    assert range_end(0.0, 0.0, 1.5) == "bottom" and range_end(-2.0, -2.0, 8.0) == "bottom"
+    assert range_end(0.75, 0.0, 1.5) == "" and range_end(1.5 * (1 - 2 * EDGE), 0.0, 1.5) == ""
+    assert range_end(3.0, 3.0, 3.0) == ""

@@ -135,7 +135,9 @@ class Diagnosis:
 
 def range_end(value: float, lower: float, upper: float) -> str:
     """"top" or "bottom" where ``value`` lies within :data:`EDGE` (a share of the range) of that
-    end of [``lower``, ``upper``], else ""."""
+    end of [``lower``, ``upper``], else "" (also for an empty range, which has no ends to press on)."""
+    if not upper > lower:
+        return ""
     share = (value - lower) / (upper - lower)
     return "top" if share >= 1.0 - EDGE else "bottom" if share <= EDGE else ""
 
