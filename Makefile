@@ -29,7 +29,7 @@ demo: $(STAMP)
 	$(BIN)/breastbiomech demo --out out/demo
 
 test: $(STAMP)
-	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist loadfile
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder
 	$(MAKE) test-slicer-stack
 
 # Slicer 5.10's Python stack (Python 3.12 there; the Python CI has here): the library must not use an
@@ -56,7 +56,7 @@ test-slicer-stack: $(SLICER_STACK_STAMP)
 	$(SLICER_STACK_VENV)/bin/python -c "import numpy, scipy, SimpleITK, vtk; \
 	  assert (numpy.__version__, scipy.__version__, vtk.vtkVersion.GetVTKVersion()) == ('2.0.2', '1.13.1', '9.5.2'), 'not the Slicer 5.10 stack'; \
 	  print('Slicer 5.10 stack: numpy', numpy.__version__, 'scipy', scipy.__version__, 'SimpleITK', SimpleITK.Version_VersionString(), 'VTK', vtk.vtkVersion.GetVTKVersion())"
-	QT_QPA_PLATFORM=offscreen $(SLICER_STACK_VENV)/bin/python -m pytest -n 2 --dist loadfile -p no:cacheprovider \
+	QT_QPA_PLATFORM=offscreen $(SLICER_STACK_VENV)/bin/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder -p no:cacheprovider \
 	  -m "not slow and not mrml" $(SLICER_STACK_TESTS)
 
 bench: $(STAMP)
