@@ -7,10 +7,8 @@ import pytest
 
 
 # Seconds each test file took (developer machine, 2 cores, 2026-11-27, `PYTEST_ADDOPTS=--durations=80
-# make test`; the test calls and the fixtures a file alone builds). `make test` hands the files to
-# its two workers longest first (pytest-xdist's --no-loadscope-reorder keeps this order; by default
-# it starts the files with the most tests first, and a long file of one test ran alone at the end
-# for 20 minutes). Files not listed follow in collection order; only the order depends on these.
+# make test`): `make test` starts the longest files first (why: docs/developing.md, "Tests").
+# Files not listed follow in collection order; only the order depends on these figures.
 LONGEST_FILES = {
     "test_kill_resume_diagnosis.py": 1200, "test_discrepancy.py": 490, "test_discrepancy_friction.py": 420,
     "test_anatomy_variants.py": 370, "test_module_breastdiscrepancy.py": 280, "test_phantom.py": 230,
