@@ -10,7 +10,7 @@ import pytest
 # make test`): `make test` starts the longest files first (why: docs/developing.md, "Tests").
 # Files not listed follow in collection order; only the order depends on these figures.
 LONGEST_FILES = {
-    "test_kill_resume_diagnosis.py": 1200, "test_discrepancy.py": 490, "test_discrepancy_friction.py": 420,
+    "test_kill_resume_diagnosis.py": 720, "test_discrepancy.py": 490, "test_discrepancy_friction.py": 420,
     "test_anatomy_variants.py": 370, "test_module_breastdiscrepancy.py": 280, "test_phantom.py": 230,
     "test_kill_resume.py": 230, "test_fit_warm_starts.py": 180, "test_optimisation.py": 160, "test_cohort.py": 130,
     "test_friction.py": 90, "test_segmentation.py": 85, "test_coarse_meshes.py": 80, "test_warm_start.py": 80,
