@@ -32,6 +32,12 @@ ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
 SPRING_PA_PER_MM_MM2_TO_N_PER_M = 1e-3  # (Pa/mm) x mm^2 = 1e3 N/m^3 x 1e-6 m^2
 FRICTION_WAVE_CROSSINGS = 6.0  # relaxation with friction loads over this many shear-wave crossings
+QUOTIENT_WINDOW = 5  # relaxation: the Rayleigh quotient's reference state is renewed every this many updates
+CHATTER_QUOTIENT = 10.0  # relaxation: a stalled motion whose quotient is this far above the least is chatter
+CHATTER_UPDATES = 2  # relaxation: ... and has stalled at this many updates in a row
+SETTLING_UPDATES = 3  # relaxation: updates after a cold load whose damping follows the latest quotient
+SURGE = 10.0  # relaxation: kinetic energy grown this many times since the previous update: a new transient
+SLOWING = 0.05  # a contraction ratio this much above the previous one: a slower motion is taking over
 
 
 class DistanceToRest:
@@ -42,7 +48,14 @@ class DistanceToRest:
     model at rest - e.g. an exact affine solution - stops contracting). Changes over a whole
     sampling interval, not single steps, so that float32 round-off of the displacement (about
     1e-6 mm) does not drown the estimate near convergence. Only B numbers per sample come back
-    to the host."""
+    to the host.
+
+    The estimate extrapolates the latest ratio, which holds only once the slowest motion left
+    dominates the change; while a slower motion is taking over from a faster one that dies out,
+    the ratio rises, and the estimate reads short. :attr:`slowing` flags the models whose ratio
+    rose by more than :data:`SLOWING` since the previous estimate (a relaxation does not trust
+    their estimate then: one stopped 0.40 mm from rest on an estimate of 0.009 mm, its ratio
+    0.54 -> 0.69, with a creeping mode 40 times slower than the Rayleigh quotient had found)."""
 
     def __init__(self, like: wp.array, n_models: int) -> None:
         self._sample = wp.zeros_like(like)
@@ -50,6 +63,8 @@ class DistanceToRest:
         self._n_nodes = like.shape[0] // n_models
         self._samples = 0
         self._change = None
+        self._rate = None
+        self.slowing = np.zeros(n_models, bool)
 
     def measure(self, u: wp.array) -> None:
         """Device work of a sample (no host synchronisation, so it can be captured in a graph):
@@ -73,6 +88,9 @@ class DistanceToRest:
                 remaining[contracting] = change[contracting] * rate[contracting] / (1.0 - rate[contracting])
                 at_rest = change <= ROUND_OFF_MM  # nothing left to contract
                 remaining[at_rest] = change[at_rest]
+                if self._rate is not None:
+                    self.slowing = (rate > self._rate + SLOWING) & ~at_rest
+                self._rate = rate
             self._change = change
         self._samples += 1
         return remaining
@@ -83,10 +101,29 @@ class DynamicRelaxation:
     """Fast path to the static solution (Joldes, Wittek & Miller): element densities scaled so
     every element has the same stable step (mass scaling), the load applied over
     ``load_iterations`` steps, then damping set every ``update_every`` steps to twice the square
-    root of the lowest eigenvalue, estimated by the Rayleigh quotient of the displacement change
-    since the previous update; stop when the estimated distance to the static solution (:class:`DistanceToRest`,
-    from the displacement change between updates) is below ``tolerance_mm`` for every model of
-    the batch. Time in a relaxation run is fictitious.
+    root of the lowest eigenvalue of M^-1 K, estimated by Rayleigh quotients of the displacement
+    change since a reference state renewed every :data:`QUOTIENT_WINDOW` updates. For
+    :data:`SETTLING_UPDATES` updates after a cold load the damping follows the latest quotient
+    (the load's transient, whose fast modes it damps); after that the least quotient since sets
+    it: every quotient bounds the lowest eigenvalue from above, so the damping only falls, towards
+    the lowest mode's critical value, as slower modes show in the motion (following the latest
+    quotient instead overdamps the slow modes near rest, whose creep reads as converged).
+    Where the kinetic energy has grown :data:`SURGE` times since the previous update - energy
+    released after the load: a snap to another configuration, contact chatter - the damping
+    follows the latest quotient for another :data:`SETTLING_UPDATES` updates (under the least
+    quotient's damping such a motion grew until an element of a coarse fitting mesh inverted).
+    Where the motion has not contracted at :data:`CHATTER_UPDATES` updates in a row and the
+    quotient is over :data:`CHATTER_QUOTIENT` times the least, it is high-frequency chatter -
+    contact, stiffening fibres - that the lowest mode's damping cannot remove, and the damping
+    follows the quotient up. Each model stops when the estimated distance to the static solution
+    (:class:`DistanceToRest`, from the displacement change between updates) is below
+    ``tolerance_mm`` at two updates in a row at which its motion is not slowing down.
+
+    A warm start (:mod:`BreastBiomechLib.solver.warm`) caps the damping at its start's lowest
+    mode, so its approach is never overdamped: its damping follows the latest quotient (over one
+    update interval) under that cap, and it stops where the estimate is below the tolerance at two
+    updates in a row, three updates after its plates' ramp at the earliest. Time in a relaxation
+    run is fictitious.
 
     ``load_iterations`` is a minimum: the load is applied slowly enough that prescribed boundaries
     (plates, displacements) move at under a third of the shear wave speed of the scaled model,
@@ -688,7 +725,14 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         chunk = max(2, sample_every - sample_every % 2)
         done = 0
         estimated_error = np.full(B, np.nan)
-        updates = np.zeros(B, int)  # relaxation updates since each model's load was complete
+        since_load = np.zeros(B, int)  # relaxation updates since each model's load was complete
+        settled_after = np.full(B, SETTLING_UPDATES)  # ... after which the least quotient sets the damping
+        ke_before = np.full(B, np.inf)  # kinetic energy at the previous update (J)
+        # a warm start's damping is capped by its start's lowest mode (critically damped at most,
+        # so no overdamped creep to mistake for rest): see the class docstring
+        warm = warm_start is not None
+        window = 1 if warm else QUOTIENT_WINDOW
+        stalled_updates = np.zeros(B, int)  # updates in a row at which each model did not contract
         checks_below = np.zeros(B, int)
         lowest = np.full(B, np.inf)  # the least Rayleigh quotient after each model's load (1/s^2)
         mass_growth = np.ones(B)
@@ -705,9 +749,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             internal_force(state, out, pressure_tmp, no_flags)
 
         if relaxation is not None:
-            # the state and forces at the previous update: the Rayleigh quotient of the change over
-            # a whole update interval (single-step changes near rest are float32 noise, whose
-            # quotient grows towards the highest modes and overdamps the slow ones)
+            # the state and forces of a reference renewed every QUOTIENT_WINDOW updates: the
+            # Rayleigh quotient of the change over one to QUOTIENT_WINDOW whole update intervals
+            # (single-step changes near rest are float32 noise, whose quotient grows towards the
+            # highest modes and overdamps the slow ones; over longer windows a slow mode's motion
+            # adds up while faster ones' does not)
             f_curr, f_last = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
             u_last = wp.clone(u)
             probe_force(u_last, f_last)
@@ -733,10 +779,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             mass_rescales += 1
             return stable * np.sqrt(grow)
 
-        def sample():
+        def sample(renew: bool = True):
             """The device work of a sample, before anything is read back: energies, the forces
-            at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms and the
-            displacement change since the last sample."""
+            at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms (and,
+            ``renew``, u and its forces as their next reference) and the displacement change
+            since the last sample."""
             kinetic.zero_()
             internal.zero_()
             # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
@@ -753,15 +800,18 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 for a in (stiffness, inertia):
                     a.zero_()
                 k.reduction_launch(k.relaxation_terms, B, N, [u, u_last, f_curr, f_last, d_mass, N, stiffness, inertia])
-                wp.copy(u_last, u)
-                wp.copy(f_last, f_curr)
+                if renew:
+                    wp.copy(u_last, u)
+                    wp.copy(f_last, f_curr)
             distance_to_rest.measure(u)
 
-        sample_graph = None
+        sample_graphs = {}
         if device.is_cuda:  # one graph launch and one wait per sample instead of some thirty of each
-            with wp.ScopedCapture() as capture:
-                sample()
-            sample_graph = capture.graph
+            for renew in (True, False) if relaxation is not None else (True,):
+                with wp.ScopedCapture() as capture:
+                    sample(renew)
+                sample_graphs[renew] = capture.graph
+        samples = 0
 
         if scaled:
             stable_step = keep_step_stable(stable_step)
@@ -775,10 +825,12 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 else:
                     two_steps()
             done += 2 * pairs
-            if sample_graph is not None:
-                wp.capture_launch(sample_graph)
+            samples += 1
+            renew = relaxation is None or samples % window == 0
+            if sample_graphs:
+                wp.capture_launch(sample_graphs[renew])
             else:
-                sample()
+                sample(renew)
             ke, ie = kinetic.numpy().astype(float), 0.5 * internal.numpy().astype(float)
             history["time"].append(done * dt)
             history["kinetic"].append(ke)
@@ -825,21 +877,38 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
                 loaded = done * dt >= totals
                 if loaded.any():
-                    ok = (lam > 0) & loaded
-                    damping[ok] = np.minimum(np.minimum(2.0 * np.sqrt(lam[ok]), 1.9 / dt), damping_cap[ok])
-                    lowest[ok & (active == 1)] = np.minimum(lowest, lam)[ok & (active == 1)]
-                    d_damping.assign(damping.astype(f32))
                     remaining = distance_to_rest.estimate()
+                    if remaining is not None:  # (a warm start is loaded before its first estimate)
+                        since_load += loaded
+                    # a transient - the load's, or energy released after it (kinetic energy grown
+                    # SURGE times since the previous update) - is damped by the latest quotient,
+                    # which its fast modes raise; only then does the least quotient set the damping
+                    # (lowered at once, it let a fit's 12 mm mesh invert). A warm start's first
+                    # updates are its trust delay only: its damping follows the latest quotient
+                    surge = loaded & (not warm) & (since_load > settled_after) & (ke > SURGE * ke_before) & (ke > 1e-6 * ie)
+                    settled_after[surge] = since_load[surge] + SETTLING_UPDATES
+                    ke_before = np.where(loaded, ke, ke_before)
+                    settling = since_load <= settled_after
+                    measured = loaded & (~settling | warm) & (lam > 0) & (active == 1)
+                    lowest[measured] = np.minimum(lowest, lam)[measured]
+                    following = np.minimum(np.minimum(2.0 * np.sqrt(np.maximum(lam, 0.0)), 1.9 / dt), damping_cap)
+                    least = np.minimum(np.minimum(2.0 * np.sqrt(np.where(np.isfinite(lowest), lowest, 0.0)), 1.9 / dt),
+                                       damping_cap)
+                    stalled = np.zeros(B, bool) if remaining is None else ~np.isfinite(remaining)
+                    stalled_updates = np.where(stalled, stalled_updates + 1, 0)
+                    chatter = (stalled_updates >= CHATTER_UPDATES) & (lam > CHATTER_QUOTIENT * np.minimum(lowest, lam))
+                    ok = (lam > 0) & loaded
+                    damping[ok] = np.where(warm | settling | chatter | ~np.isfinite(lowest), following, least)[ok]
+                    d_damping.assign(damping.astype(f32))
                     if remaining is not None:
                         running = (active == 1) & loaded
                         estimated_error[running] = remaining[running]
-                        # trust the estimate only once the damping has adapted (three updates after
-                        # the model's load) and it has held for two checks in a row; each model of
-                        # the batch stops (stands still) as soon as it has converged
-                        checks_below = np.where(running & (estimated_error < relaxation.tolerance_mm),
-                                                checks_below + 1, 0)
-                        updates += loaded
-                        done_now = running & (updates > 3) & (checks_below >= 2)
+                        # trust the estimate once the load's transient is over, where it is below the
+                        # tolerance at two checks in a row and the motion is not slowing down; each
+                        # model of the batch stops (stands still) as soon as it has converged
+                        trusted = running & (estimated_error < relaxation.tolerance_mm) & (warm | ~distance_to_rest.slowing)
+                        checks_below = np.where(trusted, checks_below + 1, 0)
+                        done_now = running & ~settling & (checks_below >= 2)
                         if done_now.any():
                             active[done_now] = 0
                             converged_at[done_now] = done
