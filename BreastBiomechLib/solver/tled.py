@@ -734,7 +734,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
         window = 1 if warm else QUOTIENT_WINDOW
         stalled_updates = np.zeros(B, int)  # updates in a row at which each model did not contract
         checks_below = np.zeros(B, int)
-        lowest = np.full(B, np.inf)  # the least Rayleigh quotient after each model's load (1/s^2)
+        lowest = np.full(B, np.inf)  # the least Rayleigh quotient since each model's transient (1/s^2)
         mass_growth = np.ones(B)
         converged_at = np.zeros(B, int)
         converged_forces = np.zeros((B, P, 3))
@@ -807,7 +807,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
 
         sample_graphs = {}
         if device.is_cuda:  # one graph launch and one wait per sample instead of some thirty of each
-            for renew in (True, False) if relaxation is not None else (True,):
+            for renew in (True, False) if relaxation is not None and window > 1 else (True,):
                 with wp.ScopedCapture() as capture:
                     sample(renew)
                 sample_graphs[renew] = capture.graph
