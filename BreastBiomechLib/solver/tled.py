@@ -24,6 +24,7 @@ from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
+from BreastBiomechLib.solver.ordering import SolverOrder
 from BreastBiomechLib.solver.stability import StableStepMonitor
 from BreastBiomechLib.solver.warm import WarmStart, ramp_iterations, start_time, started_plates
 
@@ -472,7 +473,38 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     Before anything is allocated the memory the solve needs is estimated and checked against what
     the device has free (or ``memory_limit_bytes``, a cap on a shared machine): a mesh or batch
     that does not fit is refused (:class:`~BreastBiomechLib.solver.memory.TooLargeForMemory`, a
-    ValueError) with the estimate and the largest batch that fits."""
+    ValueError) with the estimate and the largest batch that fits.
+
+    On the CPU a mesh numbered scattered (as TetGen leaves it) is solved in a local order and its
+    results given back in the mesh's numbering (:mod:`~BreastBiomechLib.solver.ordering`)."""
+    wp.init()
+    device = _device(device)
+    order = SolverOrder.for_mesh(model.mesh, len(materials)) if device.is_cpu else None
+    if order is None:
+        return _solve_batch_in_order(model, materials, plate_displacements, device, sample_every, ke_ie_limit,
+                                     initial_displacement, relaxation, warm_start, progress, steady_state_mm,
+                                     mass_scaling, plates, memory_limit_bytes)
+    c_nodes, _, _ = merged_constraints(model)  # errors that name nodes name the mesh's
+    constraint_load_shapes(model, c_nodes)
+    solutions = _solve_batch_in_order(
+        order.model(model), [order.materials(m) for m in materials], plate_displacements, device, sample_every,
+        ke_ie_limit, order.node_values(initial_displacement), relaxation,
+        None if warm_start is None else replace(warm_start, displacement=order.node_values(warm_start.displacement)),
+        progress, steady_state_mm, mass_scaling, None if plates is None else [order.plates(ps) for ps in plates],
+        memory_limit_bytes, element_ids=order.elements)
+    for s in solutions:
+        s.displacement = order.mesh_values(s.displacement)
+    return solutions
+
+
+def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate_displacements: list | None,
+                          device, sample_every: int, ke_ie_limit: float, initial_displacement: np.ndarray | None,
+                          relaxation: DynamicRelaxation | None, warm_start: WarmStart | None,
+                          progress: Callable[[float], bool | None] | None, steady_state_mm: float | None,
+                          mass_scaling: bool, plates: list[list[Plate]] | None, memory_limit_bytes: int | None,
+                          element_ids: np.ndarray | None = None) -> list[Solution]:
+    """:func:`solve_batch` in the model's own numbering; ``element_ids[e]``: the name of element e
+    in messages (None: e)."""
     wp.init()
     device = _device(device)
     if warm_start is not None and (relaxation is None or initial_displacement is not None):
@@ -839,6 +871,7 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
             flags = inverted.numpy().reshape(B, 4)
             for b in np.flatnonzero((flags[:, 0] > 0) & (active == 1)):
                 count, element, at = flags[b, :3]
+                element = element if element_ids is None else int(element_ids[element])
                 failed[int(b)] = (f"{count} element(s) inverted (J <= 0) at step {at} (t = {at * dt:.4g} s), first "
                                   f"element {element}; the displacement returned is that configuration. Reduce the "
                                   "load, refine the mesh there or check the constraints")
