@@ -100,6 +100,53 @@ def test_anp_averages_within_each_material():
     assert len(volume) == len(mesh.nodes) + len(interface)  # one more slot per interface node
 
 
+def test_shape_derivatives_are_the_rows_of_the_inverse_jacobian():
+    """dN_a/dX of linear tets against their definition (batched 3x3 inverses of the edge
+    Jacobian): the same to round-off on shapes from regular to needle-like, summing to zero."""
+    from BreastBiomechLib.solver.tled import shape_derivatives
+
+    rng = np.random.default_rng(4)
+    nodes = rng.normal(size=(400, 3)) * [1.0, 1.0, 0.05]  # some flat elements
+    tets = np.array([rng.choice(400, 4, replace=False) for _ in range(300)])
+    x = nodes[tets]
+    jac = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2)
+    inverse = np.linalg.inv(jac)
+    dN, vol = shape_derivatives(nodes, tets)
+    np.testing.assert_allclose(dN[:, 1:], inverse, rtol=1e-9, atol=1e-9 * np.abs(inverse).max())
+    np.testing.assert_allclose(dN.sum(axis=1), 0.0, atol=1e-9 * np.abs(inverse).max())
+    np.testing.assert_allclose(vol, np.linalg.det(jac) / 6.0, rtol=1e-12, atol=1e-15)
+
+
+def test_anp_slots_number_each_node_and_material_as_sorting_would():
+    """One slot per node and bulk-modulus group (elements with the same bulk modulus in every
+    material set of the batch), numbered in the order of (node, group) with the groups in the
+    lexicographic order of their moduli: against that definition written with sorts, for sets
+    that share the tissues' partition, split it, merge it, and give every element its own."""
+    from BreastBiomechLib.solver.tled import anp_slots
+
+    mesh = _block(5)
+    M = len(mesh.tets)
+    rng = np.random.default_rng(2)
+    tissue = rng.integers(0, 4, M)
+
+    def sets(*kappas):
+        return [ElementMaterials(mu=np.ones(M), kappa=k, eta=0.0, fibre=[1, 0, 0], density=1000.0) for k in kappas]
+
+    shared = [rng.uniform(1, 9, 4)[tissue] for _ in range(5)]
+    split = [np.array([1.0, 2, 3, 4])[tissue], np.where(np.arange(M) % 3 == 0, 5.0, 7.0),
+             np.array([1.0, 1, 3, 3])[tissue]]
+    merged = [np.array([2.0, 2, 1, 1])[tissue], np.array([4.0, 3, 2, 1])[tissue]]
+    vol = mesh.volumes
+    for kappas in (shared, split, merged, [rng.uniform(1, 2, M)]):
+        _, group = np.unique(np.stack(kappas, axis=1), axis=0, return_inverse=True)
+        pairs = mesh.tets * (group.max() + 1) + group.reshape(-1, 1)
+        keys, expected = np.unique(pairs.ravel(), return_inverse=True)
+        slots, volume = anp_slots(mesh.tets, sets(*kappas), vol)
+        np.testing.assert_array_equal(slots, expected.reshape(mesh.tets.shape))
+        np.testing.assert_allclose(volume, np.bincount(expected.ravel(), weights=np.repeat(vol, 4)), rtol=1e-12)
+        assert len(volume) == len(keys)
+
+
 @pytest.mark.parametrize("formulation", ["T4", "T4ANP"])
 def test_patch_test_dynamic_reproduces_affine_field(formulation):
     mesh = _block(3)

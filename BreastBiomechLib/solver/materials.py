@@ -142,7 +142,10 @@ class ElementMaterials:
         return self.prony_g.shape[1]
 
     def long_term(self) -> "ElementMaterials":
-        """The fully relaxed (equilibrium) hyperelastic materials: mu and eta scaled by g_inf."""
+        """The fully relaxed (equilibrium) hyperelastic materials: mu and eta scaled by g_inf
+        (these materials themselves where they have no Prony terms)."""
+        if self.prony_terms == 0:
+            return self
         g_inf = 1.0 - self.prony_g.sum(axis=1)
         return ElementMaterials(self.mu * g_inf, self.kappa, self.eta * g_inf, self.fibre, self.density)
 
