@@ -13,7 +13,7 @@ order of the force sums). Measured on the 2-core developer machine (docs/benchma
 
 Not on CUDA: there a single relaxation of the 139k-tet breast steps 12-13 % faster renumbered
 (0.021 s of 0.168 s on an H100), less than the host time the renumbering takes per solve
-(0.08-0.16 s: the permuted model, materials and codes), and batches of four or more models gain
+(0.16-0.26 s on that machine's host: the codes, the permuted model and materials), and batches of four or more models gain
 nothing, sixteen are 2-3 % slower (a batch's models are innermost, so a warp's threads share each
 element's reads already).
 
@@ -30,6 +30,7 @@ Kuhn grid 13, TetGen's order 28-31, the Z-order 10-12), the mesh has at least
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -89,7 +90,7 @@ class SolverOrder:
         return cls(np.argsort(morton_codes(mesh.nodes), kind="stable"),
                    np.argsort(morton_codes(mesh.nodes[mesh.tets].mean(axis=1)), kind="stable"))
 
-    @property
+    @cached_property
     def rank(self) -> np.ndarray:
         """(N,) the solver's number of each of the mesh's nodes."""
         rank = np.empty(len(self.nodes), np.int64)
