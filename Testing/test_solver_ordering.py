@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 
 from BreastBiomechLib.mesh.primitives import box_mesh, hemi_ellipsoid_mesh
-from BreastBiomechLib.solver import (Constraint, DynamicRelaxation, ElementMaterials, Loading, Material, Model, Plate,
-                                     solve, solve_batch)
+from BreastBiomechLib.solver import (Constraint, DynamicRelaxation, ElementMaterials, Loading, Material, Model, solve,
+                                     solve_batch)
 from BreastBiomechLib.solver import ordering
 from BreastBiomechLib.solver.model import ReferenceState
 from BreastBiomechLib.solver.ordering import SolverOrder, sectors_per_corner_read
 from BreastBiomechLib.solver.warm import WarmStart
-
-SIDE = 10.0  # mm
+from test_solver import SIDE, _compression_model
 
 
 @pytest.fixture
@@ -35,18 +34,9 @@ def _shuffled(model: Model, seed: int = 0) -> tuple[Model, SolverOrder]:
 
 
 def _compression(divisions=6, strain=0.2, formulation="T4ANP"):
-    """A 10 mm cube between a fixed plate (z = 0) and one moving down by ``strain`` of its side,
-    symmetry planes x = 0 and y = 0."""
-    mesh = box_mesh((SIDE, SIDE, SIDE), (divisions,) * 3)
-    bottom = np.flatnonzero(mesh.point_data["face_zlo"])
-    top = np.flatnonzero(mesh.point_data["face_zhi"])
-    constraints = [Constraint.fixed(np.flatnonzero(mesh.point_data["face_xlo"]), (True, False, False)),
-                   Constraint.fixed(np.flatnonzero(mesh.point_data["face_ylo"]), (False, True, False))]
-    plates = [Plate([0, 0, 0], [0, 0, 1], [0, 0, 0], bottom, "fixed"),
-              Plate([0, 0, SIDE], [0, 0, -1], [0, 0, -strain * SIDE], top, "moving")]
-    return Model(mesh, ElementMaterials.uniform(len(mesh.tets), Material(10e3, 0.45)),
-                 Loading(constraints, plates, total_time=0.2, settle_time=0.1), formulation=formulation,
-                 damping=200.0)
+    """test_solver's quarter-model cube (10 mm side) between a fixed and a moving plate."""
+    return _compression_model(box_mesh((SIDE, SIDE, SIDE), (divisions,) * 3), Material(10e3, 0.45), strain,
+                              formulation)
 
 
 def test_only_scattered_meshes_of_some_size_are_renumbered():
