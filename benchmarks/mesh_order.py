@@ -25,10 +25,9 @@ import numpy as np
 
 from BreastBiomechLib.cli.bench import BENCH_RADII_MM
 from BreastBiomechLib.mesh.tetmesh import TetMesh
-from BreastBiomechLib.solver import DynamicRelaxation, ElementMaterials, Loading, Material, Model, solve_batch
+from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
 from BreastBiomechLib.solver import ordering
-from BreastBiomechLib.solver.placement import compression_plates
-from BreastBiomechLib.solver.supports import support_constraints
+from BreastBiomechLib.solver.cases import plate_compression
 
 
 def tetgen_breast(edge_mm: float, path: str | None) -> TetMesh:
@@ -39,16 +38,6 @@ def tetgen_breast(edge_mm: float, path: str | None) -> TetMesh:
     from BreastBiomechLib.mesh.primitives import smooth_hemi_ellipsoid_mesh
 
     return smooth_hemi_ellipsoid_mesh(BENCH_RADII_MM, edge_mm)
-
-
-def compression(mesh: TetMesh) -> Model:
-    """The bench's loading on this mesh: plates closing 25 % left-right, the chest wall held
-    anterior-posteriorly, E = 10 kPa, nu = 0.49."""
-    surface = np.flatnonzero(mesh.point_data["surface"])
-    plates = compression_plates(mesh, "LR", 0.25, surface, names=("medial", "lateral"))
-    constraints = support_constraints(mesh.nodes, np.flatnonzero(mesh.point_data["chest_wall"]), (False, True, False))
-    return Model(mesh, ElementMaterials.uniform(len(mesh.tets), Material(E=10e3, nu=0.49)),
-                 Loading(constraints, plates, total_time=1.0, settle_time=0.25), damping=30.0)
 
 
 def main() -> None:
@@ -64,7 +53,7 @@ def main() -> None:
     mesh = tetgen_breast(args.edge_mm, args.mesh)
     if args.save:
         np.savez_compressed(args.save, nodes=mesh.nodes, tets=mesh.tets, **mesh.point_data)
-    model = compression(mesh)
+    model = plate_compression(mesh)  # the bench's loading
     start = time.perf_counter()
     order = ordering.SolverOrder.for_mesh(mesh)
     if order is None:

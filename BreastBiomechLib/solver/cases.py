@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh, smooth_hemi_ellipsoid_mesh
+from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material
 from BreastBiomechLib.solver.model import Loading, Model
 from BreastBiomechLib.solver.placement import compression_plates
@@ -24,6 +25,14 @@ def hemi_ellipsoid_compression(spacing_mm: float = 5.0, compression: float = 0.2
     (edges of about ``spacing_mm``) instead of the stair-stepped Kuhn grid. Default tissue: the
     seed's solver check (E = 10 kPa, nu = 0.49, 1000 kg/m^3)."""
     mesh = smooth_hemi_ellipsoid_mesh(radii_mm, spacing_mm) if smooth else hemi_ellipsoid_mesh(radii_mm, spacing_mm)
+    return plate_compression(mesh, compression, material, total_time, settle_time, damping, formulation)
+
+
+def plate_compression(mesh: TetMesh, compression: float = 0.25, material: Material | None = None,
+                      total_time: float = 1.0, settle_time: float = 0.25, damping: float = 30.0,
+                      formulation: str = "T4ANP") -> Model:
+    """The loading of :func:`hemi_ellipsoid_compression` on a given ``mesh`` with point data
+    ``chest_wall`` and ``surface`` (as the meshes of :mod:`BreastBiomechLib.mesh.primitives` have)."""
     material = material or Material(E=10e3, nu=0.49)
     chest = np.flatnonzero(mesh.point_data["chest_wall"])
     surface = np.flatnonzero(mesh.point_data["surface"])
