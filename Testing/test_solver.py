@@ -599,6 +599,9 @@ def test_batched_dynamic_relaxation_stops_each_model_when_it_converges():
     relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.001)
     batch = solve_batch(model, variants, device="cpu", relaxation=relaxation)
     assert len({b.steps for b in batch}) > 1  # some models stood still while others went on
+    first = min(batch, key=lambda b: b.steps)
+    later = first.history["time"] > first.steps * first.time_step
+    assert later.any() and np.all(first.history["kinetic"][later] == 0.0)  # at rest once converged
     for mat, b in zip(variants, batch):
         one = solve(Model(mesh, mat, model.loading, formulation=model.formulation), device="cpu",
                     relaxation=relaxation)

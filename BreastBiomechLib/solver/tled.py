@@ -5,7 +5,8 @@ nodal masses, the critical time step. Each step: (ANP nodal pressures), element 
 node kernel (``kernels.advance_nodes``): the central difference update with mass-proportional
 damping (seed eq. (15)) in increment form, with the displacement accumulated in float32 plus a
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
-The step loop has no host synchronisation: on CUDA it replays a captured graph of two steps.
+The step loop has no host synchronisation: on CUDA it replays a captured graph of two steps
+(one graph per launch width: the steps run only the models still moving, see ``kernels``).
 Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate and
 the relaxation's terms, and they, the plate forces and the inverted-element flags are read back.
 """
@@ -408,7 +409,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         forces = wp.zeros(N, dtype=wp.vec3)
         inverted = wp.zeros(4, dtype=int)
         anp = 1 if model.formulation == "T4ANP" else 0
-        one_model = wp.ones(1, dtype=int)
+        one_model = wp.array([1, 0], dtype=int)  # the list of models: one, model 0
         if anp:
             wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, kappa, 1, one_model, pressure])
         wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, wp.array(mat.mu.astype(f32), dtype=float), kappa,
@@ -666,7 +667,13 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         loads.mass, loads.body_start, loads.body_force = d_mass, d_body_start, d_body_force
         loads.damping, loads.t_total, loads.load_shape, loads.dt = d_damping, d_totals, load_shape, float(dt)
         active = np.ones(B, np.int32)  # dynamic relaxation stops each model once it has converged
-        d_active = arr(active, int)
+
+        def model_list(flags):
+            """The kernels' list of models (see :mod:`kernels`): [n, the n flagged models, padding]."""
+            chosen = np.flatnonzero(flags)
+            return np.concatenate([[len(chosen)], chosen, np.zeros(B - len(chosen))]).astype(np.int32)
+
+        d_moving = arr(model_list(active), int)  # the models the steps compute
 
         c_nodes, c_mask, c_vals = merged_constraints(model)
         n_con = len(c_nodes)
@@ -726,56 +733,50 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         plates.touching = wp.zeros(max(B * n_slots, 1), dtype=int)
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
-        every_model = arr(np.ones(B, np.int32), int)
+        every_model = arr(model_list(np.ones(B)), int)
         probe_clock, no_plates = wp.zeros(2, dtype=int), wp.zeros(0, dtype=wp.vec3)
 
-        def internal_force(state, out, pressure_buffer, flags, models=every_model, update_state=0, cleared=False,
-                           step_clock=None, to_clear=None):
+        def internal_force(state, out, pressure_buffer, flags, models=every_model, width=B, update_state=0,
+                           cleared=False, step_clock=None, to_clear=None):
             """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)
-            for the ``models`` flagged 1 (the others' stay zero); ``update_state`` advances the
-            visco state variables by one step; ``cleared``: ``out`` and ``pressure_buffer`` are
-            zero already (the step kernels clear them). A step passes its clock and the plate
-            forces to clear (see :func:`kernels.element_forces`); a probe leaves both alone."""
+            for the listed ``models`` (at most ``width`` of them; the others' stay zero);
+            ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
+            and ``pressure_buffer`` are zero already (the step kernels clear them). A step passes
+            its clock and the plate forces to clear (see :func:`kernels.element_forces`); a probe
+            leaves both alone."""
             if not cleared:
                 out.zero_()
                 pressure_buffer.zero_()
             if use_anp:
-                wp.launch(k.nodal_pressure, B * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_kappa, B, models,
-                                                     pressure_buffer])
-            wp.launch(k.element_forces, B * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
-                                                 use_anp, d_slots, pressure_buffer, d_slotvol, K, d_prony_g,
-                                                 d_prony_decay, visco_state, update_state, B,
-                                                 probe_clock if step_clock is None else step_clock, models, out, flags,
-                                                 no_plates if to_clear is None else to_clear])
+                wp.launch(k.nodal_pressure, width * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_kappa, B, models,
+                                                         pressure_buffer])
+            wp.launch(k.element_forces, width * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
+                                                     use_anp, d_slots, pressure_buffer, d_slotvol, K, d_prony_g,
+                                                     d_prony_decay, visco_state, update_state, B,
+                                                     probe_clock if step_clock is None else step_clock, models, out,
+                                                     flags, no_plates if to_clear is None else to_clear])
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
-                wp.launch(k.support_springs, B * n_sup, [state, d_snodes, d_snormals, d_sstiff, N, n_sup, models, out])
+                wp.launch(k.support_springs, width * n_sup, [state, d_snodes, d_snormals, d_sstiff, B, models, out])
 
-        def one_step():
-            # converged models stand still: their element forces are not computed again
-            internal_force(u, forces, pressure, inverted, d_active, update_state=1, cleared=True, step_clock=clock,
-                           to_clear=plate_force)
-            wp.launch(k.advance_nodes, B * N, [u, low, du, forces, pressure, loads, constraints, plates, d_active, B,
-                                               clock, plate_force, inverted])
+        def one_step(width):
+            """One step of the moving models (at most ``width`` of them): converged models stand
+            still, and their threads are not launched."""
+            internal_force(u, forces, pressure, inverted, d_moving, width, update_state=1, cleared=True,
+                           step_clock=clock, to_clear=plate_force)
+            wp.launch(k.advance_nodes, width * N, [u, low, du, forces, pressure, loads, constraints, plates, d_moving,
+                                                   B, width * N, clock, plate_force, inverted])
 
-        def two_steps():
-            one_step()
-            one_step()
+        def two_steps(width):
+            one_step(width)
+            one_step(width)
 
-        graph = None
-        if device.is_cuda:
-            two_steps()  # compile and warm up outside the capture
-            clock.zero_()
-            u.assign(u0.astype(f32))
-            low.zero_()
-            du.zero_()
-            forces.zero_()
-            pressure.zero_()
-            inverted.zero_()
-            visco_state.zero_()
-            plates.touching.zero_()
-            with wp.ScopedCapture() as capture:
-                two_steps()
-            graph = capture.graph
+        graphs = {}  # on CUDA: two steps captured per launch width, replayed
+
+        def launch_width():
+            """Threads per element (node) the steps launch: the moving models' count rounded up to a
+            power of two (at most B), so that a batch whose models converge one by one replays a
+            handful of graphs, each no wider than needed."""
+            return min(B, 1 << max(int(np.count_nonzero(active)) - 1, 0).bit_length())
 
         kinetic = wp.zeros(B, dtype=float)
         internal = wp.zeros(B, dtype=float)
@@ -879,11 +880,16 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             status, message = "unstable", _step_too_large(0.0, stable_step.min(), dt)
         while status == "completed" and done < n_steps:
             pairs = min(chunk, n_steps - done + (n_steps - done) % 2) // 2
+            width = launch_width()
+            if device.is_cuda and width not in graphs:
+                with wp.ScopedCapture() as capture:
+                    two_steps(width)
+                graphs[width] = capture.graph
             for _ in range(pairs):
-                if graph is not None:
-                    wp.capture_launch(graph)
+                if device.is_cuda:
+                    wp.capture_launch(graphs[width])
                 else:
-                    two_steps()
+                    two_steps(width)
             done += 2 * pairs
             samples += 1
             renew = relaxation is None or samples % window == 0
@@ -904,7 +910,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                   f"element {element}; the displacement returned is that configuration. Reduce the "
                                   "load, refine the mesh there or check the constraints")
                 active[b] = 0  # frozen by the kernels; the other models of the batch go on
-            if len(failed) == B:
+                d_moving.assign(model_list(active))
+            if not active.any():
                 break
             alive = np.array([b not in failed for b in range(B)])
             if not np.all(np.isfinite(ke[alive])) or not np.all(np.isfinite(ie[alive])):
@@ -974,7 +981,9 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                             active[done_now] = 0
                             converged_at[done_now] = done
                             converged_forces[done_now] = history["plate_forces"][-1][done_now]
-                            d_active.assign(active)
+                            d_moving.assign(model_list(active))
+                            # at rest from now on: no kinetic energy in their samples
+                            wp.launch(k.stand_still, B * N, [du, arr(done_now.astype(np.int32), int)])
                             if not active.any():
                                 break
         wp.synchronize_device(device)
