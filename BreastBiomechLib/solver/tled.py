@@ -40,6 +40,7 @@ CHATTER_UPDATES = 2  # relaxation: ... and has stalled at this many updates in a
 SETTLING_UPDATES = 3  # relaxation: updates after a cold load whose damping follows the latest quotient
 SURGE = 10.0  # relaxation: kinetic energy grown this many times since the previous update: a new transient
 SLOWING = 0.05  # a contraction ratio this much above the previous one: a slower motion is taking over
+FLOAT32_ROUNDING = 2.0 ** -24  # float32's relative rounding error (half an ulp of 1)
 
 
 class DistanceToRest:
@@ -67,6 +68,11 @@ class DistanceToRest:
         self._change = None
         self._rate = None
         self.slowing = np.zeros(n_models, bool)
+
+    @property
+    def change(self) -> np.ndarray:
+        """(B,) the largest nodal change (mm) between the last two measurements (inf before two)."""
+        return np.full(len(self.slowing), np.inf) if self._change is None else self._change
 
     def measure(self, u: wp.array) -> None:
         """Device work of a sample (no host synchronisation, so it can be captured in a graph):
@@ -119,7 +125,11 @@ class DynamicRelaxation:
     contact, stiffening fibres - that the lowest mode's damping cannot remove, and the damping
     follows the quotient up. Each model stops when the estimated distance to the static solution
     (:class:`DistanceToRest`, from the displacement change between updates) is below
-    ``tolerance_mm`` at two updates in a row at which its motion is not slowing down.
+    ``tolerance_mm`` at two updates in a row at which its motion is not slowing down. A change
+    below the model's float32 noise floor (:func:`stress_noise_floor_mm`) whose quotient is over
+    :data:`CHATTER_QUOTIENT` times the least is rounding noise about rest, counted as rest at that
+    distance (nearly incompressible tissue wanders by up to 1e-3 mm at rest, with contraction
+    ratios jumping above and below 1 that the estimate cannot extrapolate).
 
     A warm start (:mod:`BreastBiomechLib.solver.warm`) caps the damping at its start's lowest
     mode, so its approach is never overdamped: its damping follows the latest quotient (over one
@@ -251,6 +261,18 @@ def wave_speed_ratio(mat: ElementMaterials) -> float:
     """The largest c_dilatational / c_shear = sqrt(wave_modulus / mu) over the elements: how many
     times faster than the slowest shear wave the loads' prescribed motion must stay below."""
     return float(np.max(np.sqrt(wave_modulus(mat) / mat.mu)))
+
+
+def stress_noise_floor_mm(materials: list[ElementMaterials], length_m: np.ndarray) -> np.ndarray:
+    """(B,) the displacement (mm) below which float32 cannot resolve each model's equilibrium:
+    float32 rounding of J - 1 times the largest bulk-to-shear modulus ratio, over the median element
+    altitude. A volumetric stress kappa (J - 1) is rounded by about kappa x 6e-8, which the shear
+    stiffness answers with a strain of that over mu. On a block of 2.5 mm cubes at rest the largest
+    nodal change between relaxation updates stays at 0.8e-6-2e-6 mm for nu = 0.49 (kappa / mu = 50)
+    and wanders at 2e-5-9e-5 mm for nu = 0.4999 (kappa / mu = 5 000): between a 25th and a third
+    of this bound (5.2e-6 and 5.3e-4 mm there)."""
+    ratio = np.array([float(np.max(m.kappa / np.maximum(m.mu, 1e-30))) for m in materials])
+    return FLOAT32_ROUNDING * ratio * float(np.median(length_m)) / MM
 
 
 def critical_time_step(model: Model, materials: list[ElementMaterials], length_m: np.ndarray | None = None) -> float:
@@ -589,6 +611,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         # the scale of each model's lowest eigenvalue: mean mu / rho over the volume (m^2/s^2)
         speed_squared = np.array([float(np.sum(vol * mat.mu / rho) / np.sum(vol))
                                   for mat, rho in zip(materials, densities)])
+        noise_floor = stress_noise_floor_mm(materials, length)
         sample_every = relaxation.update_every
     total = float(totals.max())  # the batch's loading ends with its slowest model's
     def lumped(element_density):
@@ -970,11 +993,18 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                     d_damping.assign(damping.astype(f32))
                     if remaining is not None:
                         running = (active == 1) & loaded
+                        # a change below the model's float32 noise floor made of high modes only (its
+                        # quotient far above the least) is noise about the rest state, not a motion to
+                        # extrapolate: its contraction ratio jumps above and below 1
+                        noise = ((distance_to_rest.change <= noise_floor) & np.isfinite(lowest)
+                                 & (lam > CHATTER_QUOTIENT * lowest))
+                        remaining = np.where(noise, np.minimum(remaining, distance_to_rest.change), remaining)
                         estimated_error[running] = remaining[running]
                         # trust the estimate once the load's transient is over, where it is below the
                         # tolerance at two checks in a row and the motion is not slowing down; each
                         # model of the batch stops (stands still) as soon as it has converged
-                        trusted = running & (estimated_error < relaxation.tolerance_mm) & (warm | ~distance_to_rest.slowing)
+                        trusted = (running & (estimated_error < relaxation.tolerance_mm)
+                                   & (warm | ~distance_to_rest.slowing | noise))
                         checks_below = np.where(trusted, checks_below + 1, 0)
                         done_now = running & ~settling & (checks_below >= 2)
                         if done_now.any():
