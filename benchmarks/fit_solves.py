@@ -2,7 +2,7 @@
 (issue 25, point 4), on the log of ``breastbiomech bench optimise --out FIT``:
 
     python benchmarks/fit_solves.py failures FIT [--device cuda] [--json OUT.json]
-    python benchmarks/fit_solves.py workload FIT [--device cuda] [--pace 1 2 3]
+    python benchmarks/fit_solves.py workload FIT [--device cuda] [--pace 1 2 3] [--batches]
 
 ``failures`` solves each failed parameter set again with its load 1, 4 and 16 times slower and
 reports when (the fraction of the load) and where (the first inverted element: tissue, surface,
@@ -13,7 +13,9 @@ quasi-static path: a physical failure of that parameter set on that mesh.
 ``workload`` solves all the fit's sets in the fit's own batches under each setting, so that
 settings are compared on one workload rather than on optimiser paths that part after the first
 generation, and prints one JSON line per setting: failures by status, the solves' wall seconds,
-the iterations (median, largest) and the slowest batch.
+the iterations (median, largest) and the slowest batch; ``--batches`` also prints a line per
+batch (its seconds, each model's iterations and status), which shows how long a batch waits on its
+slowest model.
 
 The bench's case is rebuilt (``bench_fitting_problem``, default geometry: radii 70/60/65 mm,
 4 mm cubes); nothing is asserted.
@@ -82,7 +84,7 @@ def failures(problem, evaluations, batch: int, out: str | None) -> None:
         Path(out).write_text(json.dumps({"failures": rows, "classes": counts}, indent=1))
 
 
-def workload(problem, evaluations, batch: int, paces, load: int, most: int) -> None:
+def workload(problem, evaluations, batch: int, paces, load: int, most: int, per_batch: bool) -> None:
     problem.solve([evaluations[0].z], relaxation=DynamicRelaxation(max_iterations=1200))  # compile, warm up
     logged = dict(collections.Counter(e.status for e in evaluations))
     for pace in paces:
@@ -92,6 +94,10 @@ def workload(problem, evaluations, batch: int, paces, load: int, most: int) -> N
             began = time.perf_counter()
             solutions = problem.solve([e.z for e in evaluations[start:start + batch]], relaxation=relaxation)
             seconds.append(time.perf_counter() - began)
+            if per_batch:
+                print(json.dumps({"pace": pace, "first": start, "seconds": round(seconds[-1], 3),
+                                  "iterations": [int(s.steps) for s in solutions],
+                                  "statuses": [s.status for s in solutions]}), flush=True)
             statuses += [s.status for s in solutions]
             steps += [s.steps for s in solutions if s.ok]
         counts = collections.Counter(statuses)
@@ -116,6 +122,7 @@ def main() -> None:
     parser.add_argument("--load-iterations", type=int, default=1000, help="workload: the relaxation's minimum load")
     parser.add_argument("--max-iterations", type=int, default=50_000, help="workload: the relaxation's cap")
     parser.add_argument("--first", type=int, default=None, help="workload: only the first this many solves")
+    parser.add_argument("--batches", action="store_true", help="workload: a line per batch too")
     args = parser.parse_args()
 
     evaluations = read_evaluations(Path(args.fit) / "evaluations.jsonl")
@@ -124,7 +131,8 @@ def main() -> None:
     if args.what == "failures":
         failures(problem, evaluations, args.batch, args.json)
     else:
-        workload(problem, evaluations[:args.first], args.batch, args.pace, args.load_iterations, args.max_iterations)
+        workload(problem, evaluations[:args.first], args.batch, args.pace, args.load_iterations, args.max_iterations,
+                 args.batches)
 
 
 if __name__ == "__main__":
