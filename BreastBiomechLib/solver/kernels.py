@@ -12,8 +12,9 @@ moving in a relaxation, every model otherwise): thread t handles entry t mod n o
 element (or node) t div n, so the listed models' work is packed into consecutive threads
 whatever the batch size, and a launch needs only n x (elements or nodes) threads (more are
 allowed; they return at once). Until 2026-11-28 every kernel ran B threads per element and
-converged models' threads returned: a batch of 16 with one model still moving took 65 us a step
-on a 54k-tet mesh against 30 us for that model alone (H200).
+converged models' threads returned: fitted over a fit's batches of 16 on a 54k-tet mesh, a step
+cost about 65 us however few models still moved, against 30 us for one slow model solved alone
+(H200, docs/benchmarks.md).
 """
 
 from __future__ import annotations

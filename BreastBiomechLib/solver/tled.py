@@ -694,7 +694,9 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         def model_list(flags):
             """The kernels' list of models (see :mod:`kernels`): [n, the n flagged models, padding]."""
             chosen = np.flatnonzero(flags)
-            return np.concatenate([[len(chosen)], chosen, np.zeros(B - len(chosen))]).astype(np.int32)
+            listing = np.zeros(B + 1, np.int32)
+            listing[0], listing[1:1 + len(chosen)] = len(chosen), chosen
+            return listing
 
         d_moving = arr(model_list(active), int)  # the models the steps compute
 
