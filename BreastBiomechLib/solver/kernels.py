@@ -4,7 +4,11 @@ All kernels work on a batch of B models that share one mesh, models innermost: n
 N*B entries (model b's node a at a*B + b), element arrays M*B (element e at e*B + b), ANP slot
 arrays S*B, so that the threads of one element (or node) for the B models are neighbours: they
 read the element's connectivity and shape-function derivatives once between them, and their
-displacements, forces and materials side by side. Units inside the kernels are SI:
+displacements, forces and materials side by side. Nodal forces are three planes of floats, one per
+component (``forces[c, a*B + b]``, :func:`add_force` and :func:`force_at`): the element kernel's
+atomic adds of one component then fall on consecutive addresses, where a vec3 array spreads them
+over three times as many memory sectors (an ANP step 18-21 % faster on the H200 at 160k-2M tets,
+docs/benchmarks.md). Units inside the kernels are SI:
 metres, pascal, kilograms, seconds, newtons. Vectors are in the mesh frame (LPS axes).
 
 The step kernels work on a *list* of models, ``models`` = [n, b_1, ..., b_n] (the models still
@@ -100,6 +104,20 @@ def listed(models: wp.array(dtype=int), tid: int) -> wp.vec2i:
     return wp.vec2i(item, models[1 + tid - item * n])
 
 
+@wp.func
+def add_force(forces: wp.array2d(dtype=float), i: int, f: wp.vec3):
+    """forces[:, i] += f (N), one atomic add per component plane."""
+    wp.atomic_add(forces, 0, i, f[0])
+    wp.atomic_add(forces, 1, i, f[1])
+    wp.atomic_add(forces, 2, i, f[2])
+
+
+@wp.func
+def force_at(forces: wp.array2d(dtype=float), i: int) -> wp.vec3:
+    """The force (N) of entry i of the component planes."""
+    return wp.vec3(forces[0, i], forces[1, i], forces[2, i])
+
+
 @wp.kernel
 def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
                    dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), kappa: wp.array(dtype=float),
@@ -139,7 +157,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
                    n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int),
-                   forces: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int),
+                   forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int),
                    plate_force: wp.array(dtype=wp.vec3)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
     the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
@@ -201,10 +219,10 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
             visco_state[slot] = Q
         S = S - prony_g[slot] * Q
     P = v0 * (F * S)
-    wp.atomic_add(forces, n0 * n_models + b, P * d0)
-    wp.atomic_add(forces, n1 * n_models + b, P * d1)
-    wp.atomic_add(forces, n2 * n_models + b, P * d2)
-    wp.atomic_add(forces, n3 * n_models + b, P * d3)
+    add_force(forces, n0 * n_models + b, P * d0)
+    add_force(forces, n1 * n_models + b, P * d1)
+    add_force(forces, n2 * n_models + b, P * d2)
+    add_force(forces, n3 * n_models + b, P * d3)
 
 
 @wp.func
@@ -357,7 +375,7 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
 
 @wp.kernel
 def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                  forces: wp.array(dtype=wp.vec3), pressure_volume: wp.array(dtype=float),
+                  forces: wp.array2d(dtype=float), pressure_volume: wp.array(dtype=float),
                   loads: NodeLoads, constraints: NodeConstraints, plates: PlateContact,
                   models: wp.array(dtype=int), n_models: int, n_threads: int, clock: wp.array(dtype=int),
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
@@ -401,8 +419,10 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     if a < 0 or a >= plates.slot.shape[0]:
         return
     i = a * n_models + b
-    f = forces[i]
-    forces[i] = wp.vec3(0.0)
+    f = force_at(forces, i)
+    forces[0, i] = 0.0
+    forces[1, i] = 0.0
+    forces[2, i] = 0.0
     if inverted[4 * b] != 0:
         du[i] = wp.vec3(0.0)
         return
@@ -513,7 +533,7 @@ def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhd
 
 @wp.kernel
 def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3),
-                     f_curr: wp.array(dtype=wp.vec3), f_prev: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                     f_curr: wp.array2d(dtype=float), f_prev: wp.array2d(dtype=float), mass: wp.array(dtype=float),
                      n_nodes: int, stiffness: wp.array(dtype=float), inertia: wp.array(dtype=float), padded: int):
     """Per model: du.K du ~ du.(F(u_curr) - F(u_prev)) and du.M du, du = u_curr - u_prev, for
     dynamic relaxation (Rayleigh quotient of the change since the last update: the lowest
@@ -524,7 +544,7 @@ def relaxation_terms(u_curr: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.
     if at[1] < n_nodes:
         i = at[1] * stiffness.shape[0] + at[0]
         du = u_curr[i] - u_prev[i]
-        k_part = wp.dot(du, f_curr[i] - f_prev[i])
+        k_part = wp.dot(du, force_at(f_curr, i) - force_at(f_prev, i))
         m_part = mass[i] * wp.dot(du, du)
     wp.tile_atomic_add(stiffness, wp.tile_sum(wp.tile(k_part)), offset=at[0])
     wp.tile_atomic_add(inertia, wp.tile_sum(wp.tile(m_part)), offset=at[0])
@@ -552,8 +572,8 @@ def perturbed(u: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), eps: float
 
 
 @wp.kernel
-def power_iteration_terms(v: wp.array(dtype=wp.vec3), f_probe: wp.array(dtype=wp.vec3),
-                          f_base: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), eps: float,
+def power_iteration_terms(v: wp.array(dtype=wp.vec3), f_probe: wp.array2d(dtype=float),
+                          f_base: wp.array2d(dtype=float), mass: wp.array(dtype=float), eps: float,
                           n_nodes: int, vkv: wp.array(dtype=float), vmv: wp.array(dtype=float),
                           next_v: wp.array(dtype=wp.vec3), largest: wp.array(dtype=float), padded: int):
     """One power iteration on M^-1 K, K v ~ (f(u + eps v) - f(u)) / eps: per model the Rayleigh
@@ -566,7 +586,7 @@ def power_iteration_terms(v: wp.array(dtype=wp.vec3), f_probe: wp.array(dtype=wp
     top = float(0.0)
     if at[1] < n_nodes:
         i = at[1] * vkv.shape[0] + at[0]
-        kv = (f_probe[i] - f_base[i]) / eps
+        kv = (force_at(f_probe, i) - force_at(f_base, i)) / eps
         k_part = wp.dot(v[i], kv)
         m_part = mass[i] * wp.dot(v[i], v[i])
         w = kv / mass[i]
@@ -604,7 +624,7 @@ def zero_constrained(v: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), mas
 @wp.kernel
 def support_springs(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), normals: wp.array(dtype=wp.vec3),
                     stiffness: wp.array(dtype=wp.vec2), n_models: int, models: wp.array(dtype=int),
-                    forces: wp.array(dtype=wp.vec3)):
+                    forces: wp.array2d(dtype=float)):
     """Springs of a surface support added to the internal forces: k_n (u.n) n + k_t (u - (u.n) n)
     at each supported node, ``stiffness[k]`` = (k_n, k_t) in N/m (the stiffness per area times
     the node's area), n its surface normal, for the listed ``models`` (see the module's docstring)."""
@@ -615,4 +635,4 @@ def support_springs(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), norm
     i = nodes[k] * n_models + b
     n = normals[k]
     along = wp.dot(u[i], n) * n
-    wp.atomic_add(forces, i, stiffness[k][0] * along + stiffness[k][1] * (u[i] - along))
+    add_force(forces, i, stiffness[k][0] * along + stiffness[k][1] * (u[i] - along))

@@ -23,7 +23,7 @@ class StableStepMonitor:
     """Power iteration for the stable time step (s) of B models sharing a mesh.
 
     ``internal_force(state, out)`` writes the internal nodal forces (N) of displacement ``state``
-    (m) into ``out``; ``mass`` holds the lumped nodal masses (kg, B*N); ``probe_m`` is the size of
+    (m) into ``out`` (component planes, shape (3, B*N): see :mod:`~BreastBiomechLib.solver.kernels`); ``mass`` holds the lumped nodal masses (kg, B*N); ``probe_m`` is the size of
     the finite-difference probe (m), about 1e-3 of an element."""
 
     def __init__(self, internal_force: Callable, mass: wp.array, n_models: int, n_nodes: int, probe_m: float,
@@ -37,8 +37,8 @@ class StableStepMonitor:
         self._v = wp.array(start, dtype=wp.vec3)
         self._w = wp.zeros_like(self._v)
         self._probe = wp.zeros_like(self._v)
-        self._f_base = wp.zeros_like(self._v)
-        self._f_probe = wp.zeros_like(self._v)
+        self._f_base = wp.zeros((3, n_models * n_nodes), dtype=float)  # component planes, see kernels
+        self._f_probe = wp.zeros_like(self._f_base)
         self._vkv, self._vmv, self._largest = (wp.zeros(n_models, dtype=float) for _ in range(3))
         self._zero_constrained()
         self.omega_squared = np.zeros(n_models)

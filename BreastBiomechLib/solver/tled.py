@@ -428,7 +428,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         kappa = wp.array(mat.kappa.astype(f32), dtype=float)
         pressure = wp.zeros(len(slot_volume), dtype=float)
         d_slots = wp.array(slots, dtype=int)
-        forces = wp.zeros(N, dtype=wp.vec3)
+        forces = wp.zeros((3, N), dtype=float)  # component planes (see kernels)
         inverted = wp.zeros(4, dtype=int)
         anp = 1 if model.formulation == "T4ANP" else 0
         one_model = wp.array([1, 0], dtype=int)  # the list of models: one, model 0
@@ -443,7 +443,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
                                          forces, inverted, wp.zeros(0, dtype=wp.vec3)])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
-        return forces.numpy().astype(np.float64)
+        return forces.numpy().T.astype(np.float64, order="C")
 
 
 def _step_too_large(t: float, stable: float, dt: float) -> str:
@@ -664,7 +664,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         # the state: displacement u (m), its float32 rounding remainder and the last increment
         u, low, du = arr(u0, wp.vec3), wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
         scratch = wp.zeros(B * N, dtype=wp.vec3)
-        forces = wp.zeros(B * N, dtype=wp.vec3)
+        forces = wp.zeros((3, B * N), dtype=float)  # component planes (see kernels)
         pressure = wp.zeros(B * S, dtype=float)
         clock = wp.zeros(2, dtype=int)  # the step: [as the element kernel reads it, as the node kernel does]
         inverted = wp.zeros(4 * B, dtype=int)  # per model: count, first element, its step, frozen
@@ -840,7 +840,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             # (single-step changes near rest are float32 noise, whose quotient grows towards the
             # highest modes and overdamps the slow ones; over longer windows a slow mode's motion
             # adds up while faster ones' does not)
-            f_curr, f_last = wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
+            f_curr, f_last = wp.zeros((3, B * N), dtype=float), wp.zeros((3, B * N), dtype=float)
             u_last = wp.clone(u)
             probe_force(u_last, f_last)
             stiffness, inertia = wp.zeros(B, dtype=float), wp.zeros(B, dtype=float)
