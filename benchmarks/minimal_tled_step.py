@@ -4,12 +4,14 @@ One neo-Hookean four-node-tet element kernel (no ANP, no visco, no fibres, no in
 flags: F, its stress and four atomic adds) and one node kernel (undamped central difference,
 no constraints, no contact); with ``--anp`` also the average-nodal-pressure pass (one slot per
 node) before it; with ``--gather`` the element kernel stores its four nodal forces and the
-node kernel sums them through a node-to-entries index (no atomics, as NiftySim assembles), replayed as a CUDA graph of two steps on the benchmarks'
+node kernel sums them through a node-to-entries index (no atomics, as NiftySim assembles); with
+``--planes`` the nodal forces are three planes of floats, one per component, as the solver's
+(``kernels.add_force``), instead of a vec3 array; replayed as a CUDA graph of two steps on the benchmarks'
 hemi-ellipsoid (``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's
 step does more (ANP's second element pass, damping, constraints, plates, per-model flags), so
 the ratio of the two per-step times is the price of that work plus whatever the solver wastes.
 
-    python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda] [--anp | --gather]
+    python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda] [--anp | --gather] [--planes]
 
 prints one JSON line: the mesh size, microseconds per step and per element-step. Units inside
 the kernels are SI (m, Pa, kg, s, N). Times are wall-clock over synchronised graph replays,
@@ -101,6 +103,46 @@ def anp_element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), 
     scatter(forces, n0, n1, n2, n3, P, d0, d1, d2, d3)
 
 
+@wp.func
+def scatter_planes(forces: wp.array2d(dtype=float), n0: int, n1: int, n2: int, n3: int, P: wp.mat33,
+                   d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3):
+    """``--planes``: as :func:`scatter`, into forces[c, node], one plane per component."""
+    for c in range(3):
+        wp.atomic_add(forces, c, n0, (P * d0)[c])
+        wp.atomic_add(forces, c, n1, (P * d1)[c])
+        wp.atomic_add(forces, c, n2, (P * d2)[c])
+        wp.atomic_add(forces, c, n3, (P * d3)[c])
+
+
+@wp.kernel
+def element_forces_planes(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                          vol: wp.array(dtype=float), mu: float, kappa: float, forces: wp.array2d(dtype=float)):
+    """``--planes``: :func:`element_forces` scattering into component planes."""
+    e = wp.tid()
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+    F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
+    P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
+    scatter_planes(forces, n0, n1, n2, n3, P, d0, d1, d2, d3)
+
+
+@wp.kernel
+def anp_element_forces_planes(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int),
+                              dhdx: wp.array2d(dtype=wp.vec3), vol: wp.array(dtype=float), mu: float, kappa: float,
+                              pressure_volume: wp.array(dtype=float), node_volume: wp.array(dtype=float),
+                              forces: wp.array2d(dtype=float)):
+    """``--anp --planes``: :func:`anp_element_forces` scattering into component planes."""
+    e = wp.tid()
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+    F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
+    pm = 0.25 * (pressure_volume[n0] / node_volume[n0] + pressure_volume[n1] / node_volume[n1]
+                 + pressure_volume[n2] / node_volume[n2] + pressure_volume[n3] / node_volume[n3])
+    F = wp.pow((pm / kappa + 1.0) / wp.determinant(F), 1.0 / 3.0) * F
+    P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
+    scatter_planes(forces, n0, n1, n2, n3, P, d0, d1, d2, d3)
+
+
 @wp.kernel
 def element_forces_stored(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                           vol: wp.array(dtype=float), mu: float, kappa: float,
@@ -147,7 +189,24 @@ def central_difference(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec
         pressure_volume[i] = 0.0
 
 
-def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False, gather: bool = False) -> dict:
+@wp.kernel
+def central_difference_planes(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype=wp.vec3),
+                              forces: wp.array2d(dtype=float), external: wp.array(dtype=wp.vec3),
+                              mass: wp.array(dtype=float), dt: float, pressure_volume: wp.array(dtype=float)):
+    """``--planes``: :func:`central_difference` with the forces read from (and cleared in) their planes."""
+    i = wp.tid()
+    un = u[i]
+    f = wp.vec3(forces[0, i], forces[1, i], forces[2, i])
+    u[i] = 2.0 * un - u_prev[i] + (external[i] - f) * (dt * dt / mass[i])
+    u_prev[i] = un
+    for c in range(3):
+        forces[c, i] = 0.0
+    if i < pressure_volume.shape[0]:
+        pressure_volume[i] = 0.0
+
+
+def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False, gather: bool = False,
+            planes: bool = False) -> dict:
     wp.init()
     dev = wp.get_device(device)
     mesh = hemi_ellipsoid_mesh(BENCH_RADII_MM, _hemi_ellipsoid_spacing(tets_wanted))
@@ -165,7 +224,7 @@ def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False,
         d_mass = wp.array(mass.astype(np.float32), dtype=float)
         u = wp.zeros(n, dtype=wp.vec3)
         u_prev = wp.zeros(n, dtype=wp.vec3)
-        forces = wp.zeros(n, dtype=wp.vec3)
+        forces = wp.zeros((3, n), dtype=float) if planes else wp.zeros(n, dtype=wp.vec3)
         external = wp.array(np.tile([0.0, 0.0, -9.81], (n, 1)) * mass[:, None], dtype=wp.vec3)
         pressure_volume = wp.zeros(n if anp else 0, dtype=float)
         node_volume = wp.array(np.bincount(mesh.tets.ravel(), weights=np.repeat(vol, 4), minlength=n).astype(np.float32),
@@ -186,11 +245,13 @@ def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False,
                     continue
                 if anp:
                     wp.launch(nodal_pressure, m, [u, d_tets, d_dhdx, d_vol, kappa, pressure_volume])
-                    wp.launch(anp_element_forces, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, pressure_volume,
-                                                      node_volume, forces])
+                    wp.launch(anp_element_forces_planes if planes else anp_element_forces, m,
+                              [u, d_tets, d_dhdx, d_vol, mu, kappa, pressure_volume, node_volume, forces])
                 else:
-                    wp.launch(element_forces, m, [u, d_tets, d_dhdx, d_vol, mu, kappa, forces])
-                wp.launch(central_difference, n, [u, u_prev, forces, external, d_mass, dt, pressure_volume])
+                    wp.launch(element_forces_planes if planes else element_forces, m,
+                              [u, d_tets, d_dhdx, d_vol, mu, kappa, forces])
+                wp.launch(central_difference_planes if planes else central_difference, n,
+                          [u, u_prev, forces, external, d_mass, dt, pressure_volume])
 
         two_steps()  # compile and warm up
         graph = None
@@ -208,7 +269,7 @@ def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False,
         wall = time.perf_counter() - started
     done = 2 * (steps // 2)
     return {"benchmark": "minimal_tled_step", "device": str(dev), "device_name": getattr(dev, "name", ""),
-            "anp": anp, "gather": gather, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
+            "anp": anp, "gather": gather, "planes": planes, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
             "us_per_step": round(1e6 * wall / done, 3), "ns_per_element_step": round(1e9 * wall / done / m, 4)}
 
 
@@ -221,10 +282,14 @@ def main() -> None:
                         help="with average nodal pressure (one more element pass, as the solver's T4ANP)")
     parser.add_argument("--gather", action="store_true",
                         help="element forces stored per element node and gathered per node (no atomics; no ANP)")
+    parser.add_argument("--planes", action="store_true",
+                        help="nodal forces as three planes of floats (the solver's layout) instead of a vec3 array")
     args = parser.parse_args()
     if args.gather and args.anp:
         parser.error("--gather is measured without ANP")
-    print(json.dumps(measure(args.tets, args.steps, args.device, args.anp, args.gather)))
+    if args.gather and args.planes:
+        parser.error("--gather stores its forces per element; --planes is for the atomic scatter")
+    print(json.dumps(measure(args.tets, args.steps, args.device, args.anp, args.gather, args.planes)))
 
 
 if __name__ == "__main__":
