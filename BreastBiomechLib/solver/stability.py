@@ -23,8 +23,9 @@ class StableStepMonitor:
     """Power iteration for the stable time step (s) of B models sharing a mesh.
 
     ``internal_force(state, out)`` writes the internal nodal forces (N) of displacement ``state``
-    (m) into ``out`` (component planes, shape (3, B*N): see :mod:`~BreastBiomechLib.solver.kernels`); ``mass`` holds the lumped nodal masses (kg, B*N); ``probe_m`` is the size of
-    the finite-difference probe (m), about 1e-3 of an element."""
+    (m) into ``out`` (component planes of shape (3, B*N), see :mod:`BreastBiomechLib.solver.kernels`);
+    ``mass`` holds the lumped nodal masses (kg, B*N); ``probe_m`` is the size of the
+    finite-difference probe (m), about 1e-3 of an element."""
 
     def __init__(self, internal_force: Callable, mass: wp.array, n_models: int, n_nodes: int, probe_m: float,
                  constrained_nodes: wp.array, constrained_mask: wp.array, seed: int = 0):
