@@ -26,9 +26,10 @@ from __future__ import annotations
 import warp as wp
 
 # CUDA builds of this module use fast math (approximate division, square root and powers, denormals
-# flushed; no reassociation, so the compensated displacement sum holds): the element kernel is
-# arithmetic-bound, and a step costs 12-13 % less at 160k tets and in batches of 64, 7 % less at 2M
-# (H200, docs/benchmarks.md). warp's CPU builds ignore the option: CPU results are unchanged.
+# flushed; no reassociation, so the compensated displacement sum holds): the element kernel's
+# divisions and powers are a good part of its time, and a step costs 12-13 % less at 160k tets and
+# in batches of 64, 7 % less at 2M (H200, docs/benchmarks.md). warp's CPU builds ignore the option:
+# CPU results are unchanged.
 wp.set_module_options({"fast_math": True})
 
 # load curves, numbered as in model.LOAD_SHAPES (NiftySim's shapes)
