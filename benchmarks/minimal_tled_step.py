@@ -87,6 +87,15 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     wp.atomic_add(pressure_volume, n3, pv)
 
 
+@wp.func
+def anp_scaled(F: wp.mat33, n0: int, n1: int, n2: int, n3: int, kappa: float,
+               pressure_volume: wp.array(dtype=float), node_volume: wp.array(dtype=float)) -> wp.mat33:
+    """F scaled to the mean of the element's nodes' averaged J (``--anp``, one slot per node)."""
+    pm = 0.25 * (pressure_volume[n0] / node_volume[n0] + pressure_volume[n1] / node_volume[n1]
+                 + pressure_volume[n2] / node_volume[n2] + pressure_volume[n3] / node_volume[n3])
+    return wp.pow((pm / kappa + 1.0) / wp.determinant(F), 1.0 / 3.0) * F
+
+
 @wp.kernel
 def anp_element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
                        vol: wp.array(dtype=float), mu: float, kappa: float, pressure_volume: wp.array(dtype=float),
@@ -96,9 +105,7 @@ def anp_element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), 
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
     F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
-    pm = 0.25 * (pressure_volume[n0] / node_volume[n0] + pressure_volume[n1] / node_volume[n1]
-                 + pressure_volume[n2] / node_volume[n2] + pressure_volume[n3] / node_volume[n3])
-    F = wp.pow((pm / kappa + 1.0) / wp.determinant(F), 1.0 / 3.0) * F
+    F = anp_scaled(F, n0, n1, n2, n3, kappa, pressure_volume, node_volume)
     P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
     scatter(forces, n0, n1, n2, n3, P, d0, d1, d2, d3)
 
@@ -136,9 +143,7 @@ def anp_element_forces_planes(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
     F = deformation_gradient(u, n0, n1, n2, n3, d0, d1, d2, d3)
-    pm = 0.25 * (pressure_volume[n0] / node_volume[n0] + pressure_volume[n1] / node_volume[n1]
-                 + pressure_volume[n2] / node_volume[n2] + pressure_volume[n3] / node_volume[n3])
-    F = wp.pow((pm / kappa + 1.0) / wp.determinant(F), 1.0 / 3.0) * F
+    F = anp_scaled(F, n0, n1, n2, n3, kappa, pressure_volume, node_volume)
     P = vol[e] * first_piola_kirchhoff(F, mu, kappa)
     scatter_planes(forces, n0, n1, n2, n3, P, d0, d1, d2, d3)
 
