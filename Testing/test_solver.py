@@ -147,6 +147,41 @@ def test_anp_slots_number_each_node_and_material_as_sorting_would():
         assert len(volume) == len(keys)
 
 
+def test_material_table_gives_each_element_its_materials_in_every_set():
+    """The kernels' material table (one row per group of elements whose materials agree in every
+    set of the batch) gives each element of each set its own float32 mu, kappa, eta and fibre,
+    with one row per distinct combination: for sets sharing the tissues' partition, a set that
+    splits it by fibre direction alone, and a skin layer's blending (every element its own row)."""
+    import warp as wp
+
+    from BreastBiomechLib.solver.tled import material_table
+
+    mesh = _block(4)
+    M = len(mesh.tets)
+    rng = np.random.default_rng(3)
+    tissue = rng.integers(0, 4, M)
+
+    def tissue_set():
+        return ElementMaterials.from_tissues(tissue, {t: Material(rng.uniform(1e3, 1e5), rng.uniform(0.45, 0.4999),
+                                                                  eta=rng.uniform(0, 1e4), fibre=(0.6, 0.0, 0.8))
+                                                      for t in range(4)})
+
+    shared = [tissue_set() for _ in range(3)]
+    half = (np.arange(M) % 2 == 0)[:, None]
+    fibres = ElementMaterials(shared[0].mu, shared[0].kappa, shared[0].eta, np.where(half, [1.0, 0, 0], [0, 1.0, 0]),
+                              shared[0].density)
+    skin = shared[0].with_skin(rng.uniform(0, 1, M), Material(5 * E, 0.49))
+    for sets, rows in ((shared, 4), (shared + [fibres], 8), ([skin, shared[1]], M)):
+        with wp.ScopedDevice("cpu"):
+            table = material_table(sets)
+        row = table.row.numpy()
+        assert row.max() + 1 == rows and table.mu.shape[0] == rows * len(sets)
+        for b, m in enumerate(sets):
+            entry = row * len(sets) + b
+            for name in ("mu", "kappa", "eta", "fibre"):
+                np.testing.assert_array_equal(getattr(table, name).numpy()[entry], getattr(m, name).astype(np.float32))
+
+
 @pytest.mark.parametrize("formulation", ["T4", "T4ANP"])
 def test_patch_test_dynamic_reproduces_affine_field(formulation):
     mesh = _block(3)

@@ -4,7 +4,8 @@ All kernels work on a batch of B models that share one mesh, models innermost: n
 N*B entries (model b's node a at a*B + b), element arrays M*B (element e at e*B + b), ANP slot
 arrays S*B, so that the threads of one element (or node) for the B models are neighbours: they
 read the element's connectivity and shape-function derivatives once between them, and their
-displacements, forces and materials side by side. Nodal forces are three planes of floats, one per
+displacements and forces side by side. Materials are a table of rows shared by the elements of a
+tissue (:class:`MaterialTable`). Nodal forces are three planes of floats, one per
 component (``forces[c, a*B + b]``, :func:`add_force` and :func:`force_at`): the element kernel's
 atomic adds of one component then fall on consecutive addresses, where a vec3 array spreads them
 over three times as many memory sectors (an ANP step 18-21 % faster on the H200 at 160k-2M tets,
@@ -119,9 +120,29 @@ def force_at(forces: wp.array2d(dtype=float), i: int) -> wp.vec3:
     return wp.vec3(forces[0, i], forces[1, i], forces[2, i])
 
 
+@wp.struct
+class MaterialTable:
+    """The elements' materials as the kernels read them: a table of rows shared by the elements
+    whose materials agree in every model of the batch (a tissue, mostly), ``row[e]`` element e's;
+    row r's entry for model b at ``r * B + b`` of ``mu``, ``kappa``, ``eta`` (Pa) and ``fibre``
+    (unit vector, LPS axes). The threads of a tissue's elements then read a few cached entries,
+    not one each (about 9 % of the element kernel's time at 2M tets, docs/benchmarks.md)."""
+    row: wp.array(dtype=int)
+    mu: wp.array(dtype=float)
+    kappa: wp.array(dtype=float)
+    eta: wp.array(dtype=float)
+    fibre: wp.array(dtype=wp.vec3)
+
+
+@wp.func
+def material_entry(materials: MaterialTable, e: int, n_models: int, b: int) -> int:
+    """Element e's entry of model b in the table's arrays."""
+    return materials.row[e] * n_models + b
+
+
 @wp.kernel
 def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
-                   dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), kappa: wp.array(dtype=float),
+                   dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), materials: MaterialTable,
                    n_models: int, models: wp.array(dtype=int), pressure_volume: wp.array(dtype=float)):
     """ANP pass 1: accumulate kappa (J_e - 1) V_e at each of the element's ANP slots: its nodes,
     one slot per node and material (see :func:`BreastBiomechLib.solver.tled.anp_slots`), for the
@@ -132,7 +153,7 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slot
         return
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
-    kappa_e, v0 = kappa[e * n_models + b], vol0[e]
+    kappa_e, v0 = materials.kappa[material_entry(materials, e, n_models, b)], vol0[e]
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
     pv = kappa_e * (wp.determinant(F) - 1.0) * v0
     wp.atomic_add(pressure_volume, s0 * n_models + b, pv)
@@ -151,8 +172,7 @@ def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
 
 @wp.kernel
 def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
-                   vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
-                   eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), use_anp: int,
+                   vol0: wp.array(dtype=float), materials: MaterialTable, use_anp: int,
                    slots: wp.array2d(dtype=int),
                    pressure_volume: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
@@ -184,11 +204,13 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
         return
     if inverted[4 * b + 3] != 0:
         return
-    j = e * n_models + b  # the element's entry of model b
+    j = e * n_models + b  # the element's entry of model b (visco state)
     # every read that does not depend on another first, so that they are in flight together
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-    mu_e, kappa_e, eta_e, fibre_e, v0 = mu[j], kappa[j], eta[j], fibre[j], vol0[e]
+    r = material_entry(materials, e, n_models, b)
+    mu_e, kappa_e, eta_e, fibre_e = materials.mu[r], materials.kappa[r], materials.eta[r], materials.fibre[r]
+    v0 = vol0[e]
     pm = float(0.0)
     if use_anp != 0:
         s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
@@ -515,8 +537,7 @@ def energies(du: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float
 
 @wp.kernel
 def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
-                    vol0: wp.array(dtype=float), mu: wp.array(dtype=float), kappa: wp.array(dtype=float),
-                    eta: wp.array(dtype=float), fibre: wp.array(dtype=wp.vec3), n_nodes: int, n_elements: int,
+                    vol0: wp.array(dtype=float), materials: MaterialTable, n_nodes: int, n_elements: int,
                     energy: wp.array(dtype=float), padded: int):
     """Stored strain energy per model, sum of V0 W(F) over the elements with J > 0 (J); see
     :func:`reduction_launch`."""
@@ -524,11 +545,12 @@ def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhd
     b, e = at[0], at[1]
     value = float(0.0)
     if e < n_elements:
-        tid = e * energy.shape[0] + b
         F = deformation_gradient(u, b, energy.shape[0], tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3],
                                  dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
         if wp.determinant(F) > 0.0:
-            value = vol0[e] * strain_energy_density(F, mu[tid], kappa[tid], eta[tid], fibre[tid])
+            r = material_entry(materials, e, energy.shape[0], b)
+            value = vol0[e] * strain_energy_density(F, materials.mu[r], materials.kappa[r], materials.eta[r],
+                                                    materials.fibre[r])
     wp.tile_atomic_add(energy, wp.tile_sum(wp.tile(value)), offset=b)
 
 

@@ -175,6 +175,34 @@ class ElementMaterials:
         return cls.from_tissues(np.zeros(n_elements, int), {0: material})
 
 
+def equal_value_groups(columns_per_set) -> np.ndarray:
+    """(M,) a group number per element: elements whose values agree in every column of every
+    set share a group, numbered in the lexicographic order of their values (as
+    ``np.unique(all columns, axis=0)`` would, without sorting rows of B x columns values: the
+    sets of a batch mostly share one partition into tissues, which the first set finds and the
+    others only confirm). ``columns_per_set``: per set, a sequence of (M,) arrays, compared
+    exactly in their own precision."""
+    group = None
+    for columns in columns_per_set:
+        for values in columns:
+            values = np.asarray(values)
+            if group is not None:
+                first = np.zeros(int(group.max()) + 1, np.int64)
+                first[group] = np.arange(len(group))  # one element of each group
+                if np.array_equal(values, values[first][group]):
+                    continue  # constant on every group: splits none
+            _, rank = np.unique(values, return_inverse=True)
+            rank = rank.ravel().astype(np.int64)
+            if group is None:
+                group = rank
+                continue
+            _, group = np.unique(group * (int(rank.max()) + 1) + rank, return_inverse=True)
+            group = group.ravel().astype(np.int64)
+    if group is None:
+        raise ValueError("equal_value_groups needs at least one column")
+    return group
+
+
 def default_tissue_materials() -> dict[int, Material]:
     """Starting materials per tissue label (:mod:`BreastBiomechLib.labels`): isotropic NH,
     nu = 0.49, 1000 kg/m^3. Fat is the seed's reference (E_f = 10 kPa); the other tissues are

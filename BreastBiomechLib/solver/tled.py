@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
-from BreastBiomechLib.solver.materials import ElementMaterials
+from BreastBiomechLib.solver.materials import ElementMaterials, equal_value_groups
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder
@@ -333,6 +333,29 @@ def constraint_load_shapes(model: Model, nodes: np.ndarray) -> np.ndarray:
     return shapes
 
 
+def material_table(materials: list[ElementMaterials]) -> k.MaterialTable:
+    """The B sets' materials as the kernels read them (:class:`kernels.MaterialTable`, on the
+    current device): one row per group of elements whose float32 mu, kappa, eta and fibre agree in
+    every set, model b's entry of row r at r * B + b."""
+    f32 = np.float32
+    row = equal_value_groups([[m.mu.astype(f32), m.kappa.astype(f32), m.eta.astype(f32), *m.fibre.astype(f32).T]
+                              for m in materials])
+    first = np.zeros(int(row.max()) + 1, np.int64)
+    first[row] = np.arange(len(row))  # one element of each row
+
+    def rows(per_set):
+        values = np.stack([np.asarray(v)[first] for v in per_set], axis=1)  # (R, B, ...)
+        return np.ascontiguousarray(values.reshape((-1,) + values.shape[2:]), dtype=f32)
+
+    table = k.MaterialTable()
+    table.row = wp.array(row.astype(np.int32), dtype=int)
+    table.mu = wp.array(rows([m.mu for m in materials]), dtype=float)
+    table.kappa = wp.array(rows([m.kappa for m in materials]), dtype=float)
+    table.eta = wp.array(rows([m.eta for m in materials]), dtype=float)
+    table.fibre = wp.array(rows([m.fibre for m in materials]), dtype=wp.vec3)
+    return table
+
+
 def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarray,
               across_materials: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """ANP's averaging slots: one per node and material, so that the nodal pressure is averaged
@@ -342,7 +365,8 @@ def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarr
     muscle), and collapse thin soft layers. ``across_materials``: one slot per node, as
     NiftySim's T4ANP (``Model.anp_across_materials``). Returns the slot of each element node
     (M, 4) and each slot's volume (S,) (sum of its elements' volumes, the units of ``vol``)."""
-    group = np.zeros(len(tets), np.int64) if across_materials else _bulk_modulus_groups(materials)
+    group = np.zeros(len(tets), np.int64) if across_materials else equal_value_groups(
+        [[np.asarray(m.kappa, np.float64)] for m in materials])
     groups = int(group.max()) + 1
     pairs = tets.astype(np.int64) * groups + group[:, None]
     if int(pairs.max()) < 8 * pairs.size:  # number the (node, material) pairs present, in their order
@@ -356,23 +380,6 @@ def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarr
     slots = slots.reshape(tets.shape).astype(np.int32)
     return slots, np.bincount(slots.ravel(), weights=np.repeat(vol, 4), minlength=n_slots)
 
-
-def _bulk_modulus_groups(materials: list[ElementMaterials]) -> np.ndarray:
-    """(M,) the group of each element: elements with the same bulk modulus in every material set,
-    numbered in the lexicographic order of those moduli (as ``np.unique(kappas, axis=0)`` would,
-    without sorting rows: a batch's sets mostly share one partition into tissues)."""
-    _, group = np.unique(np.asarray(materials[0].kappa, np.float64), return_inverse=True)
-    group = group.ravel().astype(np.int64)
-    for mat in materials[1:]:
-        kappa = np.asarray(mat.kappa, np.float64)
-        last = np.zeros(int(group.max()) + 1, np.int64)
-        last[group] = np.arange(len(group))  # one element of each group
-        if np.array_equal(kappa, kappa[last][group]):
-            continue  # constant on every group: splits none
-        _, rank = np.unique(kappa, return_inverse=True)
-        _, group = np.unique(group * (int(rank.max()) + 1) + rank.ravel(), return_inverse=True)
-        group = group.ravel().astype(np.int64)
-    return group
 
 
 def plate_sets_of_batch(model: Model, n_models: int, plate_displacements: list | None = None,
@@ -425,7 +432,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         tets = wp.array(model.mesh.tets.astype(np.int32), dtype=int)
         d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
         d_vol = wp.array(vol.astype(f32), dtype=float)
-        kappa = wp.array(mat.kappa.astype(f32), dtype=float)
+        table = material_table([mat])
         pressure = wp.zeros(len(slot_volume), dtype=float)
         d_slots = wp.array(slots, dtype=int)
         forces = wp.zeros((3, N), dtype=float)  # component planes (see kernels)
@@ -433,10 +440,8 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         anp = 1 if model.formulation == "T4ANP" else 0
         one_model = wp.array([1, 0], dtype=int)  # the list of models: one, model 0
         if anp:
-            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, kappa, 1, one_model, pressure])
-        wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, wp.array(mat.mu.astype(f32), dtype=float), kappa,
-                                         wp.array(mat.eta.astype(f32), dtype=float),
-                                         wp.array(mat.fibre.astype(f32), dtype=wp.vec3), anp, d_slots, pressure,
+            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, table, 1, one_model, pressure])
+        wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, table, anp, d_slots, pressure,
                                          wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
                                          wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model,
@@ -643,10 +648,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             first = np.shape(per_model[0])
             return np.stack(per_model, axis=1).reshape((first[0] * len(per_model),) + first[1:])
 
-        d_mu = arr(interleaved([m.mu for m in materials]), float)
-        d_kappa = arr(interleaved([m.kappa for m in materials]), float)
-        d_eta = arr(interleaved([m.eta for m in materials]), float)
-        d_fibre = arr(interleaved([m.fibre for m in materials]), wp.vec3)
+        d_materials = material_table(materials)
         # visco: K Prony terms per element (padded with g = 0), decay exp(-dt / tau) per step
         K = max(m.prony_terms for m in materials)
         prony_g = interleaved([np.pad(m.prony_g, ((0, 0), (0, K - m.prony_terms))) for m in materials])
@@ -773,11 +775,11 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                 out.zero_()
                 pressure_buffer.zero_()
             if use_anp:
-                wp.launch(k.nodal_pressure, width * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_kappa, B, models,
+                wp.launch(k.nodal_pressure, width * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_materials, B, models,
                                                          pressure_buffer])
-            wp.launch(k.element_forces, width * M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta, d_fibre,
-                                                     use_anp, d_slots, pressure_buffer, d_slotvol, K, d_prony_g,
-                                                     d_prony_decay, visco_state, update_state, B,
+            wp.launch(k.element_forces, width * M, [state, d_tets, d_dhdx, d_vol, d_materials, use_anp, d_slots,
+                                                     pressure_buffer, d_slotvol, K, d_prony_g, d_prony_decay,
+                                                     visco_state, update_state, B,
                                                      probe_clock if step_clock is None else step_clock, models, out,
                                                      flags, no_plates if to_clear is None else to_clear])
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
@@ -877,8 +879,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             k.reduction_launch(k.energies, B, N, [du, d_mass, float(dt), N, kinetic])
             wp.launch(k.perturbed, B * N, [u, du, -1.0, scratch])  # u_(n-1)
             for state in (u, scratch):
-                k.reduction_launch(k.internal_energy, B, M, [state, d_tets, d_dhdx, d_vol, d_mu, d_kappa, d_eta,
-                                                             d_fibre, N, M, internal])
+                k.reduction_launch(k.internal_energy, B, M, [state, d_tets, d_dhdx, d_vol, d_materials, N, M,
+                                                             internal])
             if relaxation is not None:  # the relaxation update needs the same forces
                 probe_force(u, f_curr)
             monitor.advance(u, base_force=f_curr if relaxation is not None else None)
