@@ -640,7 +640,9 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         d_tets = wp.array(tets, dtype=int)
         d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
         d_vol = arr(vol, float)
-        d_slots = wp.array(slots, dtype=int)
+        # one material (or ANP across materials): the slots are the nodes, and the kernels' reads of
+        # both fall on one array (cached after the first)
+        d_slots = d_tets if np.array_equal(slots, tets) else wp.array(slots, dtype=int)
         d_slotvol = arr(slot_volume, float)
         d_mass = arr(mass, float)
         def interleaved(per_model):
