@@ -344,3 +344,25 @@ def test_flat_boundary_caps_are_removed_even_where_they_pass_the_quality_criteri
     assert done["caps_removed"] == 1 and len(repaired.tets) == len(box.tets) and len(repaired.nodes) == len(box.nodes)
     assert improve_quality(mesh, cap_dihedral_deg=5.0)[1]["caps_removed"] == 0
     assert improve_quality(box)[1]["caps_removed"] == 0
+
+
+def test_pulled_corners_put_the_stair_surface_on_the_ellipsoid():
+    """``hemi_ellipsoid_mesh(pull_corners=True)``: the same elements; the nodes that were outside
+    the ellipsoid now on it, along the ray from its centre; every other node where it was; every
+    element still positive."""
+    from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+
+    radii = np.array([50.0, 40.0, 45.0])
+    stair = hemi_ellipsoid_mesh(radii, 5.0)
+    pulled = hemi_ellipsoid_mesh(radii, 5.0, pull_corners=True)
+    np.testing.assert_array_equal(pulled.tets, stair.tets)
+    q_stair = ((stair.nodes / radii) ** 2).sum(axis=1)
+    q_pulled = ((pulled.nodes / radii) ** 2).sum(axis=1)
+    outside = q_stair > 1.0
+    assert outside.sum() > 100  # the stairs' corners
+    np.testing.assert_allclose(q_pulled[outside], 1.0, rtol=1e-12)
+    np.testing.assert_allclose(np.cross(pulled.nodes[outside], stair.nodes[outside]), 0.0, atol=1e-9)  # same ray
+    np.testing.assert_array_equal(pulled.nodes[~outside], stair.nodes[~outside])
+    x = pulled.nodes[pulled.tets]
+    volume = np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]) / 6.0
+    assert volume.min() > 0.0

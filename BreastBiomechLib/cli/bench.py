@@ -323,18 +323,20 @@ BENCH_TRUTH = {"glandular.E": 25e3, "muscle.E": 80e3, "tumour.E": 120e3, "fat.nu
 
 
 def bench_fitting_problem(radii_mm=(70.0, 60.0, 65.0), element_mm: float = 4.0, voxel_mm=(1.0, 1.0, 2.5),
-                          relaxation=None, device=None, measured: bool = True, warm_starts: bool = False):
+                          relaxation=None, device=None, measured: bool = True, warm_starts: bool = False,
+                          pull_corners: bool = False):
     """The fitting problem ``bench optimise`` fits: the aniso-hetero space (4 tissues x E, nu,
     eta; fat's E the reference) on the synthetic breast of ``radii_mm`` in cubes of
     ``element_mm`` (10 mm of muscle, a tumour of 0.3 x the LR radius) imaged at ``voxel_mm``,
     whose measured image is the prediction at :data:`BENCH_TRUTH` (``measured`` False: the
     undeformed image stands in, for solves that need no similarity; ``warm_starts``: see
-    :class:`~BreastBiomechLib.optimisation.FittingProblem`)."""
+    :class:`~BreastBiomechLib.optimisation.FittingProblem`; ``pull_corners``: the stairs'
+    protruding corners moved onto the ellipsoid, see :func:`~BreastBiomechLib.optimisation.synthetic.synthetic_case`)."""
     from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace
     from BreastBiomechLib.optimisation.synthetic import measured_at, synthetic_case
 
     case = synthetic_case(tuple(radii_mm), element_mm=element_mm, voxel_mm=tuple(voxel_mm), muscle_mm=10.0,
-                          tumour_mm=0.3 * radii_mm[0])
+                          tumour_mm=0.3 * radii_mm[0], pull_corners=pull_corners)
     space = ParameterSpace.for_model("aniso-hetero", ["fat", "glandular", "muscle", "tumour"])
     image = measured_at(case, space, BENCH_TRUTH, relaxation, device=device) if measured else case.undeformed
     return FittingProblem(space, case.mesh, case.undeformed, image, case.planes, relaxation=relaxation, device=device,
@@ -353,7 +355,7 @@ def _bench_optimise(args) -> dict:
 
     relaxation = DynamicRelaxation(tolerance_mm=0.01 if args.tolerance_mm is None else args.tolerance_mm)
     problem = bench_fitting_problem(args.radii, args.element_mm, args.voxel_mm, relaxation, args.device,
-                                    warm_starts=args.warm_starts)
+                                    warm_starts=args.warm_starts, pull_corners=args.pull_corners)
     space = problem.space
     started = time.perf_counter()
     result = optimise(problem, args.optimiser, budget=args.budget, seed=args.seed, out_dir=args.out,
@@ -365,7 +367,7 @@ def _bench_optimise(args) -> dict:
     best_so_far = np.maximum.accumulate([e.nmi if e.status == "completed" else 0.0 for e in result.evaluations])
     quarters = sorted({max(1, round(q * len(best_so_far))) for q in (0.25, 0.5, 0.75, 1.0)})
     return {"benchmark": "optimise", "version": __version__, "device": str(problem.warper.device),
-            "optimiser": args.optimiser, "warm_starts": args.warm_starts,
+            "optimiser": args.optimiser, "warm_starts": args.warm_starts, "pull_corners": args.pull_corners,
             "tets": len(problem.mesh.tets), "nodes": len(problem.mesh.nodes),
             "voxels": int(problem.similarity.voxels), "free_parameters": space.dimension,
             "budget": args.budget, "evaluations": len(result.evaluations), "stopped": result.stopped,
@@ -580,6 +582,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--element-mm", type=positive, default=4.0, help="optimise: synthetic mesh cube size (mm)")
     p.add_argument("--voxel-mm", type=positive, nargs=3, default=[1.0, 1.0, 2.5],
                    help="optimise, diagnose: voxel size (mm)")
+    p.add_argument("--pull-corners", action="store_true",
+                   help="optimise: the synthetic mesh's protruding stair corners moved onto its ellipsoid")
     p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
     p.add_argument("--budget", type=positive_int, default=500, help="optimise: forward solves; cohort: per fit")
     p.add_argument("--population", type=positive_int, default=None, help="optimise: CMA-ES population (batch size)")

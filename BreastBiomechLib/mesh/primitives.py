@@ -44,12 +44,16 @@ def box_mesh(size_mm, divisions, origin_mm=(0.0, 0.0, 0.0)) -> TetMesh:
     return TetMesh(nodes, tets, point_data=point_data)
 
 
-def hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), spacing_mm: float = 5.0) -> TetMesh:
+def hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), spacing_mm: float = 5.0, pull_corners: bool = False) -> TetMesh:
     """A breast-like half ellipsoid on the chest-wall plane y = 0, pointing anteriorly (-y):
     x^2/a^2 + y^2/d^2 + z^2/b^2 <= 1, y <= 0, with ``radii_mm`` = (a, d, b). Built from a Kuhn
     grid of cubes of ``spacing_mm`` keeping the cubes whose centre is inside (a stair-stepped
-    surface: meant for verification and benchmarks, not anatomy). Point data ``chest_wall``
-    marks the nodes on y = 0 and ``surface`` the other boundary nodes."""
+    surface: meant for verification and benchmarks, not anatomy). ``pull_corners``: the boundary
+    nodes outside the ellipsoid (the stairs' protruding corners) are moved onto it along the ray
+    from its centre, the others stay (the same elements; under a plate's rounded edge a
+    protruding corner is pushed into its own cube and inverts it, which a mesh of a smooth
+    surface does not do). Point data ``chest_wall`` marks the nodes on y = 0 and ``surface`` the
+    other boundary nodes."""
     a, d, b = (float(r) for r in radii_mm)
     n = np.ceil(np.array([2 * a, d, 2 * b]) / spacing_mm).astype(int)
     size = n * spacing_mm
@@ -65,6 +69,11 @@ def hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), spacing_mm: float = 5.0) ->
     tets = new_tets.reshape(-1, 4)
     boundary = boundary_nodes(tets, len(nodes))
     chest = np.isclose(nodes[:, 1], 0.0)
+    if pull_corners:
+        q = (nodes[:, 0] / a) ** 2 + (nodes[:, 1] / d) ** 2 + (nodes[:, 2] / b) ** 2
+        outside = boundary & (q > 1.0)
+        nodes = nodes.copy()
+        nodes[outside] /= np.sqrt(q[outside])[:, None]
     return TetMesh(nodes, tets, point_data={"chest_wall": chest.astype(np.uint8),
                                             "surface": (boundary & ~chest).astype(np.uint8)})
 

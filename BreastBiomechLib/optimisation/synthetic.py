@@ -33,16 +33,18 @@ class SyntheticCase:
 
 def synthetic_case(radii_mm=(40.0, 35.0, 40.0), element_mm: float = 6.0, voxel_mm=(2.0, 2.0, 2.0),
                    muscle_mm: float = 0.0, tumour_mm: float = 0.0, compression: float = 0.25,
-                   seed: int = 3) -> SyntheticCase:
+                   seed: int = 3, pull_corners: bool = False) -> SyntheticCase:
     """The breast of ``radii_mm`` (LR, AP depth, SI) meshed by cubes of ``element_mm``, its
     posterior ``muscle_mm`` of pectoral muscle under the central base (0: none), a central glandular core (half the radii) and a
     tumour of diameter ``tumour_mm`` inside it (0: none); the image at ``voxel_mm`` with a smooth
-    random texture (``seed``) so that interior motion shows; plates closing by ``compression``."""
+    random texture (``seed``) so that interior motion shows; plates closing by ``compression``;
+    ``pull_corners``: the stairs' protruding corners moved onto the ellipsoid (see
+    :func:`~BreastBiomechLib.mesh.primitives.hemi_ellipsoid_mesh`)."""
     from BreastBiomechLib.io.cases import case_from_dict, compression_case
     from BreastBiomechLib.solver.placement import final_planes
 
     a, d, b = (float(r) for r in radii_mm)
-    mesh = hemi_ellipsoid_mesh((a, d, b), spacing_mm=element_mm)
+    mesh = hemi_ellipsoid_mesh((a, d, b), spacing_mm=element_mm, pull_corners=pull_corners)
     core_centre = np.array([0.0, -0.4 * d, 0.0])
     core_radii = np.array([0.55 * a, 0.4 * d, 0.55 * b])
     tumour_centre = core_centre + [0.15 * a, 0.0, 0.0]
