@@ -347,9 +347,9 @@ def test_flat_boundary_caps_are_removed_even_where_they_pass_the_quality_criteri
 
 
 def test_pulled_corners_put_the_stair_surface_on_the_ellipsoid():
-    """``hemi_ellipsoid_mesh(pull_corners=True)``: the same elements; the nodes that were outside
-    the ellipsoid now on it, along the ray from its centre; every other node where it was; every
-    element still positive."""
+    """``hemi_ellipsoid_mesh(pull_corners=True)``: the same elements; most nodes that were outside
+    the ellipsoid now on it, along the ray from its centre; every other node where it was; no
+    element flattened under a tenth of its volume (the corners whose pull would do that stay)."""
     from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
 
     radii = np.array([50.0, 40.0, 45.0])
@@ -359,10 +359,14 @@ def test_pulled_corners_put_the_stair_surface_on_the_ellipsoid():
     q_stair = ((stair.nodes / radii) ** 2).sum(axis=1)
     q_pulled = ((pulled.nodes / radii) ** 2).sum(axis=1)
     outside = q_stair > 1.0
-    assert outside.sum() > 100  # the stairs' corners
-    np.testing.assert_allclose(q_pulled[outside], 1.0, rtol=1e-12)
-    np.testing.assert_allclose(np.cross(pulled.nodes[outside], stair.nodes[outside]), 0.0, atol=1e-9)  # same ray
-    np.testing.assert_array_equal(pulled.nodes[~outside], stair.nodes[~outside])
-    x = pulled.nodes[pulled.tets]
-    volume = np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]) / 6.0
-    assert volume.min() > 0.0
+    moved = np.any(pulled.nodes != stair.nodes, axis=1)
+    assert outside.sum() > 100 and moved.sum() > 0.8 * outside.sum()  # the stairs' corners, most pulled
+    assert not np.any(moved & ~outside)
+    np.testing.assert_allclose(q_pulled[moved], 1.0, rtol=1e-12)
+    np.testing.assert_allclose(np.cross(pulled.nodes[moved], stair.nodes[moved]), 0.0, atol=1e-9)  # same ray
+
+    def volumes(mesh):
+        x = mesh.nodes[mesh.tets]
+        return np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]) / 6.0
+
+    assert np.all(volumes(pulled) >= 0.1 * volumes(stair))

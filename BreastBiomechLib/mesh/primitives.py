@@ -50,7 +50,8 @@ def hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), spacing_mm: float = 5.0, pu
     grid of cubes of ``spacing_mm`` keeping the cubes whose centre is inside (a stair-stepped
     surface: meant for verification and benchmarks, not anatomy). ``pull_corners``: the boundary
     nodes outside the ellipsoid (the stairs' protruding corners) are moved onto it along the ray
-    from its centre, the others stay (the same elements; under a plate's rounded edge a
+    from its centre, but for those whose move would flatten one of their elements under a tenth
+    of its volume; the others stay (the same elements; under a plate's rounded edge a
     protruding corner is pushed into its own cube and inverts it, which a mesh of a smooth
     surface does not do). Point data ``chest_wall`` marks the nodes on y = 0 and ``surface`` the
     other boundary nodes."""
@@ -70,12 +71,33 @@ def hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), spacing_mm: float = 5.0, pu
     boundary = boundary_nodes(tets, len(nodes))
     chest = np.isclose(nodes[:, 1], 0.0)
     if pull_corners:
-        q = (nodes[:, 0] / a) ** 2 + (nodes[:, 1] / d) ** 2 + (nodes[:, 2] / b) ** 2
-        outside = boundary & (q > 1.0)
-        nodes = nodes.copy()
-        nodes[outside] /= np.sqrt(q[outside])[:, None]
+        nodes = _pulled_corners(nodes, tets, boundary, (a, d, b))
     return TetMesh(nodes, tets, point_data={"chest_wall": chest.astype(np.uint8),
                                             "surface": (boundary & ~chest).astype(np.uint8)})
+
+
+def _pulled_corners(nodes: np.ndarray, tets: np.ndarray, boundary: np.ndarray, radii, floor: float = 0.1) -> np.ndarray:
+    """``nodes`` with the ``boundary`` nodes outside the ellipsoid of ``radii`` (centred at the
+    origin) moved onto it along the ray from the centre, except where that would leave one of
+    their elements under ``floor`` x its volume (a sliver): those nodes stay (mm)."""
+    q = ((nodes / np.asarray(radii, float)) ** 2).sum(axis=1)
+    pulled = boundary & (q > 1.0)
+    target = nodes.copy()
+    target[pulled] /= np.sqrt(q[pulled])[:, None]
+
+    def volumes(x):
+        e = x[tets]
+        return np.einsum("ij,ij->i", np.cross(e[:, 1] - e[:, 0], e[:, 2] - e[:, 0]), e[:, 3] - e[:, 0]) / 6.0
+
+    before = volumes(nodes)
+    while True:
+        moved = np.where(pulled[:, None], target, nodes)
+        thin = volumes(moved) < floor * before
+        if not thin.any():
+            return moved
+        back = np.zeros(len(nodes), bool)
+        back[tets[thin].ravel()] = True
+        pulled &= ~back
 
 
 def _zip_rings(a: np.ndarray, a_angles: np.ndarray, b: np.ndarray, b_angles: np.ndarray) -> list:
