@@ -65,7 +65,7 @@ def _bench_solver(args) -> dict:
     if device.is_cuda:  # device memory in use after the solve (warp's pool included)
         memory_mb = round((device.total_memory - device.free_memory) / 2**20, 1)
     n, m = len(model.mesh.nodes), len(model.mesh.tets)
-    bytes_per_step = args.batch * (324 * m + 70 * n)  # reads/writes/atomics per step, see docs
+    bytes_per_step = args.batch * (296 * m + 70 * n)  # reads/writes/atomics per step, see docs
     return {
         "benchmark": "solver", "device": str(device), "device_name": getattr(device, "name", ""),
         "nodes": n, "tets": m, "batch": args.batch, "formulation": model.formulation, "friction": args.friction,
