@@ -29,9 +29,9 @@ _PER_MODEL_NODE = (5 * 12  # displacement, rounding remainder, increment, scratc
                    + 4 + 2 * 12  # fictitious mass, body forces at the start and over the load
                    + 5 * 12  # stable-step monitor: vector, next vector, probe, base and probe forces
                    + 12 + 3 * 12)  # distance to rest; relaxation: forces now and last, last state
-_PER_MODEL_ELEMENT = 3 * 4 + 12  # shear and bulk moduli, fibre stiffness, fibre direction
+_PER_MODEL_ELEMENT = 3 * 4 + 12  # material table: moduli, fibre stiffness and direction (a row per element at most)
 _PER_MODEL_ELEMENT_TERM = 2 * 4 + 36  # Prony weight and decay, visco state (3x3)
-_PER_ELEMENT = 16 + 48 + 4 + 16  # connectivity, shape-function derivatives, volume, ANP slots
+_PER_ELEMENT = 16 + 48 + 4 + 16 + 4  # connectivity, shape-function derivatives, volume, ANP slots, material row
 _PER_NODE = 12 + 4 + 4  # reference position, constraint row, sliding-support column (one)
 _PER_MODEL_SLOT = 2 * 4  # ANP pressures of the step and of the probes
 _PER_MODEL_CONTACT = 12 + 4  # friction anchor and contact flag
