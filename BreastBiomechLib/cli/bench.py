@@ -331,7 +331,8 @@ def bench_fitting_problem(radii_mm=(70.0, 60.0, 65.0), element_mm: float = 4.0, 
     whose measured image is the prediction at :data:`BENCH_TRUTH` (``measured`` False: the
     undeformed image stands in, for solves that need no similarity; ``warm_starts``: see
     :class:`~BreastBiomechLib.optimisation.FittingProblem`; ``pull_corners``: the stairs'
-    protruding corners moved onto the ellipsoid, see :func:`~BreastBiomechLib.optimisation.synthetic.synthetic_case`)."""
+    protruding corners moved onto the ellipsoid, see
+    :func:`~BreastBiomechLib.optimisation.synthetic.synthetic_case`)."""
     from BreastBiomechLib.optimisation import FittingProblem, ParameterSpace
     from BreastBiomechLib.optimisation.synthetic import measured_at, synthetic_case
 

@@ -381,7 +381,6 @@ def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarr
     return slots, np.bincount(slots.ravel(), weights=np.repeat(vol, 4), minlength=n_slots)
 
 
-
 def plate_sets_of_batch(model: Model, n_models: int, plate_displacements: list | None = None,
                         plates: list[list[Plate]] | None = None) -> list[list[Plate]]:
     """The plates of each of the ``n_models`` models of a batch: the model's own, with
