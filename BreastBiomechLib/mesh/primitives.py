@@ -8,7 +8,7 @@ from itertools import permutations
 
 import numpy as np
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes, signed_volumes
 
 
 def box_mesh(size_mm, divisions, origin_mm=(0.0, 0.0, 0.0)) -> TetMesh:
@@ -85,14 +85,10 @@ def _pulled_corners(nodes: np.ndarray, tets: np.ndarray, boundary: np.ndarray, r
     target = nodes.copy()
     target[pulled] /= np.sqrt(q[pulled])[:, None]
 
-    def volumes(x):
-        e = x[tets]
-        return np.einsum("ij,ij->i", np.cross(e[:, 1] - e[:, 0], e[:, 2] - e[:, 0]), e[:, 3] - e[:, 0]) / 6.0
-
-    before = volumes(nodes)
+    before = signed_volumes(nodes, tets)
     while True:
         moved = np.where(pulled[:, None], target, nodes)
-        thin = volumes(moved) < floor * before
+        thin = signed_volumes(moved, tets) < floor * before
         if not thin.any():
             return moved
         back = np.zeros(len(nodes), bool)

@@ -20,7 +20,9 @@ def regular_tet_volume_mm3(edge_mm: float) -> float:
     return edge_mm**3 / (6.0 * np.sqrt(2.0))
 
 
-def _signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+def signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed volumes of the tets (M, 4) over ``nodes`` (N, 3), in the nodes' units cubed;
+    positive where a tet's first three edges from its node 0 form a right-handed triple."""
     p = nodes[tets]
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
 
@@ -82,7 +84,7 @@ class TetMesh:
     @property
     def volumes(self) -> np.ndarray:
         """Signed element volumes (mm^3); positive for a valid mesh."""
-        return _signed_volumes(self.nodes, self.tets)
+        return signed_volumes(self.nodes, self.tets)
 
     def node_set(self, name: str) -> np.ndarray:
         """Ids of the nodes where point array ``name`` is non-zero (a node set, e.g. chest_wall)."""
