@@ -180,24 +180,23 @@ def equal_value_groups(columns_per_set) -> np.ndarray:
     set share a group, numbered in the lexicographic order of their values (as
     ``np.unique(all columns, axis=0)`` would, without sorting rows of B x columns values: the
     sets of a batch mostly share one partition into tissues, which the first set finds and the
-    others only confirm). ``columns_per_set``: per set, a sequence of (M,) arrays, compared
-    exactly in their own precision."""
-    group = None
+    others only confirm). ``columns_per_set``: per set, an iterable of (M,) arrays, compared
+    exactly in their own precision (made as they are needed, if it is a generator)."""
+    group = first = None
     for columns in columns_per_set:
         for values in columns:
             values = np.asarray(values)
-            if group is not None:
-                first = np.zeros(int(group.max()) + 1, np.int64)
-                first[group] = np.arange(len(group))  # one element of each group
-                if np.array_equal(values, values[first][group]):
-                    continue  # constant on every group: splits none
+            if group is not None and np.array_equal(values, values[first][group]):
+                continue  # constant on every group: splits none
             _, rank = np.unique(values, return_inverse=True)
             rank = rank.ravel().astype(np.int64)
             if group is None:
                 group = rank
-                continue
-            _, group = np.unique(group * (int(rank.max()) + 1) + rank, return_inverse=True)
-            group = group.ravel().astype(np.int64)
+            else:
+                _, group = np.unique(group * (int(rank.max()) + 1) + rank, return_inverse=True)
+                group = group.ravel().astype(np.int64)
+            first = np.zeros(int(group.max()) + 1, np.int64)
+            first[group] = np.arange(len(group))  # one element of each group
     if group is None:
         raise ValueError("equal_value_groups needs at least one column")
     return group

@@ -338,8 +338,8 @@ def material_table(materials: list[ElementMaterials]) -> k.MaterialTable:
     current device): one row per group of elements whose float32 mu, kappa, eta and fibre agree in
     every set, model b's entry of row r at r * B + b."""
     f32 = np.float32
-    row = equal_value_groups([[m.mu.astype(f32), m.kappa.astype(f32), m.eta.astype(f32), *m.fibre.astype(f32).T]
-                              for m in materials])
+    row = equal_value_groups(((m.mu.astype(f32), m.kappa.astype(f32), m.eta.astype(f32),
+                               *m.fibre.T.astype(f32)) for m in materials))
     first = np.zeros(int(row.max()) + 1, np.int64)
     first[row] = np.arange(len(row))  # one element of each row
 
