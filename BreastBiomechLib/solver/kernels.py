@@ -12,11 +12,11 @@ over three times as many memory sectors (an ANP step 18-21 % faster on the H200 
 docs/benchmarks.md). Units inside the kernels are SI:
 metres, pascal, kilograms, seconds, newtons. Vectors are in the mesh frame (LPS axes).
 
-The step kernels work on a *list* of models, ``models`` = [n, b_1, ..., b_n] (the models still
-moving in a relaxation, every model otherwise): thread t handles entry t mod n of the list for
-element (or node) t div n, so the listed models' work is packed into consecutive threads
+The step kernels work on a *list* of n models, ``models[:n]`` (the models still moving in a
+relaxation, every model otherwise; n a launch parameter): thread t handles entry t mod n of the
+list for element (or node) t div n, so the listed models' work is packed into consecutive threads
 whatever the batch size, and a launch needs only n x (elements or nodes) threads (more are
-allowed; they return at once). Until 2026-11-28 every kernel ran B threads per element and
+allowed; they return at once). With every model listed (n = B) the list is not read at all. Until 2026-11-28 every kernel ran B threads per element and
 converged models' threads returned: fitted over a fit's batches of 16 on a 54k-tet mesh, a step
 cost about 65 us however few models still moved, against 30 us for one slow model solved alone
 (H200, docs/benchmarks.md).
@@ -96,14 +96,18 @@ def strain_energy_density(F: wp.mat33, mu: float, kappa: float, eta: float, a: w
 
 
 @wp.func
-def listed(models: wp.array(dtype=int), tid: int) -> wp.vec2i:
-    """(item, model) of thread ``tid`` over the list ``models`` = [n, b_1, ..., b_n]: item ``tid``
-    div n (an element or node) of model b_(1 + tid mod n); item -1 for an empty list."""
-    n = models[0]
-    if n == 0:
+def listed(models: wp.array(dtype=int), n_listed: int, n_models: int, tid: int) -> wp.vec2i:
+    """(item, model) of thread ``tid`` over the ``n_listed`` models ``models[:n_listed]``: item
+    ``tid`` div n_listed (an element or node) of model ``models[tid mod n_listed]``, or of model
+    ``tid mod n_models`` without a read where every model is listed (a read less in front of
+    each thread's first loads: the step is bound by their latency); item -1 for an empty list."""
+    if n_listed <= 0:
         return wp.vec2i(-1, 0)
-    item = tid // n
-    return wp.vec2i(item, models[1 + tid - item * n])
+    item = tid // n_listed
+    entry = tid - item * n_listed
+    if n_listed == n_models:
+        return wp.vec2i(item, entry)
+    return wp.vec2i(item, models[entry])
 
 
 @wp.func
@@ -143,11 +147,12 @@ def material_entry(materials: MaterialTable, e: int, n_models: int, b: int) -> i
 @wp.kernel
 def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
                    dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), materials: MaterialTable,
-                   n_models: int, models: wp.array(dtype=int), pressure_volume: wp.array(dtype=float)):
+                   n_models: int, models: wp.array(dtype=int), n_listed: int,
+                   pressure_volume: wp.array(dtype=float)):
     """ANP pass 1: accumulate kappa (J_e - 1) V_e at each of the element's ANP slots: its nodes,
     one slot per node and material (see :func:`BreastBiomechLib.solver.tled.anp_slots`), for the
     listed ``models`` (see the module's docstring; converged models stand still)."""
-    at = listed(models, wp.tid())
+    at = listed(models, n_listed, n_models, wp.tid())
     e, b = at[0], at[1]
     if e < 0 or e >= tets.shape[0]:
         return
@@ -177,7 +182,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                    pressure_volume: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
-                   n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int),
+                   n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
                    forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int),
                    plate_force: wp.array(dtype=wp.vec3)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
@@ -198,14 +203,14 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
         clock[1] = clock[0]
         for q in range(plate_force.shape[0]):
             plate_force[q] = wp.vec3(0.0)
-    at = listed(models, tid)
+    at = listed(models, n_listed, n_models, tid)
     e, b = at[0], at[1]
     if e < 0 or e >= tets.shape[0]:
         return
-    if inverted[4 * b + 3] != 0:
-        return
     j = e * n_models + b  # the element's entry of model b (visco state)
-    # every read that does not depend on another first, so that they are in flight together
+    # every read that does not depend on another first, so that they are in flight together (a
+    # frozen model's flag too: tested once the element's reads are on their way)
+    frozen = inverted[4 * b + 3]
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
     r = material_entry(materials, e, n_models, b)
@@ -219,6 +224,8 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                      + pressure_volume[s2 * n_models + b] / slot_volume[s2]
                      + pressure_volume[s3 * n_models + b] / slot_volume[s3])
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
+    if frozen != 0:
+        return
     J = wp.determinant(F)
     if J <= 0.0:
         record_inversion(inverted, b, e, clock[0])
@@ -400,10 +407,10 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
 def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                   forces: wp.array2d(dtype=float), pressure_volume: wp.array(dtype=float),
                   loads: NodeLoads, constraints: NodeConstraints, plates: PlateContact,
-                  models: wp.array(dtype=int), n_models: int, n_threads: int, clock: wp.array(dtype=int),
+                  models: wp.array(dtype=int), n_listed: int, n_models: int, clock: wp.array(dtype=int),
                   plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
-    """The node half of a step, one thread per node of each listed model (``models``, see the
-    module's docstring; ``n_threads`` the launch's size), everything a node's update needs in one
+    """The node half of a step, one thread per node of each listed model (``models[:n_listed]``,
+    see the module's docstring; the launch's size n_listed x nodes), everything a node's update needs in one
     launch, its state kept in registers (:class:`NodeState`) from its one read to its
     one write (at breast-model sizes a step is bound by latency, not by bandwidth):
 
@@ -423,40 +430,51 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
        (they win over sliding).
     4. Contact with each plate in turn (:func:`touch_plate`), the plate forces summed.
     5. The internal force is cleared for the next step, a model in which an inverted element was
-       found is frozen (``inverted[4b + 3]``, see :func:`element_forces`), and the step clock
+       found is frozen (``inverted[4b + 3]``, see :func:`element_forces`; by its node 0's
+       thread), and the step clock
        advances: this kernel reads the step from ``clock[1]`` (which :func:`element_forces`
        copies from ``clock[0]``) and writes ``clock[0]``, so no thread reads what another writes.
 
     Also clears the ANP pressures, already used by this step's element forces."""
     tid = wp.tid()
-    for j in range(tid, pressure_volume.shape[0], n_threads):
+    n_nodes = plates.slot.shape[0]
+    for j in range(tid, pressure_volume.shape[0], n_listed * n_nodes):
         pressure_volume[j] = 0.0
     step = clock[1]
     if tid == 0:
         clock[0] = step + 1
-        for model in range(inverted.shape[0] // 4):
-            if inverted[4 * model] != 0:
-                inverted[4 * model + 3] = 1
-    at = listed(models, tid)
+    at = listed(models, n_listed, n_models, tid)
     a, b = at[0], at[1]  # the node and the model
-    if a < 0 or a >= plates.slot.shape[0]:
+    if a < 0 or a >= n_nodes:
         return
     i = a * n_models + b
+    # every read that does not depend on another first (the model's inversion count too: tested
+    # once the node's reads are on their way)
+    count = inverted[4 * b]
     f = force_at(forces, i)
-    forces[0, i] = 0.0
-    forces[1, i] = 0.0
-    forces[2, i] = 0.0
-    if inverted[4 * b] != 0:
-        du[i] = wp.vec3(0.0)
-        return
-    t = float(step + 1) * loads.dt
-    s = load_factor(t, loads.t_total[b], loads.load_shape)
     x = NodeState()
     x.u = u[i]
     x.low = low[i]
-    external = loads.body_start[i] + s * loads.body_force[i]
-    half = 0.5 * loads.damping[b] * loads.dt
-    x.du = ((external - f) / loads.mass[i] * (loads.dt * loads.dt) + (1.0 - half) * du[i]) / (1.0 + half)
+    du_last = du[i]
+    mass = loads.mass[i]
+    external = loads.body_start[i]
+    body_force = loads.body_force[i]
+    damping = loads.damping[b]
+    t_total = loads.t_total[b]
+    k = constraints.constrained[a]
+    forces[0, i] = 0.0
+    forces[1, i] = 0.0
+    forces[2, i] = 0.0
+    if count != 0:
+        if a == 0:
+            inverted[4 * b + 3] = 1
+        du[i] = wp.vec3(0.0)
+        return
+    t = float(step + 1) * loads.dt
+    s = load_factor(t, t_total, loads.load_shape)
+    external = external + s * body_force
+    half = 0.5 * damping * loads.dt
+    x.du = ((external - f) / mass * (loads.dt * loads.dt) + (1.0 - half) * du_last) / (1.0 + half)
     # u += du with the rounding error carried in low (Kahan summation): the displacement is
     # u + low to about 1e-14 m; plain float32 loses increments below half an ulp of u (1e-9 m
     # at 20 mm), so slow motion at small time steps would stall short of equilibrium
@@ -471,14 +489,12 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
             x.u = x.u - wp.dot(x.u, n) * n
             x.du = x.du - wp.dot(x.du, n) * n
             x.low = x.low - wp.dot(x.low, n) * n
-    k = constraints.constrained[a]
     if k >= 0:
         m = constraints.mask[k]
         shape = constraints.shapes[k]
         v = constraints.value[k * n_models + b]
-        target = wp.vec3(load_factor(t, loads.t_total[b], shape[0]) * v[0],
-                         load_factor(t, loads.t_total[b], shape[1]) * v[1],
-                         load_factor(t, loads.t_total[b], shape[2]) * v[2])
+        target = wp.vec3(load_factor(t, t_total, shape[0]) * v[0], load_factor(t, t_total, shape[1]) * v[1],
+                         load_factor(t, t_total, shape[2]) * v[2])
         previous = x.u - x.du
         x.u = set_component(x.u, m, target)
         x.du = set_component(x.du, m, target - previous)
@@ -647,11 +663,11 @@ def zero_constrained(v: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), mas
 @wp.kernel
 def support_springs(u: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=int), normals: wp.array(dtype=wp.vec3),
                     stiffness: wp.array(dtype=wp.vec2), n_models: int, models: wp.array(dtype=int),
-                    forces: wp.array2d(dtype=float)):
+                    n_listed: int, forces: wp.array2d(dtype=float)):
     """Springs of a surface support added to the internal forces: k_n (u.n) n + k_t (u - (u.n) n)
     at each supported node, ``stiffness[k]`` = (k_n, k_t) in N/m (the stiffness per area times
     the node's area), n its surface normal, for the listed ``models`` (see the module's docstring)."""
-    at = listed(models, wp.tid())
+    at = listed(models, n_listed, n_models, wp.tid())
     k, b = at[0], at[1]
     if k < 0 or k >= nodes.shape[0]:
         return

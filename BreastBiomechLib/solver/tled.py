@@ -6,7 +6,7 @@ node kernel (``kernels.advance_nodes``): the central difference update with mass
 damping (seed eq. (15)) in increment form, with the displacement accumulated in float32 plus a
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
 The step loop has no host synchronisation: on CUDA it replays a captured graph of two steps
-(one graph per launch width: the steps run only the models still moving, see ``kernels``).
+(one graph per count of moving models: the steps run only the models still moving, see ``kernels``).
 Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate and
 the relaxation's terms, and they, the plate forces and the inverted-element flags are read back.
 """
@@ -437,13 +437,13 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         forces = wp.zeros((3, N), dtype=float)  # component planes (see kernels)
         inverted = wp.zeros(4, dtype=int)
         anp = 1 if model.formulation == "T4ANP" else 0
-        one_model = wp.array([1, 0], dtype=int)  # the list of models: one, model 0
+        one_model = wp.array([0], dtype=int)  # the list of models: model 0
         if anp:
-            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, table, 1, one_model, pressure])
+            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, table, 1, one_model, 1, pressure])
         wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, table, anp, d_slots, pressure,
                                          wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
-                                         wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model,
+                                         wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model, 1,
                                          forces, inverted, wp.zeros(0, dtype=wp.vec3)])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
@@ -695,10 +695,10 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         active = np.ones(B, np.int32)  # dynamic relaxation stops each model once it has converged
 
         def model_list(flags):
-            """The kernels' list of models (see :mod:`kernels`): [n, the n flagged models, padding]."""
+            """The kernels' list of models (see :mod:`kernels`): the flagged models, then padding."""
             chosen = np.flatnonzero(flags)
-            listing = np.zeros(B + 1, np.int32)
-            listing[0], listing[1:1 + len(chosen)] = len(chosen), chosen
+            listing = np.zeros(B, np.int32)
+            listing[:len(chosen)] = chosen
             return listing
 
         d_moving = arr(model_list(active), int)  # the models the steps compute
@@ -767,7 +767,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         def internal_force(state, out, pressure_buffer, flags, models=every_model, width=B, update_state=0,
                            cleared=False, step_clock=None, to_clear=None):
             """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)
-            for the listed ``models`` (at most ``width`` of them; the others' stay zero);
+            for the first ``width`` models of the list ``models`` (the others' stay zero);
             ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
             and ``pressure_buffer`` are zero already (the step kernels clear them). A step passes
             its clock and the plate forces to clear (see :func:`kernels.element_forces`); a probe
@@ -777,34 +777,34 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                 pressure_buffer.zero_()
             if use_anp:
                 wp.launch(k.nodal_pressure, width * M, [state, d_tets, d_slots, d_dhdx, d_vol, d_materials, B, models,
-                                                         pressure_buffer])
+                                                         width, pressure_buffer])
             wp.launch(k.element_forces, width * M, [state, d_tets, d_dhdx, d_vol, d_materials, use_anp, d_slots,
                                                      pressure_buffer, d_slotvol, K, d_prony_g, d_prony_decay,
                                                      visco_state, update_state, B,
-                                                     probe_clock if step_clock is None else step_clock, models, out,
-                                                     flags, no_plates if to_clear is None else to_clear])
+                                                     probe_clock if step_clock is None else step_clock, models, width,
+                                                     out, flags, no_plates if to_clear is None else to_clear])
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
-                wp.launch(k.support_springs, width * n_sup, [state, d_snodes, d_snormals, d_sstiff, B, models, out])
+                wp.launch(k.support_springs, width * n_sup, [state, d_snodes, d_snormals, d_sstiff, B, models, width,
+                                                             out])
 
         def one_step(width):
-            """One step of the moving models (at most ``width`` of them): converged models stand
-            still, and their threads are not launched."""
+            """One step of the ``width`` moving models: converged models stand still, and their
+            threads are not launched."""
             internal_force(u, forces, pressure, inverted, d_moving, width, update_state=1, cleared=True,
                            step_clock=clock, to_clear=plate_force)
             wp.launch(k.advance_nodes, width * N, [u, low, du, forces, pressure, loads, constraints, plates, d_moving,
-                                                   B, width * N, clock, plate_force, inverted])
+                                                   width, B, clock, plate_force, inverted])
 
         def two_steps(width):
             one_step(width)
             one_step(width)
 
-        graphs = {}  # on CUDA: two steps captured per launch width, replayed
+        graphs = {}  # on CUDA: two steps captured per count of moving models, replayed
 
         def launch_width():
-            """Threads per element (node) the steps launch: the moving models' count rounded up to a
-            power of two (at most B), so that a batch whose models converge one by one replays a
-            handful of graphs, each no wider than needed."""
-            return min(B, 1 << max(int(np.count_nonzero(active)) - 1, 0).bit_length())
+            """Threads per element (node) the steps launch: the moving models' count (it only
+            falls, so a batch captures one graph per count it passes through)."""
+            return int(np.count_nonzero(active))
 
         kinetic = wp.zeros(B, dtype=float)
         internal = wp.zeros(B, dtype=float)
