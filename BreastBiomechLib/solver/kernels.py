@@ -183,8 +183,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
                    n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
-                   forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int),
-                   plate_force: wp.array(dtype=wp.vec3)):
+                   forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
     the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
     with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
@@ -196,13 +195,10 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     module's docstring): converged models stand still, so their forces no longer change anything.
 
     The step is ``clock[0]``, copied to ``clock[1]`` for :func:`advance_nodes`, which advances
-    it. Also clears the plate forces, which that kernel sums next (fewer graph nodes than
-    separate memsets)."""
+    it."""
     tid = wp.tid()
     if tid == 0:
         clock[1] = clock[0]
-        for q in range(plate_force.shape[0]):
-            plate_force[q] = wp.vec3(0.0)
     at = listed(models, n_listed, n_models, tid)
     e, b = at[0], at[1]
     if e < 0 or e >= tets.shape[0]:
@@ -310,14 +306,15 @@ class PlateContact:
     """Rigid plates (P per model; model b's plate p at q = b P + p) and their contact nodes.
 
     ``slot[a, p]``: node a's contact slot for plate p, or -1 (slots of all plates numbered one
-    after another, ``n_slots`` in all); the friction state per slot and model at
-    ``b * n_slots + slot``: ``anchor`` (where the node sticks on the plate, m) and ``touching``.
+    after another); per slot and model, at ``slot * B + b`` (models innermost, as the nodes), the
+    friction state, ``anchor`` (where the node sticks on the plate, m) and ``touching``, and
+    ``force``, the force (N) the plate applied to the tissue through that node in the model's
+    last step (zero where it did not touch; :func:`plate_forces` sums them).
     Pose per plate and model: ``point`` (m) and ``normal`` (towards the tissue) at the start,
     ``motion`` (m) over the load, the flat face's end ``edge_shape[q][0]`` (m) along
     ``edge_direction[q]`` with a fillet of radius ``edge_shape[q][1]`` (m), ``friction[q]``
     (mu). ``x0`` the reference node positions (m)."""
     slot: wp.array2d(dtype=int)
-    n_slots: int
     n_plates: int
     x0: wp.array(dtype=wp.vec3)
     point: wp.array(dtype=wp.vec3)
@@ -328,6 +325,7 @@ class PlateContact:
     friction: wp.array(dtype=float)
     anchor: wp.array(dtype=wp.vec3)
     touching: wp.array(dtype=int)
+    force: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -341,8 +339,8 @@ class NodeState:
 
 
 @wp.func
-def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: wp.vec3, plates: PlateContact,
-                plate_force: wp.array(dtype=wp.vec3)) -> NodeState:
+def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: wp.vec3,
+                plates: PlateContact) -> NodeState:
     """Node ``node`` (its state ``x``, returned updated) in kinematic contact with rigid plate q at load
     factor s: a node behind the plate is moved back onto its surface along the surface normal by
     the depth d it went in. A plate's flat face ends ``edge_shape[q][0]`` along
@@ -357,9 +355,11 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
     the tangential part, so |t| <= mu d is |f_t| <= mu f_n whatever the (scaled) mass and
     damping. mu = 0 is frictionless contact.
 
-    ``contact`` is the node's internal minus external (gravity) force (N): the plate force
-    gains its normal part and, with friction, its tangential part up to mu times the normal part
-    (the force the plate applies to the tissue)."""
+    ``contact`` is the node's internal minus external (gravity) force (N): the force the plate
+    applies to the tissue through the node (``force[state]``, zero without contact) is its normal
+    part and, with friction, its tangential part up to mu times the normal part. Stored per
+    slot, not summed per plate here: the atomic adds of every touching node onto one plate's
+    three numbers queued behind each other, 1-4 us of a 160k-tet step (H200, docs/benchmarks.md)."""
     rel = plates.x0[node] + x.u - (plates.point[q] + s * plates.motion[q])
     n = plates.normal[q]
     gap = wp.dot(rel, n)
@@ -392,14 +392,16 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
                 correction = correction + pull
             x.low = wp.vec3(0.0)
             tangential = clipped(contact - normal_force * normal, mu * wp.max(normal_force, 0.0))
-            wp.atomic_add(plate_force, q, normal_force * normal + tangential)
+            plates.force[state] = normal_force * normal + tangential
         else:
             x.low = x.low - wp.dot(x.low, normal) * normal
-            wp.atomic_add(plate_force, q, normal_force * normal)
+            plates.force[state] = normal_force * normal
         x.u = x.u + correction
         x.du = x.du + correction
-    elif mu > 0.0:
-        plates.touching[state] = 0
+    else:
+        plates.force[state] = wp.vec3(0.0)
+        if mu > 0.0:
+            plates.touching[state] = 0
     return x
 
 
@@ -408,7 +410,7 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
                   forces: wp.array2d(dtype=float), pressure_volume: wp.array(dtype=float),
                   loads: NodeLoads, constraints: NodeConstraints, plates: PlateContact,
                   models: wp.array(dtype=int), n_listed: int, n_models: int, clock: wp.array(dtype=int),
-                  plate_force: wp.array(dtype=wp.vec3), inverted: wp.array(dtype=int)):
+                  inverted: wp.array(dtype=int)):
     """The node half of a step, one thread per node of each listed model (``models[:n_listed]``,
     see the module's docstring; the launch's size n_listed x nodes), everything a node's update needs in one
     launch, its state kept in registers (:class:`NodeState`) from its one read to its
@@ -428,7 +430,8 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     3. Prescribed components take load(t) x their final value, each component with its own load
        curve; their increment becomes the change from the previous step, their compensation zero
        (they win over sliding).
-    4. Contact with each plate in turn (:func:`touch_plate`), the plate forces summed.
+    4. Contact with each plate in turn (:func:`touch_plate`), the force through each contact
+       node kept for :func:`plate_forces`.
     5. The internal force is cleared for the next step, a model in which an inverted element was
        found is frozen (``inverted[4b + 3]``, see :func:`element_forces`; by its node 0's
        thread), and the step clock
@@ -502,8 +505,7 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     for p in range(plates.n_plates):
         slot = plates.slot[a, p]
         if slot >= 0:
-            x = touch_plate(x, a, b * plates.n_plates + p, b * plates.n_slots + slot, s, f - external, plates,
-                            plate_force)
+            x = touch_plate(x, a, b * plates.n_plates + p, slot * n_models + b, s, f - external, plates)
     u[i] = x.u
     du[i] = x.du
     low[i] = x.low
@@ -549,6 +551,26 @@ def energies(du: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float
         v = du[i] / dt
         value = 0.5 * mass[i] * wp.dot(v, v)
     wp.tile_atomic_add(kinetic, wp.tile_sum(wp.tile(value)), offset=at[0])
+
+
+@wp.kernel
+def plate_forces(force: wp.array(dtype=wp.vec3), n_models: int, first: int, count: int, plate: int, n_plates: int,
+                 moving: wp.array(dtype=int), inverted: wp.array(dtype=int), total: wp.array(dtype=float),
+                 padded: int):
+    """Per model b the force (N, LPS axes) that plate ``plate`` applied to the tissue in the
+    model's last step, the sum of its ``count`` contact slots from ``first`` on (see
+    :class:`PlateContact`; B = ``n_models``), into ``total[3 (b P + plate) + c]`` for component c; nothing for a
+    model that no longer moves (``moving[b]`` 0: converged) or has an inverted element (frozen),
+    as no plate touches it. See :func:`reduction_launch`."""
+    at = model_and_entry(wp.tid(), padded)
+    b, e = at[0], at[1]
+    f = wp.vec3(0.0)
+    if e < count and moving[b] != 0 and inverted[4 * b] == 0:
+        f = force[(first + e) * n_models + b]
+    q = 3 * (b * n_plates + plate)
+    wp.tile_atomic_add(total, wp.tile_sum(wp.tile(f[0])), offset=q)
+    wp.tile_atomic_add(total, wp.tile_sum(wp.tile(f[1])), offset=q + 1)
+    wp.tile_atomic_add(total, wp.tile_sum(wp.tile(f[2])), offset=q + 2)
 
 
 @wp.kernel

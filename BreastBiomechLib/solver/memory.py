@@ -34,7 +34,7 @@ _PER_MODEL_ELEMENT_TERM = 2 * 4 + 36  # Prony weight and decay, visco state (3x3
 _PER_ELEMENT = 16 + 48 + 4 + 16 + 4  # connectivity, shape-function derivatives, volume, ANP slots, material row
 _PER_NODE = 12 + 4 + 4  # reference position, constraint row, sliding-support column (one)
 _PER_MODEL_SLOT = 2 * 4  # ANP pressures of the step and of the probes
-_PER_MODEL_CONTACT = 12 + 4  # friction anchor and contact flag
+_PER_MODEL_CONTACT = 12 + 4 + 12  # friction anchor, contact flag, force through the node
 _HOST_PER_MODEL_NODE = 3 * 8 + 2 * 8 + 3 * 8  # set-up copies in float64: start state, masses, result
 _HOST_PER_MODEL_ELEMENT = 8 * 8  # set-up copies in float64: moduli, densities, stacked materials
 

@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
+from BreastBiomechLib.solver.readback import HostCopy
 
 
 class StableStepMonitor:
@@ -41,6 +42,7 @@ class StableStepMonitor:
         self._f_base = wp.zeros((3, n_models * n_nodes), dtype=float)  # component planes, see kernels
         self._f_probe = wp.zeros_like(self._f_base)
         self._vkv, self._vmv, self._largest = (wp.zeros(n_models, dtype=float) for _ in range(3))
+        self._vkv_host, self._vmv_host = HostCopy(self._vkv), HostCopy(self._vmv)
         self._zero_constrained()
         self.omega_squared = np.zeros(n_models)
 
@@ -66,11 +68,13 @@ class StableStepMonitor:
                                 self._w, self._largest])
             wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
             self._zero_constrained()
+        self._vkv_host.refresh()
+        self._vmv_host.refresh()
 
     def stable_step(self) -> np.ndarray:
         """The stable step estimate 2 / omega (s) per model after the last :meth:`advance` (inf
         where no stiffness was seen)."""
-        quotient = self._vkv.numpy().astype(float) / np.maximum(self._vmv.numpy().astype(float), 1e-300)
+        quotient = self._vkv_host.read().astype(float) / np.maximum(self._vmv_host.read().astype(float), 1e-300)
         self.omega_squared = quotient
         with np.errstate(divide="ignore"):
             positive = self.omega_squared > 0

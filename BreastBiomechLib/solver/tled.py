@@ -26,6 +26,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials, equal_value_grou
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder
+from BreastBiomechLib.solver.readback import HostCopy
 from BreastBiomechLib.solver.stability import StableStepMonitor
 from BreastBiomechLib.solver.warm import WarmStart, ramp_iterations, start_time, started_plates
 
@@ -63,6 +64,7 @@ class DistanceToRest:
     def __init__(self, like: wp.array, n_models: int) -> None:
         self._sample = wp.zeros_like(like)
         self._largest = wp.zeros(n_models, dtype=float)
+        self._largest_host = HostCopy(self._largest)
         self._n_nodes = like.shape[0] // n_models
         self._samples = 0
         self._change = None
@@ -81,13 +83,14 @@ class DistanceToRest:
         k.reduction_launch(k.largest_change, self._largest.shape[0], self._n_nodes,
                            [u, self._sample, self._n_nodes, self._largest])
         wp.copy(self._sample, u)
+        self._largest_host.refresh()
 
     def estimate(self) -> np.ndarray | None:
         """(B,) estimates (mm) from the last :meth:`measure`, from the third estimate on; call
         once per measurement, at consecutive measurements (the first call only starts counting)."""
         remaining = None
         if self._samples:
-            change = self._largest.numpy().astype(np.float64) / MM
+            change = self._largest_host.read().astype(np.float64) / MM
             if self._change is not None:
                 # a model that stood still at the previous sample is not contracting (rate inf)
                 rate = np.divide(change, self._change, out=np.full_like(change, np.inf), where=self._change > 0)
@@ -444,7 +447,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
                                          wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
                                          wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model, 1,
-                                         forces, inverted, wp.zeros(0, dtype=wp.vec3)])
+                                         forces, inverted])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
         return forces.numpy().T.astype(np.float64, order="C")
@@ -671,7 +674,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         pressure = wp.zeros(B * S, dtype=float)
         clock = wp.zeros(2, dtype=int)  # the step: [as the element kernel reads it, as the node kernel does]
         inverted = wp.zeros(4 * B, dtype=int)  # per model: count, first element, its step, frozen
-        plate_force = wp.zeros(max(B * P, 1), dtype=wp.vec3)
+        plate_force = wp.zeros(max(3 * B * P, 1), dtype=float)  # model b's plate p at 3 (b P + p): x, y, z (N)
         # gravity acts on the physical masses, also where dynamic relaxation scales them
         # with a pre-stressed reference state its gravity acts from the start, changing to the
         # loading's gravity over the load
@@ -702,6 +705,12 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             return listing
 
         d_moving = arr(model_list(active), int)  # the models the steps compute
+        d_active = arr(active, int)  # ... flagged per model
+
+        def stop_models():
+            """The models no longer ``active`` out of the steps' list."""
+            d_moving.assign(model_list(active))
+            d_active.assign(active)
 
         c_nodes, c_mask, c_vals = merged_constraints(model)
         n_con = len(c_nodes)
@@ -741,12 +750,13 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         plates = k.PlateContact()
         contact_slot = np.full((N, max(P, 1)), -1, np.int32)
         n_slots = 0
+        plate_slots = []  # plate p's slots: (first, count)
         for p, plate in enumerate(model.loading.plates):
             contact_slot[plate.slave_nodes, p] = n_slots + np.arange(len(plate.slave_nodes))
+            plate_slots.append((n_slots, len(plate.slave_nodes)))
             n_slots += len(plate.slave_nodes)
         every_plate = [p for ps in plate_sets for p in ps]
         plates.slot = wp.array(contact_slot, dtype=int)
-        plates.n_slots = n_slots
         plates.n_plates = P
         plates.x0 = arr(nodes, wp.vec3)
         plates.point = arr(np.array([p.point for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
@@ -759,19 +769,19 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         plates.friction = arr(np.array([p.friction for p in every_plate] or [0.0]), float)
         plates.anchor = wp.zeros(max(B * n_slots, 1), dtype=wp.vec3)
         plates.touching = wp.zeros(max(B * n_slots, 1), dtype=int)
+        plates.force = wp.zeros(max(B * n_slots, 1), dtype=wp.vec3)
         use_anp = 1 if model.formulation == "T4ANP" else 0
 
         every_model = arr(model_list(np.ones(B)), int)
-        probe_clock, no_plates = wp.zeros(2, dtype=int), wp.zeros(0, dtype=wp.vec3)
+        probe_clock = wp.zeros(2, dtype=int)
 
         def internal_force(state, out, pressure_buffer, flags, models=every_model, width=B, update_state=0,
-                           cleared=False, step_clock=None, to_clear=None):
+                           cleared=False, step_clock=None):
             """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)
             for the first ``width`` models of the list ``models`` (the others' stay zero);
             ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
             and ``pressure_buffer`` are zero already (the step kernels clear them). A step passes
-            its clock and the plate forces to clear (see :func:`kernels.element_forces`); a probe
-            leaves both alone."""
+            its clock (see :func:`kernels.element_forces`); a probe leaves it alone."""
             if not cleared:
                 out.zero_()
                 pressure_buffer.zero_()
@@ -782,7 +792,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                                      pressure_buffer, d_slotvol, K, d_prony_g, d_prony_decay,
                                                      visco_state, update_state, B,
                                                      probe_clock if step_clock is None else step_clock, models, width,
-                                                     out, flags, no_plates if to_clear is None else to_clear])
+                                                     out, flags])
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
                 wp.launch(k.support_springs, width * n_sup, [state, d_snodes, d_snormals, d_sstiff, B, models, width,
                                                              out])
@@ -791,9 +801,9 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             """One step of the ``width`` moving models: converged models stand still, and their
             threads are not launched."""
             internal_force(u, forces, pressure, inverted, d_moving, width, update_state=1, cleared=True,
-                           step_clock=clock, to_clear=plate_force)
+                           step_clock=clock)
             wp.launch(k.advance_nodes, width * N, [u, low, du, forces, pressure, loads, constraints, plates, d_moving,
-                                                   width, B, clock, plate_force, inverted])
+                                                   width, B, clock, inverted])
 
         def two_steps(width):
             one_step(width)
@@ -871,8 +881,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         def sample(renew: bool = True):
             """The device work of a sample, before anything is read back: energies, the forces
             at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms (and,
-            ``renew``, u and its forces as their next reference) and the displacement change
-            since the last sample."""
+            ``renew``, u and its forces as their next reference), the displacement change
+            since the last sample and the plates' forces in the last step."""
             kinetic.zero_()
             internal.zero_()
             # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
@@ -893,7 +903,18 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                     wp.copy(u_last, u)
                     wp.copy(f_last, f_curr)
             distance_to_rest.measure(u)
+            plate_force.zero_()
+            for p, (first, count) in enumerate(plate_slots):
+                k.reduction_launch(k.plate_forces, B, count, [plates.force, B, first, count, p, P, d_active,
+                                                              inverted, plate_force])
+            for copy in sampled.values():
+                copy.refresh()
 
+        # what the host reads of each sample, copied back together (see :mod:`readback`)
+        sampled = {name: HostCopy(array) for name, array in (("kinetic", kinetic), ("internal", internal),
+                                                             ("plate_force", plate_force), ("inverted", inverted))}
+        if relaxation is not None:
+            sampled.update(stiffness=HostCopy(stiffness), inertia=HostCopy(inertia))
         sample_graphs = {}
         if device.is_cuda:  # one graph launch and one wait per sample instead of some thirty of each
             for renew in (True, False) if relaxation is not None and window > 1 else (True,):
@@ -925,12 +946,12 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                 wp.capture_launch(sample_graphs[renew])
             else:
                 sample(renew)
-            ke, ie = kinetic.numpy().astype(float), 0.5 * internal.numpy().astype(float)
+            ke, ie = sampled["kinetic"].read().astype(float), 0.5 * sampled["internal"].read().astype(float)
             history["time"].append(done * dt)
             history["kinetic"].append(ke)
             history["internal"].append(ie)
-            history["plate_forces"].append(plate_force.numpy()[: B * P].reshape(B, P, 3).astype(float))
-            flags = inverted.numpy().reshape(B, 4)
+            history["plate_forces"].append(sampled["plate_force"].read()[: 3 * B * P].reshape(B, P, 3).astype(float))
+            flags = sampled["inverted"].read().reshape(B, 4)
             for b in np.flatnonzero((flags[:, 0] > 0) & (active == 1)):
                 count, element, at = flags[b, :3]
                 element = element if element_ids is None else int(element_ids[element])
@@ -938,7 +959,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                   f"element {element}; the displacement returned is that configuration. Reduce the "
                                   "load, refine the mesh there or check the constraints")
                 active[b] = 0  # frozen by the kernels; the other models of the batch go on
-                d_moving.assign(model_list(active))
+                stop_models()
             if not active.any():
                 break
             alive = np.array([b not in failed for b in range(B)])
@@ -970,7 +991,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                    f"{n_steps - done} of {n_steps} steps early")
                         break
             if relaxation is not None:
-                lam = stiffness.numpy().astype(float) / np.maximum(inertia.numpy().astype(float), 1e-300)
+                lam = sampled["stiffness"].read().astype(float) / np.maximum(sampled["inertia"].read().astype(float),
+                                                                             1e-300)
                 loaded = done * dt >= totals
                 if loaded.any():
                     remaining = distance_to_rest.estimate()
@@ -1016,7 +1038,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                             active[done_now] = 0
                             converged_at[done_now] = done
                             converged_forces[done_now] = history["plate_forces"][-1][done_now]
-                            d_moving.assign(model_list(active))
+                            stop_models()
                             # at rest from now on: no kinetic energy in their samples
                             wp.launch(k.stand_still, B * N, [du, arr(done_now.astype(np.int32), int)])
                             if not active.any():
