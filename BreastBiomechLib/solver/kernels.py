@@ -15,11 +15,11 @@ metres, pascal, kilograms, seconds, newtons. Vectors are in the mesh frame (LPS 
 The step kernels work on a *list* of n models, ``models[:n]`` (the models still moving in a
 relaxation, every model otherwise; n a launch parameter): thread t handles entry t mod n of the
 list for element (or node) t div n, so the listed models' work is packed into consecutive threads
-whatever the batch size, and a launch needs only n x (elements or nodes) threads (more are
-allowed; they return at once). With every model listed (n = B) the list is not read at all. Until 2026-11-28 every kernel ran B threads per element and
-converged models' threads returned: fitted over a fit's batches of 16 on a 54k-tet mesh, a step
-cost about 65 us however few models still moved, against 30 us for one slow model solved alone
-(H200, docs/benchmarks.md).
+whatever the batch size, and a launch needs only n x (elements or nodes) threads (more are allowed;
+they return at once). With every model listed (n = B) the list is not read at all. Until 2026-11-28
+every kernel ran B threads per element and converged models' threads returned: fitted over a fit's
+batches of 16 on a 54k-tet mesh, a step cost about 65 us however few models still moved, against 30
+us for one slow model solved alone (H200, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -185,7 +185,8 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
                    n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
                    forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int)):
     """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
-    the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
+    the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material).
+    Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
     with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
     (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set.
     Elements with J <= 0 are counted per model, the first one and its step recorded in
@@ -412,9 +413,9 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
                   models: wp.array(dtype=int), n_listed: int, n_models: int, clock: wp.array(dtype=int),
                   inverted: wp.array(dtype=int)):
     """The node half of a step, one thread per node of each listed model (``models[:n_listed]``,
-    see the module's docstring; the launch's size n_listed x nodes), everything a node's update needs in one
-    launch, its state kept in registers (:class:`NodeState`) from its one read to its
-    one write (at breast-model sizes a step is bound by latency, not by bandwidth):
+    see the module's docstring; the launch's size n_listed x nodes), everything a node's update
+    needs in one launch, its state kept in registers (:class:`NodeState`) from its one read to
+    its one write (at breast-model sizes a step is bound by latency, not by bandwidth):
 
     1. Seed eq. (15) in increment form: du_(n+1) = ((R - F) dt^2 / m + (1 - a dt/2) du_n) /
        (1 + a dt/2), u_(n+1) = u_n + du_(n+1), the same scheme as (m/dt^2 + a m/(2 dt)) u_(n+1) =
@@ -434,9 +435,9 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
        node kept for :func:`plate_forces`.
     5. The internal force is cleared for the next step, a model in which an inverted element was
        found is frozen (``inverted[4b + 3]``, see :func:`element_forces`; by its node 0's
-       thread), and the step clock
-       advances: this kernel reads the step from ``clock[1]`` (which :func:`element_forces`
-       copies from ``clock[0]``) and writes ``clock[0]``, so no thread reads what another writes.
+       thread), and the step clock advances: this kernel reads the step from ``clock[1]``
+       (which :func:`element_forces` copies from ``clock[0]``) and writes ``clock[0]``, so no
+       thread reads what another writes.
 
     Also clears the ANP pressures, already used by this step's element forces."""
     tid = wp.tid()
@@ -559,9 +560,9 @@ def plate_forces(force: wp.array(dtype=wp.vec3), n_models: int, first: int, coun
                  padded: int):
     """Per model b the force (N, LPS axes) that plate ``plate`` applied to the tissue in the
     model's last step, the sum of its ``count`` contact slots from ``first`` on (see
-    :class:`PlateContact`; B = ``n_models``), into ``total[3 (b P + plate) + c]`` for component c; nothing for a
-    model that no longer moves (``moving[b]`` 0: converged) or has an inverted element (frozen),
-    as no plate touches it. See :func:`reduction_launch`."""
+    :class:`PlateContact`; B = ``n_models``), into ``total[3 (b P + plate) + c]`` for component
+    c; nothing for a model that no longer moves (``moving[b]`` 0: converged) or has an inverted
+    element (frozen), as no plate touches it. See :func:`reduction_launch`."""
     at = model_and_entry(wp.tid(), padded)
     b, e = at[0], at[1]
     f = wp.vec3(0.0)

@@ -1,13 +1,14 @@
 """Small device arrays that a solve reads back at every sample, without a wait per array.
 
 warp's ``array.numpy()`` of a CUDA array allocates a host array, copies into it and waits for the
-device, each time, in Python; a relaxation's sample read nine arrays of a few numbers each that
-way while the GPU stood idle (the host's share of a lone 160k-tet solve: about 15 % of its time on
-an H200, docs/benchmarks.md). A :class:`HostCopy` keeps a pinned host array for one device
-array: :meth:`HostCopy.refresh` enqueues the copy (device work, so it can be captured in the
-sample's CUDA graph and every replay refreshes it), :meth:`HostCopy.read` waits for the device's
-stream - the first read of a sample waits for its work, the others find the stream idle - and
-returns the values. On the CPU device the host copy is the array itself.
+device, each time, in Python; a relaxation's sample read nine arrays of a few numbers each that way
+while the GPU stood idle (the host's time between a sample and the next steps, most of it the
+relaxation's decisions, is 10-15 % of a lone 160k-tet solve on an H200, docs/benchmarks.md). A
+:class:`HostCopy` keeps a pinned host array for one device array: :meth:`HostCopy.refresh` enqueues
+the copy (device work, so it can be captured in the sample's CUDA graph and every replay refreshes
+it), :meth:`HostCopy.read` waits for the device's stream - the first read of a sample waits for its
+work, the others find the stream idle - and returns the values. On the CPU device the host copy is
+the array itself.
 """
 
 from __future__ import annotations
