@@ -878,6 +878,12 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             mass_rescales += 1
             return stable * np.sqrt(grow)
 
+        # what the host reads of each sample, copied back together (see :mod:`readback`)
+        sampled = {name: HostCopy(array) for name, array in (("kinetic", kinetic), ("internal", internal),
+                                                             ("plate_force", plate_force), ("inverted", inverted))}
+        if relaxation is not None:
+            sampled.update(stiffness=HostCopy(stiffness), inertia=HostCopy(inertia))
+
         def sample(renew: bool = True):
             """The device work of a sample, before anything is read back: energies, the forces
             at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms (and,
@@ -910,11 +916,6 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             for copy in sampled.values():
                 copy.refresh()
 
-        # what the host reads of each sample, copied back together (see :mod:`readback`)
-        sampled = {name: HostCopy(array) for name, array in (("kinetic", kinetic), ("internal", internal),
-                                                             ("plate_force", plate_force), ("inverted", inverted))}
-        if relaxation is not None:
-            sampled.update(stiffness=HostCopy(stiffness), inertia=HostCopy(inertia))
         sample_graphs = {}
         if device.is_cuda:  # one graph launch and one wait per sample instead of some thirty of each
             for renew in (True, False) if relaxation is not None and window > 1 else (True,):
