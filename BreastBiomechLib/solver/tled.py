@@ -708,7 +708,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         d_active = arr(active, int)  # ... flagged per model
 
         def stop_models():
-            """The models no longer ``active`` out of the steps' list."""
+            """The models no longer ``active`` out of the steps' list and the plate forces' sums."""
             d_moving.assign(model_list(active))
             d_active.assign(active)
 
