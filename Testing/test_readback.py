@@ -30,6 +30,17 @@ def test_a_read_is_the_values_of_its_time_on_the_cpu():
     np.testing.assert_array_equal(copy.read(), [2.0, 3.0, 4.0])
 
 
+def test_a_read_holds_the_last_refresh_not_later_changes_on_the_cpu():
+    """A relaxation's next steps run between a sample's refresh and its read: the read must be
+    the sample's values (on the CPU device the steps change the array before the read)."""
+    wp.init()
+    values = wp.array(np.array([1.0, 2.0], np.float32), dtype=float, device="cpu")
+    copy = HostCopy(values)
+    copy.refresh()
+    wp.launch(_add_one, 2, [values], device="cpu")
+    np.testing.assert_array_equal(copy.read(), [1.0, 2.0])
+
+
 def test_a_vector_array_reads_back_in_its_shape():
     wp.init()
     forces = wp.array(np.arange(6, dtype=np.float32).reshape(2, 3), dtype=wp.vec3, device="cpu")

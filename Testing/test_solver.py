@@ -677,7 +677,7 @@ def test_distance_to_rest_extrapolates_a_geometric_approach():
 
     import warp as wp
 
-    from BreastBiomechLib.solver.tled import DistanceToRest
+    from BreastBiomechLib.solver.relaxation import DistanceToRest
 
     wp.init()
     n_nodes, d_mm, r = 5, 10.0, 0.6
@@ -697,3 +697,42 @@ def test_distance_to_rest_extrapolates_a_geometric_approach():
         assert estimates[k][0] == pytest.approx(r ** k * d_mm, rel=1e-4)
         assert estimates[k][2] == 0.0  # at rest all along
     assert estimates[4][1] == np.inf and estimates[5][1] == np.inf
+
+
+def test_relaxation_decisions_stop_a_converged_model_and_freeze_it():
+    """The relaxation's per-sample decisions on the device (solver/relaxation.py), fed a model
+    approaching rest geometrically (changes 0.5^k mm, so the estimate is the change itself) and one
+    that does not contract: the first is trusted once its load's settling updates are over and its
+    estimate is below the tolerance at two updates in a row (k = 7, 8), so it stops at update 8
+    with that estimate and is frozen for the steps (flag 2); the other keeps moving, its estimate
+    infinite. Both damped at twice the root of the Rayleigh quotient."""
+    import warp as wp
+
+    from BreastBiomechLib.solver.relaxation import DistanceToRest, RelaxationControl
+
+    wp.init()
+    with wp.ScopedDevice("cpu"):
+        dt, lam, every = 1e-3, 100.0, 200
+        damping_now = wp.zeros(2, dtype=float)
+        control = RelaxationControl(np.zeros(2), np.full(2, 5.0), damping_now, np.full(2, np.inf), np.zeros(2), dt,
+                                    0.01, warm=False)
+        distance = DistanceToRest(wp.zeros(2, dtype=wp.vec3), 2)
+        kinetic, internal = wp.array([1e-9, 1e-9], dtype=float), wp.array([1.0, 1.0], dtype=float)
+        stiffness, inertia = wp.array([lam, lam], dtype=float), wp.array([1.0, 1.0], dtype=float)
+        inverted = wp.zeros(8, dtype=int)
+        stopped_at = None
+        for update in range(12):
+            distance.state.largest.assign(np.array([0.5 ** update, 1.0], np.float32) * 1e-3)  # m
+            clock = wp.array([every * (update + 1), 0], dtype=int)
+            control.update(distance, kinetic, internal, stiffness, inertia, inverted, clock)
+            active = control.active.read()
+            if stopped_at is None and active[0] == 0:
+                stopped_at = update
+            assert active[1] == 1
+        outcome = control.outcome()
+    assert stopped_at == 8
+    assert outcome["converged_at"][0] == every * 9
+    assert outcome["estimated_error"][0] == pytest.approx(0.5 ** 8, rel=1e-6)
+    assert outcome["estimated_error"][1] == np.inf
+    assert list(inverted.numpy()[3::4]) == [2, 0]
+    np.testing.assert_allclose(damping_now.numpy(), 2.0 * np.sqrt(lam), rtol=1e-6)

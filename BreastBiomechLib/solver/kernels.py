@@ -192,8 +192,10 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     Elements with J <= 0 are counted per model, the first one and its step recorded in
     ``inverted[4b:4b+4]`` = [count, element, step, frozen] of model b; once frozen that model
     stands still (the others of the batch go on), keeping its last configuration for
-    inspection instead of producing NaN. Only the listed ``models`` are computed (see the
-    module's docstring): converged models stand still, so their forces no longer change anything.
+    inspection instead of producing NaN (frozen is 1 then; 2 for a model a relaxation has found
+    converged, :mod:`BreastBiomechLib.solver.relaxation`). Only the listed ``models`` are computed
+    (see the module's docstring): converged models stand still, so their forces no longer change
+    anything.
 
     The step is ``clock[0]``, copied to ``clock[1]`` for :func:`advance_nodes`, which advances
     it."""
@@ -424,8 +426,8 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
        (velocity x dt). The external force R is ``body_start + load x body_force`` (gravity on
        the physical mass; ``mass`` may be fictitious under mass scaling): the force already
        acting at the start (a pre-stressed, gravity-loaded reference state) and its change over
-       the loading. A model not listed (converged) stands still; one with an inverted element
-       stands still altogether.
+       the loading. A model not listed or frozen (converged) stands still; one with an inverted
+       element stands still altogether.
     2. Sliding supports: the displacement, its increment and compensation lose their part along
        the node's surface normal.
     3. Prescribed components take load(t) x their final value, each component with its own load
@@ -434,10 +436,10 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     4. Contact with each plate in turn (:func:`touch_plate`), the force through each contact
        node kept for :func:`plate_forces`.
     5. The internal force is cleared for the next step, a model in which an inverted element was
-       found is frozen (``inverted[4b + 3]``, see :func:`element_forces`; by its node 0's
-       thread), and the step clock advances: this kernel reads the step from ``clock[1]``
-       (which :func:`element_forces` copies from ``clock[0]``) and writes ``clock[0]``, so no
-       thread reads what another writes.
+       found is frozen (``inverted[4b + 3]`` = 1, see :func:`element_forces`; by its node 0's
+       thread; a relaxation freezes converged models with 2), and the step clock advances: this
+       kernel reads the step from ``clock[1]`` (which :func:`element_forces` copies from
+       ``clock[0]``) and writes ``clock[0]``, so no thread reads what another writes.
 
     Also clears the ANP pressures, already used by this step's element forces."""
     tid = wp.tid()
@@ -452,9 +454,10 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     if a < 0 or a >= n_nodes:
         return
     i = a * n_models + b
-    # every read that does not depend on another first (the model's inversion count too: tested
-    # once the node's reads are on their way)
+    # every read that does not depend on another first (the model's inversion count and frozen
+    # flag too: tested once the node's reads are on their way)
     count = inverted[4 * b]
+    frozen = inverted[4 * b + 3]
     f = force_at(forces, i)
     x = NodeState()
     x.u = u[i]
@@ -469,8 +472,8 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     forces[0, i] = 0.0
     forces[1, i] = 0.0
     forces[2, i] = 0.0
-    if count != 0:
-        if a == 0:
+    if count != 0 or frozen != 0:
+        if a == 0 and count != 0:
             inverted[4 * b + 3] = 1
         du[i] = wp.vec3(0.0)
         return
@@ -512,15 +515,6 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     low[i] = x.low
 
 
-@wp.kernel
-def stand_still(du: wp.array(dtype=wp.vec3), stopping: wp.array(dtype=int)):
-    """The last increment (m) of every node of the models flagged 1 in ``stopping`` set to zero:
-    they have converged and are no longer stepped."""
-    i = wp.tid()
-    if stopping[i % stopping.shape[0]] != 0:
-        du[i] = wp.vec3(0.0)
-
-
 REDUCTION_BLOCK = wp.constant(256)  # threads per block of the per-model sums below
 
 
@@ -556,17 +550,16 @@ def energies(du: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), dt: float
 
 @wp.kernel
 def plate_forces(force: wp.array(dtype=wp.vec3), n_models: int, first: int, count: int, plate: int, n_plates: int,
-                 moving: wp.array(dtype=int), inverted: wp.array(dtype=int), total: wp.array(dtype=float),
-                 padded: int):
+                 inverted: wp.array(dtype=int), total: wp.array(dtype=float), padded: int):
     """Per model b the force (N, LPS axes) that plate ``plate`` applied to the tissue in the
     model's last step, the sum of its ``count`` contact slots from ``first`` on (see
     :class:`PlateContact`; B = ``n_models``), into ``total[3 (b P + plate) + c]`` for component
-    c; nothing for a model that no longer moves (``moving[b]`` 0: converged) or has an inverted
-    element (frozen), as no plate touches it. See :func:`reduction_launch`."""
+    c; nothing for a frozen model (``inverted[4b + 3]``: an inverted element, or converged), as
+    no plate touches it. See :func:`reduction_launch`."""
     at = model_and_entry(wp.tid(), padded)
     b, e = at[0], at[1]
     f = wp.vec3(0.0)
-    if e < count and moving[b] != 0 and inverted[4 * b] == 0:
+    if e < count and inverted[4 * b + 3] == 0:
         f = force[(first + e) * n_models + b]
     q = 3 * (b * n_plates + plate)
     wp.tile_atomic_add(total, wp.tile_sum(wp.tile(f[0])), offset=q)
@@ -669,6 +662,59 @@ def normalise_iterate(w: wp.array(dtype=wp.vec3), largest: wp.array(dtype=float)
     scale = largest[i % largest.shape[0]]
     if scale > 0.0:
         v[i] = w[i] / scale
+
+
+@wp.kernel
+def stable_steps(vkv: wp.array(dtype=float), vmv: wp.array(dtype=float), smallest: wp.float64,
+                 stable: wp.array(dtype=wp.float64)):
+    """The stable step 2 / omega (s) per model from the power iteration's terms, omega^2 =
+    v^T K v / max(v^T M v, ``smallest``); inf where no stiffness was seen."""
+    b = wp.tid()
+    quotient = wp.float64(vkv[b]) / wp.max(wp.float64(vmv[b]), smallest)
+    step = wp.float64(wp.inf)
+    if quotient > wp.float64(0.0):
+        step = wp.float64(2.0) / wp.sqrt(quotient)
+    stable[b] = step
+
+
+@wp.kernel
+def keep_step_stable(stable_now: wp.array(dtype=wp.float64), inverted: wp.array(dtype=int), dt: wp.float64,
+                     above: wp.float64, to: wp.float64, stable: wp.array(dtype=wp.float64),
+                     grow: wp.array(dtype=wp.float64), growth: wp.array(dtype=wp.float64),
+                     rescales: wp.array(dtype=int)):
+    """Mass scaling's rule, one thread per model (see :class:`BreastBiomechLib.solver.stability.MassScaling`):
+    where the step ``dt`` (s) exceeds ``above`` x the stable step of any model without an inverted
+    element, model b's masses are to grow by ``grow[b]`` = max((dt / (``to`` x its stable step))^2, 1)
+    (1 otherwise), its total ``growth`` and ``rescales`` follow, and ``stable`` is its stable step after."""
+    b = wp.tid()
+    rescale = int(0)
+    for c in range(stable_now.shape[0]):
+        if inverted[4 * c] == 0 and not (dt <= above * stable_now[c]):
+            rescale = 1
+    mine = stable_now[b]
+    if inverted[4 * b] != 0:
+        mine = wp.float64(wp.inf)
+    g = wp.float64(1.0)
+    if rescale != 0:
+        ratio = dt / (to * mine)
+        g = wp.max(ratio * ratio, wp.float64(1.0))
+        growth[b] = growth[b] * g
+        rescales[b] = rescales[b] + 1
+    grow[b] = g
+    stable[b] = mine * wp.sqrt(g)
+
+
+@wp.kernel
+def grow_masses(grow: wp.array(dtype=wp.float64), mass_float64: wp.array(dtype=wp.float64),
+                mass: wp.array(dtype=float)):
+    """Node-model i's mass times its model's ``grow`` (see :func:`keep_step_stable`), kept in
+    float64 and rounded once into the steps' float32 ``mass``."""
+    i = wp.tid()
+    g = grow[i % grow.shape[0]]
+    if g != wp.float64(1.0):
+        m = mass_float64[i] * g
+        mass_float64[i] = m
+        mass[i] = float(m)
 
 
 @wp.kernel

@@ -26,7 +26,7 @@ MESHING_FIXED_BYTES = int(0.6 * GB)
 
 # bytes per entry of the device arrays of a solve (float32 / int32), see tled.solve_batch
 _PER_MODEL_NODE = (5 * 12  # displacement, rounding remainder, increment, scratch state, forces
-                   + 4 + 2 * 12  # fictitious mass, body forces at the start and over the load
+                   + 4 + 8 + 2 * 12  # fictitious mass (and in float64), body forces at the start and over the load
                    + 5 * 12  # stable-step monitor: vector, next vector, probe, base and probe forces
                    + 12 + 3 * 12)  # distance to rest; relaxation: forces now and last, last state
 _PER_MODEL_ELEMENT = 3 * 4 + 12  # material table: moduli, fibre stiffness and direction (a row per element at most)

@@ -7,6 +7,9 @@ differences of the internal forces) is tracked by power iteration: one iteration
 warm-started from the previous vector. Its Rayleigh quotient never exceeds omega_max^2, so the
 central-difference limit 2 / omega_max it implies is an upper bound of the true stable step:
 a time step above it is certainly unstable.
+
+Under mass scaling (:class:`MassScaling`) the fictitious masses grow where the step comes too
+close to that limit, on the device, so that a relaxation's steps can run ahead of the host.
 """
 
 from __future__ import annotations
@@ -18,6 +21,10 @@ import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.readback import HostCopy
+
+SMALLEST_MASS_TERM = 1e-300  # v^T M v below this is taken as this: no division by zero
+RESCALE_ABOVE = 0.9  # mass scaling: masses grow once the step is this fraction of the stable one
+RESCALE_TO = 0.8  # ... so that it is this fraction
 
 
 class StableStepMonitor:
@@ -42,9 +49,9 @@ class StableStepMonitor:
         self._f_base = wp.zeros((3, n_models * n_nodes), dtype=float)  # component planes, see kernels
         self._f_probe = wp.zeros_like(self._f_base)
         self._vkv, self._vmv, self._largest = (wp.zeros(n_models, dtype=float) for _ in range(3))
-        self._vkv_host, self._vmv_host = HostCopy(self._vkv), HostCopy(self._vmv)
+        self.stable = wp.zeros(n_models, dtype=wp.float64)  # the estimate after the last advance (s)
+        self._stable_host = HostCopy(self.stable)
         self._zero_constrained()
-        self.omega_squared = np.zeros(n_models)
 
     def _zero_constrained(self) -> None:
         n_con = self._cnodes.shape[0]
@@ -68,17 +75,14 @@ class StableStepMonitor:
                                 self._w, self._largest])
             wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
             self._zero_constrained()
-        self._vkv_host.refresh()
-        self._vmv_host.refresh()
+        wp.launch(k.stable_steps, self._B, [self._vkv, self._vmv, SMALLEST_MASS_TERM, self.stable])
+        self._stable_host.refresh()
 
-    def stable_step(self) -> np.ndarray:
+    def stable_step(self, after: wp.Event | None = None) -> np.ndarray:
         """The stable step estimate 2 / omega (s) per model after the last :meth:`advance` (inf
-        where no stiffness was seen)."""
-        quotient = self._vkv_host.read().astype(float) / np.maximum(self._vmv_host.read().astype(float), 1e-300)
-        self.omega_squared = quotient
-        with np.errstate(divide="ignore"):
-            positive = self.omega_squared > 0
-        return np.where(positive, 2.0 / np.sqrt(np.where(positive, self.omega_squared, 1.0)), np.inf)
+        where no stiffness was seen); ``after``: an event recorded after that advance (see
+        :meth:`HostCopy.read`)."""
+        return self._stable_host.read(after)
 
     def iterate(self, state: wp.array, iterations: int = 1, base_force: wp.array | None = None) -> np.ndarray:
         """Advance the power iteration at displacement ``state`` (m); returns the stable step
@@ -86,3 +90,32 @@ class StableStepMonitor:
         internal forces of ``state`` when the caller has them already."""
         self.advance(state, iterations, base_force)
         return self.stable_step()
+
+
+class MassScaling:
+    """Fictitious masses (kg, float32 ``mass`` as the steps read it, node a of model b at a*B + b)
+    kept heavy enough that the time step ``dt`` (s) stays stable as elements stiffen: where some
+    model's step exceeds :data:`RESCALE_ABOVE` of its stable step (:class:`StableStepMonitor`;
+    models with an inverted element left out), every model whose step exceeds :data:`RESCALE_TO`
+    of its stable step has its masses multiplied by (dt / (RESCALE_TO x stable))^2, which brings the
+    step to that fraction; the static solution does not depend on them. Device work (capturable in
+    a graph); the masses are held in float64 too, so that repeated growth rounds once. After
+    :meth:`apply`: :attr:`stable` the stable step of the scaled masses (s), :attr:`growth` each
+    model's total growth, :attr:`rescales` how often masses grew (every entry the same)."""
+
+    def __init__(self, mass: wp.array, mass_float64: np.ndarray, dt: float, n_models: int) -> None:
+        self.mass = mass
+        self.mass_float64 = wp.array(mass_float64, dtype=wp.float64, device=mass.device)
+        self.dt = float(dt)
+        self.stable = wp.zeros(n_models, dtype=wp.float64, device=mass.device)
+        self.growth = wp.array(np.ones(n_models), dtype=wp.float64, device=mass.device)
+        self.rescales = wp.zeros(n_models, dtype=int, device=mass.device)
+        self._grow = wp.zeros(n_models, dtype=wp.float64, device=mass.device)
+
+    def apply(self, monitor: StableStepMonitor, inverted: wp.array) -> None:
+        """Grow the masses as the monitor's last estimate needs; ``inverted``: the solver's flags
+        (4 per model, the count first)."""
+        n_models = self.stable.shape[0]
+        wp.launch(k.keep_step_stable, n_models, [monitor.stable, inverted, self.dt, RESCALE_ABOVE, RESCALE_TO,
+                                                 self.stable, self._grow, self.growth, self.rescales])
+        wp.launch(k.grow_masses, self.mass.shape[0], [self._grow, self.mass_float64, self.mass])

@@ -7,8 +7,10 @@ damping (seed eq. (15)) in increment form, with the displacement accumulated in 
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
 The step loop has no host synchronisation: on CUDA it replays a captured graph of two steps
 (one graph per count of moving models: the steps run only the models still moving, see ``kernels``).
-Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate and
-the relaxation's terms, and they, the plate forces and the inverted-element flags are read back.
+Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate, the
+plate forces and, in a relaxation, its decisions (damping, mass scaling, converged models: see
+``relaxation``), and copies what the host reads back; a relaxation's next steps are enqueued before
+the host reads it.
 """
 
 from __future__ import annotations
@@ -27,84 +29,14 @@ from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder
 from BreastBiomechLib.solver.readback import HostCopy
-from BreastBiomechLib.solver.stability import StableStepMonitor
+from BreastBiomechLib.solver.relaxation import MM, QUOTIENT_WINDOW, DistanceToRest, RelaxationControl
+from BreastBiomechLib.solver.stability import MassScaling, StableStepMonitor
 from BreastBiomechLib.solver.warm import WarmStart, ramp_iterations, start_time, started_plates
 
-MM = 1e-3  # metres per millimetre
-ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
 SPRING_PA_PER_MM_MM2_TO_N_PER_M = 1e-3  # (Pa/mm) x mm^2 = 1e3 N/m^3 x 1e-6 m^2
 FRICTION_WAVE_CROSSINGS = 6.0  # relaxation with friction loads over this many shear-wave crossings
-QUOTIENT_WINDOW = 5  # relaxation: the Rayleigh quotient's reference state is renewed every this many updates
-CHATTER_QUOTIENT = 10.0  # relaxation: a stalled motion whose quotient is this far above the least is chatter
-CHATTER_UPDATES = 2  # relaxation: ... and has stalled at this many updates in a row
-SETTLING_UPDATES = 3  # relaxation: updates after a cold load whose damping follows the latest quotient
-SURGE = 10.0  # relaxation: kinetic energy grown this many times since the previous update: a new transient
-SLOWING = 0.05  # a contraction ratio this much above the previous one: a slower motion is taking over
 FLOAT32_ROUNDING = 2.0 ** -24  # float32's relative rounding error (half an ulp of 1)
-
-
-class DistanceToRest:
-    """Estimated distance (mm) each of B models still has to travel, from its displacement
-    sampled on the device: with c_k = max |u_k - u_(k-1)| between samples and r = c_k / c_(k-1)
-    the observed contraction, the remaining travel of a geometric approach is c_k r / (1 - r)
-    (inf while not contracting; the change itself once it is down to float32 round-off, where a
-    model at rest - e.g. an exact affine solution - stops contracting). Changes over a whole
-    sampling interval, not single steps, so that float32 round-off of the displacement (about
-    1e-6 mm) does not drown the estimate near convergence. Only B numbers per sample come back
-    to the host.
-
-    The estimate extrapolates the latest ratio, which holds only once the slowest motion left
-    dominates the change; while a slower motion is taking over from a faster one that dies out,
-    the ratio rises, and the estimate reads short. :attr:`slowing` flags the models whose ratio
-    rose by more than :data:`SLOWING` since the previous estimate (a relaxation does not trust
-    their estimate then: one stopped 0.40 mm from rest on an estimate of 0.009 mm, its ratio
-    0.54 -> 0.69, with a creeping mode 40 times slower than the Rayleigh quotient had found)."""
-
-    def __init__(self, like: wp.array, n_models: int) -> None:
-        self._sample = wp.zeros_like(like)
-        self._largest = wp.zeros(n_models, dtype=float)
-        self._largest_host = HostCopy(self._largest)
-        self._n_nodes = like.shape[0] // n_models
-        self._samples = 0
-        self._change = None
-        self._rate = None
-        self.slowing = np.zeros(n_models, bool)
-
-    @property
-    def change(self) -> np.ndarray:
-        """(B,) the largest nodal change (mm) between the last two measurements (inf before two)."""
-        return np.full(len(self.slowing), np.inf) if self._change is None else self._change
-
-    def measure(self, u: wp.array) -> None:
-        """Device work of a sample (no host synchronisation, so it can be captured in a graph):
-        the largest change of ``u`` (m) since the previous measurement; ``u`` kept for the next."""
-        self._largest.zero_()
-        k.reduction_launch(k.largest_change, self._largest.shape[0], self._n_nodes,
-                           [u, self._sample, self._n_nodes, self._largest])
-        wp.copy(self._sample, u)
-        self._largest_host.refresh()
-
-    def estimate(self) -> np.ndarray | None:
-        """(B,) estimates (mm) from the last :meth:`measure`, from the third estimate on; call
-        once per measurement, at consecutive measurements (the first call only starts counting)."""
-        remaining = None
-        if self._samples:
-            change = self._largest_host.read().astype(np.float64) / MM
-            if self._change is not None:
-                # a model that stood still at the previous sample is not contracting (rate inf)
-                rate = np.divide(change, self._change, out=np.full_like(change, np.inf), where=self._change > 0)
-                remaining = np.full_like(change, np.inf)
-                contracting = rate < 1.0
-                remaining[contracting] = change[contracting] * rate[contracting] / (1.0 - rate[contracting])
-                at_rest = change <= ROUND_OFF_MM  # nothing left to contract
-                remaining[at_rest] = change[at_rest]
-                if self._rate is not None:
-                    self.slowing = (rate > self._rate + SLOWING) & ~at_rest
-                self._rate = rate
-            self._change = change
-        self._samples += 1
-        return remaining
 
 
 @dataclass
@@ -113,24 +45,24 @@ class DynamicRelaxation:
     every element has the same stable step (mass scaling), the load applied over
     ``load_iterations`` steps, then damping set every ``update_every`` steps to twice the square
     root of the lowest eigenvalue of M^-1 K, estimated by Rayleigh quotients of the displacement
-    change since a reference state renewed every :data:`QUOTIENT_WINDOW` updates. For
-    :data:`SETTLING_UPDATES` updates after a cold load the damping follows the latest quotient
+    change since a reference state renewed every :data:`relaxation.QUOTIENT_WINDOW` updates. For
+    :data:`relaxation.SETTLING_UPDATES` updates after a cold load the damping follows the latest quotient
     (the load's transient, whose fast modes it damps); after that the least quotient since sets
     it: every quotient bounds the lowest eigenvalue from above, so the damping only falls, towards
     the lowest mode's critical value, as slower modes show in the motion (following the latest
     quotient instead overdamps the slow modes near rest, whose creep reads as converged).
-    Where the kinetic energy has grown :data:`SURGE` times since the previous update - energy
+    Where the kinetic energy has grown :data:`relaxation.SURGE` times since the previous update - energy
     released after the load: a snap to another configuration, contact chatter - the damping
-    follows the latest quotient for another :data:`SETTLING_UPDATES` updates (under the least
+    follows the latest quotient for another :data:`relaxation.SETTLING_UPDATES` updates (under the least
     quotient's damping such a motion grew until an element of a coarse fitting mesh inverted).
-    Where the motion has not contracted at :data:`CHATTER_UPDATES` updates in a row and the
-    quotient is over :data:`CHATTER_QUOTIENT` times the least, it is high-frequency chatter -
+    Where the motion has not contracted at :data:`relaxation.CHATTER_UPDATES` updates in a row and the
+    quotient is over :data:`relaxation.CHATTER_QUOTIENT` times the least, it is high-frequency chatter -
     contact, stiffening fibres - that the lowest mode's damping cannot remove, and the damping
     follows the quotient up. Each model stops when the estimated distance to the static solution
     (:class:`DistanceToRest`, from the displacement change between updates) is below
     ``tolerance_mm`` at two updates in a row at which its motion is not slowing down. A change
     below the model's float32 noise floor (:func:`stress_noise_floor_mm`) whose quotient is over
-    :data:`CHATTER_QUOTIENT` times the least is rounding noise about rest, counted as rest at that
+    :data:`relaxation.CHATTER_QUOTIENT` times the least is rounding noise about rest, counted as rest at that
     distance (nearly incompressible tissue wanders by up to 1e-3 mm at rest, with contraction
     ratios jumping above and below 1 that the estimate cannot extrapolate).
 
@@ -139,6 +71,9 @@ class DynamicRelaxation:
     update interval) under that cap, and it stops where the estimate is below the tolerance at two
     updates in a row, three updates after its plates' ramp at the earliest. Time in a relaxation
     run is fictitious.
+
+    The decisions at each update are made on the device (:mod:`BreastBiomechLib.solver.relaxation`),
+    so the next steps run while the host reads the update's figures.
 
     ``load_iterations`` is a minimum: the load is applied slowly enough that prescribed boundaries
     (plates, displacements) move at under a third of the shear wave speed of the scaled model,
@@ -695,7 +630,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         loads = k.NodeLoads()
         loads.mass, loads.body_start, loads.body_force = d_mass, d_body_start, d_body_force
         loads.damping, loads.t_total, loads.load_shape, loads.dt = d_damping, d_totals, load_shape, float(dt)
-        active = np.ones(B, np.int32)  # dynamic relaxation stops each model once it has converged
+        active = np.ones(B, np.int32)  # the models moving as of the last sample the host has read
 
         def model_list(flags):
             """The kernels' list of models (see :mod:`kernels`): the flagged models, then padding."""
@@ -705,12 +640,11 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             return listing
 
         d_moving = arr(model_list(active), int)  # the models the steps compute
-        d_active = arr(active, int)  # ... flagged per model
 
         def stop_models():
-            """The models no longer ``active`` out of the steps' list and the plate forces' sums."""
+            """The models no longer ``active`` out of the steps' list (the steps leave them alone
+            already: they are frozen, see :mod:`relaxation`)."""
             d_moving.assign(model_list(active))
-            d_active.assign(active)
 
         c_nodes, c_mask, c_vals = merged_constraints(model)
         n_con = len(c_nodes)
@@ -824,19 +758,11 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         chunk = max(2, sample_every - sample_every % 2)
         done = 0
         estimated_error = np.full(B, np.nan)
-        since_load = np.zeros(B, int)  # relaxation updates since each model's load was complete
-        settled_after = np.full(B, SETTLING_UPDATES)  # ... after which the least quotient sets the damping
-        ke_before = np.full(B, np.inf)  # kinetic energy at the previous update (J)
         # a warm start's damping is capped by its start's lowest mode (critically damped at most,
         # so no overdamped creep to mistake for rest): see the class docstring
         warm = warm_start is not None
         window = 1 if warm else QUOTIENT_WINDOW
-        stalled_updates = np.zeros(B, int)  # updates in a row at which each model did not contract
-        checks_below = np.zeros(B, int)
-        lowest = np.full(B, np.inf)  # the least Rayleigh quotient since each model's transient (1/s^2)
-        mass_growth = np.ones(B)
-        converged_at = np.zeros(B, int)
-        converged_forces = np.zeros((B, P, 3))
+        converged_forces = np.zeros((B, P, 3))  # a relaxation's plate forces at the sample it converged
         settled_checks = 0
         distance_to_rest = DistanceToRest(u, B)
         pressure_tmp = wp.zeros(B * S, dtype=float)
@@ -857,38 +783,29 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             u_last = wp.clone(u)
             probe_force(u_last, f_last)
             stiffness, inertia = wp.zeros(B, dtype=float), wp.zeros(B, dtype=float)
+            control = RelaxationControl(totals, damping, d_damping, damping_cap, noise_floor, dt,
+                                        relaxation.tolerance_mm, warm)
         wp.synchronize_device(device)
         started = time.perf_counter()
         monitor = StableStepMonitor(probe_force, d_mass, B, N, 1e-3 * float(np.median(length)), d_cnodes, d_cmask)
-        stable_step = monitor.iterate(u, iterations=20)
-        mass_rescales = 0
-
-        def keep_step_stable(stable):
-            """Mass scaling: where the model is stiffer than the element estimate (or got
-            stiffer as it deformed) make its fictitious masses heavier so that the step stays at
-            80 % of the stable one; the static solution does not depend on them."""
-            nonlocal mass_rescales
-            if np.all(dt <= 0.9 * stable):
-                return stable
-            grow = np.maximum((dt / (0.8 * stable)) ** 2, 1.0)
-            mass[:] = mass * np.tile(grow, N)
-            mass_growth[:] = mass_growth * grow
-            d_mass.assign(mass.astype(f32))
-            monitor.omega_squared /= grow
-            mass_rescales += 1
-            return stable * np.sqrt(grow)
+        monitor.advance(u, iterations=20)
+        # mass scaling: where the model is stiffer than the element estimate (or got stiffer as it
+        # deformed) its fictitious masses grow so that the step stays stable (see MassScaling)
+        scaling = MassScaling(d_mass, mass, dt, B) if scaled else None
+        if scaled:
+            scaling.apply(monitor, inverted)
+        stable_step = monitor.stable_step()
 
         # what the host reads of each sample, copied back together (see :mod:`readback`)
         sampled = {name: HostCopy(array) for name, array in (("kinetic", kinetic), ("internal", internal),
                                                              ("plate_force", plate_force), ("inverted", inverted))}
-        if relaxation is not None:
-            sampled.update(stiffness=HostCopy(stiffness), inertia=HostCopy(inertia))
 
         def sample(renew: bool = True):
             """The device work of a sample, before anything is read back: energies, the forces
             at u (relaxation), a power iteration, the relaxation's Rayleigh-quotient terms (and,
             ``renew``, u and its forces as their next reference), the displacement change
-            since the last sample and the plates' forces in the last step."""
+            since the last sample, the plates' forces in the last step, mass scaling and the
+            relaxation's decisions."""
             kinetic.zero_()
             internal.zero_()
             # kinetic energy at the half step n - 1/2 and the internal energy averaged over u_n and
@@ -911,8 +828,12 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             distance_to_rest.measure(u)
             plate_force.zero_()
             for p, (first, count) in enumerate(plate_slots):
-                k.reduction_launch(k.plate_forces, B, count, [plates.force, B, first, count, p, P, d_active,
-                                                              inverted, plate_force])
+                k.reduction_launch(k.plate_forces, B, count, [plates.force, B, first, count, p, P, inverted,
+                                                              plate_force])
+            if scaled:
+                scaling.apply(monitor, inverted)
+            if relaxation is not None:
+                control.update(distance_to_rest, kinetic, internal, stiffness, inertia, inverted, clock)
             for copy in sampled.values():
                 copy.refresh()
 
@@ -923,13 +844,14 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                     sample(renew)
                 sample_graphs[renew] = capture.graph
         samples = 0
+        # a relaxation's decisions are the device's: after each sample the next steps (a quarter of
+        # an interval) are enqueued before the host reads it, and run while it does
+        lead = max(1, chunk // 8) if relaxation is not None else 0  # pairs of steps
+        ahead = 0  # pairs of steps of the current interval enqueued before the last sample was read
+        sample_done = wp.Event(device) if device.is_cuda else None  # recorded after each sample's copies
 
-        if scaled:
-            stable_step = keep_step_stable(stable_step)
-        elif dt > stable_step.min():
-            status, message = "unstable", _step_too_large(0.0, stable_step.min(), dt)
-        while status == "completed" and done < n_steps:
-            pairs = min(chunk, n_steps - done + (n_steps - done) % 2) // 2
+        def enqueue_steps(pairs):
+            """``pairs`` pairs of steps of the models the host knows to be moving."""
             width = launch_width()
             if device.is_cuda and width not in graphs:
                 with wp.ScopedCapture() as capture:
@@ -940,6 +862,16 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                     wp.capture_launch(graphs[width])
                 else:
                     two_steps(width)
+
+        def interval(after):
+            """Pairs of steps of the sampling interval after step ``after``."""
+            return min(chunk, n_steps - after + (n_steps - after) % 2) // 2
+
+        if not scaled and dt > stable_step.min():
+            status, message = "unstable", _step_too_large(0.0, stable_step.min(), dt)
+        while status == "completed" and done < n_steps:
+            pairs = interval(done)
+            enqueue_steps(pairs - ahead)
             done += 2 * pairs
             samples += 1
             renew = relaxation is None or samples % window == 0
@@ -947,37 +879,44 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                 wp.capture_launch(sample_graphs[renew])
             else:
                 sample(renew)
-            ke, ie = sampled["kinetic"].read().astype(float), 0.5 * sampled["internal"].read().astype(float)
+            if sample_done is not None:
+                wp.record_event(sample_done)
+            ahead = min(lead, interval(done))
+            if ahead:
+                enqueue_steps(ahead)
+            ke = sampled["kinetic"].read(sample_done).astype(float)
+            ie = 0.5 * sampled["internal"].read(sample_done).astype(float)
             history["time"].append(done * dt)
             history["kinetic"].append(ke)
             history["internal"].append(ie)
-            history["plate_forces"].append(sampled["plate_force"].read()[: 3 * B * P].reshape(B, P, 3).astype(float))
-            flags = sampled["inverted"].read().reshape(B, 4)
+            history["plate_forces"].append(sampled["plate_force"].read(sample_done)[: 3 * B * P].reshape(B, P, 3)
+                                           .astype(float))
+            flags = sampled["inverted"].read(sample_done).reshape(B, 4)
             for b in np.flatnonzero((flags[:, 0] > 0) & (active == 1)):
                 count, element, at = flags[b, :3]
                 element = element if element_ids is None else int(element_ids[element])
                 failed[int(b)] = (f"{count} element(s) inverted (J <= 0) at step {at} (t = {at * dt:.4g} s), first "
                                   f"element {element}; the displacement returned is that configuration. Reduce the "
                                   "load, refine the mesh there or check the constraints")
-                active[b] = 0  # frozen by the kernels; the other models of the batch go on
-                stop_models()
-            if not active.any():
+            # frozen by the kernels; the other models of the batch go on
+            moving = np.where(flags[:, 0] > 0, 0, active)
+            if not moving.any():
+                active[:] = moving
                 break
             alive = np.array([b not in failed for b in range(B)])
             if not np.all(np.isfinite(ke[alive])) or not np.all(np.isfinite(ie[alive])):
-                status, message = "unstable", (f"the solution diverged by step {done}; reduce the time step "
-                                               f"(now {dt:.3g} s) or the safety factor")
+                status, message = "unstable", (f"the solution diverged by step {done + 2 * ahead}; reduce the time "
+                                               f"step (now {dt:.3g} s) or the safety factor")
                 break
-            stable_step = monitor.stable_step()
+            stable_step = monitor.stable_step(sample_done)
             stable_step[~alive] = np.inf  # a frozen model's step no longer matters
             history["stable_time_step"].append(stable_step)
-            if scaled:
-                stable_step = keep_step_stable(stable_step)
-            elif dt > stable_step.min():
+            if not scaled and dt > stable_step.min():
                 status, message = "unstable", _step_too_large(done * dt, stable_step.min(), dt)
                 break
             if progress is not None and progress(done / n_steps) is False:
-                status, message = "cancelled", f"cancelled after {done} steps; the displacement returned is that state"
+                status, message = ("cancelled", f"cancelled after {done + 2 * ahead} steps; the displacement "
+                                   "returned is that state")
                 break
             if np.isnan(ke_ie_end_of_loading) and done * dt >= total - 0.5 * dt:
                 ke_ie_end_of_loading = float(np.max((ke / np.maximum(ie, 1e-30))[alive]))
@@ -991,62 +930,25 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                    f"{remaining.max():.2g} mm < {steady_state_mm} mm); stopped "
                                    f"{n_steps - done} of {n_steps} steps early")
                         break
-            if relaxation is not None:
-                lam = sampled["stiffness"].read().astype(float) / np.maximum(sampled["inertia"].read().astype(float),
-                                                                             1e-300)
-                loaded = done * dt >= totals
-                if loaded.any():
-                    remaining = distance_to_rest.estimate()
-                    if remaining is not None:  # (a warm start is loaded before its first estimate)
-                        since_load += loaded
-                    # a transient - the load's, or energy released after it (kinetic energy grown
-                    # SURGE times since the previous update) - is damped by the latest quotient,
-                    # which its fast modes raise; only then does the least quotient set the damping
-                    # (lowered at once, it let a fit's 12 mm mesh invert). A warm start's first
-                    # updates are its trust delay only: its damping follows the latest quotient
-                    surge = loaded & (not warm) & (since_load > settled_after) & (ke > SURGE * ke_before) & (ke > 1e-6 * ie)
-                    settled_after[surge] = since_load[surge] + SETTLING_UPDATES
-                    ke_before = np.where(loaded, ke, ke_before)
-                    settling = since_load <= settled_after
-                    measured = loaded & (~settling | warm) & (lam > 0) & (active == 1)
-                    lowest[measured] = np.minimum(lowest, lam)[measured]
-                    following = np.minimum(np.minimum(2.0 * np.sqrt(np.maximum(lam, 0.0)), 1.9 / dt), damping_cap)
-                    least = np.minimum(np.minimum(2.0 * np.sqrt(np.where(np.isfinite(lowest), lowest, 0.0)), 1.9 / dt),
-                                       damping_cap)
-                    stalled = np.zeros(B, bool) if remaining is None else ~np.isfinite(remaining)
-                    stalled_updates = np.where(stalled, stalled_updates + 1, 0)
-                    chatter = (stalled_updates >= CHATTER_UPDATES) & (lam > CHATTER_QUOTIENT * np.minimum(lowest, lam))
-                    ok = (lam > 0) & loaded
-                    damping[ok] = np.where(warm | settling | chatter | ~np.isfinite(lowest), following, least)[ok]
-                    d_damping.assign(damping.astype(f32))
-                    if remaining is not None:
-                        running = (active == 1) & loaded
-                        # a change below the model's float32 noise floor made of high modes only (its
-                        # quotient far above the least) is noise about the rest state, not a motion to
-                        # extrapolate: its contraction ratio jumps above and below 1
-                        noise = ((distance_to_rest.change <= noise_floor) & np.isfinite(lowest)
-                                 & (lam > CHATTER_QUOTIENT * lowest))
-                        remaining = np.where(noise, np.minimum(remaining, distance_to_rest.change), remaining)
-                        estimated_error[running] = remaining[running]
-                        # trust the estimate once the load's transient is over, where it is below the
-                        # tolerance at two checks in a row and the motion is not slowing down; each
-                        # model of the batch stops (stands still) as soon as it has converged
-                        trusted = (running & (estimated_error < relaxation.tolerance_mm)
-                                   & (warm | ~distance_to_rest.slowing | noise))
-                        checks_below = np.where(trusted, checks_below + 1, 0)
-                        done_now = running & ~settling & (checks_below >= 2)
-                        if done_now.any():
-                            active[done_now] = 0
-                            converged_at[done_now] = done
-                            converged_forces[done_now] = history["plate_forces"][-1][done_now]
-                            stop_models()
-                            # at rest from now on: no kinetic energy in their samples
-                            wp.launch(k.stand_still, B * N, [du, arr(done_now.astype(np.int32), int)])
-                            if not active.any():
-                                break
+            if relaxation is not None:  # the models the device found converged at this sample
+                moving = control.active.read(sample_done)
+                converged_now = (moving == 0) & (active == 1) & (flags[:, 0] == 0)
+                converged_forces[converged_now] = history["plate_forces"][-1][converged_now]
+            if np.any(moving != active):
+                active[:] = moving
+                stop_models()
+            if not active.any():
+                break
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
         displacement = u.numpy().reshape(N, B, 3).transpose(1, 0, 2).astype(np.float64) / MM
+        if scaled:  # the masses and stable steps as mass scaling left them
+            mass, mass_growth = scaling.mass_float64.numpy(), scaling.growth.numpy()
+            mass_rescales, stable_step = int(scaling.rescales.numpy()[0]), scaling.stable.numpy()
+        if relaxation is not None:
+            outcome = control.outcome()
+            estimated_error, converged_at, lowest = (outcome["estimated_error"], outcome["converged_at"],
+                                                     outcome["lowest"])
 
     statuses, messages, steps = [status] * B, [message] * B, [done] * B
     if relaxation is not None:
