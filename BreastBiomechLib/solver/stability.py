@@ -59,9 +59,9 @@ class StableStepMonitor:
             wp.launch(k.zero_constrained, self._B * n_con, [self._v, self._cnodes, self._cmask, self._N, n_con])
 
     def advance(self, state: wp.array, iterations: int = 1, base_force: wp.array | None = None) -> None:
-        """Device work of :meth:`iterate` (no host synchronisation, so it can be captured in a
-        graph): ``iterations`` power iterations at displacement ``state`` (m); ``base_force``: the
-        internal forces of ``state`` when the caller has them already."""
+        """``iterations`` power iterations at displacement ``state`` (m) and the stable step they
+        give, for :meth:`stable_step`; device work (no host synchronisation, so it can be captured
+        in a graph). ``base_force``: the internal forces of ``state`` when the caller has them."""
         if base_force is None:
             self._force(state, self._f_base)
         f_base = self._f_base if base_force is None else base_force
@@ -83,13 +83,6 @@ class StableStepMonitor:
         where no stiffness was seen); ``after``: an event recorded after that advance (see
         :meth:`HostCopy.read`)."""
         return self._stable_host.read(after)
-
-    def iterate(self, state: wp.array, iterations: int = 1, base_force: wp.array | None = None) -> np.ndarray:
-        """Advance the power iteration at displacement ``state`` (m); returns the stable step
-        estimate 2 / omega (s) per model (inf where no stiffness was seen). ``base_force``: the
-        internal forces of ``state`` when the caller has them already."""
-        self.advance(state, iterations, base_force)
-        return self.stable_step()
 
 
 class MassScaling:
