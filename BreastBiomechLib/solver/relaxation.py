@@ -315,8 +315,8 @@ class RelaxationControl:
         self.active.refresh()
 
     def outcome(self) -> dict[str, np.ndarray]:
-        """Per model, once the solve is over: ``active``, ``converged_at`` (step), ``estimated_error``
-        (mm), ``lowest`` (the least Rayleigh quotient, 1/s^2; inf if none was taken)."""
+        """Per model, once the solve is over: ``converged_at`` (step), ``estimated_error`` (mm),
+        ``lowest`` (the least Rayleigh quotient, 1/s^2; inf if none was taken)."""
         s = self.state
-        return {"active": s.active.numpy(), "converged_at": s.converged_at.numpy(),
-                "estimated_error": s.estimated_error.numpy(), "lowest": s.lowest.numpy()}
+        return {"converged_at": s.converged_at.numpy(), "estimated_error": s.estimated_error.numpy(),
+                "lowest": s.lowest.numpy()}
