@@ -100,9 +100,15 @@ def listed(models: wp.array(dtype=int), n_listed: int, n_models: int, tid: int) 
     """(item, model) of thread ``tid`` over the ``n_listed`` models ``models[:n_listed]``: item
     ``tid`` div n_listed (an element or node) of model ``models[tid mod n_listed]``, or of model
     ``tid mod n_models`` without a read where every model is listed (a read less in front of
-    each thread's first loads: the step is bound by their latency); item -1 for an empty list."""
+    each thread's first loads: the step is bound by their latency), and without the integer
+    division for a list of one (a lone model's step is bound by its threads' instruction count,
+    which the division adds to); item -1 for an empty list."""
     if n_listed <= 0:
         return wp.vec2i(-1, 0)
+    if n_listed == 1:  # a lone model (or a batch's last one moving): no division
+        if n_models == 1:
+            return wp.vec2i(tid, 0)
+        return wp.vec2i(tid, models[0])
     item = tid // n_listed
     entry = tid - item * n_listed
     if n_listed == n_models:
@@ -292,16 +298,33 @@ class NodeConstraints:
     """Sliding supports and prescribed components, looked up per node.
 
     ``slide[a, s]``: node a's row in ``slide_normals`` for sliding support s, or -1 (one column
-    per sliding support, at least one). ``constrained[a]``: node a's row K in the merged
+    per sliding support, at least one; ``n_sliding`` of them in use). ``constrained[a]``: node a's row K in the merged
     constraints, or -1; its ``mask[K]`` (1 where prescribed), ``shapes[K]`` (load curve per
     component) and final values ``value[K * B + b]`` (m) for model b."""
     slide: wp.array2d(dtype=int)
+    n_sliding: int
     slide_normals: wp.array(dtype=wp.vec3)
     constrained: wp.array(dtype=int)
     mask: wp.array(dtype=wp.vec3)
     shapes: wp.array(dtype=wp.vec3i)
     value: wp.array(dtype=wp.vec3)
     n_constrained: int
+
+
+@wp.struct
+class PlatePose:
+    """One plate of one model: ``point`` (m) and ``normal`` (unit, towards the tissue) at the
+    start, ``motion`` (m) over the load, the flat face's end ``edge_distance`` (m) from the point
+    along ``edge_direction`` (unit, in the face's plane) with a fillet of radius ``edge_radius``
+    (m), and the Coulomb ``friction`` coefficient (0: frictionless). One record, so that a node
+    thread finds a plate's pose with one address computation."""
+    point: wp.vec3
+    normal: wp.vec3
+    motion: wp.vec3
+    edge_direction: wp.vec3
+    edge_distance: float
+    edge_radius: float
+    friction: float
 
 
 @wp.struct
@@ -313,19 +336,11 @@ class PlateContact:
     friction state, ``anchor`` (where the node sticks on the plate, m) and ``touching``, and
     ``force``, the force (N) the plate applied to the tissue through that node in the model's
     last step (zero where it did not touch; :func:`plate_forces` sums them).
-    Pose per plate and model: ``point`` (m) and ``normal`` (towards the tissue) at the start,
-    ``motion`` (m) over the load, the flat face's end ``edge_shape[q][0]`` (m) along
-    ``edge_direction[q]`` with a fillet of radius ``edge_shape[q][1]`` (m), ``friction[q]``
-    (mu). ``x0`` the reference node positions (m)."""
+    ``pose[q]`` plate q's :class:`PlatePose`; ``x0`` the reference node positions (m)."""
     slot: wp.array2d(dtype=int)
     n_plates: int
     x0: wp.array(dtype=wp.vec3)
-    point: wp.array(dtype=wp.vec3)
-    normal: wp.array(dtype=wp.vec3)
-    motion: wp.array(dtype=wp.vec3)
-    edge_direction: wp.array(dtype=wp.vec3)
-    edge_shape: wp.array(dtype=wp.vec2)
-    friction: wp.array(dtype=float)
+    pose: wp.array(dtype=PlatePose)
     anchor: wp.array(dtype=wp.vec3)
     touching: wp.array(dtype=int)
     force: wp.array(dtype=wp.vec3)
@@ -346,9 +361,11 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
                 plates: PlateContact) -> NodeState:
     """Node ``node`` (its state ``x``, returned updated) in kinematic contact with rigid plate q at load
     factor s: a node behind the plate is moved back onto its surface along the surface normal by
-    the depth d it went in. A plate's flat face ends ``edge_shape[q][0]`` along
-    ``edge_direction[q]`` from its point, in a convex rounded edge of radius
-    ``edge_shape[q][1]``; beyond it the plate has ended (an unbounded plate has a huge distance).
+    the depth d it went in. A plate's flat face ends ``edge_distance`` along ``edge_direction``
+    from its point (:class:`PlatePose`), in a convex rounded edge of radius ``edge_radius``;
+    beyond it the plate has ended (an unbounded plate has a huge distance). The fillet lies behind
+    the face's plane, so a node in front of that plane touches nothing, and is done with first
+    (the warps of nodes that all face a plate from afar skip the rest).
 
     Coulomb friction (mu > 0), by return mapping: the node's position on the plate (relative to
     the moving plate, ``anchor[state]``) is kept from its first contact (``touching[state]``);
@@ -363,12 +380,19 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
     part and, with friction, its tangential part up to mu times the normal part. Stored per
     slot, not summed per plate here: the atomic adds of every touching node onto one plate's
     three numbers queued behind each other, 1-4 us of a 160k-tet step (H200, docs/benchmarks.md)."""
-    rel = plates.x0[node] + x.u - (plates.point[q] + s * plates.motion[q])
-    n = plates.normal[q]
+    pose = plates.pose[q]
+    rel = plates.x0[node] + x.u - (pose.point + s * pose.motion)
+    n = pose.normal
     gap = wp.dot(rel, n)
-    e = plates.edge_direction[q]
-    past = wp.dot(rel, e) - plates.edge_shape[q][0]
-    radius = plates.edge_shape[q][1]
+    mu = pose.friction
+    if gap >= 0.0:  # in front of the face's plane: no contact
+        plates.force[state] = wp.vec3(0.0)
+        if mu > 0.0:
+            plates.touching[state] = 0
+        return x
+    e = pose.edge_direction
+    past = wp.dot(rel, e) - pose.edge_distance
+    radius = pose.edge_radius
     normal = n
     depth = float(0.0)  # how far the node lies inside the plate, along ``normal``
     if past <= 0.0:
@@ -379,7 +403,6 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
         if distance > 0.0:
             normal = v / distance
             depth = radius - distance
-    mu = plates.friction[q]
     if depth > 0.0:
         correction = depth * normal
         normal_force = wp.dot(contact, normal)
@@ -489,7 +512,7 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
     total = x.u + y
     x.low = y - (total - x.u)
     x.u = total
-    for c in range(constraints.slide.shape[1]):
+    for c in range(constraints.n_sliding):
         row = constraints.slide[a, c]
         if row >= 0:
             n = constraints.slide_normals[row]

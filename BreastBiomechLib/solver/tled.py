@@ -248,6 +248,20 @@ def merged_constraints(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return unique, mask, merged
 
 
+def plate_pose(plate: Plate) -> k.PlatePose:
+    """The kernels' record of ``plate`` (:class:`kernels.PlatePose`, SI units): its mm
+    converted to m, an edgeless plate's face ending at :data:`UNBOUNDED_M`."""
+    pose = k.PlatePose()
+    pose.point = wp.vec3(*(np.asarray(plate.point, np.float64) * MM))
+    pose.normal = wp.vec3(*np.asarray(plate.normal, np.float64))
+    pose.motion = wp.vec3(*(np.asarray(plate.displacement, np.float64) * MM))
+    pose.edge_direction = wp.vec3(*(np.asarray(plate.edge.direction, np.float64) if plate.edge else np.zeros(3)))
+    pose.edge_distance = plate.edge.distance * MM if plate.edge else UNBOUNDED_M
+    pose.edge_radius = plate.edge.radius * MM if plate.edge else 1.0
+    pose.friction = plate.friction
+    return pose
+
+
 def constraint_load_shapes(model: Model, nodes: np.ndarray) -> np.ndarray:
     """The load curve of each component of the merged constraint rows (``nodes`` from
     :func:`merged_constraints`), as (K, 3) indices into ``LOAD_SHAPES``: a constraint's own shape,
@@ -669,6 +683,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             slide[support.nodes, column] = offset + np.arange(len(support.nodes))
             offset += len(support.nodes)
         constraints.slide = wp.array(slide, dtype=int)
+        constraints.n_sliding = len(sliding)
         constraints.slide_normals = arr(np.concatenate([s.normals for s in sliding]) if sliding
                                         else np.zeros((1, 3)), wp.vec3)
         for support in model.loading.supports:
@@ -693,14 +708,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         plates.slot = wp.array(contact_slot, dtype=int)
         plates.n_plates = P
         plates.x0 = arr(nodes, wp.vec3)
-        plates.point = arr(np.array([p.point for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
-        plates.normal = arr(np.array([p.normal for p in every_plate]).reshape(-1, 3), wp.vec3)
-        plates.edge_direction = arr(np.array([p.edge.direction if p.edge else np.zeros(3)
-                                              for p in every_plate]).reshape(-1, 3), wp.vec3)
-        plates.edge_shape = arr(np.array([(p.edge.distance * MM, p.edge.radius * MM) if p.edge
-                                          else (UNBOUNDED_M, 1.0) for p in every_plate]).reshape(-1, 2), wp.vec2)
-        plates.motion = arr(np.array([p.displacement for p in every_plate]).reshape(-1, 3) * MM, wp.vec3)
-        plates.friction = arr(np.array([p.friction for p in every_plate] or [0.0]), float)
+        plates.pose = wp.array([plate_pose(p) for p in every_plate] or [k.PlatePose()], dtype=k.PlatePose,
+                               device=device)
         plates.anchor = wp.zeros(max(B * n_slots, 1), dtype=wp.vec3)
         plates.touching = wp.zeros(max(B * n_slots, 1), dtype=int)
         plates.force = wp.zeros(max(B * n_slots, 1), dtype=wp.vec3)
