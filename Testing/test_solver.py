@@ -100,6 +100,22 @@ def test_anp_averages_within_each_material():
     assert len(volume) == len(mesh.nodes) + len(interface)  # one more slot per interface node
 
 
+def test_anp_sums_within_one_material_give_niftysims_forces():
+    """Within materials the ANP pass sums volume changes and leaves each slot's bulk modulus out
+    (it cancels from the mean dilatation); across materials (NiftySim's form) it sums pressures
+    and divides by the element's modulus. With one material the two are one model: the same
+    forces to float32 round-off, under a deformation whose J varies from element to element."""
+    mesh = _block()
+    materials = ElementMaterials.uniform(len(mesh.tets), Material(E, 0.499))
+    x = mesh.nodes / SIDE
+    u = np.stack([0.3 * x[:, 0] * x[:, 1], -0.2 * x[:, 2] ** 2, -0.15 * x[:, 0] * x[:, 2]], axis=1)
+    forces = {across: internal_forces(Model(mesh, materials, Loading(), anp_across_materials=across), u, device="cpu")
+              for across in (False, True)}
+    np.testing.assert_allclose(forces[False], forces[True], atol=1e-5 * np.abs(forces[True]).max())
+    plain = internal_forces(Model(mesh, materials, Loading(), formulation="T4"), u, device="cpu")
+    assert not np.allclose(forces[False], plain, atol=1e-2 * np.abs(plain).max())  # the averaging is applied
+
+
 def test_shape_derivatives_are_the_rows_of_the_inverse_jacobian():
     """dN_a/dX of linear tets against their definition (batched 3x3 inverses of the edge
     Jacobian): the same to round-off on shapes from regular to needle-like, summing to zero."""
@@ -385,7 +401,11 @@ def test_cpu_and_cuda_agree_on_a_relaxation_batch():
     """A relaxation batch on the GPU - decisions made on the device, steps enqueued before the host
     reads a sample, converged and inverted models frozen - gives the CPU's statuses and answers:
     three models that converge at different iterations and one whose plate is driven through the
-    block. The iterations may differ by a sample or two (float32 sums in another order)."""
+    block. The iterations may differ by a sample or two (float32 sums in another order), except
+    the nearly incompressible model's (nu 0.4999): at this tolerance it stops near float32's noise
+    floor, where the stop moves with the order of the GPU's atomic sums (2 000 - 3 400 iterations
+    in repeated runs of one build on an H200, the CPU's 3 400; 2026-11-29), so for it the answer
+    is what must agree."""
     from BreastBiomechLib.solver import DynamicRelaxation
 
     wp = pytest.importorskip("warp")
@@ -394,8 +414,9 @@ def test_cpu_and_cuda_agree_on_a_relaxation_batch():
         pytest.skip("no CUDA device")
     mesh = _block(3)
     model = _compression_model(mesh, Material(E, 0.49), strain=0.2)
+    parameters = [(8e3, 0.4999, 0.0), (12e3, 0.45, 2e3), (10e3, 0.3, 0.0), (10e3, 0.3, 0.0)]
     variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu, eta=eta, fibre=(1, 0, 0)))
-                for e, nu, eta in [(8e3, 0.4999, 0.0), (12e3, 0.45, 2e3), (10e3, 0.3, 0.0), (10e3, 0.3, 0.0)]]
+                for e, nu, eta in parameters]
     own = np.array([p.displacement for p in model.loading.plates])
     through = np.array([[0, 0, 0], [0, 0, -1.1 * SIDE]])
     relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.001)
@@ -403,8 +424,10 @@ def test_cpu_and_cuda_agree_on_a_relaxation_batch():
                             relaxation=relaxation) for device in ("cpu", "cuda"))
     assert [s.status for s in gpu] == [s.status for s in cpu] == ["completed"] * 3 + ["inverted elements"]
     assert len({s.steps for s in cpu[:3]}) > 1
-    for c, g in zip(cpu[:3], gpu[:3]):
-        assert abs(g.steps - c.steps) <= 2 * relaxation.update_every, (c.message, g.message)
+    for c, g, (_, nu, _) in zip(cpu[:3], gpu[:3], parameters):
+        if nu < 0.49:
+            assert abs(g.steps - c.steps) <= 2 * relaxation.update_every, (c.message, g.message)
+        assert g.estimated_error_mm < relaxation.tolerance_mm
         np.testing.assert_allclose(g.displacement, c.displacement, atol=0.005)
         np.testing.assert_allclose(g.plate_forces, c.plate_forces, rtol=0.01, atol=1e-6)
     assert np.all(np.isfinite(gpu[3].displacement))

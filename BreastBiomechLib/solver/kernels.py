@@ -150,27 +150,51 @@ def material_entry(materials: MaterialTable, e: int, n_models: int, b: int) -> i
     return materials.row[e] * n_models + b
 
 
+# ANP (average nodal pressure) modes of the element kernels
+ANP_OFF = wp.constant(0)
+ANP_WITHIN_MATERIALS = wp.constant(1)  # a slot per node and bulk modulus (tled.anp_slots)
+ANP_ACROSS_MATERIALS = wp.constant(2)  # a slot per node, whatever its elements' materials (NiftySim's)
+
+
+@wp.func
+def element_slots(tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int), slots_are_nodes: int,
+                  e: int) -> wp.vec4i:
+    """Element e's four ANP slots: its nodes where ``slots_are_nodes`` (one slot per node: a
+    read of the connectivity, which the kernels read anyway), else ``slots[e]``."""
+    if slots_are_nodes != 0:
+        return wp.vec4i(tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3])
+    return wp.vec4i(slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3])
+
+
 @wp.kernel
 def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
-                   dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float), materials: MaterialTable,
-                   n_models: int, models: wp.array(dtype=int), n_listed: int,
-                   pressure_volume: wp.array(dtype=float)):
-    """ANP pass 1: accumulate kappa (J_e - 1) V_e at each of the element's ANP slots: its nodes,
-    one slot per node and material (see :func:`BreastBiomechLib.solver.tled.anp_slots`), for the
-    listed ``models`` (see the module's docstring; converged models stand still)."""
+                   slots_are_nodes: int, dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float),
+                   materials: MaterialTable, anp: int, n_models: int, models: wp.array(dtype=int), n_listed: int,
+                   anp_sums: wp.array(dtype=float)):
+    """ANP pass 1: accumulate each element's volume change (J_e - 1) V_e (m^3) at its ANP slots
+    (:func:`element_slots`), for the listed ``models`` (see the module's docstring; converged
+    models stand still). With ``anp`` = :data:`ANP_WITHIN_MATERIALS` each slot gathers the
+    elements of one node and one bulk modulus (:func:`BreastBiomechLib.solver.tled.anp_slots`):
+    the nodal pressure is that modulus times the slot's volume change per volume, and the modulus
+    cancels from the mean dilatation :func:`element_forces` takes from it, so the sums leave it
+    out and this kernel reads no material (a dependent read less: this pass is bound by the
+    latency of its reads). With :data:`ANP_ACROSS_MATERIALS` (one slot per node) the sums are of
+    the pressures kappa_e (J_e - 1) V_e (Pa m^3)."""
     at = listed(models, n_listed, n_models, wp.tid())
     e, b = at[0], at[1]
     if e < 0 or e >= tets.shape[0]:
         return
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
-    kappa_e, v0 = materials.kappa[material_entry(materials, e, n_models, b)], vol0[e]
+    s = element_slots(tets, slots, slots_are_nodes, e)
+    v0 = vol0[e]
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
-    pv = kappa_e * (wp.determinant(F) - 1.0) * v0
-    wp.atomic_add(pressure_volume, s0 * n_models + b, pv)
-    wp.atomic_add(pressure_volume, s1 * n_models + b, pv)
-    wp.atomic_add(pressure_volume, s2 * n_models + b, pv)
-    wp.atomic_add(pressure_volume, s3 * n_models + b, pv)
+    change = (wp.determinant(F) - 1.0) * v0
+    if anp == ANP_ACROSS_MATERIALS:
+        change = materials.kappa[material_entry(materials, e, n_models, b)] * change
+    wp.atomic_add(anp_sums, s[0] * n_models + b, change)
+    wp.atomic_add(anp_sums, s[1] * n_models + b, change)
+    wp.atomic_add(anp_sums, s[2] * n_models + b, change)
+    wp.atomic_add(anp_sums, s[3] * n_models + b, change)
 
 
 @wp.func
@@ -183,15 +207,17 @@ def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
 
 @wp.kernel
 def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
-                   vol0: wp.array(dtype=float), materials: MaterialTable, use_anp: int,
-                   slots: wp.array2d(dtype=int),
-                   pressure_volume: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
+                   vol0: wp.array(dtype=float), materials: MaterialTable, anp: int,
+                   slots: wp.array2d(dtype=int), slots_are_nodes: int,
+                   anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
                    n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
                    visco_state: wp.array(dtype=wp.mat33), update_state: int,
                    n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
                    forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int)):
-    """Internal nodal forces f_a = V0 F S dN_a/dX (with ANP: F scaled to the element's mean of
-    the averaged pressures at its slots, as NiftySim's T4ANP, averaged within each material).
+    """Internal nodal forces f_a = V0 F S dN_a/dX; with ANP (``anp`` not :data:`ANP_OFF`) F is
+    scaled to the dilatation Jm of the mean of the averaged pressures at the element's slots, as
+    NiftySim's T4ANP, from :func:`nodal_pressure`'s sums (Jm - 1 the mean of the slots' volume
+    changes per volume within materials; across them, the mean pressure over kappa_e).
     Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
     with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
     (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set.
@@ -221,13 +247,13 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     r = material_entry(materials, e, n_models, b)
     mu_e, kappa_e, eta_e, fibre_e = materials.mu[r], materials.kappa[r], materials.eta[r], materials.fibre[r]
     v0 = vol0[e]
-    pm = float(0.0)
-    if use_anp != 0:
-        s0, s1, s2, s3 = slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3]
-        pm = 0.25 * (pressure_volume[s0 * n_models + b] / slot_volume[s0]
-                     + pressure_volume[s1 * n_models + b] / slot_volume[s1]
-                     + pressure_volume[s2 * n_models + b] / slot_volume[s2]
-                     + pressure_volume[s3 * n_models + b] / slot_volume[s3])
+    mean = float(0.0)  # of the slots' sums per volume
+    if anp != ANP_OFF:
+        s = element_slots(tets, slots, slots_are_nodes, e)
+        mean = 0.25 * (anp_sums[s[0] * n_models + b] / slot_volume[s[0]]
+                       + anp_sums[s[1] * n_models + b] / slot_volume[s[1]]
+                       + anp_sums[s[2] * n_models + b] / slot_volume[s[2]]
+                       + anp_sums[s[3] * n_models + b] / slot_volume[s[3]])
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     if frozen != 0:
         return
@@ -235,8 +261,9 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     if J <= 0.0:
         record_inversion(inverted, b, e, clock[0])
         return
-    if use_anp != 0:
-        Jm = pm / kappa_e + 1.0
+    if anp != ANP_OFF:
+        # across materials the sums are pressures; within, volume changes (divided by 1, exactly)
+        Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, kappa_e, 1.0) + 1.0
         if Jm <= 0.0:
             record_inversion(inverted, b, e, clock[0])
             return
@@ -433,7 +460,7 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
 
 @wp.kernel
 def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
-                  forces: wp.array2d(dtype=float), pressure_volume: wp.array(dtype=float),
+                  forces: wp.array2d(dtype=float), anp_sums: wp.array(dtype=float),
                   loads: NodeLoads, constraints: NodeConstraints, plates: PlateContact,
                   models: wp.array(dtype=int), n_listed: int, n_models: int, clock: wp.array(dtype=int),
                   inverted: wp.array(dtype=int)):
@@ -464,11 +491,13 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
        kernel reads the step from ``clock[1]`` (which :func:`element_forces` copies from
        ``clock[0]``) and writes ``clock[0]``, so no thread reads what another writes.
 
-    Also clears the ANP pressures, already used by this step's element forces."""
+    Also clears the ANP sums, already used by this step's element forces."""
     tid = wp.tid()
     n_nodes = plates.slot.shape[0]
-    for j in range(tid, pressure_volume.shape[0], n_listed * n_nodes):
-        pressure_volume[j] = 0.0
+    j = tid
+    while j < anp_sums.shape[0]:
+        anp_sums[j] = 0.0
+        j += n_listed * n_nodes
     step = clock[1]
     if tid == 0:
         clock[0] = step + 1
@@ -523,8 +552,10 @@ def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: 
         m = constraints.mask[k]
         shape = constraints.shapes[k]
         v = constraints.value[k * n_models + b]
-        target = wp.vec3(load_factor(t, t_total, shape[0]) * v[0], load_factor(t, t_total, shape[1]) * v[1],
-                         load_factor(t, t_total, shape[2]) * v[2])
+        target = load_factor(t, t_total, shape[0]) * v
+        if shape[1] != shape[0] or shape[2] != shape[0]:  # components on their own curves
+            target = wp.vec3(target[0], load_factor(t, t_total, shape[1]) * v[1],
+                             load_factor(t, t_total, shape[2]) * v[2])
         previous = x.u - x.du
         x.u = set_component(x.u, m, target)
         x.du = set_component(x.du, m, target - previous)
