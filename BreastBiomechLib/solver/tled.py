@@ -1,7 +1,7 @@
 """Total Lagrangian explicit dynamics (TLED) on NVIDIA warp: ``solve`` and ``solve_batch``.
 
 Precomputed once: reference shape-function derivatives and volumes of the four-node tets, lumped
-nodal masses, the critical time step. Each step: (ANP nodal pressures), element forces, then one
+nodal masses, the critical time step. Each step: (ANP sums), element forces, then one
 node kernel (``kernels.advance_nodes``): the central difference update with mass-proportional
 damping (seed eq. (15)) in increment form, with the displacement accumulated in float32 plus a
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
@@ -392,7 +392,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
         d_vol = wp.array(vol.astype(f32), dtype=float)
         table = material_table([mat])
-        pressure = wp.zeros(len(slot_volume), dtype=float)
+        anp_sums = wp.zeros(len(slot_volume), dtype=float)
         d_slots = wp.array(slots, dtype=int)
         forces = wp.zeros((3, N), dtype=float)  # component planes (see kernels)
         inverted = wp.zeros(4, dtype=int)
@@ -401,8 +401,8 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         one_model = wp.array([0], dtype=int)  # the list of models: model 0
         if anp != k.ANP_OFF:
             wp.launch(k.nodal_pressure, M, [u, tets, d_slots, slots_are_nodes, d_dhdx, d_vol, table, anp, 1,
-                                             one_model, 1, pressure])
-        wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, table, anp, d_slots, slots_are_nodes, pressure,
+                                             one_model, 1, anp_sums])
+        wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, table, anp, d_slots, slots_are_nodes, anp_sums,
                                          wp.array(slot_volume.astype(f32), dtype=float), 0,
                                          wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
                                          wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model, 1,
@@ -631,7 +631,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         u, low, du = arr(u0, wp.vec3), wp.zeros(B * N, dtype=wp.vec3), wp.zeros(B * N, dtype=wp.vec3)
         scratch = wp.zeros(B * N, dtype=wp.vec3)
         forces = wp.zeros((3, B * N), dtype=float)  # component planes (see kernels)
-        pressure = wp.zeros(B * S, dtype=float)
+        anp_sums = wp.zeros(B * S, dtype=float)
         clock = wp.zeros(2, dtype=int)  # the step: [as the element kernel reads it, as the node kernel does]
         inverted = wp.zeros(4 * B, dtype=int)  # per model: count, first element, its step, frozen
         plate_force = wp.zeros(max(3 * B * P, 1), dtype=float)  # model b's plate p at 3 (b P + p): x, y, z (N)
@@ -729,24 +729,24 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         every_model = arr(model_list(np.ones(B)), int)
         probe_clock = wp.zeros(2, dtype=int)
 
-        def internal_force(state, out, pressure_buffer, flags, models=every_model, width=B, update_state=0,
+        def internal_force(state, out, sums_buffer, flags, models=every_model, width=B, update_state=0,
                            cleared=False, step_clock=None):
-            """Internal nodal forces of ``state`` into ``out`` (ANP pressures in ``pressure_buffer``)
+            """Internal nodal forces of ``state`` into ``out`` (ANP sums in ``sums_buffer``)
             for the first ``width`` models of the list ``models`` (the others' stay zero);
             ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
-            and ``pressure_buffer`` are zero already (the step kernels clear them). A step passes
+            and ``sums_buffer`` are zero already (the step kernels clear them). A step passes
             its clock (see :func:`kernels.element_forces`); a probe leaves it alone."""
             if not cleared:
                 out.zero_()
-                pressure_buffer.zero_()
+                sums_buffer.zero_()
             if anp != k.ANP_OFF:
                 wp.launch(k.nodal_pressure, width * M, [state, d_tets, d_slots, slots_are_nodes, d_dhdx, d_vol,
-                                                         d_materials, anp, B, models, width, pressure_buffer])
+                                                         d_materials, anp, B, models, width, sums_buffer])
             # blocks of 128 threads: at its register count the kernel fits 7 of them on an SM
             # against 3 of 256, so a lone 160k-tet model's elements take 1.35 waves, not 1.58
             # (4.5 % less time, H200, docs/benchmarks.md)
             wp.launch(k.element_forces, width * M, [state, d_tets, d_dhdx, d_vol, d_materials, anp, d_slots,
-                                                     slots_are_nodes, pressure_buffer, d_slotvol, K, d_prony_g,
+                                                     slots_are_nodes, sums_buffer, d_slotvol, K, d_prony_g,
                                                      d_prony_decay, visco_state, update_state, B,
                                                      probe_clock if step_clock is None else step_clock, models, width,
                                                      out, flags], block_dim=ELEMENT_FORCES_BLOCK)
@@ -757,9 +757,9 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         def one_step(width):
             """One step of the ``width`` moving models: converged models stand still, and their
             threads are not launched."""
-            internal_force(u, forces, pressure, inverted, d_moving, width, update_state=1, cleared=True,
+            internal_force(u, forces, anp_sums, inverted, d_moving, width, update_state=1, cleared=True,
                            step_clock=clock)
-            wp.launch(k.advance_nodes, width * N, [u, low, du, forces, pressure, loads, constraints, plates, d_moving,
+            wp.launch(k.advance_nodes, width * N, [u, low, du, forces, anp_sums, loads, constraints, plates, d_moving,
                                                    width, B, clock, inverted])
 
         def two_steps(width):
@@ -788,13 +788,13 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         converged_forces = np.zeros((B, P, 3))  # a relaxation's plate forces at the sample it converged
         settled_checks = 0
         distance_to_rest = DistanceToRest(u, B)
-        pressure_tmp = wp.zeros(B * S, dtype=float)
+        anp_tmp = wp.zeros(B * S, dtype=float)
         no_flags = wp.zeros(4 * B, dtype=int)
         failed: dict[int, str] = {}  # models stopped by an inverted element: their message
 
         def probe_force(state, out):
             """Internal forces for diagnostics: no visco update, inverted elements not recorded."""
-            internal_force(state, out, pressure_tmp, no_flags)
+            internal_force(state, out, anp_tmp, no_flags)
 
         if relaxation is not None:
             # the state and forces of a reference renewed every QUOTIENT_WINDOW updates: the
