@@ -9,9 +9,10 @@ graph of two steps; ``--per-kernel`` solves again with the graphs replaced by di
 (for this script only) to give each step kernel's time, launch and timing overhead included
 (about 8 µs per launch on an H100). ``--alone`` records the step kernels' last launches in a
 solve and replays each kernel by itself, 20 launches in a CUDA graph (µs per launch, wall clock,
-the best of three), then the whole step the same way: the figures to set against
-``benchmarks/minimal_tled_step.py``'s kernels (the converged model's frozen flag is cleared first,
-so the kernels do a moving model's work). A CUDA device is needed; nothing is asserted.
+the best of three), then the whole step in graphs of 2 and of 20 steps: the figures to set
+against ``benchmarks/minimal_tled_step.py``'s kernels (each from a fresh solve's converged state,
+its frozen flag cleared, so the kernels do a moving model's work). A CUDA device is needed;
+nothing is asserted.
 """
 
 from __future__ import annotations
@@ -83,10 +84,9 @@ def argument(record: tuple, name: str):
     return inputs[[a.label for a in kernel.adj.args].index(name)]
 
 
-def alone(tets: int, device: str) -> None:
-    """The step kernels one by one, and the step, replayed as CUDA graphs (see the docstring)."""
-    wp.init()
-    model = hemi_ellipsoid_compression(_hemi_ellipsoid_spacing(tets), compression=0.25)
+def _recorded_step(model, device: str) -> tuple:
+    """A relaxation solve of ``model`` and its step kernels' last launches (kernel, dim, inputs,
+    block_dim): its element forces, ANP sums and node update, in a step's order."""
     recorded = {}
     launch = wp.launch
 
@@ -107,18 +107,29 @@ def alone(tets: int, device: str) -> None:
     finally:
         wp.launch = launch
     nodes = recorded["advance_nodes"]
-    pressure = recorded["nodal_pressure"][id(argument(nodes, "anp_sums"))]
-    forces = recorded["element_forces"]
-    flags, sums = argument(forces, "inverted"), argument(pressure, "anp_sums")
-    flags.zero_()  # the converged model moves again
+    return solution, [recorded["nodal_pressure"][id(argument(nodes, "anp_sums"))], recorded["element_forces"], nodes]
+
+
+def alone(tets: int, device: str) -> None:
+    """The step kernels one by one, and the step, replayed as CUDA graphs (see the docstring),
+    each from a fresh solve's converged state (replays move the state: a kernel replayed alone
+    piles up forces or sums that the next measurement must not start from)."""
+    wp.init()
+    model = hemi_ellipsoid_compression(_hemi_ellipsoid_spacing(tets), compression=0.25)
+    solution, step = _recorded_step(model, device)
     print(f"{len(model.mesh.tets)} tets, {solution.steps} iterations; each kernel alone, µs per launch:")
-    for name, record in (("element_forces", forces), ("nodal_pressure", pressure), ("advance_nodes", nodes)):
-        sums.zero_()  # accumulated sums would scale the elements out of shape
+    for position in (1, 0, 2, None):  # element forces, ANP sums, node update, the step
+        solution, step = _recorded_step(model, device)
+        argument(step[1], "inverted").zero_()  # the converged model moves again
+        argument(step[0], "anp_sums").zero_()  # the node kernel clears them after use; begin cleared
+        if position is None:
+            for repeats in (2, 20):  # the solver replays graphs of two steps
+                print(f"  the step, in graphs of {repeats:2d} steps  {_replayed(step, repeats=repeats):7.2f}")
+            continue
+        record = step[position]
         registers = wp.get_cuda_kernel_properties(record[0], device)["register_count"]
-        print(f"  {name:16s} {_replayed([record]):7.2f}  ({record[1]} threads in blocks of {record[3]}, "
-              f"{registers} registers)")
-    sums.zero_()
-    print(f"  the step           {_replayed([pressure, forces, nodes]):7.2f}")
+        print(f"  {record[0].func.__name__:16s} {_replayed([record]):7.2f}  ({record[1]} threads in blocks of "
+              f"{record[3]}, {registers} registers)")
 
 
 def main() -> None:

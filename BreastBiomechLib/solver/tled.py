@@ -808,20 +808,22 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             stiffness, inertia = wp.zeros(B, dtype=float), wp.zeros(B, dtype=float)
             control = RelaxationControl(totals, damping, d_damping, damping_cap, noise_floor, dt,
                                         relaxation.tolerance_mm, warm)
-        wp.synchronize_device(device)
-        started = time.perf_counter()
         monitor = StableStepMonitor(probe_force, d_mass, B, N, 1e-3 * float(np.median(length)), d_cnodes, d_cmask)
-        monitor.advance(u, iterations=20)
         # mass scaling: where the model is stiffer than the element estimate (or got stiffer as it
         # deformed) its fictitious masses grow so that the step stays stable (see MassScaling)
         scaling = MassScaling(d_mass, mass, dt, B) if scaled else None
-        if scaled:
-            scaling.apply(monitor, inverted)
-        stable_step = monitor.stable_step()
-
         # what the host reads of each sample, copied back together (see :mod:`readback`)
         sampled = {name: HostCopy(array) for name, array in (("kinetic", kinetic), ("internal", internal),
                                                              ("plate_force", plate_force), ("inverted", inverted))}
+        # the wall time spans the device's work and the host's control of it; the arrays above
+        # (the power iteration's random start among them) are set-up, like the mesh's
+        wp.synchronize_device(device)
+        started = time.perf_counter()
+        monitor.advance(u, iterations=20)
+        if scaled:
+            scaling.apply(monitor, inverted)
+        # the host waits for the estimate only where the steps must be checked against it first
+        stable_step = None if scaled else monitor.stable_step()
 
         def sample(renew: bool = True):
             """The device work of a sample, before anything is read back: energies, the forces
@@ -860,12 +862,20 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             for copy in sampled.values():
                 copy.refresh()
 
+        # on CUDA one graph launch and one wait per sample instead of some thirty of each; each
+        # kind of sample captured when first needed, so the host captures while the GPU steps
         sample_graphs = {}
-        if device.is_cuda:  # one graph launch and one wait per sample instead of some thirty of each
-            for renew in (True, False) if relaxation is not None and window > 1 else (True,):
+
+        def enqueue_sample(renew):
+            if not device.is_cuda:
+                sample(renew)
+                return
+            if renew not in sample_graphs:
                 with wp.ScopedCapture() as capture:
                     sample(renew)
                 sample_graphs[renew] = capture.graph
+            wp.capture_launch(sample_graphs[renew])
+
         samples = 0
         # a relaxation's decisions are the device's: after each sample the next steps (a quarter of
         # an interval) are enqueued before the host reads it, and run while it does
@@ -898,10 +908,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             done += 2 * pairs
             samples += 1
             renew = relaxation is None or samples % window == 0
-            if sample_graphs:
-                wp.capture_launch(sample_graphs[renew])
-            else:
-                sample(renew)
+            enqueue_sample(renew)
             if sample_done is not None:
                 wp.record_event(sample_done)
             ahead = min(lead, interval(done))
