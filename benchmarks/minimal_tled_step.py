@@ -6,12 +6,13 @@ no constraints, no contact); with ``--anp`` also the average-nodal-pressure pass
 node) before it; with ``--gather`` the element kernel stores its four nodal forces and the
 node kernel sums them through a node-to-entries index (no atomics, as NiftySim assembles); with
 ``--planes`` the nodal forces are three planes of floats, one per component, as the solver's
-(``kernels.add_force``), instead of a vec3 array; replayed as a CUDA graph of two steps on the benchmarks'
-hemi-ellipsoid (``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's
+(``kernels.add_force``), instead of a vec3 array; replayed as CUDA graphs of ``--graph-steps``
+steps (default 10, as the solver replays its steps) on the benchmarks' hemi-ellipsoid (``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's
 step does more (ANP's second element pass, damping, constraints, plates, per-model flags), so
 the ratio of the two per-step times is the price of that work plus whatever the solver wastes.
 
     python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda] [--anp | --gather] [--planes]
+                                           [--graph-steps 10]
 
 prints one JSON line: the mesh size, microseconds per step and per element-step. Units inside
 the kernels are SI (m, Pa, kg, s, N). Times are wall-clock over synchronised graph replays,
@@ -211,7 +212,8 @@ def central_difference_planes(u: wp.array(dtype=wp.vec3), u_prev: wp.array(dtype
 
 
 def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False, gather: bool = False,
-            planes: bool = False) -> dict:
+            planes: bool = False, graph_size: int = 10) -> dict:
+    """The minimal step's figures (see the module docstring); ``graph_size`` steps per CUDA graph."""
     wp.init()
     dev = wp.get_device(device)
     mesh = hemi_ellipsoid_mesh(BENCH_RADII_MM, _hemi_ellipsoid_spacing(tets_wanted))
@@ -258,23 +260,27 @@ def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False,
                 wp.launch(central_difference_planes if planes else central_difference, n,
                           [u, u_prev, forces, external, d_mass, dt, pressure_volume])
 
-        two_steps()  # compile and warm up
+        def graph_steps():
+            for _ in range(graph_size // 2):
+                two_steps()
+
+        graph_steps()  # compile and warm up
         graph = None
         if dev.is_cuda:
             with wp.ScopedCapture() as capture:
-                two_steps()
+                graph_steps()
             graph = capture.graph
-        for _ in range(50):  # warm the clocks and caches
-            wp.capture_launch(graph) if graph is not None else two_steps()
+        for _ in range(max(1, 100 // graph_size)):  # warm the clocks and caches
+            wp.capture_launch(graph) if graph is not None else graph_steps()
         wp.synchronize_device(dev)
         started = time.perf_counter()
-        for _ in range(steps // 2):
-            wp.capture_launch(graph) if graph is not None else two_steps()
+        for _ in range(steps // graph_size):
+            wp.capture_launch(graph) if graph is not None else graph_steps()
         wp.synchronize_device(dev)
         wall = time.perf_counter() - started
-    done = 2 * (steps // 2)
+    done = graph_size * (steps // graph_size)
     return {"benchmark": "minimal_tled_step", "device": str(dev), "device_name": getattr(dev, "name", ""),
-            "anp": anp, "gather": gather, "planes": planes, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
+            "anp": anp, "gather": gather, "planes": planes, "graph_steps": graph_size, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
             "us_per_step": round(1e6 * wall / done, 3), "ns_per_element_step": round(1e9 * wall / done / m, 4)}
 
 
@@ -289,12 +295,17 @@ def main() -> None:
                         help="element forces stored per element node and gathered per node (no atomics; no ANP)")
     parser.add_argument("--planes", action="store_true",
                         help="nodal forces as three planes of floats (the solver's layout) instead of a vec3 array")
+    parser.add_argument("--graph-steps", type=int, default=10,
+                        help="steps per CUDA graph, even (default 10: the solver's graphs; 2 until 2026-11-29)")
     args = parser.parse_args()
     if args.gather and args.anp:
         parser.error("--gather is measured without ANP")
     if args.gather and args.planes:
         parser.error("--gather stores its forces per element; --planes is for the atomic scatter")
-    print(json.dumps(measure(args.tets, args.steps, args.device, args.anp, args.gather, args.planes)))
+    if args.graph_steps < 2 or args.graph_steps % 2 or args.steps < args.graph_steps:
+        parser.error("--graph-steps is an even number of steps, at least 2 and at most --steps")
+    print(json.dumps(measure(args.tets, args.steps, args.device, args.anp, args.gather, args.planes,
+                             args.graph_steps)))
 
 
 if __name__ == "__main__":

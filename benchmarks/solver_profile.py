@@ -5,11 +5,11 @@
 
 prints, per activity (graph launches, kernels, copies, memsets), the count, total and mean time.
 The solver replays its steps and samples as CUDA graphs, so the default view gives the time per
-graph of two steps; ``--per-kernel`` solves again with the graphs replaced by direct launches
+graph of ten steps (two for an interval's rest); ``--per-kernel`` solves again with the graphs replaced by direct launches
 (for this script only) to give each step kernel's time, launch and timing overhead included
 (about 8 µs per launch on an H100). ``--alone`` records the step kernels' last launches in a
 solve and replays each kernel by itself, 20 launches in a CUDA graph (µs per launch, wall clock,
-the best of three), then the whole step in graphs of 2 and of 20 steps: the figures to set
+the best of three), then the whole step in graphs of 2 and of 10 steps: the figures to set
 against ``benchmarks/minimal_tled_step.py``'s kernels (each from a fresh solve's converged state,
 its frozen flag cleared, so the kernels do a moving model's work). A CUDA device is needed;
 nothing is asserted.
@@ -123,7 +123,7 @@ def alone(tets: int, device: str) -> None:
         argument(step[1], "inverted").zero_()  # the converged model moves again
         argument(step[0], "anp_sums").zero_()  # the node kernel clears them after use; begin cleared
         if position is None:
-            for repeats in (2, 20):  # the solver replays graphs of two steps
+            for repeats in (2, 10):  # the solver replays graphs of ten steps (two for an interval's rest)
                 print(f"  the step, in graphs of {repeats:2d} steps  {_replayed(step, repeats=repeats):7.2f}")
             continue
         record = step[position]

@@ -5,8 +5,9 @@ nodal masses, the critical time step. Each step: (ANP sums), element forces, the
 node kernel (``kernels.advance_nodes``): the central difference update with mass-proportional
 damping (seed eq. (15)) in increment form, with the displacement accumulated in float32 plus a
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
-The step loop has no host synchronisation: on CUDA it replays a captured graph of two steps
-(one graph per count of moving models: the steps run only the models still moving, see ``kernels``).
+The step loop has no host synchronisation: on CUDA it replays captured graphs of ten steps (two
+for the rest of an interval; graphs per count of moving models: the steps run only the models
+still moving, see ``kernels``).
 Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate, the
 plate forces and, in a relaxation, its decisions (damping, mass scaling, converged models: see
 ``relaxation``), and copies what the host reads back; a relaxation's next steps are enqueued before
@@ -34,6 +35,9 @@ from BreastBiomechLib.solver.stability import MassScaling, StableStepMonitor
 from BreastBiomechLib.solver.warm import WarmStart, ramp_iterations, start_time, started_plates
 
 ELEMENT_FORCES_BLOCK = 128  # threads per block of kernels.element_forces (see solve_batch)
+# pairs of steps per CUDA graph: each graph launch costs the GPU about 1.4 us of its own, 0.7 us a
+# step in graphs of two steps and 0.15 us in graphs of ten (160k tets, H200, docs/benchmarks.md)
+STEP_GRAPH_PAIRS = 5
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
 SPRING_PA_PER_MM_MM2_TO_N_PER_M = 1e-3  # (Pa/mm) x mm^2 = 1e3 N/m^3 x 1e-6 m^2
 FRICTION_WAVE_CROSSINGS = 6.0  # relaxation with friction loads over this many shear-wave crossings
@@ -766,7 +770,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             one_step(width)
             one_step(width)
 
-        graphs = {}  # on CUDA: two steps captured per count of moving models, replayed
+        graphs = {}  # on CUDA: (pairs of steps, count of moving models) -> a graph of those steps
 
         def launch_width():
             """Threads per element (node) the steps launch: the moving models' count (it only
@@ -884,17 +888,22 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         sample_done = wp.Event(device) if device.is_cuda else None  # recorded after each sample's copies
 
         def enqueue_steps(pairs):
-            """``pairs`` pairs of steps of the models the host knows to be moving."""
+            """``pairs`` pairs of steps of the models the host knows to be moving: on CUDA graphs of
+            :data:`STEP_GRAPH_PAIRS` pairs, then graphs of one pair for the rest."""
             width = launch_width()
-            if device.is_cuda and width not in graphs:
-                with wp.ScopedCapture() as capture:
+            if not device.is_cuda:
+                for _ in range(pairs):
                     two_steps(width)
-                graphs[width] = capture.graph
-            for _ in range(pairs):
-                if device.is_cuda:
-                    wp.capture_launch(graphs[width])
-                else:
-                    two_steps(width)
+                return
+            groups, rest = divmod(pairs, STEP_GRAPH_PAIRS)
+            for size, count in ((STEP_GRAPH_PAIRS, groups), (1, rest)):
+                if count and (size, width) not in graphs:
+                    with wp.ScopedCapture() as capture:
+                        for _ in range(size):
+                            two_steps(width)
+                    graphs[size, width] = capture.graph
+                for _ in range(count):
+                    wp.capture_launch(graphs[size, width])
 
         def interval(after):
             """Pairs of steps of the sampling interval after step ``after``."""
