@@ -482,6 +482,18 @@ def test_element_materials_from_a_tissue_table():
         ElementMaterials.from_tissues(np.array([1, 3]), {1: fat})
 
 
+def test_labels_present_are_numpys_distinct_values():
+    """The counted presence of tissue labels gives np.unique's values for small integer
+    ranges, negative and unsigned labels, a wide range (np.unique's path) and floats."""
+    from BreastBiomechLib.solver.materials import labels_present
+
+    rng = np.random.default_rng(3)
+    for labels in (rng.integers(0, 6, 54_000), np.array([7, -3, 7, 0, -3]), np.array([5], np.uint8),
+                   np.array([2, 10**9, 2]), np.array([0.5, 0.25, 0.5]), np.zeros(0, int), np.arange(12).reshape(3, 4)):
+        assert labels_present(labels) == np.unique(labels).tolist()
+    assert labels_present(np.array([1, 3, 3])) == [1, 3] and 2 not in labels_present(np.array([1, 3, 3]))
+
+
 def test_dynamic_relaxation_reaches_the_physical_time_solution():
     """Mass scaling + adaptive damping + convergence criterion end within 0.1 mm of the settled
     physical-time solve of the breast compression; so does a physical-time solve stopped early

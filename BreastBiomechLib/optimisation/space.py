@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from BreastBiomechLib import labels
-from BreastBiomechLib.solver.materials import ElementMaterials, Material
+from BreastBiomechLib.solver.materials import ElementMaterials, Material, labels_present
 
 MODELS = ("iso-homo", "iso-hetero", "aniso-homo", "aniso-hetero")
 BOUNDS = {"E": (100.0, 1e6), "nu": (0.45, 0.4999), "eta": (1.0, 1e6)}  # the seed's section 3.2
@@ -299,14 +299,15 @@ class ParameterSpace:
         """Per-element materials at ``z`` for element tissue labels ``tissue`` (M,)."""
         table = self.materials(z)
         fibre = self.fibre_at(z)
+        tissue = np.asarray(tissue).astype(int)
         by_label = {}
-        for label in np.unique(np.asarray(tissue).astype(int)).tolist():
+        for label in labels_present(tissue):
             name = labels.tissue(label).name
             if name not in self.tissues:
                 raise ValueError(f"the mesh holds {name}, which the parameter space does not know")
             values = table[HOMOGENEOUS if self.homogeneous else name]
             by_label[label] = Material(E=values["E"], nu=values["nu"], eta=values["eta"], fibre=fibre)
-        return ElementMaterials.from_tissues(np.asarray(tissue).astype(int), by_label)
+        return ElementMaterials.from_tissues(tissue, by_label)
 
     def to_dict(self) -> dict:
         return {"model": self.model, "tissues": self.tissues, "fibre": list(self.fibre),

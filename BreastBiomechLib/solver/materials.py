@@ -52,6 +52,18 @@ def check_prony(g: np.ndarray, tau: np.ndarray) -> None:
         raise ValueError("Prony time constants tau_i must be positive (s)")
 
 
+def labels_present(labels: np.ndarray) -> list:
+    """The distinct values of ``labels`` in increasing order, as ``np.unique(labels).tolist()``;
+    for integer labels of a small range by counting (a fit asks this of the same tissue labels
+    twice a solve: np.unique's hashing of 54k labels took 1.3 ms, a count 0.1)."""
+    labels = np.asarray(labels)
+    if labels.size and labels.dtype.kind in "iu":
+        low, high = int(labels.min()), int(labels.max())
+        if high - low < 65536:
+            return (np.flatnonzero(np.bincount((labels - low).ravel())) + low).tolist()
+    return np.unique(labels).tolist()
+
+
 @dataclass(frozen=True)
 class Material:
     """One tissue's material: ``E`` (Pa, instantaneous), ``nu``, ``eta`` (Pa; 0 = isotropic NH),
@@ -153,7 +165,7 @@ class ElementMaterials:
     def from_tissues(cls, tissue: np.ndarray, materials: dict[int, Material]) -> "ElementMaterials":
         """Per-element arrays from element tissue labels and a {label: Material} table."""
         tissue = np.asarray(tissue)
-        missing = sorted(set(np.unique(tissue).tolist()) - set(materials))
+        missing = sorted(set(labels_present(tissue)) - set(materials))
         if missing:
             raise ValueError(f"no material given for tissue labels {missing}")
         labels = sorted(materials)
