@@ -871,6 +871,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         sample_graphs = {}
 
         def enqueue_sample(renew):
+            """A sample's device work (see :func:`sample`): on CUDA its graph's launch."""
             if not device.is_cuda:
                 sample(renew)
                 return
