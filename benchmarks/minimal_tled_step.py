@@ -7,9 +7,10 @@ node) before it; with ``--gather`` the element kernel stores its four nodal forc
 node kernel sums them through a node-to-entries index (no atomics, as NiftySim assembles); with
 ``--planes`` the nodal forces are three planes of floats, one per component, as the solver's
 (``kernels.add_force``), instead of a vec3 array; replayed as CUDA graphs of ``--graph-steps``
-steps (default 10, as the solver replays its steps) on the benchmarks' hemi-ellipsoid (``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's
-step does more (ANP's second element pass, damping, constraints, plates, per-model flags), so
-the ratio of the two per-step times is the price of that work plus whatever the solver wastes.
+steps (default 10, as the solver replays its steps) on the benchmarks' hemi-ellipsoid
+(``breastbiomech bench solver``'s mesh at the same ``--tets``). The solver's step does more
+(ANP's second element pass, damping, constraints, plates, per-model flags), so the ratio of the
+two per-step times is the price of that work plus whatever the solver wastes.
 
     python benchmarks/minimal_tled_step.py --tets 160000 [--steps 4000] [--device cuda] [--anp | --gather] [--planes]
                                            [--graph-steps 10]
@@ -280,7 +281,8 @@ def measure(tets_wanted: int, steps: int, device: str | None, anp: bool = False,
         wall = time.perf_counter() - started
     done = graph_size * (steps // graph_size)
     return {"benchmark": "minimal_tled_step", "device": str(dev), "device_name": getattr(dev, "name", ""),
-            "anp": anp, "gather": gather, "planes": planes, "graph_steps": graph_size, "nodes": n, "tets": m, "steps": done, "wall_s": round(wall, 4),
+            "anp": anp, "gather": gather, "planes": planes, "graph_steps": graph_size, "nodes": n, "tets": m,
+            "steps": done, "wall_s": round(wall, 4),
             "us_per_step": round(1e6 * wall / done, 3), "ns_per_element_step": round(1e9 * wall / done / m, 4)}
 
 

@@ -5,9 +5,9 @@
 
 prints, per activity (graph launches, kernels, copies, memsets), the count, total and mean time.
 The solver replays its steps and samples as CUDA graphs, so the default view gives the time per
-graph of ten steps (two for an interval's rest); ``--per-kernel`` solves again with the graphs replaced by direct launches
-(for this script only) to give each step kernel's time, launch and timing overhead included
-(about 8 µs per launch on an H100). ``--alone`` records the step kernels' last launches in a
+graph of ten steps (two for an interval's rest); ``--per-kernel`` solves again with the graphs
+replaced by direct launches (for this script only) to give each step kernel's time, launch and
+timing overhead included (about 8 µs per launch on an H100). ``--alone`` records the step kernels' last launches in a
 solve and replays each kernel by itself, 20 launches in a CUDA graph (µs per launch, wall clock,
 the best of three), then the whole step in graphs of 2 and of 10 steps: the figures to set
 against ``benchmarks/minimal_tled_step.py``'s kernels (each from a fresh solve's converged state,
@@ -116,10 +116,10 @@ def alone(tets: int, device: str) -> None:
     piles up forces or sums that the next measurement must not start from)."""
     wp.init()
     model = hemi_ellipsoid_compression(_hemi_ellipsoid_spacing(tets), compression=0.25)
-    solution, step = _recorded_step(model, device)
-    print(f"{len(model.mesh.tets)} tets, {solution.steps} iterations; each kernel alone, µs per launch:")
     for position in (1, 0, 2, None):  # element forces, ANP sums, node update, the step
         solution, step = _recorded_step(model, device)
+        if position == 1:
+            print(f"{len(model.mesh.tets)} tets, {solution.steps} iterations; each kernel alone, µs per launch:")
         argument(step[1], "inverted").zero_()  # the converged model moves again
         argument(step[0], "anp_sums").zero_()  # the node kernel clears them after use; begin cleared
         if position is None:
