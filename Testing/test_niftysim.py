@@ -22,8 +22,9 @@ from BreastBiomechLib.solver import (Constraint, DynamicRelaxation, ElementMater
                                      solve)
 from BreastBiomechLib.solver import kernels
 from BreastBiomechLib.solver.model import LOAD_SHAPES, PlateEdge
+from BreastBiomechLib.solver.geometry import shape_derivatives
 from BreastBiomechLib.solver.tled import (anp_slots, constraint_load_shapes, critical_time_step, internal_forces,
-                                         merged_constraints, shape_derivatives)
+                                         merged_constraints)
 
 SIDE = 10.0
 

@@ -86,7 +86,8 @@ def test_anp_averages_within_each_material():
     """Where every element has the same J, ANP is the plain T4 element, also across a material
     interface: the pressure is averaged per material (node slots), never mixing a stiff tissue's
     bulk modulus into a soft one (which scaled an interface element's pressure by their ratio)."""
-    from BreastBiomechLib.solver.tled import anp_slots, shape_derivatives
+    from BreastBiomechLib.solver.geometry import shape_derivatives
+    from BreastBiomechLib.solver.tled import anp_slots
 
     mesh = _block()
     stiff = mesh.nodes[mesh.tets].mean(axis=1)[:, 0] > 0.5 * SIDE
@@ -119,7 +120,7 @@ def test_anp_sums_within_one_material_give_niftysims_forces():
 def test_shape_derivatives_are_the_rows_of_the_inverse_jacobian():
     """dN_a/dX of linear tets against their definition (batched 3x3 inverses of the edge
     Jacobian): the same to round-off on shapes from regular to needle-like, summing to zero."""
-    from BreastBiomechLib.solver.tled import shape_derivatives
+    from BreastBiomechLib.solver.geometry import shape_derivatives
 
     rng = np.random.default_rng(4)
     nodes = rng.normal(size=(400, 3)) * [1.0, 1.0, 0.05]  # some flat elements
@@ -131,6 +132,36 @@ def test_shape_derivatives_are_the_rows_of_the_inverse_jacobian():
     np.testing.assert_allclose(dN[:, 1:], inverse, rtol=1e-9, atol=1e-9 * np.abs(inverse).max())
     np.testing.assert_allclose(dN.sum(axis=1), 0.0, atol=1e-9 * np.abs(inverse).max())
     np.testing.assert_allclose(vol, np.linalg.det(jac) / 6.0, rtol=1e-12, atol=1e-15)
+
+
+def test_mesh_geometry_is_kept_per_mesh_content_and_lumps_as_bincount():
+    """A mesh's geometry is computed once and handed to later solves of the same coordinates and
+    connectivity; a mesh edited in place gets its own; the lumped nodal sums of several models
+    equal np.bincount's, model by model, to the last bit; the oldest geometries are let go."""
+    from BreastBiomechLib.solver import geometry as g
+
+    mesh = box_mesh((SIDE, SIDE, SIDE), (4, 4, 4))
+    first = g.MeshGeometry.of(mesh.nodes, mesh.tets)
+    assert g.MeshGeometry.of(mesh.nodes.copy(), mesh.tets.astype(np.int32)) is not first  # int32: other bytes
+    assert g.MeshGeometry.of(mesh.nodes.copy(), mesh.tets.copy()) is first
+    dhdx, vol = g.shape_derivatives(mesh.nodes * 1e-3, mesh.tets)
+    assert np.array_equal(first.dhdx, dhdx) and np.array_equal(first.vol, vol)
+    assert np.array_equal(first.length, g.characteristic_lengths(mesh.nodes * 1e-3, mesh.tets, vol))
+    assert not first.dhdx.flags.writeable
+    moved = mesh.nodes.copy()
+    moved[0] += 0.5
+    assert g.MeshGeometry.of(moved, mesh.tets) is not first
+    rng = np.random.default_rng(2)
+    densities = [rng.uniform(900.0, 1100.0, len(mesh.tets)) for _ in range(3)]
+    lumped = first.lumped(densities).reshape(len(mesh.nodes), 3)
+    for b, rho in enumerate(densities):
+        counted = np.bincount(mesh.tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=len(mesh.nodes))
+        assert np.array_equal(lumped[:, b], counted)
+    for n in range(2, 3 + g.KEPT_MESHES):
+        other = box_mesh((SIDE, SIDE, SIDE), (n, 1, 1))
+        g.MeshGeometry.of(other.nodes, other.tets)
+    assert g.MeshGeometry.of(mesh.nodes, mesh.tets) is not first  # let go: computed again
+    assert len(g.MeshGeometry._kept) <= g.KEPT_MESHES
 
 
 def test_anp_slots_number_each_node_and_material_as_sorting_would():
@@ -480,6 +511,16 @@ def test_element_materials_from_a_tissue_table():
     assert mats.fibre[1].tolist() == [1.0, 0.0, 0.0]
     with pytest.raises(ValueError, match=r"tissue labels \[3\]"):
         ElementMaterials.from_tissues(np.array([1, 3]), {1: fat})
+    # the per-element arrays, built without a second check, are what the checking constructor makes
+    visco = Material(20e3, 0.48, prony=((0.3, 0.5), (0.2, 5.0)))
+    tissue = np.random.default_rng(1).choice([1, 2, 4], 500)
+    built = ElementMaterials.from_tissues(tissue, {1: fat, 2: gland, 4: visco})
+    checked = ElementMaterials(built.mu, built.kappa, built.eta, built.fibre, built.density, built.prony_g,
+                               built.prony_tau)
+    for name in ("mu", "kappa", "eta", "fibre", "density", "prony_g", "prony_tau"):
+        a, b = getattr(built, name), getattr(checked, name)
+        assert a.dtype == b.dtype == np.float64 and a.shape == b.shape and np.array_equal(a, b), name
+    assert built.prony_terms == 2 and np.array_equal(built.prony_g[tissue == 1], np.zeros((np.sum(tissue == 1), 2)))
 
 
 def test_labels_present_are_numpys_distinct_values():
@@ -527,7 +568,7 @@ def test_dynamic_relaxation_reaches_the_physical_time_solution():
 def _linear_stiffness_and_mass(mesh, material):
     """Small-strain stiffness (3N x 3N, N/m) and lumped masses (kg) of linear tets, assembled
     independently of the solver: the tangent of every hyperelastic model here at rest."""
-    from BreastBiomechLib.solver.tled import shape_derivatives
+    from BreastBiomechLib.solver.geometry import shape_derivatives
 
     mu, kappa = material.mu, material.kappa
     lam = kappa - 2.0 * mu / 3.0

@@ -23,8 +23,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from BreastBiomechLib.solver.geometry import shape_derivatives
 from BreastBiomechLib.solver.model import Model
-from BreastBiomechLib.solver.tled import MM, Solution, anp_slots, merged_constraints, shape_derivatives
+from BreastBiomechLib.solver.tled import MM, Solution, anp_slots, merged_constraints
 
 _FD_STEP = 1e-6  # central-difference step on the deformation gradient (dimensionless)
 _MAX_BACKTRACKS = 10  # halvings of a Newton step that would invert elements

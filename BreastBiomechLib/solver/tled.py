@@ -25,6 +25,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
+from BreastBiomechLib.solver.geometry import MeshGeometry
 from BreastBiomechLib.solver.materials import ElementMaterials, equal_value_groups
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
@@ -168,31 +169,6 @@ class Solution:
         return self.status == "completed"
 
 
-def shape_derivatives(nodes_m: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Reference dN_a/dX (M, 4, 3) in 1/m and volumes (M,) in m^3 of linear tets.
-
-    With the edges e_i = X_i - X_0 (i = 1, 2, 3) as the columns of the Jacobian J, dN_i/dX is
-    row i - 1 of J^-1, i.e. (e_j x e_k) / det J for (i, j, k) cyclic, and dN_0/dX minus their sum
-    (written out rather than batched 3x3 inverses: several times faster on a solve's set-up)."""
-    x = nodes_m[tets]
-    e1, e2, e3 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
-    c23, c31, c12 = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
-    det = np.einsum("ij,ij->i", e1, c23)
-    dhdx = np.empty((len(tets), 4, 3))
-    dhdx[:, 1], dhdx[:, 2], dhdx[:, 3] = c23 / det[:, None], c31 / det[:, None], c12 / det[:, None]
-    dhdx[:, 0] = -(dhdx[:, 1] + dhdx[:, 2] + dhdx[:, 3])
-    return dhdx, det / 6.0
-
-
-def characteristic_lengths(nodes_m: np.ndarray, tets: np.ndarray, vol: np.ndarray) -> np.ndarray:
-    """Smallest altitude of each tet, 3 V / (largest face area) (m)."""
-    x = nodes_m[tets]
-    faces = [(1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)]
-    areas = np.stack([0.5 * np.linalg.norm(np.cross(x[:, b] - x[:, a], x[:, c] - x[:, a]), axis=1)
-                      for a, b, c in faces], axis=1)
-    return 3.0 * vol / areas.max(axis=1)
-
-
 def wave_modulus(mat: ElementMaterials) -> np.ndarray:
     """Per element, the largest small-strain longitudinal (P-wave) modulus (Pa):
     kappa + 4 mu / 3 + 16 eta / 9. The fibre term eta/2 (I4bar - 1)^2 stiffens a uniaxial strain
@@ -222,8 +198,7 @@ def critical_time_step(model: Model, materials: list[ElementMaterials], length_m
     """min over elements and batch of L_e / c_d, c_d = sqrt(wave_modulus / rho) (s), the fibres
     counted; ``length_m`` the element altitudes if already computed."""
     if length_m is None:
-        nodes = model.mesh.nodes * MM
-        length_m = characteristic_lengths(nodes, model.mesh.tets, shape_derivatives(nodes, model.mesh.tets)[1])
+        length_m = MeshGeometry.of(model.mesh.nodes, model.mesh.tets).length
     return float(min(np.min(length_m / np.sqrt(wave_modulus(m) / m.density)) for m in materials))
 
 
@@ -384,9 +359,9 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
     model's formulation and its materials at equilibrium (visco terms fully relaxed): the residual
     the solver drives to the external load."""
     wp.init()
-    nodes = model.mesh.nodes * MM
-    N, M = len(nodes), len(model.mesh.tets)
-    dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
+    geometry = MeshGeometry.of(model.mesh.nodes, model.mesh.tets)
+    dhdx, vol = geometry.dhdx, geometry.vol
+    N, M = len(model.mesh.nodes), len(model.mesh.tets)
     mat = model.materials.long_term()
     slots, slot_volume = anp_slots(model.mesh.tets, [mat], vol, model.anp_across_materials)
     f32 = np.float32
@@ -442,7 +417,7 @@ def relaxation_load_iterations(model: Model, materials: list[ElementMaterials], 
     :func:`solve_batch` does; ``length_m``: the elements' altitudes if already computed."""
     nodes = model.mesh.nodes * MM
     if length_m is None:
-        length_m = characteristic_lengths(nodes, model.mesh.tets, shape_derivatives(nodes, model.mesh.tets)[1])
+        length_m = MeshGeometry.of(model.mesh.nodes, model.mesh.tets).length
     constrained = max([np.abs(c.values).max(initial=0.0) for c in model.loading.constraints] + [0.0])
     extent = float(np.max(np.ptp(nodes, axis=0)))
     typical = float(np.median(length_m))
@@ -549,14 +524,12 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
     plate_sets = plate_sets_of_batch(model, B, plate_displacements, plates)
     P = len(model.loading.plates)
 
-    nodes = model.mesh.nodes * MM
-    tets = model.mesh.tets.astype(np.int32)
-    dhdx, vol = shape_derivatives(nodes, model.mesh.tets)
+    geometry = MeshGeometry.of(model.mesh.nodes, model.mesh.tets)  # computed once per mesh
+    nodes, tets, dhdx, vol, length = geometry.nodes_m, geometry.tets, geometry.dhdx, geometry.vol, geometry.length
     slots, slot_volume = anp_slots(tets, materials, vol, model.anp_across_materials)
     S = len(slot_volume)
     check_fits(SolveSize(B, N, M, S, max(m.prony_terms for m in materials),
                          sum(len(p.slave_nodes) for p in model.loading.plates), P), device, memory_limit_bytes)
-    length = characteristic_lengths(nodes, model.mesh.tets, vol)
     if scaled:  # mass scaling: every element's stable step becomes dt / safety
         dt = model.safety * float(np.median(length / np.sqrt(wave_modulus(materials[0]) / materials[0].density)))
         densities = [wave_modulus(mat) * (dt / (model.safety * length)) ** 2 for mat in materials]
@@ -584,14 +557,10 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         noise_floor = stress_noise_floor_mm(materials, length)
         sample_every = relaxation.update_every
     total = float(totals.max())  # the batch's loading ends with its slowest model's
-    def lumped(element_density):
-        """Nodal masses (kg) of the B models, models innermost (node a of model b at a*B + b): a
-        quarter of each element's mass at its nodes."""
-        return np.stack([np.bincount(tets.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=N)
-                         for rho in element_density], axis=1).ravel()
-
-    mass = lumped(densities)
-    weight = lumped([m.density for m in materials])  # physical masses: gravity acts on these
+    # nodal masses (kg) of the B models, models innermost (node a of model b at a*B + b): a quarter
+    # of each element's mass at its nodes
+    mass = geometry.lumped(densities)
+    weight = geometry.lumped([m.density for m in materials])  # physical masses: gravity acts on these
     if np.any(mass <= 0):
         raise ValueError("some nodes belong to no element (zero mass); remove unused nodes")
     load_shape = LOAD_SHAPES.index(model.loading.load_shape)  # plates and gravity; constraints per component
