@@ -306,6 +306,35 @@ def test_batched_equals_sequential():
     assert batch[0].displacement[:, 2].min() > batch[2].displacement[:, 2].min()
 
 
+def test_a_thread_computing_several_models_gives_the_per_model_kernels_answers(monkeypatch):
+    """The element kernels' shared variants (a thread per element and several models, the
+    batches' path) against the kernels of a thread per element and model: a relaxation batch of
+    seven whose models converge at different iterations (the list of moving models shrinking
+    through both variants' widths) and one of which inverts, and a physical-time visco batch (the
+    Prony state updated per model), equal to the last bit on the CPU."""
+    from BreastBiomechLib.solver import DynamicRelaxation, tled
+
+    mesh = _block(3)
+    model = _compression_model(mesh, Material(E, NU), strain=0.2)
+    variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu, eta=eta, fibre=(0, 0, 1)))
+                for e, nu, eta in [(8e3, 0.45, 0.0), (12e3, 0.499, 2e3), (10e3, 0.46, 0.0), (6e3, 0.4999, 0.0),
+                                   (15e3, 0.495, 5e3), (9e3, 0.48, 0.0), (11e3, 0.497, 1e3)]]
+    motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (1.5, 2.0, 2.5, 1.0, 3.0, 1.1 * SIDE, 2.2)]
+    visco = [ElementMaterials.uniform(len(mesh.tets), Material(e, 0.45, prony=((0.3, 0.05),))) for e in (8e3, 1e4, 12e3)]
+    runs = {}
+    for per_thread in (1, 3):
+        monkeypatch.setattr(tled, "MODELS_PER_THREAD", ((1 << 30, per_thread),))
+        runs[per_thread] = (solve_batch(model, variants, plate_displacements=motions, device="cpu",
+                                        relaxation=DynamicRelaxation(load_iterations=20, tolerance_mm=0.005))
+                            + solve_batch(model, visco, device="cpu"))
+    shared, alone = runs[3], runs[1]
+    assert len({s.steps for s in alone[:7]}) > 2 and alone[5].status == "inverted elements"
+    assert [s.status for s in shared] == [s.status for s in alone]
+    for a, b in zip(shared, alone):
+        assert a.steps == b.steps and a.message == b.message
+        assert np.array_equal(a.displacement, b.displacement) and np.array_equal(a.plate_forces, b.plate_forces)
+
+
 def test_inverted_elements_are_reported_not_nan():
     mesh = _block(2)
     top = np.flatnonzero(mesh.point_data["face_zhi"])

@@ -116,7 +116,8 @@ def main() -> None:
     parser.add_argument("--device", default=None)
     parser.add_argument("--radii", type=float, nargs=3, default=(70.0, 60.0, 65.0), help="the bench's (mm)")
     parser.add_argument("--element-mm", type=float, default=4.0, help="the bench's cube size (mm)")
-    parser.add_argument("--pull-corners", action="store_true", help="the mesh's protruding stair corners pulled in")
+    parser.add_argument("--stair-corners", action="store_true",
+                        help="the mesh's stair corners left protruding (a fit made with bench optimise --stair-corners)")
     parser.add_argument("--batch", type=int, default=16, help="solves per batch (workload: the fit's population)")
     parser.add_argument("--json", help="failures: write every failure's figures here")
     parser.add_argument("--pace", type=float, nargs="+", default=[1.0], help="workload: load this many times slower")
@@ -129,7 +130,7 @@ def main() -> None:
     evaluations = read_evaluations(Path(args.fit) / "evaluations.jsonl")
     # the failures' solves need no similarity: the undeformed image stands in for the measured one
     problem = bench_fitting_problem(args.radii, args.element_mm, device=args.device, measured=False,
-                                    pull_corners=args.pull_corners)
+                                    pull_corners=not args.stair_corners)
     if args.what == "failures":
         failures(problem, evaluations, args.batch, args.json)
     else:

@@ -19,7 +19,12 @@ whatever the batch size, and a launch needs only n x (elements or nodes) threads
 they return at once). With every model listed (n = B) the list is not read at all. Until 2026-11-28
 every kernel ran B threads per element and converged models' threads returned: fitted over a fit's
 batches of 16 on a 54k-tet mesh, a step cost about 65 us however few models still moved, against 30
-us for one slow model solved alone (H200, docs/benchmarks.md).
+us for one slow model solved alone (H200, docs/benchmarks.md). For longer lists the element
+kernels' ``_shared`` variants run L = ceil(n / K) threads ("lanes") an element, lane l computing
+the entries l, l + L, l + 2L, ... (K from :data:`BreastBiomechLib.solver.tled.MODELS_PER_THREAD`):
+a thread reads and indexes its element's connectivity, derivatives and volume once for its models,
+and neighbouring lanes' models still lie side by side in memory (a batch of 64 steps 10-12 % faster,
+of 16 5 %; H200, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -117,6 +122,25 @@ def listed(models: wp.array(dtype=int), n_listed: int, n_models: int, tid: int) 
 
 
 @wp.func
+def element_lanes(lanes: int, tid: int) -> wp.vec2i:
+    """(element, lane) of thread ``tid`` of a ``_shared`` element kernel, which runs ``lanes``
+    threads an element (see the module's docstring)."""
+    if lanes == 1:
+        return wp.vec2i(tid, 0)
+    e = tid // lanes
+    return wp.vec2i(e, tid - e * lanes)
+
+
+@wp.func
+def model_at(models: wp.array(dtype=int), n_listed: int, n_models: int, entry: int) -> int:
+    """The model of entry ``entry`` of the list ``models[:n_listed]`` (the entry itself where every
+    model is listed: no read)."""
+    if n_listed == n_models:
+        return entry
+    return models[entry]
+
+
+@wp.func
 def add_force(forces: wp.array2d(dtype=float), i: int, f: wp.vec3):
     """forces[:, i] += f (N), one atomic add per component plane."""
     wp.atomic_add(forces, 0, i, f[0])
@@ -166,6 +190,23 @@ def element_slots(tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int), slo
     return wp.vec4i(slots[e, 0], slots[e, 1], slots[e, 2], slots[e, 3])
 
 
+@wp.func
+def model_volume_change(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: int, n0: int, n1: int, n2: int,
+                        n3: int, s: wp.vec4i, d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3, v0: float,
+                        materials: MaterialTable, anp: int, anp_sums: wp.array(dtype=float)):
+    """:func:`nodal_pressure`'s work for element e of model b, given the element's nodes, slots,
+    shape derivatives and volume (for :func:`nodal_pressure_shared`; :func:`nodal_pressure` keeps
+    its own copy of these lines, see :func:`model_element_forces`)."""
+    F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
+    change = (wp.determinant(F) - 1.0) * v0
+    if anp == ANP_ACROSS_MATERIALS:
+        change = materials.kappa[material_entry(materials, e, n_models, b)] * change
+    wp.atomic_add(anp_sums, s[0] * n_models + b, change)
+    wp.atomic_add(anp_sums, s[1] * n_models + b, change)
+    wp.atomic_add(anp_sums, s[2] * n_models + b, change)
+    wp.atomic_add(anp_sums, s[3] * n_models + b, change)
+
+
 @wp.kernel
 def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
                    slots_are_nodes: int, dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float),
@@ -197,12 +238,94 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slot
     wp.atomic_add(anp_sums, s[3] * n_models + b, change)
 
 
+@wp.kernel
+def nodal_pressure_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
+                          slots_are_nodes: int, dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float),
+                          materials: MaterialTable, anp: int, n_models: int, models: wp.array(dtype=int),
+                          n_listed: int, anp_sums: wp.array(dtype=float), lanes: int):
+    """:func:`nodal_pressure` with ``lanes`` threads an element, each for several of the listed
+    models (see the module's docstring), reading its element's data once for them."""
+    at = element_lanes(lanes, wp.tid())
+    e = at[0]
+    if e >= tets.shape[0]:
+        return
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    s = element_slots(tets, slots, slots_are_nodes, e)
+    d0, d1, d2, d3, v0 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3], vol0[e]
+    entry = at[1]
+    while entry < n_listed:
+        model_volume_change(u, e, model_at(models, n_listed, n_models, entry), n_models, n0, n1, n2, n3, s, d0, d1,
+                            d2, d3, v0, materials, anp, anp_sums)
+        entry += lanes
+
+
 @wp.func
 def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
     """Count an inverted element of model b, keeping the first one found and its step."""
     if wp.atomic_add(inverted, 4 * b, 1) == 0:
         inverted[4 * b + 1] = e
         inverted[4 * b + 2] = step
+
+
+@wp.func
+def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: int, n0: int, n1: int, n2: int,
+                         n3: int, d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3, v0: float,
+                         materials: MaterialTable, anp: int, tets: wp.array2d(dtype=int),
+                         slots: wp.array2d(dtype=int), slots_are_nodes: int, slot_volume: wp.array(dtype=float),
+                         anp_sums: wp.array(dtype=float), n_terms: int, prony_g: wp.array(dtype=float),
+                         prony_decay: wp.array(dtype=float), visco_state: wp.array(dtype=wp.mat33),
+                         update_state: int, clock: wp.array(dtype=int), forces: wp.array2d(dtype=float),
+                         inverted: wp.array(dtype=int)):
+    """:func:`element_forces`' work for element e of model b, given the element's nodes, shape
+    derivatives ``d0``-``d3`` and volume ``v0``, for :func:`element_forces_shared` (its ANP slots and
+    their volumes are read here, for each model from the cache: held in registers across a
+    thread's models they cost the kernel occupancy). :func:`element_forces`, a thread per element
+    and model, keeps its own copy of these lines: built on this function its lone 2M-tet step took
+    170-173 us against 163-165 (H200, 2026-12-01, docs/benchmarks.md)."""
+    j = e * n_models + b  # the element's entry of model b (visco state)
+    # every read that does not depend on another first, so that they are in flight together (a
+    # frozen model's flag too: tested once the element's reads are on their way)
+    frozen = inverted[4 * b + 3]
+    r = material_entry(materials, e, n_models, b)
+    mu_e, kappa_e, eta_e, fibre_e = materials.mu[r], materials.kappa[r], materials.eta[r], materials.fibre[r]
+    mean = float(0.0)  # of the slots' sums per volume
+    if anp != ANP_OFF:
+        s = element_slots(tets, slots, slots_are_nodes, e)
+        mean = 0.25 * (anp_sums[s[0] * n_models + b] / slot_volume[s[0]]
+                       + anp_sums[s[1] * n_models + b] / slot_volume[s[1]]
+                       + anp_sums[s[2] * n_models + b] / slot_volume[s[2]]
+                       + anp_sums[s[3] * n_models + b] / slot_volume[s[3]])
+    F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
+    if frozen != 0:
+        return
+    J = wp.determinant(F)
+    if J <= 0.0:
+        record_inversion(inverted, b, e, clock[0])
+        return
+    if anp != ANP_OFF:
+        # across materials the sums are pressures; within, volume changes (divided by 1, exactly)
+        Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, kappa_e, 1.0) + 1.0
+        if Jm <= 0.0:
+            record_inversion(inverted, b, e, clock[0])
+            return
+        F = wp.pow(Jm / J, 1.0 / 3.0) * F
+        J = wp.determinant(F)
+    C = wp.transpose(F) * F
+    Cinv = wp.inverse(C)
+    S_iso = isochoric_stress(C, Cinv, J, mu_e, eta_e, fibre_e)
+    S = S_iso + volumetric_stress(Cinv, J, kappa_e)
+    for i in range(n_terms):
+        slot = j * n_terms + i
+        Q = visco_state[slot]
+        if update_state != 0:
+            Q = prony_decay[slot] * Q + (1.0 - prony_decay[slot]) * S_iso
+            visco_state[slot] = Q
+        S = S - prony_g[slot] * Q
+    P = v0 * (F * S)
+    add_force(forces, n0 * n_models + b, P * d0)
+    add_force(forces, n1 * n_models + b, P * d1)
+    add_force(forces, n2 * n_models + b, P * d2)
+    add_force(forces, n3 * n_models + b, P * d3)
 
 
 @wp.kernel
@@ -285,6 +408,36 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     add_force(forces, n1 * n_models + b, P * d1)
     add_force(forces, n2 * n_models + b, P * d2)
     add_force(forces, n3 * n_models + b, P * d3)
+
+
+@wp.kernel
+def element_forces_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                          vol0: wp.array(dtype=float), materials: MaterialTable, anp: int,
+                          slots: wp.array2d(dtype=int), slots_are_nodes: int,
+                          anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
+                          n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
+                          visco_state: wp.array(dtype=wp.mat33), update_state: int,
+                          n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
+                          forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int), lanes: int):
+    """:func:`element_forces` with ``lanes`` threads an element, each for several of the listed
+    models (see the module's docstring), reading its element's nodes, derivatives and volume once
+    for them. A kernel of its own: with the loop in :func:`element_forces` a lone model's 2M-tet
+    step took 173-180 us against 163-165 (H200, 2026-12-01, docs/benchmarks.md)."""
+    tid = wp.tid()
+    if tid == 0:
+        clock[1] = clock[0]
+    at = element_lanes(lanes, tid)
+    e = at[0]
+    if e >= tets.shape[0]:
+        return
+    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    d0, d1, d2, d3, v0 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3], vol0[e]
+    entry = at[1]
+    while entry < n_listed:
+        model_element_forces(u, e, model_at(models, n_listed, n_models, entry), n_models, n0, n1, n2, n3, d0, d1,
+                             d2, d3, v0, materials, anp, tets, slots, slots_are_nodes, slot_volume, anp_sums,
+                             n_terms, prony_g, prony_decay, visco_state, update_state, clock, forces, inverted)
+        entry += lanes
 
 
 @wp.func

@@ -35,6 +35,12 @@ from BreastBiomechLib.solver.relaxation import MM, QUOTIENT_WINDOW, DistanceToRe
 from BreastBiomechLib.solver.stability import MassScaling, StableStepMonitor
 from BreastBiomechLib.solver.warm import WarmStart, ramp_iterations, start_time, started_plates
 
+# models an element-kernel thread computes, by the count of models listed: (up to this many models,
+# this many a thread). In a batch the element kernels are bound by their instruction issue (74 % of
+# the issue slots busy at 16 and 64 models, Nsight Compute, H200), and a thread that takes several
+# models reads and indexes its element's connectivity, derivatives and volume once for them; with
+# too few threads an element the GPU has too few to hide latencies (docs/benchmarks.md)
+MODELS_PER_THREAD = ((8, 1), (32, 2), (1 << 30, 4))
 ELEMENT_FORCES_BLOCK = 128  # threads per block of kernels.element_forces (see solve_batch)
 # pairs of steps per CUDA graph: each graph launch costs the GPU about 1.4 us of its own, 0.7 us a
 # step in graphs of two steps and 0.15 us in graphs of ten (160k tets, H200, docs/benchmarks.md)
@@ -348,6 +354,14 @@ def plate_sets_of_batch(model: Model, n_models: int, plate_displacements: list |
         for p in ps:
             p.check_clear_of(model.start_positions[p.slave_nodes])
     return plates
+
+
+def element_lanes(width: int) -> int:
+    """Threads per element of the element kernels for ``width`` listed models: each thread
+    computes up to :data:`MODELS_PER_THREAD`'s number of them, reading its element's own data
+    once."""
+    per_thread = next(k for most, k in MODELS_PER_THREAD if width <= most)
+    return -(-width // per_thread)
 
 
 def _device(device):
@@ -712,17 +726,21 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             if not cleared:
                 out.zero_()
                 sums_buffer.zero_()
+            # a thread per element and model, or (lanes < width) per element and several models
+            lanes = element_lanes(width)
+            shared = [lanes] if lanes < width else []
             if anp != k.ANP_OFF:
-                wp.launch(k.nodal_pressure, width * M, [state, d_tets, d_slots, slots_are_nodes, d_dhdx, d_vol,
-                                                         d_materials, anp, B, models, width, sums_buffer])
+                wp.launch(k.nodal_pressure_shared if shared else k.nodal_pressure, lanes * M,
+                          [state, d_tets, d_slots, slots_are_nodes, d_dhdx, d_vol, d_materials, anp, B, models, width,
+                           sums_buffer] + shared)
             # blocks of 128 threads: at its register count the kernel fits 7 of them on an SM
             # against 3 of 256, so a lone 160k-tet model's elements take 1.35 waves, not 1.58
             # (4.5 % less time, H200, docs/benchmarks.md)
-            wp.launch(k.element_forces, width * M, [state, d_tets, d_dhdx, d_vol, d_materials, anp, d_slots,
-                                                     slots_are_nodes, sums_buffer, d_slotvol, K, d_prony_g,
-                                                     d_prony_decay, visco_state, update_state, B,
-                                                     probe_clock if step_clock is None else step_clock, models, width,
-                                                     out, flags], block_dim=ELEMENT_FORCES_BLOCK)
+            wp.launch(k.element_forces_shared if shared else k.element_forces, lanes * M,
+                      [state, d_tets, d_dhdx, d_vol, d_materials, anp, d_slots, slots_are_nodes, sums_buffer,
+                       d_slotvol, K, d_prony_g, d_prony_decay, visco_state, update_state, B,
+                       probe_clock if step_clock is None else step_clock, models, width, out, flags] + shared,
+                      block_dim=ELEMENT_FORCES_BLOCK)
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
                 wp.launch(k.support_springs, width * n_sup, [state, d_snodes, d_snormals, d_sstiff, B, models, width,
                                                              out])
