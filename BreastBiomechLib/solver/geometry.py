@@ -55,7 +55,7 @@ class MeshGeometry:
     """One mesh's reference geometry: ``nodes_m`` (N, 3) m, ``tets`` (M, 4) int32, ``dhdx``
     (M, 4, 3) 1/m, ``vol`` (M,) m^3, ``length`` (M,) m (smallest altitudes) and ``lumping``, the
     (N, M) sparse matrix that gives each node a quarter of each of its elements' values. Shared
-    between solves: treat its arrays as read-only."""
+    between solves: its arrays are read-only (leave the matrix as it is too)."""
 
     nodes_m: np.ndarray
     tets: np.ndarray

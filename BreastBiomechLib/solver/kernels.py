@@ -122,7 +122,7 @@ def listed(models: wp.array(dtype=int), n_listed: int, n_models: int, tid: int) 
 
 
 @wp.func
-def element_lanes(lanes: int, tid: int) -> wp.vec2i:
+def element_and_lane(lanes: int, tid: int) -> wp.vec2i:
     """(element, lane) of thread ``tid`` of a ``_shared`` element kernel, which runs ``lanes``
     threads an element (see the module's docstring)."""
     if lanes == 1:
@@ -245,7 +245,7 @@ def nodal_pressure_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int
                           n_listed: int, anp_sums: wp.array(dtype=float), lanes: int):
     """:func:`nodal_pressure` with ``lanes`` threads an element, each for several of the listed
     models (see the module's docstring), reading its element's data once for them."""
-    at = element_lanes(lanes, wp.tid())
+    at = element_and_lane(lanes, wp.tid())
     e = at[0]
     if e >= tets.shape[0]:
         return
@@ -426,7 +426,7 @@ def element_forces_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int
     tid = wp.tid()
     if tid == 0:
         clock[1] = clock[0]
-    at = element_lanes(lanes, tid)
+    at = element_and_lane(lanes, tid)
     e = at[0]
     if e >= tets.shape[0]:
         return

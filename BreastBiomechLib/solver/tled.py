@@ -381,7 +381,7 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
     f32 = np.float32
     with wp.ScopedDevice(_device(device)):
         u = wp.array(np.asarray(displacement_mm, f32) * f32(MM), dtype=wp.vec3)
-        tets = wp.array(model.mesh.tets.astype(np.int32), dtype=int)
+        tets = wp.array(geometry.tets, dtype=int)
         d_dhdx = wp.array(dhdx.astype(f32), dtype=wp.vec3)
         d_vol = wp.array(vol.astype(f32), dtype=float)
         table = material_table([mat])
