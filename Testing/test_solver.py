@@ -229,6 +229,52 @@ def test_material_table_gives_each_element_its_materials_in_every_set():
                 np.testing.assert_array_equal(getattr(table, name).numpy()[entry], getattr(m, name).astype(np.float32))
 
 
+def test_sets_of_one_tissue_labelling_are_grouped_per_tissue_as_element_by_element():
+    """Sets made by ``from_tissues`` keep their per-tissue table, and the ANP slots and the
+    kernels' material table are grouped on it: the same slots, rows and values as the same sets
+    given element by element - with tissues that share every value (one group), a table label
+    the mesh lacks, and sets of two labellings (grouped element by element). Their arrays are
+    read-only, and a field given another array drops the table."""
+    import warp as wp
+
+    from BreastBiomechLib.solver.tled import anp_slots, material_table
+
+    mesh = _block(5)
+    M = len(mesh.tets)
+    rng = np.random.default_rng(4)
+    tissue = rng.integers(0, 4, M)
+    relabelled = np.where(tissue == 3, 2, tissue)
+
+    def materials(same=()):
+        table = {t: Material(rng.uniform(1e3, 1e5), rng.uniform(0.45, 0.4999), eta=rng.uniform(0, 1e4),
+                             fibre=(0.6, 0.0, 0.8)) for t in (0, 1, 2, 3, 7)}
+        for t in same:
+            table[t] = table[same[0]]
+        return table
+
+    def element_by_element(m):
+        return ElementMaterials(m.mu.copy(), m.kappa.copy(), m.eta.copy(), m.fibre.copy(), m.density.copy())
+
+    batches = ([ElementMaterials.from_tissues(tissue, materials()) for _ in range(3)],
+               [ElementMaterials.from_tissues(tissue, materials(same=(0, 1))) for _ in range(2)],
+               [ElementMaterials.from_tissues(tissue, materials()), ElementMaterials.from_tissues(relabelled, materials())])
+    for sets in batches:
+        plain = [element_by_element(m) for m in sets]
+        assert all(m.rows is not None for m in sets) and all(m.rows is None for m in plain)
+        for got, expected in zip(anp_slots(mesh.tets, sets, mesh.volumes), anp_slots(mesh.tets, plain, mesh.volumes)):
+            np.testing.assert_array_equal(got, expected)
+        with wp.ScopedDevice("cpu"):
+            got, expected = material_table(sets), material_table(plain)
+        for name in ("row", "mu", "kappa", "eta", "fibre"):
+            np.testing.assert_array_equal(getattr(got, name).numpy(), getattr(expected, name).numpy())
+    assert material_table(batches[1][:1]).row.numpy().max() + 1 == 3  # tissues 0 and 1: one row
+    m = batches[0][0]
+    with pytest.raises(ValueError, match="read-only"):
+        m.mu[0] = 1.0
+    m.kappa = 2 * m.kappa
+    assert m.rows is None
+
+
 @pytest.mark.parametrize("formulation", ["T4", "T4ANP"])
 def test_patch_test_dynamic_reproduces_affine_field(formulation):
     mesh = _block(3)

@@ -161,9 +161,14 @@ class ElementMaterials:
         g_inf = 1.0 - self.prony_g.sum(axis=1)
         return ElementMaterials(self.mu * g_inf, self.kappa, self.eta * g_inf, self.fibre, self.density)
 
+    # set by from_tissues: its per-tissue table (the values as an ElementMaterials of one row per
+    # tissue), each element's row, and the per-element arrays made from them (see `rows`)
+    _rows = None
+
     @classmethod
     def from_tissues(cls, tissue: np.ndarray, materials: dict[int, Material]) -> "ElementMaterials":
-        """Per-element arrays from element tissue labels and a {label: Material} table."""
+        """Per-element arrays from element tissue labels and a {label: Material} table. The
+        arrays are read-only; the materials keep the table they came from (:attr:`rows`)."""
         tissue = np.asarray(tissue)
         missing = sorted(set(labels_present(tissue)) - set(materials))
         if missing:
@@ -179,11 +184,30 @@ class ElementMaterials:
                 g[row, col], tau[row, col] = gi, ti
         # each Material checked its own values: the per-element arrays need no second check (a
         # fit builds one set per evaluation, and the checks of 54k elements took 2 ms a set)
-        return cls._checked(mu=np.array([m.mu for m in table])[index], kappa=np.array([m.kappa for m in table])[index],
-                            eta=np.array([m.eta for m in table])[index],
-                            fibre=np.array([m.fibre for m in table], np.float64).reshape(-1, 3)[index],
-                            density=np.array([m.density for m in table])[index], prony_g=g[index],
-                            prony_tau=tau[index])
+        rows = cls._checked(mu=np.array([m.mu for m in table]), kappa=np.array([m.kappa for m in table]),
+                            eta=np.array([m.eta for m in table]),
+                            fibre=np.array([m.fibre for m in table], np.float64).reshape(-1, 3),
+                            density=np.array([m.density for m in table]), prony_g=g, prony_tau=tau)
+        elements = cls._checked(**{name: getattr(rows, name)[index] for name in _FIELDS})
+        for name in _FIELDS:
+            getattr(elements, name).flags.writeable = False
+        index.flags.writeable = False
+        elements._rows = (rows, index, tuple(getattr(elements, name) for name in _FIELDS))
+        return elements
+
+    @property
+    def rows(self) -> "tuple[ElementMaterials, np.ndarray] | None":
+        """(table, row): materials made by :meth:`from_tissues` hold one value per tissue,
+        ``table`` (an ElementMaterials of one row per tissue of the table it was given) and
+        each element's row of it, ``row`` (M,); None for other materials, once a field has been
+        given another array, or where one could have been changed in place (writeable again, as
+        unpickled arrays are)."""
+        if self._rows is None:
+            return None
+        table, row, arrays = self._rows
+        if any(getattr(self, name) is not array or array.flags.writeable for name, array in zip(_FIELDS, arrays)):
+            return None
+        return table, row
 
     @classmethod
     def _checked(cls, **arrays: np.ndarray) -> "ElementMaterials":
@@ -197,6 +221,9 @@ class ElementMaterials:
     @classmethod
     def uniform(cls, n_elements: int, material: Material) -> "ElementMaterials":
         return cls.from_tissues(np.zeros(n_elements, int), {0: material})
+
+
+_FIELDS = ("mu", "kappa", "eta", "fibre", "density", "prony_g", "prony_tau")  # ElementMaterials' arrays
 
 
 def equal_value_groups(columns_per_set) -> np.ndarray:
@@ -224,6 +251,22 @@ def equal_value_groups(columns_per_set) -> np.ndarray:
     if group is None:
         raise ValueError("equal_value_groups needs at least one column")
     return group
+
+
+def element_groups(materials: list[ElementMaterials], columns) -> np.ndarray:
+    """``equal_value_groups`` of the sets' ``columns(m)`` (an iterable of (M,) arrays of set m),
+    the same groups numbered the same; where every set came from one tissue labelling
+    (:attr:`ElementMaterials.rows`) the values are compared per tissue, not per element (a
+    fit's batch of 16 sets of 54k elements: 26 ms a batch, against 1)."""
+    shared = [m.rows for m in materials]
+    if any(r is None for r in shared) or any(not np.array_equal(r[1], shared[0][1]) for r in shared[1:]):
+        return equal_value_groups(columns(m) for m in materials)
+    row = shared[0][1]
+    present = np.flatnonzero(np.bincount(row.ravel(), minlength=len(shared[0][0].mu)))  # tissues in the mesh
+    group_of_row = np.full(len(shared[0][0].mu), -1, np.int64)
+    group_of_row[present] = equal_value_groups(([np.asarray(v)[present] for v in columns(table)]
+                                                for table, _ in shared))
+    return group_of_row[row]
 
 
 def default_tissue_materials() -> dict[int, Material]:

@@ -26,7 +26,7 @@ import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.geometry import MeshGeometry
-from BreastBiomechLib.solver.materials import ElementMaterials, equal_value_groups
+from BreastBiomechLib.solver.materials import ElementMaterials, element_groups
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder
@@ -276,8 +276,8 @@ def material_table(materials: list[ElementMaterials]) -> k.MaterialTable:
     current device): one row per group of elements whose float32 mu, kappa, eta and fibre agree in
     every set, model b's entry of row r at r * B + b."""
     f32 = np.float32
-    row = equal_value_groups(((m.mu.astype(f32), m.kappa.astype(f32), m.eta.astype(f32),
-                               *m.fibre.T.astype(f32)) for m in materials))
+    row = element_groups(materials, lambda m: (m.mu.astype(f32), m.kappa.astype(f32), m.eta.astype(f32),
+                                               *m.fibre.T.astype(f32)))
     first = np.zeros(int(row.max()) + 1, np.int64)
     first[row] = np.arange(len(row))  # one element of each row
 
@@ -303,8 +303,8 @@ def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarr
     muscle), and collapse thin soft layers. ``across_materials``: one slot per node, as
     NiftySim's T4ANP (``Model.anp_across_materials``). Returns the slot of each element node
     (M, 4) and each slot's volume (S,) (sum of its elements' volumes, the units of ``vol``)."""
-    group = np.zeros(len(tets), np.int64) if across_materials else equal_value_groups(
-        [[np.asarray(m.kappa, np.float64)] for m in materials])
+    group = np.zeros(len(tets), np.int64) if across_materials else element_groups(
+        materials, lambda m: [np.asarray(m.kappa, np.float64)])
     groups = int(group.max()) + 1
     pairs = tets.astype(np.int64) * groups + group[:, None]
     if int(pairs.max()) < 8 * pairs.size:  # number the (node, material) pairs present, in their order
