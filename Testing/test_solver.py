@@ -269,8 +269,9 @@ def test_sets_of_one_tissue_labelling_are_grouped_per_tissue_as_element_by_eleme
             np.testing.assert_array_equal(getattr(got, name).numpy(), getattr(expected, name).numpy())
     assert material_table(batches[1][:1]).row.numpy().max() + 1 == 3  # tissues 0 and 1: one row
     m = batches[0][0]
-    with pytest.raises(ValueError, match="read-only"):
-        m.mu[0] = 1.0
+    for array in (m.mu, m.rows[0].kappa, m.rows[1]):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0] = 1
     m.kappa = 2 * m.kappa
     assert m.rows is None
 

@@ -191,6 +191,7 @@ class ElementMaterials:
         elements = cls._checked(**{name: getattr(rows, name)[index] for name in _FIELDS})
         for name in _FIELDS:
             getattr(elements, name).flags.writeable = False
+            getattr(rows, name).flags.writeable = False
         index.flags.writeable = False
         elements._rows = (rows, index, tuple(getattr(elements, name) for name in _FIELDS))
         return elements
