@@ -184,16 +184,16 @@ class ElementMaterials:
                 g[row, col], tau[row, col] = gi, ti
         # each Material checked its own values: the per-element arrays need no second check (a
         # fit builds one set per evaluation, and the checks of 54k elements took 2 ms a set)
-        rows = cls._checked(mu=np.array([m.mu for m in table]), kappa=np.array([m.kappa for m in table]),
-                            eta=np.array([m.eta for m in table]),
-                            fibre=np.array([m.fibre for m in table], np.float64).reshape(-1, 3),
-                            density=np.array([m.density for m in table]), prony_g=g, prony_tau=tau)
-        elements = cls._checked(**{name: getattr(rows, name)[index] for name in _FIELDS})
+        per_tissue = cls._checked(mu=np.array([m.mu for m in table]), kappa=np.array([m.kappa for m in table]),
+                                  eta=np.array([m.eta for m in table]),
+                                  fibre=np.array([m.fibre for m in table], np.float64).reshape(-1, 3),
+                                  density=np.array([m.density for m in table]), prony_g=g, prony_tau=tau)
+        elements = cls._checked(**{name: getattr(per_tissue, name)[index] for name in _FIELDS})
         for name in _FIELDS:
             getattr(elements, name).flags.writeable = False
-            getattr(rows, name).flags.writeable = False
+            getattr(per_tissue, name).flags.writeable = False
         index.flags.writeable = False
-        elements._rows = (rows, index, tuple(getattr(elements, name) for name in _FIELDS))
+        elements._rows = (per_tissue, index, tuple(getattr(elements, name) for name in _FIELDS))
         return elements
 
     @property
