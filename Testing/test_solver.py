@@ -828,6 +828,50 @@ def test_batched_dynamic_relaxation_stops_each_model_when_it_converges():
         np.testing.assert_allclose(b.plate_forces, one.plate_forces, rtol=0.01, atol=1e-6)
 
 
+def test_a_batch_packed_down_to_its_moving_models_gives_the_unpacked_batchs_answers(monkeypatch):
+    """A relaxation batch whose models stop one by one (converged at different iterations, one on
+    an inverted element) is packed down to its moving models as they halve (solver/packing.py):
+    every set's displacement, status, message, iterations, plate forces, estimates and its
+    histories of kinetic energy and plate forces are those of the same batch never packed, to the
+    last bit (warp's CPU device): a set packed out shows no motion and no plate force in the
+    samples after, as a frozen model in the batch."""
+    from BreastBiomechLib.solver import DynamicRelaxation, packing, tled
+
+    mesh = _block(3)
+    model = _compression_model(mesh, Material(E, 0.49), strain=0.2)
+    variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu, eta=eta, fibre=(1, 0, 0)))
+                for e, nu, eta in [(8e3, 0.4999, 0.0), (12e3, 0.4997, 2e3), (10e3, 0.3, 0.0), (9e3, 0.4, 0.0),
+                                   (11e3, 0.4993, 0.0)]]
+    # converged at 3 400, 2 400, 1 400 and 1 400 iterations; the fourth inverts before the first sample
+    motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (2.0, 3.0, 1.0, 1.1 * SIDE, 2.5)]
+    relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.001)
+    packed_sizes = []
+    take = packing.take_models
+
+    def counted(array, models, n_models, per_model=1):
+        packed_sizes.append((n_models, len(models)))
+        return take(array, models, n_models, per_model)
+
+    monkeypatch.setattr(tled, "take_models", counted)
+    packed = solve_batch(model, variants, plate_displacements=motions, device="cpu", relaxation=relaxation)
+    assert sorted(set(packed_sizes), reverse=True)[:2] == [(5, 2), (2, 1)]  # packed at 2 moving of 5, then 1 of 2
+    packed_sizes.clear()
+    monkeypatch.setattr(tled, "PACK_AT", 0.0)
+    unpacked = solve_batch(model, variants, plate_displacements=motions, device="cpu", relaxation=relaxation)
+    assert not packed_sizes
+    assert [p.status for p in packed] == ["completed"] * 3 + ["inverted elements", "completed"]
+    assert [p.steps for p in packed[:3]] == [3400, 2400, 1400]
+    for p, q in zip(packed, unpacked):
+        assert (p.status, p.message, p.steps) == (q.status, q.message, q.steps)
+        np.testing.assert_array_equal(p.displacement, q.displacement)
+        np.testing.assert_array_equal(p.plate_forces, q.plate_forces)
+        assert (p.estimated_error_mm, p.lowest_eigenvalue, p.shear_speed_squared) == pytest.approx(
+            (q.estimated_error_mm, q.lowest_eigenvalue, q.shear_speed_squared), rel=0, abs=0, nan_ok=True)
+        np.testing.assert_array_equal(p.history["time"], q.history["time"])
+        for name in ("kinetic", "plate_forces"):
+            np.testing.assert_array_equal(p.history[name], q.history[name])
+
+
 def test_relaxation_stops_at_the_float32_noise_floor_of_a_nearly_incompressible_model():
     """At nu = 0.4999 (bulk modulus 5 000 times the shear modulus) float32 rounding of the
     volumetric stress keeps the nodes moving by 2e-5-9e-5 mm between relaxation updates at rest,

@@ -890,13 +890,13 @@ def keep_step_stable(stable_now: wp.array(dtype=wp.float64), inverted: wp.array(
                      grow: wp.array(dtype=wp.float64), growth: wp.array(dtype=wp.float64),
                      rescales: wp.array(dtype=int)):
     """Mass scaling's rule, one thread per model (see :class:`BreastBiomechLib.solver.stability.MassScaling`):
-    where the step ``dt`` (s) exceeds ``above`` x the stable step of any model without an inverted
-    element, model b's masses are to grow by ``grow[b]`` = max((dt / (``to`` x its stable step))^2, 1)
+    where the step ``dt`` (s) exceeds ``above`` x the stable step of any model still moving (no
+    inverted element, not converged: a model at rest sets no other's masses), model b's masses are to grow by ``grow[b]`` = max((dt / (``to`` x its stable step))^2, 1)
     (1 otherwise), its total ``growth`` and ``rescales`` follow, and ``stable`` is its stable step after."""
     b = wp.tid()
     rescale = int(0)
     for c in range(stable_now.shape[0]):
-        if inverted[4 * c] == 0 and not (dt <= above * stable_now[c]):
+        if inverted[4 * c] == 0 and inverted[4 * c + 3] == 0 and not (dt <= above * stable_now[c]):
             rescale = 1
     mine = stable_now[b]
     if inverted[4 * b] != 0:

@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
+from BreastBiomechLib.solver.packing import take_models
 from BreastBiomechLib.solver.readback import HostCopy
 
 MM = 1e-3  # metres per millimetre
@@ -127,6 +128,16 @@ class DistanceToRest:
                            [u, self._sample, self._n_nodes, self.state.largest])
         wp.copy(self._sample, u)
 
+    def keep(self, models: np.ndarray) -> None:
+        """Go on with the models ``models`` of the batch only (in that order; see
+        :mod:`~BreastBiomechLib.solver.packing`); device work."""
+        n_models = self._remaining.shape[0]
+        self._sample = take_models(self._sample, models, n_models)
+        for name in ("largest", "change", "rate", "slowing", "calls"):
+            setattr(self.state, name, take_models(getattr(self.state, name), models, n_models))
+        self._remaining = take_models(self._remaining, models, n_models)
+        self._remaining_host = HostCopy(self._remaining)
+
     def estimate(self) -> np.ndarray | None:
         """(B,) estimates (mm) from the last :meth:`measure`, from the third estimate on; call
         once per measurement, at consecutive measurements (the first call only starts counting)."""
@@ -165,8 +176,11 @@ class RelaxationState:
 @wp.struct
 class RelaxationRules:
     """The batch's constants: time step (s), tolerance (mm), the largest damping (1/s), the rules'
-    thresholds (see the module's constants), and whether the relaxation starts warm."""
+    thresholds (see the module's constants), whether the relaxation starts warm, and the time (s)
+    the first model of the batch is loaded (the batch as it started: models packed away later
+    count)."""
     dt: wp.float64
+    first_loaded_at: wp.float64
     tolerance_mm: wp.float64
     damping_limit: wp.float64
     surge: wp.float64
@@ -194,11 +208,7 @@ def relaxation_update(s: RelaxationState, rules: RelaxationRules, distance: Dist
     now = wp.float64(step) * rules.dt
     if inverted[4 * b] > 0:
         s.active[b] = 0
-    any_loaded = int(0)
-    for c in range(s.active.shape[0]):
-        if now >= s.loaded_at[c]:
-            any_loaded = 1
-    if any_loaded == 0:
+    if now < rules.first_loaded_at:  # no model of the batch is loaded yet
         return
     zero = wp.float64(0.0)
     two = wp.float64(2.0)
@@ -300,6 +310,7 @@ class RelaxationControl:
         self.state = s
         self.rules = RelaxationRules()
         self.rules.dt, self.rules.tolerance_mm, self.rules.damping_limit = dt, tolerance_mm, DAMPING_LIMIT / dt
+        self.rules.first_loaded_at = float(np.min(loaded_at))
         self.rules.surge, self.rules.moving, self.rules.chatter_quotient = SURGE, MOVING, CHATTER_QUOTIENT
         self.rules.smallest_inertia = SMALLEST_INERTIA
         self.rules.settling_updates, self.rules.chatter_updates, self.rules.warm = (SETTLING_UPDATES, CHATTER_UPDATES,
@@ -313,6 +324,18 @@ class RelaxationControl:
         wp.launch(relaxation_update, self.state.active.shape[0], [self.state, self.rules, distance.state, kinetic,
                                                                   internal, stiffness, inertia, inverted, clock])
         self.active.refresh()
+
+    def keep(self, models: np.ndarray, damping_now: wp.array) -> None:
+        """Go on with the models ``models`` of the batch only (in that order; see
+        :mod:`~BreastBiomechLib.solver.packing`), whose float32 damping the steps now read from
+        ``damping_now``; device work."""
+        s = self.state
+        n_models = s.active.shape[0]
+        for name in ("active", "since_load", "settled_after", "stalled_updates", "checks_below", "converged_at",
+                     "ke_before", "lowest", "damping", "estimated_error", "loaded_at", "damping_cap", "noise_floor"):
+            setattr(s, name, take_models(getattr(s, name), models, n_models))
+        s.damping_now = damping_now
+        self.active = HostCopy(s.active)
 
     def outcome(self) -> dict[str, np.ndarray]:
         """Per model, once the solve is over: ``converged_at`` (step), ``estimated_error`` (mm),

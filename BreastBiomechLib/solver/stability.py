@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
+from BreastBiomechLib.solver.packing import take_models
 from BreastBiomechLib.solver.readback import HostCopy
 
 SMALLEST_MASS_TERM = 1e-300  # v^T M v below this is taken as this: no division by zero
@@ -91,6 +92,14 @@ class StableStepMonitor:
         wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
         self._zero_constrained()
 
+    def keep(self, models: np.ndarray, mass: wp.array) -> None:
+        """Go on with the models ``models`` of the batch only (in that order; see
+        :mod:`~BreastBiomechLib.solver.packing`), whose masses are now ``mass``; device work."""
+        for name in ("_v", "_w", "_probe", "_f_base", "_f_probe", "_vkv", "_vmv", "_largest", "stable"):
+            setattr(self, name, take_models(getattr(self, name), models, self._B))
+        self._B, self._mass = len(models), mass
+        self._stable_host = HostCopy(self.stable)
+
     def stable_step(self, after: wp.Event | None = None) -> np.ndarray:
         """The stable step estimate 2 / omega (s) per model after the last :meth:`advance` (inf
         where no stiffness was seen); ``after``: an event recorded after that advance (see
@@ -102,12 +111,12 @@ class MassScaling:
     """Fictitious masses (kg, float32 ``mass`` as the steps read it, node a of model b at a*B + b)
     kept heavy enough that the time step ``dt`` (s) stays stable as elements stiffen: where some
     model's step exceeds :data:`RESCALE_ABOVE` of its stable step (:class:`StableStepMonitor`;
-    models with an inverted element left out), every model whose step exceeds :data:`RESCALE_TO`
+    frozen models - an inverted element, or converged - left out), every model whose step exceeds :data:`RESCALE_TO`
     of its stable step has its masses multiplied by (dt / (RESCALE_TO x stable))^2, which brings the
     step to that fraction; the static solution does not depend on them. Device work (capturable in
     a graph); the masses are held in float64 too, so that repeated growth rounds once. After
     :meth:`apply`: :attr:`stable` the stable step of the scaled masses (s), :attr:`growth` each
-    model's total growth, :attr:`rescales` how often masses grew (every entry the same)."""
+    model's total growth, :attr:`rescales` how often its masses grew."""
 
     def __init__(self, mass: wp.array, mass_float64: np.ndarray, dt: float, n_models: int) -> None:
         self.mass = mass
@@ -125,3 +134,11 @@ class MassScaling:
         wp.launch(k.keep_step_stable, n_models, [monitor.stable, inverted, self.dt, RESCALE_ABOVE, RESCALE_TO,
                                                  self.stable, self._grow, self.growth, self.rescales])
         wp.launch(k.grow_masses, self.mass.shape[0], [self._grow, self.mass_float64, self.mass])
+
+    def keep(self, models: np.ndarray, mass: wp.array) -> None:
+        """Go on with the models ``models`` of the batch only (in that order; see
+        :mod:`~BreastBiomechLib.solver.packing`), whose float32 masses are now ``mass``; device work."""
+        n_models = self.stable.shape[0]
+        for name in ("mass_float64", "stable", "growth", "rescales", "_grow"):
+            setattr(self, name, take_models(getattr(self, name), models, n_models))
+        self.mass = mass

@@ -7,7 +7,8 @@ damping (seed eq. (15)) in increment form, with the displacement accumulated in 
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
 The step loop has no host synchronisation: on CUDA it replays captured graphs of ten steps (two
 for the rest of an interval; graphs per count of moving models: the steps run only the models
-still moving, see ``kernels``).
+still moving, see ``kernels``). Once half of a relaxation's batch or more has stopped, the batch is
+packed down to the models still moving (``packing``).
 Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate, the
 plate forces and, in a relaxation, its decisions (damping, mass scaling, converged models: see
 ``relaxation``), and copies what the host reads back; a relaxation's next steps are enqueued before
@@ -30,6 +31,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials, element_groups
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder
+from BreastBiomechLib.solver.packing import put_models, take_models
 from BreastBiomechLib.solver.readback import HostCopy
 from BreastBiomechLib.solver.relaxation import MM, QUOTIENT_WINDOW, DistanceToRest, RelaxationControl
 from BreastBiomechLib.solver.stability import MassScaling, StableStepMonitor
@@ -45,6 +47,10 @@ ELEMENT_FORCES_BLOCK = 128  # threads per block of kernels.element_forces (see s
 # pairs of steps per CUDA graph: each graph launch costs the GPU about 1.4 us of its own, 0.7 us a
 # step in graphs of two steps and 0.15 us in graphs of ten (160k tets, H200, docs/benchmarks.md)
 STEP_GRAPH_PAIRS = 5
+# a relaxation packs its batch down to the models still moving once they are this fraction of it or
+# fewer (see :mod:`packing`): a halving at most costs a lone model's tail twice its own layout's
+# reads, and a batch of 16 packs four times at most
+PACK_AT = 0.5
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
 SPRING_PA_PER_MM_MM2_TO_N_PER_M = 1e-3  # (Pa/mm) x mm^2 = 1e3 N/m^3 x 1e-6 m^2
 FRICTION_WAVE_CROSSINGS = 6.0  # relaxation with friction loads over this many shear-wave crossings
@@ -527,7 +533,10 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
     if mass_scaling and relaxation is not None:
         raise ValueError("mass_scaling is an option of physical-time solves; dynamic relaxation always scales masses")
     scaled = mass_scaling or relaxation is not None
+    # B: the models of the batch as the device holds them, n_sets as given; B falls where a
+    # relaxation packs the batch down to its moving models (``members``: the sets they are)
     B, N, M = len(materials), len(model.mesh.nodes), len(model.mesh.tets)
+    n_sets = B
     if B == 0:
         raise ValueError("solve_batch needs at least one material set")
     for mat in materials:
@@ -642,7 +651,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         loads = k.NodeLoads()
         loads.mass, loads.body_start, loads.body_force = d_mass, d_body_start, d_body_force
         loads.damping, loads.t_total, loads.load_shape, loads.dt = d_damping, d_totals, load_shape, float(dt)
-        active = np.ones(B, np.int32)  # the models moving as of the last sample the host has read
+        active = np.ones(n_sets, np.int32)  # the sets moving as of the last sample the host has read
+        members = np.arange(n_sets)  # the set of each model of the batch as packed
 
         def model_list(flags):
             """The kernels' list of models (see :mod:`kernels`): the flagged models, then padding."""
@@ -656,7 +666,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         def stop_models():
             """The models no longer ``active`` out of the steps' list (the steps leave them alone
             already: they are frozen, see :mod:`relaxation`)."""
-            d_moving.assign(model_list(active))
+            d_moving.assign(model_list(active[members]))
 
         c_nodes, c_mask, c_vals = merged_constraints(model)
         n_con = len(c_nodes)
@@ -716,13 +726,16 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         every_model = arr(model_list(np.ones(B)), int)
         probe_clock = wp.zeros(2, dtype=int)
 
-        def internal_force(state, out, sums_buffer, flags, models=every_model, width=B, update_state=0,
+        def internal_force(state, out, sums_buffer, flags, models=None, width=None, update_state=0,
                            cleared=False, step_clock=None):
             """Internal nodal forces of ``state`` into ``out`` (ANP sums in ``sums_buffer``)
-            for the first ``width`` models of the list ``models`` (the others' stay zero);
+            for the first ``width`` models of the list ``models`` (the others' stay zero; None:
+            every model of the batch);
             ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
             and ``sums_buffer`` are zero already (the step kernels clear them). A step passes
             its clock (see :func:`kernels.element_forces`); a probe leaves it alone."""
+            if models is None:
+                models, width = every_model, B
             if not cleared:
                 out.zero_()
                 sums_buffer.zero_()
@@ -763,6 +776,24 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             """Threads per element (node) the steps launch: the moving models' count (it only
             falls, so a batch captures one graph per count it passes through)."""
             return int(np.count_nonzero(active))
+
+        kept = {}  # the results of sets packed out of the batch (see keep_results)
+
+        def keep_results(leaving):
+            """Device copies, into arrays of every set, of what the end of the solve reads of the
+            models ``leaving`` of the batch as packed: displacement, relaxation outcome, masses."""
+            per_model = [("displacement", u)]
+            if relaxation is not None:
+                per_model += [(name, getattr(control.state, name))
+                              for name in ("converged_at", "estimated_error", "lowest")]
+            if scaled:
+                per_model += [("mass", scaling.mass_float64), ("growth", scaling.growth),
+                              ("stable", scaling.stable), ("rescales", scaling.rescales)]
+            for name, array in per_model:
+                if name not in kept:
+                    shape = array.shape[:-1] + (array.shape[-1] // B * n_sets,)
+                    kept[name] = wp.zeros(shape, dtype=array.dtype)
+                put_models(array, B, leaving, kept[name], n_sets, members[leaving])
 
         kinetic = wp.zeros(B, dtype=float)
         internal = wp.zeros(B, dtype=float)
@@ -897,6 +928,69 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             """Pairs of steps of the sampling interval after step ``after``."""
             return min(chunk, n_steps - after + (n_steps - after) % 2) // 2
 
+        def pack():
+            """The batch packed down to its models still ``active``, in their order (device
+            work, after the steps already enqueued: see :mod:`packing`); the others' results
+            kept (:func:`keep_results`). The old arrays and graphs go: CUDA frees them in the
+            stream's order, after the work enqueued on them."""
+            nonlocal B, members, u, low, du, scratch, forces, anp_sums, anp_tmp, inverted, no_flags, plate_force
+            nonlocal d_materials, d_prony_g, d_prony_decay, visco_state, d_mass, d_damping, every_model, d_moving
+            nonlocal kinetic, internal, f_curr, f_last, u_last, stiffness, inertia, sampled
+            staying, leaving = np.flatnonzero(active[members]), np.flatnonzero(active[members] == 0)
+            keep_results(leaving)
+            for name in ("kinetic", "plate_forces"):  # at rest, as a frozen model in the batch: no motion, no contact
+                latest[name] = latest[name].copy()  # (the history holds the sample's own)
+                latest[name][members[leaving]] = 0.0
+            graphs.clear()
+            sample_graphs.clear()
+
+            def take(array, per_model=1):
+                return take_models(array, staying, B, per_model)
+
+            u, low, du, scratch, forces = take(u), take(low), take(du), take(scratch), take(forces)
+            anp_sums, anp_tmp, inverted, no_flags = take(anp_sums), take(anp_tmp), take(inverted, 4), take(no_flags, 4)
+            plate_force = take(plate_force, 3 * P)
+            table = k.MaterialTable()
+            table.row = d_materials.row
+            table.mu, table.kappa, table.eta = take(d_materials.mu), take(d_materials.kappa), take(d_materials.eta)
+            table.fibre = take(d_materials.fibre)
+            d_materials = table
+            d_prony_g, d_prony_decay, visco_state = take(d_prony_g, K), take(d_prony_decay, K), take(visco_state, K)
+            d_mass, d_damping = take(d_mass), take(d_damping)
+            loads.mass, loads.damping, loads.t_total = d_mass, d_damping, take(loads.t_total)
+            loads.body_start, loads.body_force = take(loads.body_start), take(loads.body_force)
+            constraints.value = take(constraints.value)
+            plates.pose = take(plates.pose, P)
+            plates.anchor, plates.touching, plates.force = take(plates.anchor), take(plates.touching), take(plates.force)
+            kinetic, internal = take(kinetic), take(internal)
+            if relaxation is not None:
+                f_curr, f_last, u_last = take(f_curr), take(f_last), take(u_last)
+                stiffness, inertia = take(stiffness), take(inertia)
+                control.keep(staying, d_damping)
+            distance_to_rest.keep(staying)
+            monitor.keep(staying, d_mass)
+            if scaling is not None:
+                scaling.keep(staying, d_mass)
+            members, B = members[staying], len(staying)
+            every_model = arr(model_list(np.ones(B)), int)
+            d_moving = arr(model_list(active[members]), int)
+            sampled = {name: HostCopy(array) for name, array in (("kinetic", kinetic), ("internal", internal),
+                                                                 ("plate_force", plate_force),
+                                                                 ("inverted", inverted))}
+
+        latest = {}  # of_sets' last values of every set, by name
+
+        def of_sets(values, name):
+            """``values`` of the batch as packed, in their sets' places: a set packed out keeps its
+            latest value of that ``name`` (None: zero, and nothing kept)."""
+            out = np.zeros((n_sets,) + values.shape[1:], values.dtype)
+            if name in latest:
+                out[:] = latest[name]
+            out[members] = values
+            if name is not None:
+                latest[name] = out
+            return out
+
         if not scaled and dt > stable_step.min():
             status, message = "unstable", _step_too_large(0.0, stable_step.min(), dt)
         while status == "completed" and done < n_steps:
@@ -911,14 +1005,14 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             ahead = min(lead, interval(done))
             if ahead:
                 enqueue_steps(ahead)
-            ke = sampled["kinetic"].read(sample_done).astype(float)
-            ie = 0.5 * sampled["internal"].read(sample_done).astype(float)
+            ke = of_sets(sampled["kinetic"].read(sample_done).astype(float), "kinetic")
+            ie = of_sets(0.5 * sampled["internal"].read(sample_done).astype(float), "internal")
             history["time"].append(done * dt)
             history["kinetic"].append(ke)
             history["internal"].append(ie)
-            history["plate_forces"].append(sampled["plate_force"].read(sample_done)[: 3 * B * P].reshape(B, P, 3)
-                                           .astype(float))
-            flags = sampled["inverted"].read(sample_done).reshape(B, 4)
+            history["plate_forces"].append(of_sets(sampled["plate_force"].read(sample_done)[: 3 * B * P]
+                                                   .reshape(B, P, 3).astype(float), "plate_forces"))
+            flags = of_sets(sampled["inverted"].read(sample_done).reshape(B, 4), "flags")
             for b in np.flatnonzero((flags[:, 0] > 0) & (active == 1)):
                 count, element, at = flags[b, :3]
                 element = element if element_ids is None else int(element_ids[element])
@@ -930,12 +1024,12 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             if not moving.any():
                 active[:] = moving
                 break
-            alive = np.array([b not in failed for b in range(B)])
+            alive = np.array([b not in failed for b in range(n_sets)])
             if not np.all(np.isfinite(ke[alive])) or not np.all(np.isfinite(ie[alive])):
                 status, message = "unstable", (f"the solution diverged by step {done + 2 * ahead}; reduce the time "
                                                f"step (now {dt:.3g} s) or the safety factor")
                 break
-            stable_step = monitor.stable_step(sample_done)
+            stable_step = of_sets(monitor.stable_step(sample_done), "stable_time_step")
             stable_step[~alive] = np.inf  # a frozen model's step no longer matters
             history["stable_time_step"].append(stable_step)
             if not scaled and dt > stable_step.min():
@@ -958,7 +1052,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                    f"{n_steps - done} of {n_steps} steps early")
                         break
             if relaxation is not None:  # the models the device found converged at this sample
-                moving = control.active.read(sample_done)
+                moving = of_sets(control.active.read(sample_done), None)
                 converged_now = (moving == 0) & (active == 1) & (flags[:, 0] == 0)
                 converged_forces[converged_now] = history["plate_forces"][-1][converged_now]
             if np.any(moving != active):
@@ -966,22 +1060,29 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                 stop_models()
             if not active.any():
                 break
+            if np.count_nonzero(active) <= PACK_AT * B:
+                pack()
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
-        displacement = u.numpy().reshape(N, B, 3).transpose(1, 0, 2).astype(np.float64) / MM
-        if scaled:  # the masses and stable steps as mass scaling left them
-            mass, mass_growth = scaling.mass_float64.numpy(), scaling.growth.numpy()
-            mass_rescales, stable_step = int(scaling.rescales.numpy()[0]), scaling.stable.numpy()
-        if relaxation is not None:
-            outcome = control.outcome()
-            estimated_error, converged_at, lowest = (outcome["estimated_error"], outcome["converged_at"],
-                                                     outcome["lowest"])
+        if kept:  # packed: every set's results, the last models' with them
+            keep_results(np.arange(B))
 
-    statuses, messages, steps = [status] * B, [message] * B, [done] * B
+        def result(name, array):
+            """The device array ``array`` of the batch's results, of every set."""
+            return (kept[name] if kept else array).numpy()
+
+        displacement = result("displacement", u).reshape(N, n_sets, 3).transpose(1, 0, 2).astype(np.float64) / MM
+        if scaled:  # the masses and stable steps as mass scaling left them
+            mass, mass_growth = result("mass", scaling.mass_float64), result("growth", scaling.growth)
+            mass_rescales, stable_step = result("rescales", scaling.rescales), result("stable", scaling.stable)
+        if relaxation is not None:
+            estimated_error, converged_at, lowest = (result(name, getattr(control.state, name))
+                                                     for name in ("estimated_error", "converged_at", "lowest"))
+
+    statuses, messages, steps = [status] * n_sets, [message] * n_sets, [done] * n_sets
     if relaxation is not None:
         ke_ie_end_of_loading = float("nan")  # fictitious masses: the energy criterion does not apply
-        rescaled = f"; fictitious masses raised {mass_rescales} time(s) as elements stiffened" if mass_rescales else ""
-        for b in range(B):
+        for b in range(n_sets):
             if status != "completed" or b in failed:
                 continue
             if active[b]:
@@ -991,19 +1092,21 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                "max_iterations or the tolerance")
             else:
                 steps[b] = int(converged_at[b])
+                rescaled = (f"; fictitious masses raised {mass_rescales[b]} time(s) as elements stiffened"
+                            if mass_rescales[b] else "")
                 messages[b] = (f"converged in {steps[b]} iterations, estimated error {estimated_error[b]:.3g} mm"
                                + rescaled)
     elif status == "completed" and ke_ie_end_of_loading > ke_ie_limit:
-        statuses = ["energy criterion exceeded"] * B
+        statuses = ["energy criterion exceeded"] * n_sets
         messages = [(f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
-                   f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")] * B
+                   f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")] * n_sets
     for b, text in failed.items():  # whatever else happened, these models stopped on an inverted element
         statuses[b], messages[b] = "inverted elements", text
     if mass_scaling:
-        ratio = mass.reshape(N, B).sum(axis=0) / weight.reshape(N, B).sum(axis=0)
+        ratio = mass.reshape(N, n_sets).sum(axis=0) / weight.reshape(N, n_sets).sum(axis=0)
         messages = [f"{m}; mass scaling: total mass x{r:.3g}, time step {dt:.3g} s" for m, r in zip(messages, ratio)]
     solutions = []
-    for b in range(B):
+    for b in range(n_sets):
         hist = {"time": np.array(history["time"]),
                 "kinetic": np.array([h[b] for h in history["kinetic"]]),
                 "internal": np.array([h[b] for h in history["internal"]]),

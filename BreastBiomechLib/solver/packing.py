@@ -1,0 +1,91 @@
+"""Moving a batch's per-model arrays to a batch of other models: packing a solve down to the models
+still moving, and putting a finished model's values back in the batch's first numbering.
+
+Every per-model array of a solve keeps its models innermost (see :mod:`kernels`): entry i of model
+b of an array of B models at ``(o * B + b) * I + i`` for an outer index o (a node, an element, a
+slot, a table row or a force plane) and I entries per model and outer index (one mostly; four
+flags, P plate poses, K Prony terms). A model left alone in a batch of sixteen still reads its
+nodes one per 32-byte memory sector, and the batch's samples sum over all sixteen: it stepped in
+32 us an iteration against 16 us solved alone (54k tets, H200, docs/benchmarks.md). Packed into a
+batch of its own size it steps as if alone.
+
+The copies work on the arrays' memory as 32-bit words, whatever their dtype (float32, int32,
+float64, vectors, matrices, structs of those), on the device, in the stream's order: no host
+synchronisation, so work already enqueued on the old arrays runs first.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+WORD = 4  # bytes of the copies' unit
+
+
+@wp.kernel
+def copy_models(src: wp.array(dtype=wp.int32), src_models: int, src_of: wp.array(dtype=int),
+                dst: wp.array(dtype=wp.int32), dst_models: int, dst_of: wp.array(dtype=int), words: int):
+    """Model ``src_of[j]`` of ``src`` (a batch of ``src_models``) into model ``dst_of[j]`` of
+    ``dst`` (of ``dst_models``), ``words`` 32-bit words per model and outer index; one thread per
+    word copied (outer index, entry j of the lists, word)."""
+    tid = wp.tid()
+    count = src_of.shape[0]
+    w = tid % words
+    rest = tid // words
+    j = rest % count
+    o = rest // count
+    dst[(o * dst_models + dst_of[j]) * words + w] = src[(o * src_models + src_of[j]) * words + w]
+
+
+def _words(array: wp.array) -> wp.array:
+    """``array``'s memory as 32-bit words (a view: ``array`` must outlive it)."""
+    nbytes = array.size * wp.types.type_size_in_bytes(array.dtype)
+    if not array.is_contiguous or nbytes % WORD:
+        raise ValueError("only contiguous arrays of 32-bit words can be moved between batches")
+    return wp.array(ptr=array.ptr, dtype=wp.int32, shape=(nbytes // WORD,), device=array.device, copy=False)
+
+
+def _copy(src: wp.array, src_models: int, src_of: np.ndarray, dst: wp.array, dst_models: int,
+          dst_of: np.ndarray, per_model: int) -> None:
+    words_per_entry = wp.types.type_size_in_bytes(src.dtype) // WORD
+    words = per_model * words_per_entry
+    outer = src.size // (src_models * per_model)
+    count = len(src_of)
+    if count == 0 or outer == 0:
+        return
+    device = src.device
+    wp.launch(copy_models, outer * count * words,
+              [_words(src), src_models, wp.array(np.asarray(src_of, np.int32), dtype=int, device=device),
+               _words(dst), dst_models, wp.array(np.asarray(dst_of, np.int32), dtype=int, device=device), words],
+              device=device)
+
+
+def holds_models(array: wp.array, n_models: int, per_model: int = 1) -> bool:
+    """Whether ``array`` holds ``per_model`` entries per outer index for each of ``n_models``
+    models (a solve's placeholders - one entry where a model has no plates, constraints or Prony
+    terms - do not)."""
+    span = n_models * per_model
+    return span > 0 and array.size >= span and array.shape[-1] % span == 0
+
+
+def take_models(array: wp.array, models: np.ndarray, n_models: int, per_model: int = 1) -> wp.array:
+    """A new array of the models ``models`` (in that order) of ``array``, a batch of ``n_models``
+    with ``per_model`` entries per model and outer index; its last dimension shrinks in proportion.
+    A placeholder (see :func:`holds_models`) is returned as it is."""
+    if not holds_models(array, n_models, per_model):
+        return array
+    models = np.asarray(models, np.int64)
+    shape = array.shape[:-1] + (array.shape[-1] // n_models * len(models),)
+    out = wp.empty(shape, dtype=array.dtype, device=array.device)
+    _copy(array, n_models, models, out, len(models), np.arange(len(models)), per_model)
+    return out
+
+
+def put_models(src: wp.array, src_models: int, models: np.ndarray, dst: wp.array, dst_models: int,
+               positions: np.ndarray, per_model: int = 1) -> None:
+    """Model ``models[j]`` of ``src`` (a batch of ``src_models``) into model ``positions[j]`` of
+    ``dst`` (of ``dst_models``), arrays of the same dtype and layout; device work."""
+    if len(models) != len(positions):
+        raise ValueError("put_models needs one position for each model")
+    if holds_models(src, src_models, per_model):
+        _copy(src, src_models, np.asarray(models), dst, dst_models, np.asarray(positions), per_model)
