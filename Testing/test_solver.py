@@ -846,13 +846,13 @@ def test_a_batch_packed_down_to_its_moving_models_gives_the_unpacked_batchs_answ
     motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (2.0, 3.0, 1.0, 1.1 * SIDE, 2.5)]
     relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.001)
     packed_sizes = []
-    take = packing.take_models
+    take = packing.Selection.take
 
-    def counted(array, models, n_models, per_model=1):
-        packed_sizes.append((n_models, len(models)))
-        return take(array, models, n_models, per_model)
+    def counted(selection, array, per_model=1):
+        packed_sizes.append((selection.n_models, len(selection)))
+        return take(selection, array, per_model)
 
-    monkeypatch.setattr(tled, "take_models", counted)
+    monkeypatch.setattr(packing.Selection, "take", counted)
     packed = solve_batch(model, variants, plate_displacements=motions, device="cpu", relaxation=relaxation)
     assert sorted(set(packed_sizes), reverse=True)[:2] == [(5, 2), (2, 1)]  # packed at 2 moving of 5, then 1 of 2
     packed_sizes.clear()

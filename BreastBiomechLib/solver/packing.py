@@ -45,21 +45,6 @@ def _words(array: wp.array) -> wp.array:
     return wp.array(ptr=array.ptr, dtype=wp.int32, shape=(nbytes // WORD,), device=array.device, copy=False)
 
 
-def _copy(src: wp.array, src_models: int, src_of: np.ndarray, dst: wp.array, dst_models: int,
-          dst_of: np.ndarray, per_model: int) -> None:
-    words_per_entry = wp.types.type_size_in_bytes(src.dtype) // WORD
-    words = per_model * words_per_entry
-    outer = src.size // (src_models * per_model)
-    count = len(src_of)
-    if count == 0 or outer == 0:
-        return
-    device = src.device
-    wp.launch(copy_models, outer * count * words,
-              [_words(src), src_models, wp.array(np.asarray(src_of, np.int32), dtype=int, device=device),
-               _words(dst), dst_models, wp.array(np.asarray(dst_of, np.int32), dtype=int, device=device), words],
-              device=device)
-
-
 def holds_models(array: wp.array, n_models: int, per_model: int = 1) -> bool:
     """Whether ``array`` holds ``per_model`` entries per outer index for each of ``n_models``
     models (a solve's placeholders - one entry where a model has no plates, constraints or Prony
@@ -68,24 +53,44 @@ def holds_models(array: wp.array, n_models: int, per_model: int = 1) -> bool:
     return span > 0 and array.size >= span and array.shape[-1] % span == 0
 
 
-def take_models(array: wp.array, models: np.ndarray, n_models: int, per_model: int = 1) -> wp.array:
-    """A new array of the models ``models`` (in that order) of ``array``, a batch of ``n_models``
-    with ``per_model`` entries per model and outer index; its last dimension shrinks in proportion.
-    A placeholder (see :func:`holds_models`) is returned as it is."""
-    if not holds_models(array, n_models, per_model):
-        return array
-    models = np.asarray(models, np.int64)
-    shape = array.shape[:-1] + (array.shape[-1] // n_models * len(models),)
-    out = wp.empty(shape, dtype=array.dtype, device=array.device)
-    _copy(array, n_models, models, out, len(models), np.arange(len(models)), per_model)
-    return out
+class Selection:
+    """The models ``models`` (in that order) of a batch of ``n_models`` on ``device``, and
+    optionally the ``positions`` they take in another batch: their indices copied to the device
+    once for every array a packing moves (a copy from host memory waits for the device's queue)."""
 
+    def __init__(self, models: np.ndarray, n_models: int, device, positions: np.ndarray | None = None) -> None:
+        self.models = np.asarray(models, np.int64)
+        self.n_models = int(n_models)
+        if positions is not None and len(positions) != len(self.models):
+            raise ValueError("a selection needs one position for each model")
+        self._models = wp.array(self.models.astype(np.int32), dtype=int, device=device)
+        taken = np.arange(len(self.models)) if positions is None else np.asarray(positions)
+        self._positions = wp.array(taken.astype(np.int32), dtype=int, device=device)
 
-def put_models(src: wp.array, src_models: int, models: np.ndarray, dst: wp.array, dst_models: int,
-               positions: np.ndarray, per_model: int = 1) -> None:
-    """Model ``models[j]`` of ``src`` (a batch of ``src_models``) into model ``positions[j]`` of
-    ``dst`` (of ``dst_models``), arrays of the same dtype and layout; device work."""
-    if len(models) != len(positions):
-        raise ValueError("put_models needs one position for each model")
-    if holds_models(src, src_models, per_model):
-        _copy(src, src_models, np.asarray(models), dst, dst_models, np.asarray(positions), per_model)
+    def __len__(self) -> int:
+        return len(self.models)
+
+    def take(self, array: wp.array, per_model: int = 1) -> wp.array:
+        """A new array of the selected models of ``array`` (a batch of :attr:`n_models` with
+        ``per_model`` entries per model and outer index), in their order; its last dimension
+        shrinks in proportion. A placeholder (see :func:`holds_models`) is returned as it is."""
+        if not holds_models(array, self.n_models, per_model):
+            return array
+        shape = array.shape[:-1] + (array.shape[-1] // self.n_models * len(self),)
+        out = wp.empty(shape, dtype=array.dtype, device=array.device)
+        self._copy(array, out, len(self), per_model)
+        return out
+
+    def put(self, array: wp.array, into: wp.array, into_models: int, per_model: int = 1) -> None:
+        """The selected models of ``array`` into their ``positions`` of ``into`` (an array of the
+        same dtype and layout for a batch of ``into_models``); device work."""
+        if holds_models(array, self.n_models, per_model):
+            self._copy(array, into, into_models, per_model)
+
+    def _copy(self, src: wp.array, dst: wp.array, dst_models: int, per_model: int) -> None:
+        words = per_model * (wp.types.type_size_in_bytes(src.dtype) // WORD)
+        outer = src.size // (self.n_models * per_model)
+        if len(self) and outer:
+            wp.launch(copy_models, outer * len(self) * words,
+                      [_words(src), self.n_models, self._models, _words(dst), dst_models, self._positions, words],
+                      device=src.device)

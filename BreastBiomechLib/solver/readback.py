@@ -23,12 +23,19 @@ class HostCopy:
     def __init__(self, array: wp.array) -> None:
         self._array = array
         self._cuda = array.device.is_cuda
-        self._host = wp.empty(array.shape, dtype=array.dtype, device="cpu", pinned=self._cuda)
+        self._host = wp.empty(array.size, dtype=array.dtype, device="cpu", pinned=self._cuda)
         self._view = self._host.numpy()  # host memory does not move: one view for every read (numpy() costs 15 us)
+
+    def follow(self, array: wp.array) -> None:
+        """Copy ``array`` from now on (of the same dtype and no larger than the first array), in
+        the same host memory: a pinned allocation costs more than the copies of a solve's samples."""
+        if array.dtype != self._array.dtype or array.size > self._host.size:
+            raise ValueError("a host copy follows arrays of its dtype no larger than its first")
+        self._array = array
 
     def refresh(self) -> None:
         """Enqueue the copy on the device's current stream (made at once on the CPU device)."""
-        wp.copy(self._host, self._array)
+        wp.copy(self._host, self._array, count=self._array.size)
 
     def read(self, after: wp.Event | None = None) -> np.ndarray:
         """The values (a NumPy array of their own, in the array's shape and dtype) once the device
@@ -39,4 +46,5 @@ class HostCopy:
                 wp.synchronize_stream(self._array.device.stream)
             else:
                 wp.synchronize_event(after)
-        return np.array(self._view)
+        values = self._view[:self._array.size]  # (entries, then a vector's or matrix's shape)
+        return np.array(values).reshape(self._array.shape + values.shape[1:])

@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
-from BreastBiomechLib.solver.packing import take_models
+from BreastBiomechLib.solver.packing import Selection
 from BreastBiomechLib.solver.readback import HostCopy
 
 MM = 1e-3  # metres per millimetre
@@ -128,15 +128,14 @@ class DistanceToRest:
                            [u, self._sample, self._n_nodes, self.state.largest])
         wp.copy(self._sample, u)
 
-    def keep(self, models: np.ndarray) -> None:
-        """Go on with the models ``models`` of the batch only (in that order; see
+    def keep(self, models: Selection) -> None:
+        """Go on with the selected models of the batch only (see
         :mod:`~BreastBiomechLib.solver.packing`); device work."""
-        n_models = self._remaining.shape[0]
-        self._sample = take_models(self._sample, models, n_models)
+        self._sample = models.take(self._sample)
         for name in ("largest", "change", "rate", "slowing", "calls"):
-            setattr(self.state, name, take_models(getattr(self.state, name), models, n_models))
-        self._remaining = take_models(self._remaining, models, n_models)
-        self._remaining_host = HostCopy(self._remaining)
+            setattr(self.state, name, models.take(getattr(self.state, name)))
+        self._remaining = models.take(self._remaining)
+        self._remaining_host.follow(self._remaining)
 
     def estimate(self) -> np.ndarray | None:
         """(B,) estimates (mm) from the last :meth:`measure`, from the third estimate on; call
@@ -325,17 +324,16 @@ class RelaxationControl:
                                                                   internal, stiffness, inertia, inverted, clock])
         self.active.refresh()
 
-    def keep(self, models: np.ndarray, damping_now: wp.array) -> None:
-        """Go on with the models ``models`` of the batch only (in that order; see
+    def keep(self, models: Selection, damping_now: wp.array) -> None:
+        """Go on with the selected models of the batch only (see
         :mod:`~BreastBiomechLib.solver.packing`), whose float32 damping the steps now read from
         ``damping_now``; device work."""
         s = self.state
-        n_models = s.active.shape[0]
         for name in ("active", "since_load", "settled_after", "stalled_updates", "checks_below", "converged_at",
                      "ke_before", "lowest", "damping", "estimated_error", "loaded_at", "damping_cap", "noise_floor"):
-            setattr(s, name, take_models(getattr(s, name), models, n_models))
+            setattr(s, name, models.take(getattr(s, name)))
         s.damping_now = damping_now
-        self.active = HostCopy(s.active)
+        self.active.follow(s.active)
 
     def outcome(self) -> dict[str, np.ndarray]:
         """Per model, once the solve is over: ``converged_at`` (step), ``estimated_error`` (mm),

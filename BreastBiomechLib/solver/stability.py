@@ -20,7 +20,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
-from BreastBiomechLib.solver.packing import take_models
+from BreastBiomechLib.solver.packing import Selection
 from BreastBiomechLib.solver.readback import HostCopy
 
 SMALLEST_MASS_TERM = 1e-300  # v^T M v below this is taken as this: no division by zero
@@ -92,13 +92,13 @@ class StableStepMonitor:
         wp.launch(k.normalise_iterate, self._B * self._N, [self._w, self._largest, self._N, self._v])
         self._zero_constrained()
 
-    def keep(self, models: np.ndarray, mass: wp.array) -> None:
-        """Go on with the models ``models`` of the batch only (in that order; see
+    def keep(self, models: Selection, mass: wp.array) -> None:
+        """Go on with the selected models of the batch only (see
         :mod:`~BreastBiomechLib.solver.packing`), whose masses are now ``mass``; device work."""
         for name in ("_v", "_w", "_probe", "_f_base", "_f_probe", "_vkv", "_vmv", "_largest", "stable"):
-            setattr(self, name, take_models(getattr(self, name), models, self._B))
+            setattr(self, name, models.take(getattr(self, name)))
         self._B, self._mass = len(models), mass
-        self._stable_host = HostCopy(self.stable)
+        self._stable_host.follow(self.stable)
 
     def stable_step(self, after: wp.Event | None = None) -> np.ndarray:
         """The stable step estimate 2 / omega (s) per model after the last :meth:`advance` (inf
@@ -135,10 +135,9 @@ class MassScaling:
                                                  self.stable, self._grow, self.growth, self.rescales])
         wp.launch(k.grow_masses, self.mass.shape[0], [self._grow, self.mass_float64, self.mass])
 
-    def keep(self, models: np.ndarray, mass: wp.array) -> None:
-        """Go on with the models ``models`` of the batch only (in that order; see
+    def keep(self, models: Selection, mass: wp.array) -> None:
+        """Go on with the selected models of the batch only (see
         :mod:`~BreastBiomechLib.solver.packing`), whose float32 masses are now ``mass``; device work."""
-        n_models = self.stable.shape[0]
         for name in ("mass_float64", "stable", "growth", "rescales", "_grow"):
-            setattr(self, name, take_models(getattr(self, name), models, n_models))
+            setattr(self, name, models.take(getattr(self, name)))
         self.mass = mass

@@ -31,7 +31,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials, element_groups
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder
-from BreastBiomechLib.solver.packing import put_models, take_models
+from BreastBiomechLib.solver.packing import Selection
 from BreastBiomechLib.solver.readback import HostCopy
 from BreastBiomechLib.solver.relaxation import MM, QUOTIENT_WINDOW, DistanceToRest, RelaxationControl
 from BreastBiomechLib.solver.stability import MassScaling, StableStepMonitor
@@ -781,7 +781,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
 
         def keep_results(leaving):
             """Device copies, into arrays of every set, of what the end of the solve reads of the
-            models ``leaving`` of the batch as packed: displacement, relaxation outcome, masses."""
+            selected models ``leaving`` of the batch as packed (positioned as their sets):
+            displacement, relaxation outcome, masses."""
             per_model = [("displacement", u)]
             if relaxation is not None:
                 per_model += [(name, getattr(control.state, name))
@@ -793,7 +794,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                 if name not in kept:
                     shape = array.shape[:-1] + (array.shape[-1] // B * n_sets,)
                     kept[name] = wp.zeros(shape, dtype=array.dtype)
-                put_models(array, B, leaving, kept[name], n_sets, members[leaving])
+                leaving.put(array, kept[name], n_sets)
 
         kinetic = wp.zeros(B, dtype=float)
         internal = wp.zeros(B, dtype=float)
@@ -935,18 +936,18 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             stream's order, after the work enqueued on them."""
             nonlocal B, members, u, low, du, scratch, forces, anp_sums, anp_tmp, inverted, no_flags, plate_force
             nonlocal d_materials, d_prony_g, d_prony_decay, visco_state, d_mass, d_damping, every_model, d_moving
-            nonlocal kinetic, internal, f_curr, f_last, u_last, stiffness, inertia, sampled
-            staying, leaving = np.flatnonzero(active[members]), np.flatnonzero(active[members] == 0)
-            keep_results(leaving)
+            nonlocal kinetic, internal, f_curr, f_last, u_last, stiffness, inertia
+            stays = active[members] == 1
+            staying = Selection(np.flatnonzero(stays), B, device)
+            leaving = np.flatnonzero(~stays)
+            keep_results(Selection(leaving, B, device, positions=members[leaving]))
             for name in ("kinetic", "plate_forces"):  # at rest, as a frozen model in the batch: no motion, no contact
                 latest[name] = latest[name].copy()  # (the history holds the sample's own)
                 latest[name][members[leaving]] = 0.0
             graphs.clear()
             sample_graphs.clear()
 
-            def take(array, per_model=1):
-                return take_models(array, staying, B, per_model)
-
+            take = staying.take
             u, low, du, scratch, forces = take(u), take(low), take(du), take(scratch), take(forces)
             anp_sums, anp_tmp, inverted, no_flags = take(anp_sums), take(anp_tmp), take(inverted, 4), take(no_flags, 4)
             plate_force = take(plate_force, 3 * P)
@@ -971,12 +972,12 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             monitor.keep(staying, d_mass)
             if scaling is not None:
                 scaling.keep(staying, d_mass)
-            members, B = members[staying], len(staying)
+            members, B = members[staying.models], len(staying)
             every_model = arr(model_list(np.ones(B)), int)
             d_moving = arr(model_list(active[members]), int)
-            sampled = {name: HostCopy(array) for name, array in (("kinetic", kinetic), ("internal", internal),
-                                                                 ("plate_force", plate_force),
-                                                                 ("inverted", inverted))}
+            for name, array in (("kinetic", kinetic), ("internal", internal), ("plate_force", plate_force),
+                                ("inverted", inverted)):
+                sampled[name].follow(array)
 
         latest = {}  # of_sets' last values of every set, by name
 
@@ -1060,12 +1061,13 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                 stop_models()
             if not active.any():
                 break
-            if np.count_nonzero(active) <= PACK_AT * B:
+            still = np.count_nonzero(active)
+            if still < B and still <= PACK_AT * B:
                 pack()
         wp.synchronize_device(device)
         wall = time.perf_counter() - started
         if kept:  # packed: every set's results, the last models' with them
-            keep_results(np.arange(B))
+            keep_results(Selection(np.arange(B), B, device, positions=members))
 
         def result(name, array):
             """The device array ``array`` of the batch's results, of every set."""
