@@ -51,6 +51,22 @@ def test_a_vector_array_reads_back_in_its_shape():
     np.testing.assert_array_equal(read, np.arange(6).reshape(2, 3))
 
 
+def test_a_copy_follows_a_smaller_array_of_its_dtype_and_refuses_others():
+    """A packed solve's copies follow the packed arrays in the host memory they have: a read is
+    the new array's values in its shape, never the rest of the old array's."""
+    wp.init()
+    copy = HostCopy(wp.array(np.arange(8, dtype=np.float32).reshape(4, 2), dtype=wp.vec2, device="cpu"))
+    copy.refresh()
+    smaller = wp.array(np.array([[10.0, 11.0]], np.float32), dtype=wp.vec2, device="cpu")
+    copy.follow(smaller)
+    copy.refresh()
+    np.testing.assert_array_equal(copy.read(), [[10.0, 11.0]])
+    with pytest.raises(ValueError, match="no larger"):
+        copy.follow(wp.zeros(5, dtype=wp.vec2, device="cpu"))
+    with pytest.raises(ValueError, match="dtype"):
+        copy.follow(wp.zeros(1, dtype=float, device="cpu"))
+
+
 @pytest.mark.gpu
 def test_a_refresh_captured_in_a_graph_copies_at_every_replay():
     wp.init()

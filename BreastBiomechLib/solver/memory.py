@@ -28,7 +28,8 @@ MESHING_FIXED_BYTES = int(0.6 * GB)
 _PER_MODEL_NODE = (5 * 12  # displacement, rounding remainder, increment, scratch state, forces
                    + 4 + 8 + 2 * 12  # fictitious mass (and in float64), body forces at the start and over the load
                    + 5 * 12  # stable-step monitor: vector, next vector, probe, base and probe forces
-                   + 12 + 3 * 12)  # distance to rest; relaxation: forces now and last, last state
+                   + 12 + 3 * 12  # distance to rest; relaxation: forces now and last, last state
+                   + 12 + 8)  # a packed batch's results of every set: displacement, masses in float64
 _PER_MODEL_ELEMENT = 3 * 4 + 12  # material table: moduli, fibre stiffness and direction (a row per element at most)
 _PER_MODEL_ELEMENT_TERM = 2 * 4 + 36  # Prony weight and decay, visco state (3x3)
 _PER_ELEMENT = 16 + 48 + 4 + 16 + 4  # connectivity, shape-function derivatives, volume, ANP slots, material row

@@ -935,7 +935,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             kept (:func:`keep_results`). The old arrays and graphs go: CUDA frees them in the
             stream's order, after the work enqueued on them."""
             nonlocal B, members, u, low, du, scratch, forces, anp_sums, anp_tmp, inverted, no_flags, plate_force
-            nonlocal d_materials, d_prony_g, d_prony_decay, visco_state, d_mass, d_damping, every_model, d_moving
+            nonlocal d_materials, d_prony_g, d_prony_decay, visco_state, d_mass, d_damping, d_totals, d_body_start
+            nonlocal d_body_force, every_model, d_moving
             nonlocal kinetic, internal, f_curr, f_last, u_last, stiffness, inertia
             stays = active[members] == 1
             staying = Selection(np.flatnonzero(stays), B, device)
@@ -947,26 +948,45 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             graphs.clear()
             sample_graphs.clear()
 
+            # one array at a time, each old one freed as its new one replaces it: the packing needs
+            # no more memory than the batch plus its largest array's share of the models kept
             take = staying.take
-            u, low, du, scratch, forces = take(u), take(low), take(du), take(scratch), take(forces)
-            anp_sums, anp_tmp, inverted, no_flags = take(anp_sums), take(anp_tmp), take(inverted, 4), take(no_flags, 4)
+            u = take(u)
+            low = take(low)
+            du = take(du)
+            scratch = take(scratch)
+            forces = take(forces)
+            anp_sums = take(anp_sums)
+            anp_tmp = take(anp_tmp)
+            inverted = take(inverted, 4)
+            no_flags = take(no_flags, 4)
             plate_force = take(plate_force, 3 * P)
             table = k.MaterialTable()
             table.row = d_materials.row
             table.mu, table.kappa, table.eta = take(d_materials.mu), take(d_materials.kappa), take(d_materials.eta)
             table.fibre = take(d_materials.fibre)
             d_materials = table
-            d_prony_g, d_prony_decay, visco_state = take(d_prony_g, K), take(d_prony_decay, K), take(visco_state, K)
-            d_mass, d_damping = take(d_mass), take(d_damping)
-            loads.mass, loads.damping, loads.t_total = d_mass, d_damping, take(loads.t_total)
-            loads.body_start, loads.body_force = take(loads.body_start), take(loads.body_force)
+            d_prony_g = take(d_prony_g, K)
+            d_prony_decay = take(d_prony_decay, K)
+            visco_state = take(visco_state, K)
+            d_mass = loads.mass = take(d_mass)
+            d_damping = loads.damping = take(d_damping)
+            d_totals = loads.t_total = take(d_totals)
+            d_body_start = loads.body_start = take(d_body_start)
+            d_body_force = loads.body_force = take(d_body_force)
             constraints.value = take(constraints.value)
             plates.pose = take(plates.pose, P)
-            plates.anchor, plates.touching, plates.force = take(plates.anchor), take(plates.touching), take(plates.force)
-            kinetic, internal = take(kinetic), take(internal)
+            plates.anchor = take(plates.anchor)
+            plates.touching = take(plates.touching)
+            plates.force = take(plates.force)
+            kinetic = take(kinetic)
+            internal = take(internal)
             if relaxation is not None:
-                f_curr, f_last, u_last = take(f_curr), take(f_last), take(u_last)
-                stiffness, inertia = take(stiffness), take(inertia)
+                f_curr = take(f_curr)
+                f_last = take(f_last)
+                u_last = take(u_last)
+                stiffness = take(stiffness)
+                inertia = take(inertia)
                 control.keep(staying, d_damping)
             distance_to_rest.keep(staying)
             monitor.keep(staying, d_mass)
