@@ -2,7 +2,7 @@
 (issue 25, point 4), on the log of ``breastbiomech bench optimise --out FIT``:
 
     python benchmarks/fit_solves.py failures FIT [--device cuda] [--json OUT.json]
-    python benchmarks/fit_solves.py workload FIT [--device cuda] [--pace 1 2 3] [--batches]
+    python benchmarks/fit_solves.py workload FIT [--device cuda] [--pace 1 2 3] [--batches] [--pack-at 0.5]
 
 ``failures`` solves each failed parameter set again with its load 1, 4 and 16 times slower and
 reports when (the fraction of the load) and where (the first inverted element: tissue, surface,
@@ -15,7 +15,8 @@ settings are compared on one workload rather than on optimiser paths that part a
 generation, and prints one JSON line per setting: failures by status, the solves' wall seconds,
 the iterations (median, largest) and the slowest batch; ``--batches`` also prints a line per
 batch (its seconds, each model's iterations and status), which shows how long a batch waits on its
-slowest model.
+slowest model. ``--pack-at F`` sets the fraction of a batch still moving at which the solver packs
+it down to those models (``solver.tled.PACK_AT``; 0 never packs).
 
 The bench's case is rebuilt (``bench_fitting_problem``, default geometry: radii 70/60/65 mm,
 4 mm cubes); nothing is asserted.
@@ -35,7 +36,7 @@ import numpy as np
 from BreastBiomechLib import labels
 from BreastBiomechLib.cli.bench import bench_fitting_problem
 from BreastBiomechLib.optimisation.record import read_evaluations
-from BreastBiomechLib.solver import DynamicRelaxation
+from BreastBiomechLib.solver import DynamicRelaxation, tled
 from BreastBiomechLib.solver.tled import relaxation_load_iterations
 
 PACES = (1, 4, 16)
@@ -101,7 +102,8 @@ def workload(problem, evaluations, batch: int, paces, load: int, most: int, per_
             statuses += [s.status for s in solutions]
             steps += [s.steps for s in solutions if s.ok]
         counts = collections.Counter(statuses)
-        print(json.dumps({"pace": pace, "load_iterations": load, "max_iterations": most, "solves": len(statuses),
+        print(json.dumps({"pace": pace, "pack_at": tled.PACK_AT, "load_iterations": load, "max_iterations": most,
+                          "solves": len(statuses),
                           "failed": len(statuses) - counts["completed"], "statuses": dict(counts),
                           "logged_statuses": logged, "solve_seconds": round(sum(seconds), 2),
                           "slowest_batch_s": round(max(seconds), 2),
@@ -125,9 +127,13 @@ def main() -> None:
     parser.add_argument("--max-iterations", type=int, default=50_000, help="workload: the relaxation's cap")
     parser.add_argument("--first", type=int, default=None, help="workload: only the first this many solves")
     parser.add_argument("--batches", action="store_true", help="workload: a line per batch too")
+    parser.add_argument("--pack-at", type=float, default=None,
+                        help="workload: pack a batch once this fraction of it or less still moves (0: never)")
     args = parser.parse_args()
 
     evaluations = read_evaluations(Path(args.fit) / "evaluations.jsonl")
+    if args.pack_at is not None:
+        tled.PACK_AT = args.pack_at
     # the failures' solves need no similarity: the undeformed image stands in for the measured one
     problem = bench_fitting_problem(args.radii, args.element_mm, device=args.device, measured=False,
                                     pull_corners=not args.stair_corners)
