@@ -24,7 +24,8 @@ kernels' ``_shared`` variants run L = ceil(n / K) threads ("lanes") an element, 
 the entries l, l + L, l + 2L, ... (K from :data:`BreastBiomechLib.solver.tled.MODELS_PER_THREAD`):
 a thread reads and indexes its element's connectivity, derivatives and volume once for its models,
 and neighbouring lanes' models still lie side by side in memory (a batch of 64 steps 10-12 % faster,
-of 16 5 %; H200, docs/benchmarks.md).
+of 16 5 %; H200, docs/benchmarks.md). Once half of a batch has stopped, the solver packs it down to
+the models still moving (:mod:`BreastBiomechLib.solver.packing`): the kernels see a smaller batch.
 """
 
 from __future__ import annotations

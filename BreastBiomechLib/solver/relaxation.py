@@ -334,10 +334,3 @@ class RelaxationControl:
             setattr(s, name, models.take(getattr(s, name)))
         s.damping_now = damping_now
         self.active.follow(s.active)
-
-    def outcome(self) -> dict[str, np.ndarray]:
-        """Per model, once the solve is over: ``converged_at`` (step), ``estimated_error`` (mm),
-        ``lowest`` (the least Rayleigh quotient, 1/s^2; inf if none was taken)."""
-        s = self.state
-        return {"converged_at": s.converged_at.numpy(), "estimated_error": s.estimated_error.numpy(),
-                "lowest": s.lowest.numpy()}

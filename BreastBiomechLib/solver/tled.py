@@ -7,8 +7,8 @@ damping (seed eq. (15)) in increment form, with the displacement accumulated in 
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
 The step loop has no host synchronisation: on CUDA it replays captured graphs of ten steps (two
 for the rest of an interval; graphs per count of moving models: the steps run only the models
-still moving, see ``kernels``). Once half of a relaxation's batch or more has stopped, the batch is
-packed down to the models still moving (``packing``).
+still moving, see ``kernels``). Once half of a batch or more has stopped (converged, or an
+inverted element), the batch is packed down to the models still moving (``packing``).
 Every ``sample_every`` steps a second graph computes the energies, the stable-step estimate, the
 plate forces and, in a relaxation, its decisions (damping, mass scaling, converged models: see
 ``relaxation``), and copies what the host reads back; a relaxation's next steps are enqueued before
@@ -47,9 +47,9 @@ ELEMENT_FORCES_BLOCK = 128  # threads per block of kernels.element_forces (see s
 # pairs of steps per CUDA graph: each graph launch costs the GPU about 1.4 us of its own, 0.7 us a
 # step in graphs of two steps and 0.15 us in graphs of ten (160k tets, H200, docs/benchmarks.md)
 STEP_GRAPH_PAIRS = 5
-# a relaxation packs its batch down to the models still moving once they are this fraction of it or
-# fewer (see :mod:`packing`): a halving at most costs a lone model's tail twice its own layout's
-# reads, and a batch of 16 packs four times at most
+# a batch is packed down to its models still moving once they are this fraction of it or fewer (see
+# :mod:`packing`): a batch of 16 packs four times at most, and a fit's solves took 42.5 s packed at
+# half, 43.4 at three quarters and 44.1 at every stop (H200, docs/benchmarks.md)
 PACK_AT = 0.5
 UNBOUNDED_M = 1e20  # the edge distance (m) of a plate without an edge: never reached
 SPRING_PA_PER_MM_MM2_TO_N_PER_M = 1e-3  # (Pa/mm) x mm^2 = 1e3 N/m^3 x 1e-6 m^2
