@@ -892,8 +892,9 @@ def keep_step_stable(stable_now: wp.array(dtype=wp.float64), inverted: wp.array(
                      rescales: wp.array(dtype=int)):
     """Mass scaling's rule, one thread per model (see :class:`BreastBiomechLib.solver.stability.MassScaling`):
     where the step ``dt`` (s) exceeds ``above`` x the stable step of any model still moving (no
-    inverted element, not converged: a model at rest sets no other's masses), model b's masses are to grow by ``grow[b]`` = max((dt / (``to`` x its stable step))^2, 1)
-    (1 otherwise), its total ``growth`` and ``rescales`` follow, and ``stable`` is its stable step after."""
+    inverted element, not converged: a model at rest sets no other's masses), model b's masses are
+    to grow by ``grow[b]`` = max((dt / (``to`` x its stable step))^2, 1) (1 otherwise), its total
+    ``growth`` and ``rescales`` follow, and ``stable`` is its stable step after."""
     b = wp.tid()
     rescale = int(0)
     for c in range(stable_now.shape[0]):

@@ -111,10 +111,11 @@ class MassScaling:
     """Fictitious masses (kg, float32 ``mass`` as the steps read it, node a of model b at a*B + b)
     kept heavy enough that the time step ``dt`` (s) stays stable as elements stiffen: where some
     model's step exceeds :data:`RESCALE_ABOVE` of its stable step (:class:`StableStepMonitor`;
-    frozen models - an inverted element, or converged - left out), every model whose step exceeds :data:`RESCALE_TO`
-    of its stable step has its masses multiplied by (dt / (RESCALE_TO x stable))^2, which brings the
-    step to that fraction; the static solution does not depend on them. Device work (capturable in
-    a graph); the masses are held in float64 too, so that repeated growth rounds once. After
+    frozen models - an inverted element, or converged - left out), every model whose step exceeds
+    :data:`RESCALE_TO` of its stable step has its masses multiplied by (dt / (RESCALE_TO x
+    stable))^2, which brings the step to that fraction; the static solution does not depend on
+    them. Device work (capturable in a graph); the masses are held in float64 too, so that
+    repeated growth rounds once. After
     :meth:`apply`: :attr:`stable` the stable step of the scaled masses (s), :attr:`growth` each
     model's total growth, :attr:`rescales` how often its masses grew."""
 

@@ -1120,8 +1120,9 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
                                + rescaled)
     elif status == "completed" and ke_ie_end_of_loading > ke_ie_limit:
         statuses = ["energy criterion exceeded"] * n_sets
-        messages = [(f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
-                   f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or damp more")] * n_sets
+        messages = n_sets * [(f"kinetic/internal energy at the end of loading is {ke_ie_end_of_loading:.1%} "
+                              f"(limit {ke_ie_limit:.0%}): the response is not quasi-static; load more slowly or "
+                              "damp more")]
     for b, text in failed.items():  # whatever else happened, these models stopped on an inverted element
         statuses[b], messages[b] = "inverted elements", text
     if mass_scaling:
