@@ -47,8 +47,8 @@ def _words(array: wp.array) -> wp.array:
 
 def holds_models(array: wp.array, n_models: int, per_model: int = 1) -> bool:
     """Whether ``array`` holds ``per_model`` entries per outer index for each of ``n_models``
-    models (a solve's placeholders - one entry where a model has no plates, constraints or Prony
-    terms - do not)."""
+    models; a solve's one-entry stand-ins for arrays a batch does not need (no plates,
+    constraints or Prony terms) do not."""
     span = n_models * per_model
     return span > 0 and array.size >= span and array.shape[-1] % span == 0
 
@@ -73,7 +73,7 @@ class Selection:
     def take(self, array: wp.array, per_model: int = 1) -> wp.array:
         """A new array of the selected models of ``array`` (a batch of :attr:`n_models` with
         ``per_model`` entries per model and outer index), in their order; its last dimension
-        shrinks in proportion. A placeholder (see :func:`holds_models`) is returned as it is."""
+        shrinks in proportion. A one-entry stand-in (see :func:`holds_models`) is returned as it is."""
         if not holds_models(array, self.n_models, per_model):
             return array
         shape = array.shape[:-1] + (array.shape[-1] // self.n_models * len(self),)
