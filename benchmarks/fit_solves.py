@@ -37,7 +37,6 @@ from BreastBiomechLib import labels
 from BreastBiomechLib.cli.bench import bench_fitting_problem
 from BreastBiomechLib.optimisation.record import read_evaluations
 from BreastBiomechLib.solver import DynamicRelaxation, tled
-from BreastBiomechLib.solver.tled import relaxation_load_iterations
 
 PACES = (1, 4, 16)
 _AT = re.compile(r"at step (\d+) .* first element (\d+)")
@@ -46,7 +45,7 @@ _AT = re.compile(r"at step (\d+) .* first element (\d+)")
 def load_iterations(problem, z, relaxation: DynamicRelaxation) -> int:
     """The load iterations the solver gives the set at unit position ``z`` of ``problem``."""
     materials = problem.space.element_materials(z, problem.tissue).long_term()
-    return int(relaxation_load_iterations(problem.model, [materials], [problem.model.loading.plates], relaxation)[0])
+    return int(tled.relaxation_load_iterations(problem.model, [materials], [problem.model.loading.plates], relaxation)[0])
 
 
 def failures(problem, evaluations, batch: int, out: str | None) -> None:
