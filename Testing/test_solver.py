@@ -222,11 +222,12 @@ def test_material_table_gives_each_element_its_materials_in_every_set():
         with wp.ScopedDevice("cpu"):
             table = material_table(sets)
         row = table.row.numpy()
-        assert row.max() + 1 == rows and table.mu.shape[0] == rows * len(sets)
+        values = table.values.numpy()
+        assert row.max() + 1 == rows and values.shape == (rows * len(sets), 6)
         for b, m in enumerate(sets):
             entry = row * len(sets) + b
-            for name in ("mu", "kappa", "eta", "fibre"):
-                np.testing.assert_array_equal(getattr(table, name).numpy()[entry], getattr(m, name).astype(np.float32))
+            for name, columns in (("mu", 0), ("kappa", 1), ("eta", 2), ("fibre", slice(3, 6))):
+                np.testing.assert_array_equal(values[entry, columns], getattr(m, name).astype(np.float32))
 
 
 def test_sets_of_one_tissue_labelling_are_grouped_per_tissue_as_element_by_element():
@@ -265,7 +266,7 @@ def test_sets_of_one_tissue_labelling_are_grouped_per_tissue_as_element_by_eleme
             np.testing.assert_array_equal(got, expected)
         with wp.ScopedDevice("cpu"):
             got, expected = material_table(sets), material_table(plain)
-        for name in ("row", "mu", "kappa", "eta", "fibre"):
+        for name in ("row", "values"):
             np.testing.assert_array_equal(getattr(got, name).numpy(), getattr(expected, name).numpy())
     assert material_table(batches[1][:1]).row.numpy().max() + 1 == 3  # tissues 0 and 1: one row
     m = batches[0][0]
@@ -366,7 +367,7 @@ def test_a_thread_computing_several_models_gives_the_per_model_kernels_answers(m
     variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu, eta=eta, fibre=(0, 0, 1)))
                 for e, nu, eta in [(8e3, 0.45, 0.0), (12e3, 0.499, 2e3), (10e3, 0.46, 0.0), (6e3, 0.4999, 0.0),
                                    (15e3, 0.495, 5e3), (9e3, 0.48, 0.0), (11e3, 0.497, 1e3)]]
-    motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (1.5, 2.0, 2.5, 1.0, 3.0, 1.1 * SIDE, 2.2)]
+    motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (1.5, 2.0, 2.5, 1.0, 4.5, 1.1 * SIDE, 2.2)]
     visco = [ElementMaterials.uniform(len(mesh.tets), Material(e, 0.45, prony=((0.3, 0.05),))) for e in (8e3, 1e4, 12e3)]
     runs = {}
     for per_thread in (1, 3):
@@ -840,10 +841,10 @@ def test_a_batch_packed_down_to_its_moving_models_gives_the_unpacked_batchs_answ
     mesh = _block(3)
     model = _compression_model(mesh, Material(E, 0.49), strain=0.2)
     variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu, eta=eta, fibre=(1, 0, 0)))
-                for e, nu, eta in [(8e3, 0.4999, 0.0), (12e3, 0.4997, 2e3), (10e3, 0.3, 0.0), (9e3, 0.4, 0.0),
+                for e, nu, eta in [(8e3, 0.4999, 0.0), (12e3, 0.4999, 2e3), (10e3, 0.3, 0.0), (9e3, 0.4, 0.0),
                                    (11e3, 0.4993, 0.0)]]
-    # converged at 3 400, 2 400, 1 400 and 1 400 iterations; the fourth inverts before the first sample
-    motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (2.0, 3.0, 1.0, 1.1 * SIDE, 2.5)]
+    # converged at 2 000, 3 000, 1 400 and 1 400 iterations; the fourth inverts before the first sample
+    motions = [np.array([[0, 0, 0], [0, 0, -d]]) for d in (2.0, 4.0, 1.0, 1.1 * SIDE, 2.5)]
     relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.001)
     packed_sizes = []
     take = packing.Selection.take
@@ -860,7 +861,7 @@ def test_a_batch_packed_down_to_its_moving_models_gives_the_unpacked_batchs_answ
     unpacked = solve_batch(model, variants, plate_displacements=motions, device="cpu", relaxation=relaxation)
     assert not packed_sizes
     assert [p.status for p in packed] == ["completed"] * 3 + ["inverted elements", "completed"]
-    assert [p.steps for p in packed[:3]] == [3400, 2400, 1400]
+    assert [p.steps for p in packed[:3]] == [2000, 3000, 1400]
     for p, q in zip(packed, unpacked):
         assert (p.status, p.message, p.steps) == (q.status, q.message, q.steps)
         np.testing.assert_array_equal(p.displacement, q.displacement)

@@ -84,9 +84,64 @@ def isochoric_stress(C: wp.mat33, Cinv: wp.mat33, J: float, mu: float, eta: floa
 
 
 @wp.func
-def volumetric_stress(Cinv: wp.mat33, J: float, kappa: float) -> wp.mat33:
-    """Volumetric second Piola-Kirchhoff stress 2 dW_vol/dC, W_vol = kappa/2 (J - 1)^2."""
-    return kappa * J * (J - 1.0) * Cinv
+def relaxing_stress(F: wp.mat33, J: float, mu: float, eta: float, a: wp.vec3, first: int, n_terms: int,
+                    prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
+                    visco_state: wp.array(dtype=wp.mat33), update_state: int) -> wp.mat33:
+    """sum_i g_i Q_i (Pa, second Piola-Kirchhoff) of an element's ``n_terms`` Prony terms, stored from
+    ``first`` on, with dQ_i/dt = (S_iso - Q_i) / tau_i integrated exactly for S_iso (of F, det F =
+    ``J``: :func:`isochoric_stress`) constant over the step, Q_i <- d_i Q_i + (1 - d_i) S_iso,
+    d_i = exp(-dt / tau_i), where ``update_state`` is set."""
+    C = wp.transpose(F) * F
+    S_iso = isochoric_stress(C, wp.inverse(C), J, mu, eta, a)
+    total = wp.mat33(0.0)
+    for i in range(n_terms):
+        slot = first + i
+        Q = visco_state[slot]
+        if update_state != 0:
+            Q = prony_decay[slot] * Q + (1.0 - prony_decay[slot]) * S_iso
+            visco_state[slot] = Q
+        total = total + prony_g[slot] * Q
+    return total
+
+
+@wp.func
+def cofactor(F: wp.mat33) -> wp.mat33:
+    """cof F = det(F) F^-T: its rows are the cross products of F's rows (1-2, 2-0, 0-1), and det F
+    is the dot product of F's first row with the first of these."""
+    r0 = wp.vec3(F[0, 0], F[0, 1], F[0, 2])
+    r1 = wp.vec3(F[1, 0], F[1, 1], F[1, 2])
+    r2 = wp.vec3(F[2, 0], F[2, 1], F[2, 2])
+    return wp.matrix_from_rows(wp.cross(r1, r2), wp.cross(r2, r0), wp.cross(r0, r1))
+
+
+@wp.func
+def scaled_first_piola(F: wp.mat33, cof: wp.mat33, J: float, Jm: float, scale: float, mu: float, kappa: float,
+                       eta: float, a: wp.vec3, v0: float) -> wp.mat33:
+    """V0 P(Fbar) (N m): the first Piola-Kirchhoff stress (Pa) times the element's volume ``v0`` (m^3) at
+    Fbar = ``scale`` F, det Fbar = ``Jm`` (ANP's dilatation; ``scale`` = (Jm / J)^(1/3), 1 and
+    ``Jm`` = J without ANP), given F, its cofactor ``cof`` and J = det F, for
+    W = mu/2 (I1bar - 3) + kappa/2 (J - 1)^2 + eta/2 (I4bar - 1)^2 (fibre ``a``, unit).
+
+    P = Fbar S with S = 2 dW/dC, written with Fbar C^-1 = Fbar^-T = cof F / (scale J) so that
+    neither C nor its inverse is formed: P = mu Jm^(-2/3) (Fbar - I1 / 3 Fbar^-T) + kappa Jm (Jm - 1)
+    Fbar^-T + 2 eta (Jm^(-2/3) I4 - 1) Jm^(-2/3) (Fbar a (x) a - I4 / 3 Fbar^-T), I1 = |Fbar|^2 and
+    I4 = |Fbar a|^2. This is Fbar times :func:`isochoric_stress` plus the volumetric stress kappa Jm
+    (Jm - 1) C^-1 in about half the arithmetic (the element kernels are bound by their instruction
+    count in batches, docs/benchmarks.md), and the volumetric part takes ANP's Jm as it is rather
+    than det Fbar recomputed (which differs from it by float32 round-off, times kappa)."""
+    j23 = wp.pow(Jm, -2.0 / 3.0)
+    inverse = 1.0 / (scale * J)  # Fbar^-T = inverse cof F
+    shear = mu * j23
+    # times F and times cof F; at F = I exactly shear and -shear (I1 / 3 = 1), so no stress at rest
+    P = (shear * scale) * F
+    across = (kappa * Jm * (Jm - 1.0) - shear * (scale * scale * wp.ddot(F, F) / 3.0)) * inverse
+    if eta > 0.0:
+        fa = scale * (F * a)
+        i4 = wp.dot(fa, fa)
+        c = 2.0 * eta * (j23 * i4 - 1.0) * j23
+        P = P + c * wp.outer(fa, a)
+        across = across - c * (i4 / 3.0) * inverse
+    return v0 * (P + across * cof)
 
 
 @wp.func
@@ -155,24 +210,43 @@ def force_at(forces: wp.array2d(dtype=float), i: int) -> wp.vec3:
     return wp.vec3(forces[0, i], forces[1, i], forces[2, i])
 
 
+material_record = wp.types.vector(length=6, dtype=float)
+"""One model's material in a :class:`MaterialTable` row: mu, kappa, eta (Pa), the fibre's unit vector
+(LPS axes); one record, so that a thread finds it with one address computation (the element kernels
+are bound by their instruction count in batches, docs/benchmarks.md)."""
+
+
 @wp.struct
 class MaterialTable:
     """The elements' materials as the kernels read them: a table of rows shared by the elements
     whose materials agree in every model of the batch (a tissue, mostly), ``row[e]`` element e's;
-    row r's entry for model b at ``r * B + b`` of ``mu``, ``kappa``, ``eta`` (Pa) and ``fibre``
-    (unit vector, LPS axes). The threads of a tissue's elements then read a few cached entries,
-    not one each (about 9 % of the element kernel's time at 2M tets, docs/benchmarks.md)."""
+    row r's :data:`material_record` for model b at ``values[r * B + b]``. The threads of a tissue's
+    elements then read a few cached entries, not one each (about 9 % of the element kernel's time
+    at 2M tets, docs/benchmarks.md)."""
     row: wp.array(dtype=int)
-    mu: wp.array(dtype=float)
-    kappa: wp.array(dtype=float)
-    eta: wp.array(dtype=float)
-    fibre: wp.array(dtype=wp.vec3)
+    values: wp.array(dtype=material_record)
+
+
+@wp.struct
+class ElementMaterial:
+    """One element's material for one model, as :func:`material_of` reads it (Pa; fibre a unit
+    vector, LPS axes)."""
+    mu: float
+    kappa: float
+    eta: float
+    fibre: wp.vec3
 
 
 @wp.func
-def material_entry(materials: MaterialTable, e: int, n_models: int, b: int) -> int:
-    """Element e's entry of model b in the table's arrays."""
-    return materials.row[e] * n_models + b
+def material_of(materials: MaterialTable, e: int, n_models: int, b: int) -> ElementMaterial:
+    """Element e's material in model b."""
+    v = materials.values[materials.row[e] * n_models + b]
+    m = ElementMaterial()
+    m.mu = v[0]
+    m.kappa = v[1]
+    m.eta = v[2]
+    m.fibre = wp.vec3(v[3], v[4], v[5])
+    return m
 
 
 # ANP (average nodal pressure) modes of the element kernels
@@ -201,7 +275,7 @@ def model_volume_change(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: in
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     change = (wp.determinant(F) - 1.0) * v0
     if anp == ANP_ACROSS_MATERIALS:
-        change = materials.kappa[material_entry(materials, e, n_models, b)] * change
+        change = material_of(materials, e, n_models, b).kappa * change
     wp.atomic_add(anp_sums, s[0] * n_models + b, change)
     wp.atomic_add(anp_sums, s[1] * n_models + b, change)
     wp.atomic_add(anp_sums, s[2] * n_models + b, change)
@@ -232,7 +306,7 @@ def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slot
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
     change = (wp.determinant(F) - 1.0) * v0
     if anp == ANP_ACROSS_MATERIALS:
-        change = materials.kappa[material_entry(materials, e, n_models, b)] * change
+        change = material_of(materials, e, n_models, b).kappa * change
     wp.atomic_add(anp_sums, s[0] * n_models + b, change)
     wp.atomic_add(anp_sums, s[1] * n_models + b, change)
     wp.atomic_add(anp_sums, s[2] * n_models + b, change)
@@ -287,8 +361,7 @@ def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: i
     # every read that does not depend on another first, so that they are in flight together (a
     # frozen model's flag too: tested once the element's reads are on their way)
     frozen = inverted[4 * b + 3]
-    r = material_entry(materials, e, n_models, b)
-    mu_e, kappa_e, eta_e, fibre_e = materials.mu[r], materials.kappa[r], materials.eta[r], materials.fibre[r]
+    m = material_of(materials, e, n_models, b)
     mean = float(0.0)  # of the slots' sums per volume
     if anp != ANP_OFF:
         s = element_slots(tets, slots, slots_are_nodes, e)
@@ -299,30 +372,24 @@ def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: i
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     if frozen != 0:
         return
-    J = wp.determinant(F)
+    cof = cofactor(F)
+    J = F[0, 0] * cof[0, 0] + F[0, 1] * cof[0, 1] + F[0, 2] * cof[0, 2]
     if J <= 0.0:
         record_inversion(inverted, b, e, clock[0])
         return
+    Jm = J
+    scale = float(1.0)
     if anp != ANP_OFF:
         # across materials the sums are pressures; within, volume changes (divided by 1, exactly)
-        Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, kappa_e, 1.0) + 1.0
+        Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, m.kappa, 1.0) + 1.0
         if Jm <= 0.0:
             record_inversion(inverted, b, e, clock[0])
             return
-        F = wp.pow(Jm / J, 1.0 / 3.0) * F
-        J = wp.determinant(F)
-    C = wp.transpose(F) * F
-    Cinv = wp.inverse(C)
-    S_iso = isochoric_stress(C, Cinv, J, mu_e, eta_e, fibre_e)
-    S = S_iso + volumetric_stress(Cinv, J, kappa_e)
-    for i in range(n_terms):
-        slot = j * n_terms + i
-        Q = visco_state[slot]
-        if update_state != 0:
-            Q = prony_decay[slot] * Q + (1.0 - prony_decay[slot]) * S_iso
-            visco_state[slot] = Q
-        S = S - prony_g[slot] * Q
-    P = v0 * (F * S)
+        scale = wp.pow(Jm / J, 1.0 / 3.0)
+    P = scaled_first_piola(F, cof, J, Jm, scale, m.mu, m.kappa, m.eta, m.fibre, v0)
+    if n_terms > 0:
+        P = P - v0 * (scale * F) * relaxing_stress(scale * F, Jm, m.mu, m.eta, m.fibre, j * n_terms, n_terms,
+                                                    prony_g, prony_decay, visco_state, update_state)
     add_force(forces, n0 * n_models + b, P * d0)
     add_force(forces, n1 * n_models + b, P * d1)
     add_force(forces, n2 * n_models + b, P * d2)
@@ -368,8 +435,7 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     frozen = inverted[4 * b + 3]
     n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
     d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-    r = material_entry(materials, e, n_models, b)
-    mu_e, kappa_e, eta_e, fibre_e = materials.mu[r], materials.kappa[r], materials.eta[r], materials.fibre[r]
+    m = material_of(materials, e, n_models, b)
     v0 = vol0[e]
     mean = float(0.0)  # of the slots' sums per volume
     if anp != ANP_OFF:
@@ -381,30 +447,24 @@ def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     if frozen != 0:
         return
-    J = wp.determinant(F)
+    cof = cofactor(F)
+    J = F[0, 0] * cof[0, 0] + F[0, 1] * cof[0, 1] + F[0, 2] * cof[0, 2]
     if J <= 0.0:
         record_inversion(inverted, b, e, clock[0])
         return
+    Jm = J
+    scale = float(1.0)
     if anp != ANP_OFF:
         # across materials the sums are pressures; within, volume changes (divided by 1, exactly)
-        Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, kappa_e, 1.0) + 1.0
+        Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, m.kappa, 1.0) + 1.0
         if Jm <= 0.0:
             record_inversion(inverted, b, e, clock[0])
             return
-        F = wp.pow(Jm / J, 1.0 / 3.0) * F
-        J = wp.determinant(F)
-    C = wp.transpose(F) * F
-    Cinv = wp.inverse(C)
-    S_iso = isochoric_stress(C, Cinv, J, mu_e, eta_e, fibre_e)
-    S = S_iso + volumetric_stress(Cinv, J, kappa_e)
-    for i in range(n_terms):
-        slot = j * n_terms + i
-        Q = visco_state[slot]
-        if update_state != 0:
-            Q = prony_decay[slot] * Q + (1.0 - prony_decay[slot]) * S_iso
-            visco_state[slot] = Q
-        S = S - prony_g[slot] * Q
-    P = v0 * (F * S)
+        scale = wp.pow(Jm / J, 1.0 / 3.0)
+    P = scaled_first_piola(F, cof, J, Jm, scale, m.mu, m.kappa, m.eta, m.fibre, v0)
+    if n_terms > 0:
+        P = P - v0 * (scale * F) * relaxing_stress(scale * F, Jm, m.mu, m.eta, m.fibre, j * n_terms, n_terms,
+                                                    prony_g, prony_decay, visco_state, update_state)
     add_force(forces, n0 * n_models + b, P * d0)
     add_force(forces, n1 * n_models + b, P * d1)
     add_force(forces, n2 * n_models + b, P * d2)
@@ -788,9 +848,8 @@ def internal_energy(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhd
         F = deformation_gradient(u, b, energy.shape[0], tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3],
                                  dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
         if wp.determinant(F) > 0.0:
-            r = material_entry(materials, e, energy.shape[0], b)
-            value = vol0[e] * strain_energy_density(F, materials.mu[r], materials.kappa[r], materials.eta[r],
-                                                    materials.fibre[r])
+            m = material_of(materials, e, energy.shape[0], b)
+            value = vol0[e] * strain_energy_density(F, m.mu, m.kappa, m.eta, m.fibre)
     wp.tile_atomic_add(energy, wp.tile_sum(wp.tile(value)), offset=b)
 
 

@@ -287,16 +287,11 @@ def material_table(materials: list[ElementMaterials]) -> k.MaterialTable:
     first = np.zeros(int(row.max()) + 1, np.int64)
     first[row] = np.arange(len(row))  # one element of each row
 
-    def rows(per_set):
-        values = np.stack([np.asarray(v)[first] for v in per_set], axis=1)  # (R, B, ...)
-        return np.ascontiguousarray(values.reshape((-1,) + values.shape[2:]), dtype=f32)
-
+    records = np.stack([np.column_stack([m.mu[first], m.kappa[first], m.eta[first], m.fibre[first]])
+                        for m in materials], axis=1)  # (R, B, 6)
     table = k.MaterialTable()
     table.row = wp.array(row.astype(np.int32), dtype=int)
-    table.mu = wp.array(rows([m.mu for m in materials]), dtype=float)
-    table.kappa = wp.array(rows([m.kappa for m in materials]), dtype=float)
-    table.eta = wp.array(rows([m.eta for m in materials]), dtype=float)
-    table.fibre = wp.array(rows([m.fibre for m in materials]), dtype=wp.vec3)
+    table.values = wp.array(np.ascontiguousarray(records.reshape(-1, 6), dtype=f32), dtype=k.material_record)
     return table
 
 
@@ -962,9 +957,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             no_flags = take(no_flags, 4)
             plate_force = take(plate_force, 3 * P)
             table = k.MaterialTable()
-            table.row = d_materials.row
-            table.mu, table.kappa, table.eta = take(d_materials.mu), take(d_materials.kappa), take(d_materials.eta)
-            table.fibre = take(d_materials.fibre)
+            table.row, table.values = d_materials.row, take(d_materials.values)
             d_materials = table
             d_prony_g = take(d_prony_g, K)
             d_prony_decay = take(d_prony_decay, K)
