@@ -194,6 +194,63 @@ def test_anp_slots_number_each_node_and_material_as_sorting_would():
         assert len(volume) == len(keys)
 
 
+def _strain_energy(F, mu, kappa, eta, fibre):
+    """W(F) (Pa) of the solver's (transversely isotropic) neo-Hookean material, in float64."""
+    J = np.linalg.det(F)
+    C = F.T @ F
+    I4bar = J ** (-2 / 3) * fibre @ C @ fibre
+    return mu / 2 * (J ** (-2 / 3) * np.trace(C) - 3) + kappa / 2 * (J - 1) ** 2 + eta / 2 * (I4bar - 1) ** 2
+
+
+def test_element_stress_is_the_energys_derivative_at_anps_scaled_deformation():
+    """The element kernels' first Piola-Kirchhoff stress (``kernels.scaled_first_piola``, P = a F +
+    b cof F, no C^-1 formed) times the volume equals V0 dW/dF at Fbar = (Jm / J)^(1/3) F (ANP's
+    deformation, det Fbar = Jm), by central differences of W in float64, for random deformations
+    with and without fibres, within float32 round-off of the largest stress; at F = I it is
+    exactly zero (no force at rest)."""
+    import warp as wp
+
+    from BreastBiomechLib.solver import kernels as k
+
+    @wp.kernel
+    def stress(F: wp.array(dtype=wp.mat33), Jm: wp.array(dtype=float), material: wp.vec4, fibre: wp.vec3,
+               v0: float, out: wp.array(dtype=wp.mat33)):
+        i = wp.tid()
+        cof = k.cofactor(F[i])
+        J = wp.determinant(F[i])
+        out[i] = k.scaled_first_piola(F[i], cof, J, Jm[i], wp.pow(Jm[i] / J, 1.0 / 3.0), material[0], material[1],
+                                      material[2], fibre, v0)
+
+    rng = np.random.default_rng(7)
+    F = np.eye(3) + 0.25 * rng.standard_normal((40, 3, 3))
+    F = F[np.linalg.det(F) > 0.3][:20]
+    Jm = np.linalg.det(F) * rng.uniform(0.9, 1.1, len(F))
+    F = np.concatenate([[np.eye(3)], F])
+    Jm = np.concatenate([[1.0], Jm])
+    fibre = np.array([0.48, 0.6, 0.64])
+    mu, kappa, v0 = 3.0e3, 1.5e5, 2.0e-9
+    for eta in (0.0, 4.0e3):
+        got = wp.zeros(len(F), dtype=wp.mat33, device="cpu")
+        wp.launch(stress, len(F), [wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu"),
+                                   wp.array(Jm.astype(np.float32), dtype=float, device="cpu"),
+                                   wp.vec4(mu, kappa, eta, 0.0), wp.vec3(*fibre.astype(np.float32)), v0, got],
+                  device="cpu")
+        got = got.numpy().astype(np.float64)
+        assert np.all(got[0] == 0.0)
+        h = 1e-6
+        for i in range(1, len(F)):
+            Fbar = (Jm[i] / np.linalg.det(F[i])) ** (1 / 3) * F[i]
+            expected = np.zeros((3, 3))
+            for r in range(3):
+                for c in range(3):
+                    step = np.zeros((3, 3))
+                    step[r, c] = h
+                    expected[r, c] = (_strain_energy(Fbar + step, mu, kappa, eta, fibre)
+                                      - _strain_energy(Fbar - step, mu, kappa, eta, fibre)) / (2 * h)
+            expected *= v0
+            assert np.abs(got[i] - expected).max() <= 2e-5 * np.abs(expected).max()
+
+
 def test_material_table_gives_each_element_its_materials_in_every_set():
     """The kernels' material table (one row per group of elements whose materials agree in every
     set of the batch) gives each element of each set its own float32 mu, kappa, eta and fibre,
