@@ -130,9 +130,11 @@ def scaled_first_piola(F: wp.mat33, cof: wp.mat33, J: float, Jm: float, scale: f
     neither C nor its inverse is formed: P = mu Jm^(-2/3) (Fbar - I1 / 3 Fbar^-T) + kappa Jm (Jm - 1)
     Fbar^-T + 2 eta (Jm^(-2/3) I4 - 1) Jm^(-2/3) (Fbar a (x) a - I4 / 3 Fbar^-T), I1 = |Fbar|^2 and
     I4 = |Fbar a|^2. This is Fbar times :func:`isochoric_stress` plus the volumetric stress kappa Jm
-    (Jm - 1) C^-1 in about half the arithmetic (the element kernels are bound by their instruction
-    count in batches, docs/benchmarks.md), and the volumetric part takes ANP's Jm as it is rather
-    than det Fbar recomputed (which differs from it by float32 round-off, times kappa)."""
+    (Jm - 1) C^-1 in less arithmetic (the element kernel alone 8.8 against 9.3-10.0 us at 160k tets,
+    a lone model's step 4-5 % faster; batches, not bound by this arithmetic, within 1 %; H200,
+    docs/benchmarks.md), and the
+    volumetric part takes ANP's Jm as it is rather than det Fbar recomputed (which differs from it
+    by float32 round-off, times kappa)."""
     j23 = wp.pow(Jm, -2.0 / 3.0)
     inverse = 1.0 / (scale * J)  # Fbar^-T = inverse cof F
     shear = mu * j23
@@ -216,8 +218,7 @@ def force_at(forces: wp.array2d(dtype=float), i: int) -> wp.vec3:
 
 material_record = wp.types.vector(length=6, dtype=float)
 """One model's material in a :class:`MaterialTable` row: mu, kappa, eta (Pa), the fibre's unit vector
-(LPS axes); one record, so that a thread finds it with one address computation (the element kernels
-are bound by their instruction count in batches, docs/benchmarks.md)."""
+(LPS axes); one record, so that a thread finds it with one address computation, not four."""
 
 
 @wp.struct
