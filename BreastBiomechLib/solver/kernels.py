@@ -132,9 +132,8 @@ def scaled_first_piola(F: wp.mat33, cof: wp.mat33, J: float, Jm: float, scale: f
     I4 = |Fbar a|^2. This is Fbar times :func:`isochoric_stress` plus the volumetric stress kappa Jm
     (Jm - 1) C^-1 in less arithmetic (the element kernel alone 8.8 against 9.3-10.0 us at 160k tets,
     a lone model's step 4-5 % faster; batches, not bound by this arithmetic, within 1 %; H200,
-    docs/benchmarks.md), and the
-    volumetric part takes ANP's Jm as it is rather than det Fbar recomputed (which differs from it
-    by float32 round-off, times kappa)."""
+    docs/benchmarks.md), and the volumetric part takes ANP's Jm as it is rather than det Fbar
+    recomputed (which differs from it by float32 round-off, times kappa)."""
     j23 = wp.pow(Jm, -2.0 / 3.0)
     inverse = 1.0 / (scale * J)  # Fbar^-T = inverse cof F
     shear = mu * j23
