@@ -1,5 +1,6 @@
-"""The solver's CUDA kernels as compiled, without a GPU: registers and the static instruction mix of
-each kernel (issue 25), so that a change to a kernel can be read before device time is spent on it.
+"""The solver's CUDA kernels compiled without a GPU: registers and static instructions per kernel.
+
+Issue 25: a change to a kernel can be read before device time is spent on it.
 
     python benchmarks/kernel_registers.py [--arch 90] [--kernels element_forces nodal_pressure ...]
 
