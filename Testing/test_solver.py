@@ -213,13 +213,12 @@ def test_element_stress_is_the_energys_derivative_at_anps_scaled_deformation():
     from BreastBiomechLib.solver import kernels as k
 
     @wp.kernel
-    def stress(F: wp.array(dtype=wp.mat33), Jm: wp.array(dtype=float), material: wp.vec4, fibre: wp.vec3,
-               v0: float, out: wp.array(dtype=wp.mat33)):
+    def stress(F: wp.array(dtype=wp.mat33), Jm: wp.array(dtype=float), mu: float, kappa: float, eta: float,
+               fibre: wp.vec3, v0: float, out: wp.array(dtype=wp.mat33)):
         i = wp.tid()
         cof = k.cofactor(F[i])
         J = wp.determinant(F[i])
-        out[i] = k.scaled_first_piola(F[i], cof, J, Jm[i], wp.pow(Jm[i] / J, 1.0 / 3.0), material[0], material[1],
-                                      material[2], fibre, v0)
+        out[i] = k.scaled_first_piola(F[i], cof, J, Jm[i], wp.pow(Jm[i] / J, 1.0 / 3.0), mu, kappa, eta, fibre, v0)
 
     rng = np.random.default_rng(7)
     F = np.eye(3) + 0.25 * rng.standard_normal((40, 3, 3))
@@ -233,7 +232,7 @@ def test_element_stress_is_the_energys_derivative_at_anps_scaled_deformation():
         got = wp.zeros(len(F), dtype=wp.mat33, device="cpu")
         wp.launch(stress, len(F), [wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu"),
                                    wp.array(Jm.astype(np.float32), dtype=float, device="cpu"),
-                                   wp.vec4(mu, kappa, eta, 0.0), wp.vec3(*fibre.astype(np.float32)), v0, got],
+                                   mu, kappa, eta, wp.vec3(*fibre.astype(np.float32)), v0, got],
                   device="cpu")
         got = got.numpy().astype(np.float64)
         assert np.all(got[0] == 0.0)
@@ -280,11 +279,11 @@ def test_material_table_gives_each_element_its_materials_in_every_set():
             table = material_table(sets)
         row = table.row.numpy()
         values = table.values.numpy()
-        assert row.max() + 1 == rows and values.shape == (rows * len(sets), 6)
+        assert row.max() + 1 == rows and values.shape == (rows * len(sets),)
         for b, m in enumerate(sets):
             entry = row * len(sets) + b
-            for name, columns in (("mu", 0), ("kappa", 1), ("eta", 2), ("fibre", slice(3, 6))):
-                np.testing.assert_array_equal(values[entry, columns], getattr(m, name).astype(np.float32))
+            for name in ("mu", "kappa", "eta", "fibre"):
+                np.testing.assert_array_equal(values[name][entry], getattr(m, name).astype(np.float32))
 
 
 def test_sets_of_one_tissue_labelling_are_grouped_per_tissue_as_element_by_element():

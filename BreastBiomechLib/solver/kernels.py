@@ -215,42 +215,31 @@ def force_at(forces: wp.array2d(dtype=float), i: int) -> wp.vec3:
     return wp.vec3(forces[0, i], forces[1, i], forces[2, i])
 
 
-material_record = wp.types.vector(length=6, dtype=float)
-"""One model's material in a :class:`MaterialTable` row: mu, kappa, eta (Pa), the fibre's unit vector
-(LPS axes); one record, so that a thread finds it with one address computation, not four."""
-
-
-@wp.struct
-class MaterialTable:
-    """The elements' materials as the kernels read them: a table of rows shared by the elements
-    whose materials agree in every model of the batch (a tissue, mostly), ``row[e]`` element e's;
-    row r's :data:`material_record` for model b at ``values[r * B + b]``. The threads of a tissue's
-    elements then read a few cached entries, not one each (about 9 % of the element kernel's time
-    at 2M tets, docs/benchmarks.md)."""
-    row: wp.array(dtype=int)
-    values: wp.array(dtype=material_record)
-
-
 @wp.struct
 class ElementMaterial:
-    """One element's material for one model, as :func:`material_of` reads it (Pa; fibre a unit
-    vector, LPS axes)."""
+    """One model's material in a :class:`MaterialTable` row: mu, kappa, eta (Pa), the fibre's unit
+    vector (LPS axes); one record, so that a thread finds it with one address computation, not four."""
     mu: float
     kappa: float
     eta: float
     fibre: wp.vec3
 
 
+@wp.struct
+class MaterialTable:
+    """The elements' materials as the kernels read them: a table of rows shared by the elements
+    whose materials agree in every model of the batch (a tissue, mostly), ``row[e]`` element e's;
+    row r's :class:`ElementMaterial` for model b at ``values[r * B + b]``. The threads of a tissue's
+    elements then read a few cached entries, not one each (about 9 % of the element kernel's time
+    at 2M tets, docs/benchmarks.md)."""
+    row: wp.array(dtype=int)
+    values: wp.array(dtype=ElementMaterial)
+
+
 @wp.func
 def material_of(materials: MaterialTable, e: int, n_models: int, b: int) -> ElementMaterial:
     """Element e's material in model b."""
-    v = materials.values[materials.row[e] * n_models + b]
-    m = ElementMaterial()
-    m.mu = v[0]
-    m.kappa = v[1]
-    m.eta = v[2]
-    m.fibre = wp.vec3(v[3], v[4], v[5])
-    return m
+    return materials.values[materials.row[e] * n_models + b]
 
 
 # ANP (average nodal pressure) modes of the element kernels

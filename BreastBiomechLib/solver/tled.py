@@ -288,10 +288,11 @@ def material_table(materials: list[ElementMaterials]) -> k.MaterialTable:
     first[row] = np.arange(len(row))  # one element of each row
 
     records = np.stack([np.column_stack([m.mu[first], m.kappa[first], m.eta[first], m.fibre[first]])
-                        for m in materials], axis=1)  # (R, B, 6)
+                        for m in materials], axis=1)  # (R, B, 6): mu, kappa, eta, fibre
+    records = np.ascontiguousarray(records.reshape(-1, 6), dtype=f32).view(k.ElementMaterial.numpy_dtype())
     table = k.MaterialTable()
     table.row = wp.array(row.astype(np.int32), dtype=int)
-    table.values = wp.array(np.ascontiguousarray(records.reshape(-1, 6), dtype=f32), dtype=k.material_record)
+    table.values = wp.array(records.reshape(-1), dtype=k.ElementMaterial)
     return table
 
 
