@@ -30,6 +30,8 @@ the models still moving (:mod:`BreastBiomechLib.solver.packing`): the kernels se
 
 from __future__ import annotations
 
+import inspect
+
 import warp as wp
 
 # CUDA builds of this module use fast math (approximate division, square root and powers, denormals
@@ -667,7 +669,18 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
     return x
 
 
-@wp.kernel
+# registers per thread the CUDA build of advance_nodes may use: nvcc gives it 53, which lets an SM
+# hold 4 blocks of 256 threads (50 % occupancy); at 48 it holds 5. The kernel is bound by the latency
+# of its reads (in a batch of 64 at 160k tets: 19 % of the DRAM bandwidth, 54 of every 67 cycles a
+# warp waits on a load, Nsight Compute, H200), so more warps in flight hide more of it: batches of 64
+# step 2.6 % faster, of 16 1.5 %, a lone 160k-tet model 0.7 %, 2M tets 0.7 % (H200,
+# docs/benchmarks.md; at 40, with spills, batches 14 % slower). warp before 1.17 lacks the option.
+NODE_KERNEL_REGISTERS = 48
+NODE_KERNEL_OPTIONS = ({"cuda_max_registers": NODE_KERNEL_REGISTERS}
+                       if "cuda_max_registers" in inspect.signature(wp.kernel).parameters else {})
+
+
+@wp.kernel(**NODE_KERNEL_OPTIONS)
 def advance_nodes(u: wp.array(dtype=wp.vec3), low: wp.array(dtype=wp.vec3), du: wp.array(dtype=wp.vec3),
                   forces: wp.array2d(dtype=float), anp_sums: wp.array(dtype=float),
                   loads: NodeLoads, constraints: NodeConstraints, plates: PlateContact,
