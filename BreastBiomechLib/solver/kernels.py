@@ -674,7 +674,8 @@ def touch_plate(x: NodeState, node: int, q: int, state: int, s: float, contact: 
 # of its reads (in a batch of 64 at 160k tets: 19 % of the DRAM bandwidth, 54 of every 67 cycles a
 # warp waits on a load, Nsight Compute, H200), so more warps in flight hide more of it: batches of 64
 # step 2.6 % faster, of 16 1.5 %, a lone 160k-tet model 0.7 %, 2M tets 0.7 % (H200,
-# docs/benchmarks.md; at 40, with spills, batches 14 % slower). warp before 1.17 lacks the option.
+# docs/benchmarks.md; at 40, with spills, batches 14 % slower). A warp without the option (1.17 has
+# it) builds the kernel as before.
 NODE_KERNEL_REGISTERS = 48
 NODE_KERNEL_OPTIONS = ({"cuda_max_registers": NODE_KERNEL_REGISTERS}
                        if "cuda_max_registers" in inspect.signature(wp.kernel).parameters else {})
