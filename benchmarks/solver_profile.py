@@ -37,20 +37,11 @@ import csv
 import re
 import time
 
-import numpy as np
 import warp as wp
 
-from BreastBiomechLib.cli.bench import _hemi_ellipsoid_spacing
+from BreastBiomechLib.cli.bench import _hemi_ellipsoid_spacing, bench_parameter_sets
 from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
-
-
-def bench_variants(model, batch: int) -> list:
-    """``bench solver --batch``'s parameter sets: the model's materials, then ``batch`` - 1 with
-    mu and kappa scaled by factors drawn uniformly from 0.7-1.3 (seed 0)."""
-    base = model.materials
-    factors = np.random.default_rng(0).uniform(0.7, 1.3, batch - 1)
-    return [base] + [type(base)(base.mu * f, base.kappa * f, base.eta, base.fibre, base.density) for f in factors]
 
 
 def profile(tets: int, device: str, batch: int = 1) -> None:
@@ -58,7 +49,7 @@ def profile(tets: int, device: str, batch: int = 1) -> None:
     model = hemi_ellipsoid_compression(_hemi_ellipsoid_spacing(tets), compression=0.25)
     solve_batch(model, [model.materials], device=device, relaxation=DynamicRelaxation(max_iterations=1200))  # warm
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-    solution = solve_batch(model, bench_variants(model, batch), device=device, relaxation=DynamicRelaxation())[0]
+    solution = solve_batch(model, bench_parameter_sets(model.materials, batch), device=device, relaxation=DynamicRelaxation())[0]
     results = wp.timing_end()
     totals = collections.defaultdict(lambda: [0, 0.0])
     for r in results:
@@ -165,6 +156,8 @@ def ncu_summary(path: str, batch: int) -> None:
             continue
         name = re.sub(r"_[0-9a-f]{8}_cuda_kernel_forward$", "", row[kernel])
         totals[name][0] += 1
+        if row[unit] not in scale:
+            raise SystemExit(f"{path}: kernel times in {row[unit]!r}; expected one of {', '.join(scale)}")
         totals[name][1] += float(row[value].replace(",", "")) * scale[row[unit]]
     steps = totals["advance_nodes"][0]
     if steps == 0:

@@ -23,6 +23,16 @@ def _hemi_ellipsoid_spacing(tets: int) -> float:
     return float((np.pi * 4 * np.prod(BENCH_RADII_MM) / tets) ** (1 / 3))
 
 
+def bench_parameter_sets(base, batch: int) -> list:
+    """The solver bench's ``batch`` parameter sets: ``base`` (an ``ElementMaterials``), then
+    ``batch`` - 1 copies with mu and kappa scaled by factors drawn uniformly from 0.7-1.3 (seed 0),
+    so that the models converge at different iterations."""
+    import numpy as np
+
+    factors = np.random.default_rng(0).uniform(0.7, 1.3, batch - 1)
+    return [base] + [type(base)(base.mu * f, base.kappa * f, base.eta, base.fibre, base.density) for f in factors]
+
+
 def _bench_solver(args) -> dict:
     """One forward solve (or a batch) of the hemi-ellipsoid compression case; figures as a dict."""
     import numpy as np
@@ -39,10 +49,8 @@ def _bench_solver(args) -> dict:
         plate.friction = args.friction
     wp.init()
     device = wp.get_device(args.device)
-    rng = np.random.default_rng(0)
     base = model.materials
-    variants = [base] + [type(base)(base.mu * f, base.kappa * f, base.eta, base.fibre, base.density)
-                         for f in rng.uniform(0.7, 1.3, args.batch - 1)]
+    variants = bench_parameter_sets(base, args.batch)
     load = {} if args.load_iterations is None else {"load_iterations": args.load_iterations}
     relaxation = DynamicRelaxation(tolerance_mm=0.01, **load) if args.relaxation else None
     # compile the kernels once, outside the timing: a relaxation's own module too (its first solve
