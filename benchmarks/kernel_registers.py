@@ -7,7 +7,8 @@ Issue 25: a change to a kernel can be read before device time is spent on it.
 Compiles ``BreastBiomechLib.solver.kernels`` for the GPU architecture ``--arch`` (sm_90: the H100
 and H200) with warp's ahead-of-time compiler (NVRTC, which warp carries: no driver or GPU needed),
 reads the cubin with ``cuobjdump`` and prints one JSON line per kernel: registers per thread and
-the static SASS instructions by class (NOPs left out). Static counts cover every path of a kernel,
+the static SASS instructions by class (NOPs left out; ``spills``: the local-memory loads and stores
+a register cap costs). Static counts cover every path of a kernel,
 so they are no time and no dynamic count: they show what a change adds or removes, and the
 registers decide how many threads an SM holds. On 2026-12-02 they showed a stress change raising
 the batch element kernel from 96 to 106 registers, which the H200 then measured as 5-8 % slower
@@ -79,6 +80,9 @@ def instruction_mix(sass: str) -> dict[str, dict]:
         counts = collections.Counter(opcodes)
         by_class = {name: sum(counts[op] for op in ops) for name, ops in CLASSES.items()}
         by_class["other"] = len(opcodes) - sum(by_class.values())
+        # local-memory loads and stores (counted in "memory" too): register spills, where a kernel's
+        # registers are capped below what it needs (kernels.NODE_KERNEL_REGISTERS)
+        by_class["spills"] = counts["LDL"] + counts["STL"]
         mix[kernel_name(mangled)] = {"instructions": len(opcodes), **by_class}
     return mix
 
