@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import collections
 import csv
-import re
 import time
 
 import warp as wp
@@ -42,6 +41,7 @@ import warp as wp
 from BreastBiomechLib.cli.bench import _hemi_ellipsoid_spacing, bench_parameter_sets
 from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+from kernel_registers import kernel_name  # this folder's: warp's CUDA symbol -> the kernel's name
 
 
 def profile(tets: int, device: str, batch: int = 1) -> None:
@@ -49,7 +49,8 @@ def profile(tets: int, device: str, batch: int = 1) -> None:
     model = hemi_ellipsoid_compression(_hemi_ellipsoid_spacing(tets), compression=0.25)
     solve_batch(model, [model.materials], device=device, relaxation=DynamicRelaxation(max_iterations=1200))  # warm
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-    solution = solve_batch(model, bench_parameter_sets(model.materials, batch), device=device, relaxation=DynamicRelaxation())[0]
+    solution = solve_batch(model, bench_parameter_sets(model.materials, batch), device=device,
+                           relaxation=DynamicRelaxation())[0]
     results = wp.timing_end()
     totals = collections.defaultdict(lambda: [0, 0.0])
     for r in results:
@@ -154,7 +155,7 @@ def ncu_summary(path: str, batch: int) -> None:
     for row in rows[header + 1:]:
         if len(row) <= value or row[metric] != "gpu__time_duration.sum":
             continue
-        name = re.sub(r"_[0-9a-f]{8}_cuda_kernel_forward$", "", row[kernel])
+        name = kernel_name(row[kernel])
         totals[name][0] += 1
         if row[unit] not in scale:
             raise SystemExit(f"{path}: kernel times in {row[unit]!r}; expected one of {', '.join(scale)}")
