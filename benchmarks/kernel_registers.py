@@ -3,10 +3,14 @@
 Issue 25: a change to a kernel can be read before device time is spent on it.
 
     python benchmarks/kernel_registers.py [--arch 90] [--kernels element_forces nodal_pressure ...]
+                                          [--anp 1] [--visco] [--slot-table]
 
 Compiles ``BreastBiomechLib.solver.kernels`` for the GPU architecture ``--arch`` (sm_90: the H100
 and H200) with warp's ahead-of-time compiler (NVRTC, which warp carries: no driver or GPU needed),
-reads the cubin with ``cuobjdump`` and prints one JSON line per kernel: registers per thread and
+and the element kernels of one formulation (``kernels.element_kernels``: ``--anp`` mode, 1 ANP
+within materials as the solver bench's model, 2 across, 0 none; ``--visco`` with Prony terms;
+``--slot-table`` ANP slots of their own rather than the nodes, as a heterogeneous breast's),
+reads the cubins with ``cuobjdump`` and prints one JSON line per kernel: registers per thread and
 the static SASS instructions by class (NOPs left out; ``spills``: the local-memory loads and stores
 a register cap costs). Static counts cover every path of a kernel,
 so they are no time and no dynamic count: they show what a change adds or removes, and the
@@ -97,18 +101,26 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", type=int, default=90, help="GPU architecture (90: sm_90, the H100 and H200)")
     parser.add_argument("--kernels", nargs="*", default=None, help="kernels to print (default: all)")
+    parser.add_argument("--anp", type=int, choices=(0, 1, 2), default=1,
+                        help="the element kernels' ANP mode (kernels.ANP_*; default 1, within materials)")
+    parser.add_argument("--visco", action="store_true", help="the element kernels with Prony terms")
+    parser.add_argument("--slot-table", action="store_true", help="the element kernels with ANP slots of their own")
     args = parser.parse_args()
     cuobjdump = find_cuobjdump()
     wp.config.quiet = True
     wp.init()
     from BreastBiomechLib.solver import kernels
 
+    element = kernels.element_kernels(args.anp, args.visco, not args.slot_table)
+    modules = [kernels] + list(dict.fromkeys(kernel.module for kernel in element))
+    sass, usage = "", ""
     with tempfile.TemporaryDirectory() as folder:
-        cubins = [Path(p) for p in wp.compile_aot_module(kernels, device=None, arch=args.arch, module_dir=folder,
-                                                           use_ptx=False)]
-        sass = subprocess.run([cuobjdump, "-sass", str(cubins[0])], check=True, capture_output=True, text=True).stdout
-        usage = subprocess.run([cuobjdump, "-res-usage", str(cubins[0])], check=True, capture_output=True,
-                               text=True).stdout
+        for module in modules:
+            cubin = str(wp.compile_aot_module(module, device=None, arch=args.arch, module_dir=folder,
+                                              use_ptx=False)[0])
+            sass += subprocess.run([cuobjdump, "-sass", cubin], check=True, capture_output=True, text=True).stdout
+            usage += subprocess.run([cuobjdump, "-res-usage", cubin], check=True, capture_output=True,
+                                    text=True).stdout
     regs, mixes = registers(usage), instruction_mix(sass)
     unknown = sorted(set(args.kernels or ()) - set(mixes))
     if unknown:

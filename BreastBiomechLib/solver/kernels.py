@@ -26,10 +26,15 @@ a thread reads and indexes its element's connectivity, derivatives and volume on
 and neighbouring lanes' models still lie side by side in memory (a batch of 64 steps 10-12 % faster,
 of 16 5 %; H200, docs/benchmarks.md). Once half of a batch has stopped, the solver packs it down to
 the models still moving (:mod:`BreastBiomechLib.solver.packing`): the kernels see a smaller batch.
+The element kernels are built per formulation (:func:`element_kernels`: the ANP mode, Prony terms
+or none, ANP slots that are the nodes or not, as compile-time constants), so that each holds only
+its formulation's branches and registers.
 """
 
 from __future__ import annotations
 
+import collections
+import functools
 import inspect
 
 import warp as wp
@@ -277,58 +282,6 @@ def model_volume_change(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: in
     wp.atomic_add(anp_sums, s[3] * n_models + b, change)
 
 
-@wp.kernel
-def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
-                   slots_are_nodes: int, dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float),
-                   materials: MaterialTable, anp: int, n_models: int, models: wp.array(dtype=int), n_listed: int,
-                   anp_sums: wp.array(dtype=float)):
-    """ANP pass 1: accumulate each element's volume change (J_e - 1) V_e (m^3) at its ANP slots
-    (:func:`element_slots`), for the listed ``models`` (see the module's docstring; converged
-    models stand still). With ``anp`` = :data:`ANP_WITHIN_MATERIALS` each slot gathers the
-    elements of one node and one bulk modulus (:func:`BreastBiomechLib.solver.tled.anp_slots`):
-    the nodal pressure is that modulus times the slot's volume change per volume, and the modulus
-    cancels from the mean dilatation :func:`element_forces` takes from it, so the sums leave it
-    out and this kernel reads no material (a dependent read less: this pass is bound by the
-    latency of its reads). With :data:`ANP_ACROSS_MATERIALS` (one slot per node) the sums are of
-    the pressures kappa_e (J_e - 1) V_e (Pa m^3)."""
-    at = listed(models, n_listed, n_models, wp.tid())
-    e, b = at[0], at[1]
-    if e < 0 or e >= tets.shape[0]:
-        return
-    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    s = element_slots(tets, slots, slots_are_nodes, e)
-    v0 = vol0[e]
-    F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
-    change = (wp.determinant(F) - 1.0) * v0
-    if anp == ANP_ACROSS_MATERIALS:
-        change = material_of(materials, e, n_models, b).kappa * change
-    wp.atomic_add(anp_sums, s[0] * n_models + b, change)
-    wp.atomic_add(anp_sums, s[1] * n_models + b, change)
-    wp.atomic_add(anp_sums, s[2] * n_models + b, change)
-    wp.atomic_add(anp_sums, s[3] * n_models + b, change)
-
-
-@wp.kernel
-def nodal_pressure_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
-                          slots_are_nodes: int, dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float),
-                          materials: MaterialTable, anp: int, n_models: int, models: wp.array(dtype=int),
-                          n_listed: int, anp_sums: wp.array(dtype=float), lanes: int):
-    """:func:`nodal_pressure` with ``lanes`` threads an element, each for several of the listed
-    models (see the module's docstring), reading its element's data once for them."""
-    at = element_and_lane(lanes, wp.tid())
-    e = at[0]
-    if e >= tets.shape[0]:
-        return
-    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    s = element_slots(tets, slots, slots_are_nodes, e)
-    d0, d1, d2, d3, v0 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3], vol0[e]
-    entry = at[1]
-    while entry < n_listed:
-        model_volume_change(u, e, model_at(models, n_listed, n_models, entry), n_models, n0, n1, n2, n3, s, d0, d1,
-                            d2, d3, v0, materials, anp, anp_sums)
-        entry += lanes
-
-
 @wp.func
 def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
     """Count an inverted element of model b, keeping the first one found and its step."""
@@ -392,110 +345,193 @@ def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: i
     add_force(forces, n3 * n_models + b, P * d3)
 
 
-@wp.kernel
-def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
-                   vol0: wp.array(dtype=float), materials: MaterialTable, anp: int,
-                   slots: wp.array2d(dtype=int), slots_are_nodes: int,
-                   anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
-                   n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
-                   visco_state: wp.array(dtype=wp.mat33), update_state: int,
-                   n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
-                   forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int)):
-    """Internal nodal forces f_a = V0 F S dN_a/dX; with ANP (``anp`` not :data:`ANP_OFF`) F is
-    scaled to the dilatation Jm of the mean of the averaged pressures at the element's slots, as
-    NiftySim's T4ANP, from :func:`nodal_pressure`'s sums (Jm - 1 the mean of the slots' volume
-    changes per volume within materials; across them, the mean pressure over kappa_e).
-    Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
-    with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
-    (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set.
-    Elements with J <= 0 are counted per model, the first one and its step recorded in
-    ``inverted[4b:4b+4]`` = [count, element, step, frozen] of model b; once frozen that model
-    stands still (the others of the batch go on), keeping its last configuration for
-    inspection instead of producing NaN (frozen is 1 then; 2 for a model a relaxation has found
-    converged, :mod:`BreastBiomechLib.solver.relaxation`). Only the listed ``models`` are computed
-    (see the module's docstring): converged models stand still, so their forces no longer change
-    anything.
+ElementKernels = collections.namedtuple("ElementKernels", "nodal_pressure nodal_pressure_shared element_forces "
+                                                         "element_forces_shared")
 
-    The step is ``clock[0]``, copied to ``clock[1]`` for :func:`advance_nodes`, which advances
-    it."""
-    tid = wp.tid()
-    if tid == 0:
-        clock[1] = clock[0]
-    at = listed(models, n_listed, n_models, tid)
-    e, b = at[0], at[1]
-    if e < 0 or e >= tets.shape[0]:
-        return
-    j = e * n_models + b  # the element's entry of model b (visco state)
-    # every read that does not depend on another first, so that they are in flight together (a
-    # frozen model's flag too: tested once the element's reads are on their way)
-    frozen = inverted[4 * b + 3]
-    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-    m = material_of(materials, e, n_models, b)
-    v0 = vol0[e]
-    mean = float(0.0)  # of the slots' sums per volume
-    if anp != ANP_OFF:
+# the specialised element kernels' options: a module of their own each (fast math as this module's)
+SPECIALISED = {"module": "unique", "module_options": {"fast_math": True}}
+
+
+@functools.cache
+def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKernels:
+    """The element kernels for one formulation: ANP mode ``anp_mode`` (``ANP_*``), Prony terms
+    (``visco``) or none, and ANP slots that are the elements' nodes (``node_slots``, see
+    :func:`element_slots`) or a table of their own. These are compile-time constants of the
+    kernels, so a kernel holds only its formulation's arithmetic and branches: the batch element
+    kernel without them took 15 % less time at 64 models and 6 % at 16 (160k tets, H200,
+    docs/benchmarks.md). Each combination is compiled once, on its first launch; the kernels
+    take the same arguments as they would read at run time, less ``anp`` and ``slots_are_nodes``."""
+
+    @wp.kernel(name="nodal_pressure", **SPECIALISED)
+    def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
+                       dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float),
+                       materials: MaterialTable, n_models: int, models: wp.array(dtype=int), n_listed: int,
+                       anp_sums: wp.array(dtype=float)):
+        """ANP pass 1: accumulate each element's volume change (J_e - 1) V_e (m^3) at its ANP slots
+        (:func:`element_slots`), for the listed ``models`` (see the module's docstring; converged
+        models stand still). With ``anp`` = :data:`ANP_WITHIN_MATERIALS` each slot gathers the
+        elements of one node and one bulk modulus (:func:`BreastBiomechLib.solver.tled.anp_slots`):
+        the nodal pressure is that modulus times the slot's volume change per volume, and the modulus
+        cancels from the mean dilatation :func:`element_forces` takes from it, so the sums leave it
+        out and this kernel reads no material (a dependent read less: this pass is bound by the
+        latency of its reads). With :data:`ANP_ACROSS_MATERIALS` (one slot per node) the sums are of
+        the pressures kappa_e (J_e - 1) V_e (Pa m^3)."""
+        anp = wp.static(anp_mode)  # constants of this specialisation (see element_kernels)
+        slots_are_nodes = wp.static(int(node_slots))
+        at = listed(models, n_listed, n_models, wp.tid())
+        e, b = at[0], at[1]
+        if e < 0 or e >= tets.shape[0]:
+            return
+        n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
         s = element_slots(tets, slots, slots_are_nodes, e)
-        mean = 0.25 * (anp_sums[s[0] * n_models + b] / slot_volume[s[0]]
-                       + anp_sums[s[1] * n_models + b] / slot_volume[s[1]]
-                       + anp_sums[s[2] * n_models + b] / slot_volume[s[2]]
-                       + anp_sums[s[3] * n_models + b] / slot_volume[s[3]])
-    F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
-    if frozen != 0:
-        return
-    cof = cofactor(F)
-    J = F[0, 0] * cof[0, 0] + F[0, 1] * cof[0, 1] + F[0, 2] * cof[0, 2]
-    if J <= 0.0:
-        record_inversion(inverted, b, e, clock[0])
-        return
-    Jm = J
-    scale = float(1.0)
-    if anp != ANP_OFF:
-        # across materials the sums are pressures; within, volume changes (divided by 1, exactly)
-        Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, m.kappa, 1.0) + 1.0
-        if Jm <= 0.0:
+        v0 = vol0[e]
+        F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
+        change = (wp.determinant(F) - 1.0) * v0
+        if anp == ANP_ACROSS_MATERIALS:
+            change = material_of(materials, e, n_models, b).kappa * change
+        wp.atomic_add(anp_sums, s[0] * n_models + b, change)
+        wp.atomic_add(anp_sums, s[1] * n_models + b, change)
+        wp.atomic_add(anp_sums, s[2] * n_models + b, change)
+        wp.atomic_add(anp_sums, s[3] * n_models + b, change)
+
+    @wp.kernel(name="nodal_pressure_shared", **SPECIALISED)
+    def nodal_pressure_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int),
+                              slots: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                              vol0: wp.array(dtype=float), materials: MaterialTable, n_models: int,
+                              models: wp.array(dtype=int), n_listed: int, anp_sums: wp.array(dtype=float),
+                              lanes: int):
+        """:func:`nodal_pressure` with ``lanes`` threads an element, each for several of the listed
+        models (see the module's docstring), reading its element's data once for them."""
+        anp = wp.static(anp_mode)  # constants of this specialisation (see element_kernels)
+        slots_are_nodes = wp.static(int(node_slots))
+        at = element_and_lane(lanes, wp.tid())
+        e = at[0]
+        if e >= tets.shape[0]:
+            return
+        n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        s = element_slots(tets, slots, slots_are_nodes, e)
+        d0, d1, d2, d3, v0 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3], vol0[e]
+        entry = at[1]
+        while entry < n_listed:
+            model_volume_change(u, e, model_at(models, n_listed, n_models, entry), n_models, n0, n1, n2, n3, s,
+                                d0, d1, d2, d3, v0, materials, anp, anp_sums)
+            entry += lanes
+
+    @wp.kernel(name="element_forces", **SPECIALISED)
+    def element_forces(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
+                       vol0: wp.array(dtype=float), materials: MaterialTable, slots: wp.array2d(dtype=int),
+                       anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
+                       n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
+                       visco_state: wp.array(dtype=wp.mat33), update_state: int,
+                       n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
+                       forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int)):
+        """Internal nodal forces f_a = V0 F S dN_a/dX; with ANP (``anp`` not :data:`ANP_OFF`) F is
+        scaled to the dilatation Jm of the mean of the averaged pressures at the element's slots, as
+        NiftySim's T4ANP, from :func:`nodal_pressure`'s sums (Jm - 1 the mean of the slots' volume
+        changes per volume within materials; across them, the mean pressure over kappa_e).
+        Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i
+        with dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
+        (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set.
+        Elements with J <= 0 are counted per model, the first one and its step recorded in
+        ``inverted[4b:4b+4]`` = [count, element, step, frozen] of model b; once frozen that model
+        stands still (the others of the batch go on), keeping its last configuration for
+        inspection instead of producing NaN (frozen is 1 then; 2 for a model a relaxation has found
+        converged, :mod:`BreastBiomechLib.solver.relaxation`). Only the listed ``models`` are computed
+        (see the module's docstring): converged models stand still, so their forces no longer change
+        anything.
+
+        The step is ``clock[0]``, copied to ``clock[1]`` for :func:`advance_nodes`, which advances
+        it."""
+        anp = wp.static(anp_mode)  # constants of this specialisation (see element_kernels)
+        slots_are_nodes = wp.static(int(node_slots))
+        terms = n_terms
+        if wp.static(not visco):
+            terms = 0
+        tid = wp.tid()
+        if tid == 0:
+            clock[1] = clock[0]
+        at = listed(models, n_listed, n_models, tid)
+        e, b = at[0], at[1]
+        if e < 0 or e >= tets.shape[0]:
+            return
+        j = e * n_models + b  # the element's entry of model b (visco state)
+        # every read that does not depend on another first, so that they are in flight together (a
+        # frozen model's flag too: tested once the element's reads are on their way)
+        frozen = inverted[4 * b + 3]
+        n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
+        m = material_of(materials, e, n_models, b)
+        v0 = vol0[e]
+        mean = float(0.0)  # of the slots' sums per volume
+        if anp != ANP_OFF:
+            s = element_slots(tets, slots, slots_are_nodes, e)
+            mean = 0.25 * (anp_sums[s[0] * n_models + b] / slot_volume[s[0]]
+                           + anp_sums[s[1] * n_models + b] / slot_volume[s[1]]
+                           + anp_sums[s[2] * n_models + b] / slot_volume[s[2]]
+                           + anp_sums[s[3] * n_models + b] / slot_volume[s[3]])
+        F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
+        if frozen != 0:
+            return
+        cof = cofactor(F)
+        J = F[0, 0] * cof[0, 0] + F[0, 1] * cof[0, 1] + F[0, 2] * cof[0, 2]
+        if J <= 0.0:
             record_inversion(inverted, b, e, clock[0])
             return
-        scale = wp.pow(Jm / J, 1.0 / 3.0)
-    if n_terms > 0:
-        P = visco_first_piola(scale * F, Jm, m.mu, m.kappa, m.eta, m.fibre, v0, j * n_terms, n_terms, prony_g,
-                              prony_decay, visco_state, update_state)
-    else:
-        P = scaled_first_piola(F, cof, J, Jm, scale, m.mu, m.kappa, m.eta, m.fibre, v0)
-    add_force(forces, n0 * n_models + b, P * d0)
-    add_force(forces, n1 * n_models + b, P * d1)
-    add_force(forces, n2 * n_models + b, P * d2)
-    add_force(forces, n3 * n_models + b, P * d3)
+        Jm = J
+        scale = float(1.0)
+        if anp != ANP_OFF:
+            # across materials the sums are pressures; within, volume changes (divided by 1, exactly)
+            Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, m.kappa, 1.0) + 1.0
+            if Jm <= 0.0:
+                record_inversion(inverted, b, e, clock[0])
+                return
+            scale = wp.pow(Jm / J, 1.0 / 3.0)
+        if terms > 0:
+            P = visco_first_piola(scale * F, Jm, m.mu, m.kappa, m.eta, m.fibre, v0, j * terms, terms, prony_g,
+                                  prony_decay, visco_state, update_state)
+        else:
+            P = scaled_first_piola(F, cof, J, Jm, scale, m.mu, m.kappa, m.eta, m.fibre, v0)
+        add_force(forces, n0 * n_models + b, P * d0)
+        add_force(forces, n1 * n_models + b, P * d1)
+        add_force(forces, n2 * n_models + b, P * d2)
+        add_force(forces, n3 * n_models + b, P * d3)
 
+    @wp.kernel(name="element_forces_shared", **SPECIALISED)
+    def element_forces_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int),
+                              dhdx: wp.array2d(dtype=wp.vec3), vol0: wp.array(dtype=float),
+                              materials: MaterialTable, slots: wp.array2d(dtype=int),
+                              anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
+                              n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
+                              visco_state: wp.array(dtype=wp.mat33), update_state: int, n_models: int,
+                              clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
+                              forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int), lanes: int):
+        """:func:`element_forces` with ``lanes`` threads an element, each for several of the listed
+        models (see the module's docstring), reading its element's nodes, derivatives and volume once
+        for them. A kernel of its own: with the loop in :func:`element_forces` a lone model's 2M-tet
+        step took 173-180 us against 163-165 (H200, 2026-12-01, docs/benchmarks.md)."""
+        anp = wp.static(anp_mode)  # constants of this specialisation (see element_kernels)
+        slots_are_nodes = wp.static(int(node_slots))
+        terms = n_terms
+        if wp.static(not visco):
+            terms = 0
+        tid = wp.tid()
+        if tid == 0:
+            clock[1] = clock[0]
+        at = element_and_lane(lanes, tid)
+        e = at[0]
+        if e >= tets.shape[0]:
+            return
+        n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        d0, d1, d2, d3, v0 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3], vol0[e]
+        entry = at[1]
+        while entry < n_listed:
+            model_element_forces(u, e, model_at(models, n_listed, n_models, entry), n_models, n0, n1, n2, n3,
+                                 d0, d1, d2, d3, v0, materials, anp, tets, slots, slots_are_nodes, slot_volume,
+                                 anp_sums, terms, prony_g, prony_decay, visco_state, update_state, clock, forces,
+                                 inverted)
+            entry += lanes
 
-@wp.kernel
-def element_forces_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), dhdx: wp.array2d(dtype=wp.vec3),
-                          vol0: wp.array(dtype=float), materials: MaterialTable, anp: int,
-                          slots: wp.array2d(dtype=int), slots_are_nodes: int,
-                          anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtype=float),
-                          n_terms: int, prony_g: wp.array(dtype=float), prony_decay: wp.array(dtype=float),
-                          visco_state: wp.array(dtype=wp.mat33), update_state: int,
-                          n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
-                          forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int), lanes: int):
-    """:func:`element_forces` with ``lanes`` threads an element, each for several of the listed
-    models (see the module's docstring), reading its element's nodes, derivatives and volume once
-    for them. A kernel of its own: with the loop in :func:`element_forces` a lone model's 2M-tet
-    step took 173-180 us against 163-165 (H200, 2026-12-01, docs/benchmarks.md)."""
-    tid = wp.tid()
-    if tid == 0:
-        clock[1] = clock[0]
-    at = element_and_lane(lanes, tid)
-    e = at[0]
-    if e >= tets.shape[0]:
-        return
-    n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
-    d0, d1, d2, d3, v0 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3], vol0[e]
-    entry = at[1]
-    while entry < n_listed:
-        model_element_forces(u, e, model_at(models, n_listed, n_models, entry), n_models, n0, n1, n2, n3, d0, d1,
-                             d2, d3, v0, materials, anp, tets, slots, slots_are_nodes, slot_volume, anp_sums,
-                             n_terms, prony_g, prony_decay, visco_state, update_state, clock, forces, inverted)
-        entry += lanes
+    return ElementKernels(nodal_pressure, nodal_pressure_shared, element_forces, element_forces_shared)
 
 
 @wp.func

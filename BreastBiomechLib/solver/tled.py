@@ -392,16 +392,16 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         forces = wp.zeros((3, N), dtype=float)  # component planes (see kernels)
         inverted = wp.zeros(4, dtype=int)
         anp = anp_mode(model)
-        slots_are_nodes = int(np.array_equal(slots, model.mesh.tets))
+        slots_are_nodes = bool(np.array_equal(slots, model.mesh.tets))
         one_model = wp.array([0], dtype=int)  # the list of models: model 0
+        kernels = k.element_kernels(anp, False, slots_are_nodes)
         if anp != k.ANP_OFF:
-            wp.launch(k.nodal_pressure, M, [u, tets, d_slots, slots_are_nodes, d_dhdx, d_vol, table, anp, 1,
-                                             one_model, 1, anp_sums])
-        wp.launch(k.element_forces, M, [u, tets, d_dhdx, d_vol, table, anp, d_slots, slots_are_nodes, anp_sums,
-                                         wp.array(slot_volume.astype(f32), dtype=float), 0,
-                                         wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
-                                         wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model, 1,
-                                         forces, inverted])
+            wp.launch(kernels.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, table, 1, one_model, 1, anp_sums])
+        wp.launch(kernels.element_forces, M, [u, tets, d_dhdx, d_vol, table, d_slots, anp_sums,
+                                               wp.array(slot_volume.astype(f32), dtype=float), 0,
+                                               wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
+                                               wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model,
+                                               1, forces, inverted])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
         return forces.numpy().T.astype(np.float64, order="C")
@@ -595,7 +595,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         d_vol = arr(vol, float)
         # one material (or ANP across materials): the slots are the nodes, and the kernels' reads of
         # both fall on one array (cached after the first)
-        slots_are_nodes = int(np.array_equal(slots, tets))
+        slots_are_nodes = bool(np.array_equal(slots, tets))
         d_slots = d_tets if slots_are_nodes else wp.array(slots, dtype=int)
         d_slotvol = arr(slot_volume, float)
         d_mass = arr(mass, float)
@@ -718,6 +718,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         plates.touching = wp.zeros(max(B * n_slots, 1), dtype=int)
         plates.force = wp.zeros(max(B * n_slots, 1), dtype=wp.vec3)
         anp = anp_mode(model)
+        formulation = k.element_kernels(anp, K > 0, slots_are_nodes)  # this formulation's kernels
 
         every_model = arr(model_list(np.ones(B)), int)
         probe_clock = wp.zeros(2, dtype=int)
@@ -739,16 +740,16 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             lanes = element_lanes(width)
             shared = [lanes] if lanes < width else []
             if anp != k.ANP_OFF:
-                wp.launch(k.nodal_pressure_shared if shared else k.nodal_pressure, lanes * M,
-                          [state, d_tets, d_slots, slots_are_nodes, d_dhdx, d_vol, d_materials, anp, B, models, width,
-                           sums_buffer] + shared)
+                wp.launch(formulation.nodal_pressure_shared if shared else formulation.nodal_pressure, lanes * M,
+                          [state, d_tets, d_slots, d_dhdx, d_vol, d_materials, B, models, width, sums_buffer]
+                          + shared)
             # blocks of 128 threads: at its register count the kernel fits 7 of them on an SM
             # against 3 of 256, so a lone 160k-tet model's elements take 1.35 waves, not 1.58
             # (4.5 % less time, H200, docs/benchmarks.md)
-            wp.launch(k.element_forces_shared if shared else k.element_forces, lanes * M,
-                      [state, d_tets, d_dhdx, d_vol, d_materials, anp, d_slots, slots_are_nodes, sums_buffer,
-                       d_slotvol, K, d_prony_g, d_prony_decay, visco_state, update_state, B,
-                       probe_clock if step_clock is None else step_clock, models, width, out, flags] + shared,
+            wp.launch(formulation.element_forces_shared if shared else formulation.element_forces, lanes * M,
+                      [state, d_tets, d_dhdx, d_vol, d_materials, d_slots, sums_buffer, d_slotvol, K, d_prony_g,
+                       d_prony_decay, visco_state, update_state, B, probe_clock if step_clock is None else step_clock,
+                       models, width, out, flags] + shared,
                       block_dim=ELEMENT_FORCES_BLOCK)
             for n_sup, d_snodes, d_snormals, d_sstiff in d_supports:
                 wp.launch(k.support_springs, width * n_sup, [state, d_snodes, d_snormals, d_sstiff, B, models, width,
