@@ -410,6 +410,39 @@ def test_batched_equals_sequential():
     assert batch[0].displacement[:, 2].min() > batch[2].displacement[:, 2].min()
 
 
+def test_kernels_built_for_a_formulation_give_the_general_builds_answers(monkeypatch):
+    """The element and node kernels are built per formulation and loading (kernels.element_kernels,
+    kernels.node_kernel: no Prony terms, ANP slots that are the nodes, no gravity, no friction, no
+    sliding support as compile-time constants). A batch solved with them equals, to the last bit
+    on the CPU, the same batch solved with the builds that read all of these at run time (each
+    then zero or absent), in both element kernels' variants (a thread per model and element, and
+    several models a thread)."""
+    from BreastBiomechLib.solver import DynamicRelaxation, kernels, tled
+
+    mesh = _block(3)
+    model = _compression_model(mesh, Material(E, NU), strain=0.2)
+    variants = [ElementMaterials.uniform(len(mesh.tets), Material(e, nu)) for e, nu in
+                [(8e3, 0.45), (12e3, 0.499), (10e3, 0.46), (6e3, 0.4999), (15e3, 0.495), (9e3, 0.48)]]
+    relaxation = DynamicRelaxation(load_iterations=20, tolerance_mm=0.005)
+    element_kernels, node_kernel = kernels.element_kernels, kernels.node_kernel
+    built = [(element_kernels, node_kernel),
+             (lambda anp, visco, node_slots: element_kernels(anp, True, False),
+              lambda gravity, friction, sliding: node_kernel(True, True, True))]
+    runs = []
+    for element_build, node_build in built:
+        monkeypatch.setattr(kernels, "element_kernels", element_build)
+        monkeypatch.setattr(kernels, "node_kernel", node_build)
+        runs.append([])
+        for per_thread in (1, 3):
+            monkeypatch.setattr(tled, "MODELS_PER_THREAD", ((1 << 30, per_thread),))
+            runs[-1] += solve_batch(model, variants, device="cpu", relaxation=relaxation)
+    specialised, general = runs
+    assert all(s.ok for s in general) and len({s.steps for s in general}) > 1
+    for a, b in zip(specialised, general):
+        assert a.steps == b.steps and a.message == b.message
+        assert np.array_equal(a.displacement, b.displacement) and np.array_equal(a.plate_forces, b.plate_forces)
+
+
 def test_a_thread_computing_several_models_gives_the_per_model_kernels_answers(monkeypatch):
     """The element kernels' shared variants (a thread per element and several models, the
     batches' path) against the kernels of a thread per element and model: a relaxation batch of

@@ -3,17 +3,20 @@
 Issue 25: a change to a kernel can be read before device time is spent on it.
 
     python benchmarks/kernel_registers.py [--arch 90] [--kernels element_forces nodal_pressure ...]
-                                          [--anp 1] [--visco] [--slot-table]
+                                          [--anp 1] [--visco] [--slot-table] [--gravity] [--friction]
+                                          [--sliding]
 
 Compiles ``BreastBiomechLib.solver.kernels`` for the GPU architecture ``--arch`` (sm_90: the H100
 and H200) with warp's ahead-of-time compiler (NVRTC, which warp carries: no driver or GPU needed),
-and the element kernels of one formulation (``kernels.element_kernels``: ``--anp`` mode, 1 ANP
+with the element kernels of one formulation (``kernels.element_kernels``: ``--anp`` mode, 1 ANP
 within materials as the solver bench's model, 2 across, 0 none; ``--visco`` with Prony terms;
-``--slot-table`` ANP slots of their own rather than the nodes, as a heterogeneous breast's),
-reads the cubins with ``cuobjdump`` and prints one JSON line per kernel: registers per thread and
-the static SASS instructions by class (NOPs left out; ``spills``: the local-memory loads and stores
-a register cap costs). Static counts cover every path of a kernel,
-so they are no time and no dynamic count: they show what a change adds or removes, and the
+``--slot-table`` ANP slots of their own rather than the nodes, as a heterogeneous breast's) and
+the node kernel of one loading (``kernels.node_kernel``: ``--gravity``, plate ``--friction``,
+``--sliding`` supports; none of them by default, as the solver bench's model), reads the cubins
+with ``cuobjdump`` and prints one JSON line per kernel: registers per thread and the static SASS
+instructions by class (NOPs left out; ``spills``: the local-memory loads and stores a register
+cap costs). Static counts cover every path of a kernel, so they are no time and no dynamic
+count: they show what a change adds or removes, and the
 registers decide how many threads an SM holds. On 2026-12-02 they showed a stress change raising
 the batch element kernel from 96 to 106 registers, which the H200 then measured as 5-8 % slower
 batches (docs/benchmarks.md).
@@ -105,14 +108,18 @@ def main() -> None:
                         help="the element kernels' ANP mode (kernels.ANP_*; default 1, within materials)")
     parser.add_argument("--visco", action="store_true", help="the element kernels with Prony terms")
     parser.add_argument("--slot-table", action="store_true", help="the element kernels with ANP slots of their own")
+    parser.add_argument("--gravity", action="store_true", help="the node kernel with body forces")
+    parser.add_argument("--friction", action="store_true", help="the node kernel with plate friction")
+    parser.add_argument("--sliding", action="store_true", help="the node kernel with sliding supports")
     args = parser.parse_args()
     cuobjdump = find_cuobjdump()
     wp.config.quiet = True
     wp.init()
     from BreastBiomechLib.solver import kernels
 
-    element = kernels.element_kernels(args.anp, args.visco, not args.slot_table)
-    modules = [kernels] + list(dict.fromkeys(kernel.module for kernel in element))
+    built = list(kernels.element_kernels(args.anp, args.visco, not args.slot_table))
+    built.append(kernels.node_kernel(args.gravity, args.friction, args.sliding))
+    modules = [kernels] + list(dict.fromkeys(kernel.module for kernel in built))
     sass, usage = "", ""
     with tempfile.TemporaryDirectory() as folder:
         for module in modules:

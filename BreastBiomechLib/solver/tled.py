@@ -719,6 +719,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
         plates.force = wp.zeros(max(B * n_slots, 1), dtype=wp.vec3)
         anp = anp_mode(model)
         formulation = k.element_kernels(anp, K > 0, slots_are_nodes)  # this formulation's kernels
+        node_update = k.node_kernel(bool(np.any(start_gravity) or np.any(model.loading.gravity)),
+                                    any(p.friction > 0 for p in every_plate), len(sliding) > 0)
 
         every_model = arr(model_list(np.ones(B)), int)
         probe_clock = wp.zeros(2, dtype=int)
@@ -760,8 +762,8 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             threads are not launched."""
             internal_force(u, forces, anp_sums, inverted, d_moving, width, update_state=1, cleared=True,
                            step_clock=clock)
-            wp.launch(k.advance_nodes, width * N, [u, low, du, forces, anp_sums, loads, constraints, plates, d_moving,
-                                                   width, B, clock, inverted])
+            wp.launch(node_update, width * N, [u, low, du, forces, anp_sums, loads, constraints, plates, d_moving,
+                                               width, B, clock, inverted])
 
         def two_steps(width):
             one_step(width)
