@@ -2,7 +2,7 @@
 
 Precomputed once: reference shape-function derivatives and volumes of the four-node tets, lumped
 nodal masses, the critical time step. Each step: (ANP sums), element forces, then one
-node kernel (``kernels.advance_nodes``): the central difference update with mass-proportional
+node kernel (``advance_nodes``, built by ``kernels.node_kernel``): the central difference update with mass-proportional
 damping (seed eq. (15)) in increment form, with the displacement accumulated in float32 plus a
 compensation term (Kahan summation), sliding supports, prescribed components, plate contact.
 The step loop has no host synchronisation: on CUDA it replays captured graphs of ten steps (two
@@ -43,7 +43,7 @@ from BreastBiomechLib.solver.warm import WarmStart, ramp_iterations, start_time,
 # models reads and indexes its element's connectivity, derivatives and volume once for them; with
 # too few threads an element the GPU has too few to hide latencies (docs/benchmarks.md)
 MODELS_PER_THREAD = ((8, 1), (32, 2), (1 << 30, 4))
-ELEMENT_FORCES_BLOCK = 128  # threads per block of kernels.element_forces (see solve_batch)
+ELEMENT_FORCES_BLOCK = 128  # threads per block of the element_forces kernels (see solve_batch)
 # pairs of steps per CUDA graph: each graph launch costs the GPU about 1.4 us of its own, 0.7 us a
 # step in graphs of two steps and 0.15 us in graphs of ten (160k tets, H200, docs/benchmarks.md)
 STEP_GRAPH_PAIRS = 5
@@ -394,14 +394,15 @@ def internal_forces(model: Model, displacement_mm: np.ndarray, device=None) -> n
         anp = anp_mode(model)
         slots_are_nodes = bool(np.array_equal(slots, model.mesh.tets))
         one_model = wp.array([0], dtype=int)  # the list of models: model 0
-        kernels = k.element_kernels(anp, False, slots_are_nodes)
+        formulation = k.element_kernels(anp, False, slots_are_nodes)  # visco terms relaxed: none
         if anp != k.ANP_OFF:
-            wp.launch(kernels.nodal_pressure, M, [u, tets, d_slots, d_dhdx, d_vol, table, 1, one_model, 1, anp_sums])
-        wp.launch(kernels.element_forces, M, [u, tets, d_dhdx, d_vol, table, d_slots, anp_sums,
-                                               wp.array(slot_volume.astype(f32), dtype=float), 0,
-                                               wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
-                                               wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int), one_model,
-                                               1, forces, inverted])
+            wp.launch(formulation.nodal_pressure, M,
+                      [u, tets, d_slots, d_dhdx, d_vol, table, 1, one_model, 1, anp_sums])
+        wp.launch(formulation.element_forces, M, [u, tets, d_dhdx, d_vol, table, d_slots, anp_sums,
+                                                   wp.array(slot_volume.astype(f32), dtype=float), 0,
+                                                   wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
+                                                   wp.zeros(1, dtype=wp.mat33), 0, 1, wp.zeros(2, dtype=int),
+                                                   one_model, 1, forces, inverted])
         if inverted.numpy()[0]:
             raise ValueError(f"element {inverted.numpy()[1]} is inverted (J <= 0) by this displacement")
         return forces.numpy().T.astype(np.float64, order="C")
@@ -732,7 +733,7 @@ def _solve_batch_in_order(model: Model, materials: list[ElementMaterials], plate
             every model of the batch);
             ``update_state`` advances the visco state variables by one step; ``cleared``: ``out``
             and ``sums_buffer`` are zero already (the step kernels clear them). A step passes
-            its clock (see :func:`kernels.element_forces`); a probe leaves it alone."""
+            its clock (see ``kernels.element_kernels``' element_forces); a probe leaves it alone."""
             if models is None:
                 models, width = every_model, B
             if not cleared:
