@@ -721,7 +721,7 @@ NODE_KERNEL_OPTIONS = ({"cuda_max_registers": NODE_KERNEL_REGISTERS}
 
 
 @functools.cache
-def node_kernel(gravity: bool, friction: bool, sliding: bool):
+def node_kernel(gravity: bool, friction: bool, sliding: bool) -> wp.Kernel:
     """:func:`advance_nodes` built for one kind of loading: body forces (``gravity``: the loads'
     ``body_start`` and ``body_force`` are read, else they are zero and not read), plate friction
     (``friction``: some plate of the batch has mu > 0, else every plate is frictionless) and
