@@ -291,6 +291,17 @@ def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
 
 
 @wp.func
+def mean_slot_change(anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtype=float), s: wp.vec4i, b: int,
+                     n_models: int) -> float:
+    """The mean over an element's four ANP slots ``s`` of model b's sums per slot volume (Jm - 1
+    within materials; the mean pressure across them, see :func:`element_kernels`)."""
+    return 0.25 * (anp_sums[s[0] * n_models + b] / slot_volume[s[0]]
+                   + anp_sums[s[1] * n_models + b] / slot_volume[s[1]]
+                   + anp_sums[s[2] * n_models + b] / slot_volume[s[2]]
+                   + anp_sums[s[3] * n_models + b] / slot_volume[s[3]])
+
+
+@wp.func
 def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: int, n0: int, n1: int, n2: int,
                          n3: int, d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3, v0: float,
                          materials: MaterialTable, anp: int, tets: wp.array2d(dtype=int),
@@ -303,20 +314,16 @@ def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: i
     derivatives ``d0``-``d3`` and volume ``v0``, for :func:`element_forces_shared` (its ANP slots and
     their volumes are read here, for each model from the cache: held in registers across a
     thread's models they cost the kernel occupancy). :func:`element_forces`, a thread per element
-    and model, keeps its own copy of these lines: built on this function its lone 2M-tet step took
-    170-173 us against 163-165 (H200, 2026-12-01, docs/benchmarks.md)."""
-    j = e * n_models + b  # the element's entry of model b (visco state)
+    and model, makes its own reads (the element's with the model's, in one round): built on this
+    function its lone 2M-tet step took 170-173 us against 163-165 (H200, 2026-12-01,
+    docs/benchmarks.md). Its stress lines are copied there (see the comment in it)."""
     # every read that does not depend on another first, so that they are in flight together (a
     # frozen model's flag too: tested once the element's reads are on their way)
     frozen = inverted[4 * b + 3]
     m = material_of(materials, e, n_models, b)
     mean = float(0.0)  # of the slots' sums per volume
     if anp != ANP_OFF:
-        s = element_slots(tets, slots, slots_are_nodes, e)
-        mean = 0.25 * (anp_sums[s[0] * n_models + b] / slot_volume[s[0]]
-                       + anp_sums[s[1] * n_models + b] / slot_volume[s[1]]
-                       + anp_sums[s[2] * n_models + b] / slot_volume[s[2]]
-                       + anp_sums[s[3] * n_models + b] / slot_volume[s[3]])
+        mean = mean_slot_change(anp_sums, slot_volume, element_slots(tets, slots, slots_are_nodes, e), b, n_models)
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     if frozen != 0:
         return
@@ -335,6 +342,7 @@ def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: i
             return
         scale = wp.pow(Jm / J, 1.0 / 3.0)
     if n_terms > 0:
+        j = e * n_models + b  # the element's entry of model b (visco state)
         P = visco_first_piola(scale * F, Jm, m.mu, m.kappa, m.eta, m.fibre, v0, j * n_terms, n_terms, prony_g,
                               prony_decay, visco_state, update_state)
     else:
@@ -456,7 +464,6 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         e, b = at[0], at[1]
         if e < 0 or e >= tets.shape[0]:
             return
-        j = e * n_models + b  # the element's entry of model b (visco state)
         # every read that does not depend on another first, so that they are in flight together (a
         # frozen model's flag too: tested once the element's reads are on their way)
         frozen = inverted[4 * b + 3]
@@ -466,14 +473,13 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         v0 = vol0[e]
         mean = float(0.0)  # of the slots' sums per volume
         if anp != ANP_OFF:
-            s = element_slots(tets, slots, slots_are_nodes, e)
-            mean = 0.25 * (anp_sums[s[0] * n_models + b] / slot_volume[s[0]]
-                           + anp_sums[s[1] * n_models + b] / slot_volume[s[1]]
-                           + anp_sums[s[2] * n_models + b] / slot_volume[s[2]]
-                           + anp_sums[s[3] * n_models + b] / slot_volume[s[3]])
+            mean = mean_slot_change(anp_sums, slot_volume, element_slots(tets, slots, slots_are_nodes, e), b, n_models)
         F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
         if frozen != 0:
             return
+        # model_element_forces' stress lines, copied: as a call the element's nodes and derivatives
+        # stay in registers through it, where here they are read again from the cache after the
+        # stress (64 registers against 72 with a slot table, 72 against 80 with Prony terms; sm_90)
         cof = cofactor(F)
         J = F[0, 0] * cof[0, 0] + F[0, 1] * cof[0, 1] + F[0, 2] * cof[0, 2]
         if J <= 0.0:
@@ -489,6 +495,7 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
                 return
             scale = wp.pow(Jm / J, 1.0 / 3.0)
         if terms > 0:
+            j = e * n_models + b  # the element's entry of model b (visco state)
             P = visco_first_piola(scale * F, Jm, m.mu, m.kappa, m.eta, m.fibre, v0, j * terms, terms, prony_g,
                                   prony_decay, visco_state, update_state)
         else:
