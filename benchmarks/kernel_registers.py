@@ -4,7 +4,7 @@ Issue 25: a change to a kernel can be read before device time is spent on it.
 
     python benchmarks/kernel_registers.py [--arch 90] [--kernels element_forces nodal_pressure ...]
                                           [--anp 1] [--visco] [--slot-table] [--gravity] [--friction]
-                                          [--sliding]
+                                          [--sliding] [--sass FILE]
 
 Compiles ``BreastBiomechLib.solver.kernels`` for the GPU architecture ``--arch`` (sm_90: the H100
 and H200) with warp's ahead-of-time compiler (NVRTC, which warp carries: no driver or GPU needed),
@@ -20,6 +20,9 @@ count: they show what a change adds or removes, and the
 registers decide how many threads an SM holds. On 2026-12-02 they showed a stress change raising
 the batch element kernel from 96 to 106 registers, which the H200 then measured as 5-8 % slower
 batches (docs/benchmarks.md).
+``--sass FILE`` keeps the disassembly: a load whose value the next instructions need holds the
+warp there for a whole memory round trip, predicated off or not (the node kernel's step clock
+did, in every warp, until 2026-12-02; docs/benchmarks.md).
 
 ``cuobjdump`` (with its ``nvdisasm``) comes from CUDA, or from PyPI: ``pip install
 nvidia-cuda-cuobjdump nvidia-cuda-nvdisasm``; it is looked for on PATH, then in the installed
@@ -111,6 +114,8 @@ def main() -> None:
     parser.add_argument("--gravity", action="store_true", help="the node kernel with body forces")
     parser.add_argument("--friction", action="store_true", help="the node kernel with plate friction")
     parser.add_argument("--sliding", action="store_true", help="the node kernel with sliding supports")
+    parser.add_argument("--sass", type=Path, default=None,
+                        help="also write the compiled kernels' SASS (cuobjdump -sass) to this file")
     args = parser.parse_args()
     cuobjdump = find_cuobjdump()
     wp.config.quiet = True
@@ -128,6 +133,8 @@ def main() -> None:
             sass += subprocess.run([cuobjdump, "-sass", cubin], check=True, capture_output=True, text=True).stdout
             usage += subprocess.run([cuobjdump, "-res-usage", cubin], check=True, capture_output=True,
                                     text=True).stdout
+    if args.sass is not None:
+        args.sass.write_text(sass)
     regs, mixes = registers(usage), instruction_mix(sass)
     unknown = sorted(set(args.kernels or ()) - set(mixes))
     if unknown:
