@@ -39,7 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # as typed, for reports' provenance
-    if _vtk_missing():  # Slicer brings VTK; outside it the headless extra does
+    # Slicer brings VTK; outside it the headless extra does. A command that needs no VTK (a parser's
+    # ``needs_vtk``, given the arguments) runs without it
+    if getattr(args, "needs_vtk", lambda parsed: True)(args) and _vtk_missing():
         print(f"breastbiomech {args.command}: error: VTK is not installed; outside Slicer install the library with "
               "its headless extra: pip install 'breastbiomech[headless]'", file=sys.stderr)
         return 2

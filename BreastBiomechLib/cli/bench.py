@@ -14,6 +14,9 @@ from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, fractio
 
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
+# benchmarks that need only warp and NumPy (the solver on its own hemi-ellipsoid meshes): they run
+# on a machine without VTK, as a GPU node with the plain install
+WITHOUT_VTK = ("solver", "unloaded")
 
 
 def _hemi_ellipsoid_spacing(tets: int) -> float:
@@ -626,4 +629,4 @@ def add_parsers(sub) -> None:
                    help="mesh sweep: also compress every mesh between two plates by this fraction of its thickness "
                         "(e.g. 0.4): whether each solve completes and the elements it inverts (on --device)")
     p.add_argument("--json", action="store_true", help="one JSON line of figures")
-    p.set_defaults(func=cmd_bench)
+    p.set_defaults(func=cmd_bench, needs_vtk=lambda args: args.what not in WITHOUT_VTK)
