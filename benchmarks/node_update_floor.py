@@ -8,9 +8,10 @@ constraints, flags).
 This script runs exactly that traffic with the update's arithmetic (a damped central
 difference with the compensated sum) and nothing else, in the solver's layout (models
 innermost), with fast math as the solver's kernels, replayed as a CUDA graph of ``--launches``
-launches; and, for scale, a plain copy of as many 16-byte records. The node kernel's own time is
-``benchmarks/solver_profile.py``'s (Nsight Compute); their ratio is what contact, constraints,
-the model list and the flags cost on top of the bytes.
+launches (the best of three, ``graph_replay.replayed``); and, for scale, a plain copy of as many
+16-byte records. The node kernel's own time is ``benchmarks/solver_profile.py``'s (Nsight
+Compute); their ratio is what contact, constraints, the model list and the flags cost on top of
+the bytes.
 
     python benchmarks/node_update_floor.py [--nodes 30296] [--batch 64] [--launches 100] [--device cuda]
 
@@ -25,10 +26,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import numpy as np
 import warp as wp
+
+from graph_replay import replayed  # this folder's
 
 wp.set_module_options({"fast_math": True})  # as the solver's kernels (kernels.py)
 
@@ -62,20 +64,6 @@ def copy_records(src: wp.array(dtype=wp.vec4), dst: wp.array(dtype=wp.vec4)):
     dst[i] = src[i]
 
 
-def replay(kernel, size: int, inputs: list, launches: int) -> float:
-    """Seconds per launch of ``kernel`` over ``size`` threads, from a graph of ``launches``."""
-    wp.launch(kernel, size, inputs)
-    with wp.ScopedCapture() as capture:
-        for _ in range(launches):
-            wp.launch(kernel, size, inputs)
-    wp.capture_launch(capture.graph)  # warm
-    wp.synchronize()
-    started = time.perf_counter()
-    wp.capture_launch(capture.graph)
-    wp.synchronize()
-    return (time.perf_counter() - started) / launches
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--nodes", type=int, default=30296)
@@ -92,14 +80,14 @@ def main() -> None:
         state = [wp.zeros(n, dtype=wp.vec3) for _ in range(3)]
         forces = wp.zeros((3, n), dtype=float)
         mass = wp.array(np.full(n, 1e-4, np.float32), dtype=float)
-        update = replay(node_update, n, state + [forces, mass, 1e-4, 10.0], args.launches)
+        update = replayed([(node_update, n, state + [forces, mass, 1e-4, 10.0], 256)], repeats=args.launches)
         records = [wp.zeros(n, dtype=wp.vec4), wp.zeros(n, dtype=wp.vec4)]
-        copy = replay(copy_records, n, records, args.launches)
+        copy = replayed([(copy_records, n, records, 256)], repeats=args.launches)
     print(json.dumps({
         "benchmark": "node_update_floor", "device": device.name, "nodes": args.nodes, "batch": args.batch,
-        "update_us_per_launch": round(update * 1e6, 2), "update_us_per_model": round(update * 1e6 / args.batch, 3),
-        "update_TB_per_s": round(UPDATE_BYTES * n / update / 1e12, 2),
-        "copy_us_per_launch": round(copy * 1e6, 2), "copy_TB_per_s": round(COPY_BYTES * n / copy / 1e12, 2),
+        "update_us_per_launch": round(update, 2), "update_us_per_model": round(update / args.batch, 3),
+        "update_TB_per_s": round(UPDATE_BYTES * n / update / 1e6, 2),
+        "copy_us_per_launch": round(copy, 2), "copy_TB_per_s": round(COPY_BYTES * n / copy / 1e6, 2),
     }))
 
 

@@ -34,13 +34,13 @@ from __future__ import annotations
 import argparse
 import collections
 import csv
-import time
 
 import warp as wp
 
 from BreastBiomechLib.cli.bench import _hemi_ellipsoid_spacing, bench_parameter_sets
 from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+from graph_replay import replayed  # this folder's
 from kernel_registers import kernel_name  # this folder's: warp's CUDA symbol -> the kernel's name
 
 
@@ -62,26 +62,6 @@ def profile(tets: int, device: str, batch: int = 1) -> None:
     for name, (count, ms) in sorted(totals.items(), key=lambda item: -item[1][1])[:15]:
         print(f"  {name[:56]:56s} {count:7d} x {1000 * ms / count:9.2f} us = {ms:9.3f} ms"
               f" ({1000 * ms / solution.steps / batch:6.3f} us)")
-
-
-def _replayed(launches: list, repeats: int = 20, replays: int = 100) -> float:
-    """µs per repeat of ``launches`` ((kernel, dim, inputs, block_dim) in order), replayed as a
-    CUDA graph of ``repeats`` repeats, after a warm-up; the best of three."""
-    with wp.ScopedCapture() as capture:
-        for _ in range(repeats):
-            for kernel, dim, inputs, block_dim in launches:
-                wp.launch(kernel, dim, inputs, block_dim=block_dim)
-    best = float("inf")
-    for _ in range(3):
-        for _ in range(5):
-            wp.capture_launch(capture.graph)
-        wp.synchronize()
-        started = time.perf_counter()
-        for _ in range(replays):
-            wp.capture_launch(capture.graph)
-        wp.synchronize()
-        best = min(best, 1e6 * (time.perf_counter() - started) / (repeats * replays))
-    return best
 
 
 def argument(record: tuple, name: str):
@@ -130,11 +110,11 @@ def alone(tets: int, device: str) -> None:
         argument(step[0], "anp_sums").zero_()  # the node kernel clears them after use; begin cleared
         if position is None:
             for repeats in (2, 10):  # the solver replays graphs of ten steps (two for an interval's rest)
-                print(f"  the step, in graphs of {repeats:2d} steps  {_replayed(step, repeats=repeats):7.2f}")
+                print(f"  the step, in graphs of {repeats:2d} steps  {replayed(step, repeats=repeats):7.2f}")
             continue
         record = step[position]
         registers = wp.get_cuda_kernel_properties(record[0], device)["register_count"]
-        print(f"  {record[0].func.__name__:16s} {_replayed([record]):7.2f}  ({record[1]} threads in blocks of "
+        print(f"  {record[0].func.__name__:16s} {replayed([record]):7.2f}  ({record[1]} threads in blocks of "
               f"{record[3]}, {registers} registers)")
 
 
