@@ -34,7 +34,8 @@ sums to the last bit (the copy cannot drift from the solver unnoticed); on the C
 prints one JSON line: the node count, the contact slots, and µs per launch by variant. Never
 asserted anywhere. The H200's figures of 2026-12-02 (docs/benchmarks.md, sixth session) came from
 this script's kernels in a working copy before it was committed; six of its variants compile to
-the same SASS as the ones timed there, the others to the same instructions in another order.
+the same SASS as the ones timed there, the others to nearly the same instructions (within 8 of
+600-900) in another order.
 """
 
 from __future__ import annotations
