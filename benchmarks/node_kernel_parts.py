@@ -25,9 +25,9 @@ machine code is not the solver's instruction for instruction (ptxas orders a sou
 arithmetic its own way, and on this kernel two orders of one source differed by 13 %, see
 docs/benchmarks.md): read a variant against ``copy``, not against ``solver``.
 Before timing, every variant that keeps every part is run once from the recorded state beside
-the solver's kernel and must give its displacements, increments, remainders, forces and ANP
-sums to the last bit (the copy cannot drift from the solver unnoticed); on the CPU
-(``--device cpu``) the script does only that check.
+the solver's kernel and must leave its displacements, increments, forces and ANP sums (see
+:func:`check`), so the copy cannot drift from the solver unnoticed; on the CPU (``--device
+cpu``) the script does only that check, to the last bit.
 
     python benchmarks/node_kernel_parts.py [--tets 160000] [--batch 64] [--device cuda] [--variants NAME ...]
 
@@ -189,24 +189,34 @@ def recorded_launch(tets: int, batch: int, device: str) -> tuple:
     return kernel, dim, inputs, block
 
 
-def check(kernel, dim: int, inputs: list, block: int, batch: int, names: list) -> None:
-    """Each complete variant, run once from the recorded state, leaves the solver kernel's state
-    to the last bit; the state is put back after each."""
+def check(kernel, dim: int, inputs: list, block: int, names: list, exact: bool) -> None:
+    """Each complete variant, run once from the recorded state, leaves the solver kernel's state:
+    to the last bit (``exact``, the CPU), or on a GPU, where the compiler may fuse a product and a
+    sum in one build and not in the other, the displacements, increments, forces and ANP sums
+    within 1e-5 of each one's largest value (the last increment's term scaled by 1 + 1e-4 fails
+    it; the remainders are left out, as they are the rounding of the displacements): the CPU's
+    check is the exact one. The state is put back after each."""
     saved = [inputs[n].numpy().copy() for n in STATE]
 
-    def run(launched, count):
+    def run(launched):
         for n, values in zip(STATE, saved):
             inputs[n].assign(values)
-        wp.launch(launched, count, inputs, block_dim=block)
-        return [inputs[n].numpy().copy() for n in STATE]
+        wp.launch(launched, dim, inputs, block_dim=block)
+        return [inputs[n].numpy().astype(np.float64) for n in STATE]
 
-    expected = run(kernel, dim)
+    def agree(expected, got, n):
+        if exact:
+            return np.array_equal(expected, got)
+        return n == 1 or np.abs(expected - got).max() <= 1e-5 * max(np.abs(expected).max(), 1e-30)
+
+    expected = run(kernel)
     for name in names:
         if any(VARIANTS[name].get(p, True) is False for p in PARTS):
             continue  # a variant without a part does other work by design
-        got = run(node_variant(**VARIANTS[name]), dim)
-        if not all(np.array_equal(e, g) for e, g in zip(expected, got)):
-            raise SystemExit(f"{name}: not the solver's node update to the last bit; mend the copy in this script")
+        got = run(node_variant(**VARIANTS[name]))
+        if not all(agree(e, g, n) for n, e, g in zip(STATE, expected, got)):
+            raise SystemExit(f"{name}: not the solver's node update ({'to the last bit' if exact else 'within 1e-5'}); "
+                             "mend the copy in this script")
     for n, values in zip(STATE, saved):
         inputs[n].assign(values)
 
@@ -225,7 +235,7 @@ def main() -> None:
     figures = {"benchmark": "node_kernel_parts", "device": wp.get_device(args.device).name, "batch": args.batch,
                "nodes": dim // args.batch, "contact_slots": int(np.count_nonzero(inputs[7].slot.numpy() >= 0))}
     with wp.ScopedDevice(args.device):
-        check(kernel, dim, inputs, block, args.batch, args.variants)
+        check(kernel, dim, inputs, block, args.variants, exact=not wp.get_device(args.device).is_cuda)
         if wp.get_device(args.device).is_cuda:
             figures["solver"] = round(replayed([(kernel, dim, inputs, block)]), 2)
             for name in args.variants:
