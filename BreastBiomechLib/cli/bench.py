@@ -14,8 +14,8 @@ from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, fractio
 
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
-# benchmarks that need only warp and NumPy (the solver on its own hemi-ellipsoid meshes): they run
-# on a machine without VTK, as a GPU node with the plain install
+# benchmarks that need only warp, NumPy and SciPy (the solver on its own hemi-ellipsoid meshes): they
+# run on a machine without VTK, SimpleITK or TetGen, as a GPU node with warp installed
 WITHOUT_VTK = ("solver", "unloaded")
 
 

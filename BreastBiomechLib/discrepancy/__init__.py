@@ -15,13 +15,15 @@ Steps, each usable alone from the Python console:
   significant remains, with its report.
 """
 
-from BreastBiomechLib.discrepancy.diagnosis import VERDICTS, Diagnosis, DiagnosisSettings, diagnose
-from BreastBiomechLib.discrepancy.effects import library
-from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
-from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
-from BreastBiomechLib.discrepancy.session import DiagnosisCancelled, DiagnosisSession
-from BreastBiomechLib.discrepancy.state import ModelState
-from BreastBiomechLib.discrepancy.workflow import DiagnosisRun, run_diagnosis
+from BreastBiomechLib.lazy import exports
 
-__all__ = ["VERDICTS", "Diagnosis", "DiagnosisCancelled", "DiagnosisRun", "DiagnosisSession", "DiagnosisSettings", "FittedCase", "ModelState", "NoiseModel",
-           "Observations", "diagnose", "library", "load_fitted_case", "observations_of", "run_diagnosis"]
+__all__ = ["VERDICTS", "Diagnosis", "DiagnosisCancelled", "DiagnosisRun", "DiagnosisSession", "DiagnosisSettings",
+           "FittedCase", "ModelState", "NoiseModel", "Observations", "diagnose", "library", "load_fitted_case",
+           "observations_of", "run_diagnosis"]
+
+# imported on first use (the modules import warp, SciPy and SimpleITK; see BreastBiomechLib.lazy)
+__getattr__ = exports(__name__, {
+    "VERDICTS": "diagnosis", "Diagnosis": "diagnosis", "DiagnosisSettings": "diagnosis", "diagnose": "diagnosis",
+    "library": "effects", "FittedCase": "fitted", "load_fitted_case": "fitted", "NoiseModel": "observations",
+    "Observations": "observations", "observations_of": "observations", "DiagnosisCancelled": "session",
+    "DiagnosisSession": "session", "ModelState": "state", "DiagnosisRun": "workflow", "run_diagnosis": "workflow"})

@@ -6,18 +6,11 @@ Building a model (materials, plates, constraints, loading) needs numpy only; war
 first use of the solver itself (``solve``, ``solve_batch``, ``DynamicRelaxation``, ``Solution``),
 so a Slicer panel can build and show a model before warp is installed."""
 
+from BreastBiomechLib.lazy import exports
 from BreastBiomechLib.solver.materials import ElementMaterials, Material, fibre_direction, lame_from_young
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
-
-_SOLVER_NAMES = ("DynamicRelaxation", "Solution", "solve", "solve_batch")
 
 __all__ = ["Constraint", "DynamicRelaxation", "ElementMaterials", "Loading", "Material", "Model", "Plate", "Solution",
            "fibre_direction", "lame_from_young", "solve", "solve_batch"]
 
-
-def __getattr__(name: str):
-    if name in _SOLVER_NAMES:
-        from BreastBiomechLib.solver import tled
-
-        return getattr(tled, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = exports(__name__, {name: "tled" for name in ("DynamicRelaxation", "Solution", "solve", "solve_batch")})

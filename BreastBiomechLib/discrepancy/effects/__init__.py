@@ -1,20 +1,17 @@
 """The candidate-effect library: each effect the fitted model may be missing is one class in
 one file of this package (parameters with ranges and "off" values, how it changes a model
-variant). Adding an effect is adding a file and a line to :func:`library`.
+variant). Adding an effect is adding a file, its class to :func:`library` and to the names this
+package exports (imported on first use, below).
 """
 
 from __future__ import annotations
 
-from BreastBiomechLib.discrepancy.effects.anisotropy import Anisotropy
-from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
-from BreastBiomechLib.discrepancy.effects.chest_wall import ChestWallHold
-from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
-from BreastBiomechLib.discrepancy.effects.gravity import GravityPrestress
-from BreastBiomechLib.discrepancy.effects.heterogeneity import Heterogeneity
-from BreastBiomechLib.discrepancy.effects.plate_offset import PlateOffset
-from BreastBiomechLib.discrepancy.effects.plate_tilt import PlateTilt
-from BreastBiomechLib.discrepancy.effects.skin import SkinLayer
-from BreastBiomechLib.discrepancy.effects.tumour import TumourStiffness
+from typing import TYPE_CHECKING
+
+from BreastBiomechLib.lazy import exports
+
+if TYPE_CHECKING:
+    from BreastBiomechLib.discrepancy.effects.base import Effect
 
 NAMES = ("friction", "gravity", "chest-wall", "skin", "anisotropy", "heterogeneity", "tumour", "plate-tilt",
          "plate-offset")
@@ -27,6 +24,16 @@ def library(fitted, names=None) -> list[Effect]:
     unknown = sorted(set(names) - set(NAMES))
     if unknown:
         raise ValueError(f"unknown effects {unknown}; the library has {list(NAMES)}")
+    from BreastBiomechLib.discrepancy.effects.anisotropy import Anisotropy
+    from BreastBiomechLib.discrepancy.effects.chest_wall import ChestWallHold
+    from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
+    from BreastBiomechLib.discrepancy.effects.gravity import GravityPrestress
+    from BreastBiomechLib.discrepancy.effects.heterogeneity import Heterogeneity
+    from BreastBiomechLib.discrepancy.effects.plate_offset import PlateOffset
+    from BreastBiomechLib.discrepancy.effects.plate_tilt import PlateTilt
+    from BreastBiomechLib.discrepancy.effects.skin import SkinLayer
+    from BreastBiomechLib.discrepancy.effects.tumour import TumourStiffness
+
     plates = max(len(fitted.plates), 1)
     made = {"friction": PlateFriction, "gravity": GravityPrestress, "chest-wall": ChestWallHold,
             "skin": SkinLayer, "anisotropy": Anisotropy, "heterogeneity": lambda: Heterogeneity.for_fit(fitted),
@@ -37,3 +44,11 @@ def library(fitted, names=None) -> list[Effect]:
 
 __all__ = ["Effect", "EffectParameter", "NAMES", "library", "Anisotropy", "ChestWallHold", "PlateFriction",
            "GravityPrestress", "Heterogeneity", "PlateOffset", "PlateTilt", "SkinLayer", "TumourStiffness"]
+
+# the effects' classes are imported on first use (their modules import the solver and warp; see
+# BreastBiomechLib.lazy), so that the command line lists NAMES without them
+__getattr__ = exports(__name__, {"Effect": "base", "EffectParameter": "base", "Anisotropy": "anisotropy",
+                                 "ChestWallHold": "chest_wall", "PlateFriction": "friction",
+                                 "GravityPrestress": "gravity", "Heterogeneity": "heterogeneity",
+                                 "PlateOffset": "plate_offset", "PlateTilt": "plate_tilt", "SkinLayer": "skin",
+                                 "TumourStiffness": "tumour"})
