@@ -352,7 +352,8 @@ def test_command_line_parsers_import_no_heavy_package():
 def test_lazy_package_names_resolve_to_their_modules():
     """Every name a package lists in ``__all__`` resolves, those imported on first use included (a
     slip in a package's map would surface only when a console user or a module asked for that
-    name), and a name it does not export is an AttributeError that names the package."""
+    name) and is listed by ``dir()`` (the console's completion), and a name it does not export is
+    an AttributeError that names the package."""
     import importlib
 
     for package in ("BreastBiomechLib.phantom", "BreastBiomechLib.discrepancy", "BreastBiomechLib.discrepancy.effects",
@@ -360,6 +361,7 @@ def test_lazy_package_names_resolve_to_their_modules():
         module = importlib.import_module(package)
         for name in module.__all__:
             getattr(module, name)
+        assert set(module.__all__) <= set(dir(module)), f"{package}: dir() misses names the console should complete"
         try:
             module.no_such_name
         except AttributeError as error:

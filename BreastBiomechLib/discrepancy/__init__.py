@@ -22,7 +22,7 @@ __all__ = ["VERDICTS", "Diagnosis", "DiagnosisCancelled", "DiagnosisRun", "Diagn
            "observations_of", "run_diagnosis"]
 
 # imported on first use (the modules import warp, SciPy and SimpleITK; see BreastBiomechLib.lazy)
-__getattr__ = exports(__name__, {
+__getattr__, __dir__ = exports(__name__, {
     "VERDICTS": "diagnosis", "Diagnosis": "diagnosis", "DiagnosisSettings": "diagnosis", "diagnose": "diagnosis",
     "library": "effects", "FittedCase": "fitted", "load_fitted_case": "fitted", "NoiseModel": "observations",
     "Observations": "observations", "observations_of": "observations", "DiagnosisCancelled": "session",

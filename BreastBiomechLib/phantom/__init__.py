@@ -10,5 +10,5 @@ from BreastBiomechLib.phantom.parameters import TABLE1_CASES, PhantomParameters,
 __all__ = ["PhantomCase", "PhantomParameters", "generate_phantom", "read_phantom", "table1_case",
            "TABLE1_CASES", "write_phantom"]
 
-__getattr__ = exports(__name__, {"PhantomCase": "generate", "generate_phantom": "generate", "read_phantom": "files",
-                                 "write_phantom": "files"})
+__getattr__, __dir__ = exports(__name__, {"PhantomCase": "generate", "generate_phantom": "generate",
+                                          "read_phantom": "files", "write_phantom": "files"})

@@ -13,4 +13,5 @@ from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
 __all__ = ["Constraint", "DynamicRelaxation", "ElementMaterials", "Loading", "Material", "Model", "Plate", "Solution",
            "fibre_direction", "lame_from_young", "solve", "solve_batch"]
 
-__getattr__ = exports(__name__, {name: "tled" for name in ("DynamicRelaxation", "Solution", "solve", "solve_batch")})
+__getattr__, __dir__ = exports(__name__, {name: "tled" for name in ("DynamicRelaxation", "Solution", "solve",
+                                                                     "solve_batch")})

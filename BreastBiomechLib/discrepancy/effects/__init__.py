@@ -47,8 +47,8 @@ __all__ = ["Effect", "EffectParameter", "NAMES", "library", "Anisotropy", "Chest
 
 # the effects' classes are imported on first use (their modules import the solver and warp; see
 # BreastBiomechLib.lazy), so that the command line lists NAMES without them
-__getattr__ = exports(__name__, {"Effect": "base", "EffectParameter": "base", "Anisotropy": "anisotropy",
-                                 "ChestWallHold": "chest_wall", "PlateFriction": "friction",
-                                 "GravityPrestress": "gravity", "Heterogeneity": "heterogeneity",
-                                 "PlateOffset": "plate_offset", "PlateTilt": "plate_tilt", "SkinLayer": "skin",
-                                 "TumourStiffness": "tumour"})
+__getattr__, __dir__ = exports(__name__, {"Effect": "base", "EffectParameter": "base", "Anisotropy": "anisotropy",
+                                          "ChestWallHold": "chest_wall", "PlateFriction": "friction",
+                                          "GravityPrestress": "gravity", "Heterogeneity": "heterogeneity",
+                                          "PlateOffset": "plate_offset", "PlateTilt": "plate_tilt",
+                                          "SkinLayer": "skin", "TumourStiffness": "tumour"})

@@ -10,6 +10,7 @@ __all__ = ["ANATOMIES", "HIDDEN_EFFECTS", "HiddenEffect", "MEASURED_FILES", "Sui
            "case_result", "measured_copy", "run_case", "run_suite", "scores_markdown", "suite_cases", "suite_scores"]
 
 # the runner and the scores are imported on first use (see BreastBiomechLib.lazy)
-__getattr__ = exports(__name__, {"MEASURED_FILES": "runner", "SuiteSettings": "runner", "measured_copy": "runner",
-                                 "run_case": "runner", "run_suite": "runner", "case_result": "scores",
-                                 "scores_markdown": "scores", "suite_scores": "scores"})
+__getattr__, __dir__ = exports(__name__, {"MEASURED_FILES": "runner", "SuiteSettings": "runner",
+                                          "measured_copy": "runner", "run_case": "runner", "run_suite": "runner",
+                                          "case_result": "scores", "scores_markdown": "scores",
+                                          "suite_scores": "scores"})
