@@ -51,7 +51,7 @@ from BreastBiomechLib.cli.bench import _hemi_ellipsoid_spacing, bench_parameter_
 from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
-from graph_replay import replayed  # this folder's
+from graph_replay import argument, recorded_launches, replayed  # this folder's
 
 PARTS = ("plates", "constraints", "anp_clear", "flags", "model_scalars")
 VARIANTS = {"copy": {}, "uncapped": {"cap": False}, "slots_first": {"slots_first": True},
@@ -167,25 +167,16 @@ def recorded_launch(tets: int, batch: int, device: str) -> tuple:
     """The solver's first ``advance_nodes`` launch with all ``batch`` models listed, in a short
     relaxation of the bench's model: (kernel, threads, inputs, block)."""
     model = hemi_ellipsoid_compression(_hemi_ellipsoid_spacing(tets), compression=0.25)
-    recorded = []
-    launch = wp.launch
-
-    def recording(kernel, dim, inputs=None, *args, **kwargs):
-        if kernel.func.__name__ == "advance_nodes" and inputs[9] == batch and not recorded:
-            recorded.append((kernel, dim, list(inputs), kwargs.get("block_dim", 256)))
-        return launch(kernel, dim, inputs, *args, **kwargs)
-
-    wp.launch = recording
-    try:
+    with recorded_launches() as launches:
         solve_batch(model, bench_parameter_sets(model.materials, batch), device=device,
                     relaxation=DynamicRelaxation(load_iterations=200, max_iterations=400))
-    finally:
-        wp.launch = launch
-    kernel, dim, inputs, block = recorded[0]
-    if inputs[7].n_plates != 2 or inputs[6].n_sliding or kernel is not k.node_kernel(False, False, False):
+    record = next(r for r in launches if r[0].func.__name__ == "advance_nodes" and argument(r, "n_listed") == batch)
+    kernel, dim, inputs, block = record
+    plates, constraints = argument(record, "plates"), argument(record, "constraints")
+    if plates.n_plates != 2 or constraints.n_sliding or kernel is not k.node_kernel(False, False, False):
         raise SystemExit("the bench's loading changed (its node kernel is not the frictionless one without gravity "
                          "or sliding, or it has not two plates): this script's copy no longer applies")
-    inputs[12].zero_()  # every model moves again
+    argument(record, "inverted").zero_()  # every model moves again
     return kernel, dim, inputs, block
 
 
@@ -232,8 +223,9 @@ def main() -> None:
         parser.error("--batch must be 2 or more (a lone model's node kernel takes no model list)")
     wp.init()
     kernel, dim, inputs, block = recorded_launch(args.tets, args.batch, args.device)
+    slots = argument((kernel, dim, inputs, block), "plates").slot.numpy()
     figures = {"benchmark": "node_kernel_parts", "device": wp.get_device(args.device).name, "batch": args.batch,
-               "nodes": dim // args.batch, "contact_slots": int(np.count_nonzero(inputs[7].slot.numpy() >= 0))}
+               "nodes": dim // args.batch, "contact_slots": int(np.count_nonzero(slots >= 0))}
     with wp.ScopedDevice(args.device):
         check(kernel, dim, inputs, block, args.variants, exact=not wp.get_device(args.device).is_cuda)
         if wp.get_device(args.device).is_cuda:

@@ -40,7 +40,7 @@ import warp as wp
 from BreastBiomechLib.cli.bench import _hemi_ellipsoid_spacing, bench_parameter_sets
 from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
-from graph_replay import replayed  # this folder's
+from graph_replay import argument, recorded_launches, replayed  # this folder's
 from kernel_registers import kernel_name  # this folder's: warp's CUDA symbol -> the kernel's name
 
 
@@ -64,34 +64,20 @@ def profile(tets: int, device: str, batch: int = 1) -> None:
               f" ({1000 * ms / solution.steps / batch:6.3f} us)")
 
 
-def argument(record: tuple, name: str):
-    """The value a recorded launch (kernel, dim, inputs, block_dim) passed for argument ``name``."""
-    kernel, _, inputs, _ = record
-    return inputs[[a.label for a in kernel.adj.args].index(name)]
-
-
 def _recorded_step(model, device: str) -> tuple:
     """A relaxation solve of ``model`` and its step kernels' last launches (kernel, dim, inputs,
     block_dim): its element forces, ANP sums and node update, in a step's order."""
     recorded = {}
-    launch = wp.launch
-
-    def recording(kernel, dim, inputs=None, *args, **kwargs):
-        name = kernel.func.__name__
-        record = (kernel, dim, list(inputs or []), kwargs.get("block_dim", 256))
+    with recorded_launches() as launches:
+        solution = solve_batch(model, [model.materials], device=device, relaxation=DynamicRelaxation())[0]
+    for record in launches:
+        name = record[0].func.__name__
         if name == "element_forces" and argument(record, "update_state") == 1:  # a step's, not a probe's
             recorded[name] = record
         elif name == "nodal_pressure":  # kept per ANP buffer: the step's is the node kernel's
             recorded.setdefault(name, {})[id(argument(record, "anp_sums"))] = record
         elif name == "advance_nodes":
             recorded[name] = record
-        return launch(kernel, dim, inputs, *args, **kwargs)
-
-    wp.launch = recording
-    try:
-        solution = solve_batch(model, [model.materials], device=device, relaxation=DynamicRelaxation())[0]
-    finally:
-        wp.launch = launch
     nodes = recorded["advance_nodes"]
     return solution, [recorded["nodal_pressure"][id(argument(nodes, "anp_sums"))], recorded["element_forces"], nodes]
 
