@@ -32,10 +32,18 @@ cpu``) the script does only that check, to the last bit.
     python benchmarks/node_kernel_parts.py [--tets 160000] [--batch 64] [--device cuda] [--variants NAME ...]
 
 prints one JSON line: the node count, the contact slots, and µs per launch by variant. Never
-asserted anywhere. The H200's figures of 2026-12-02 (docs/benchmarks.md, sixth session) came from
-this script's kernels in a working copy before it was committed; six of its variants compile to
-the same SASS as the ones timed there, the others to nearly the same instructions (within 8 of
-600-900) in another order.
+asserted anywhere. Figures: docs/benchmarks.md (H200, 2026-12-02, sixth and seventh sessions).
+
+What a variant's figure does and does not say: it times the copy's build, and ptxas schedules
+this kernel differently for small differences of source or arguments (one source with and
+without the register cap, 48 registers both: 175 and 198 µs; the copy as committed 190 against
+175 in its working version). A change that a copy runs faster must be built into the solver
+and timed as the solver's kernel (``solver`` here, run with the changed library) and in the
+solve (``breastbiomech bench solver`` with each library copy in turn) before it is believed: the
+special-node rows ran 134 µs as a probe's copy, 160-168 as the solver's build, and a batch of 64
+0.8-3.4 % faster in the solve while a lone model and 2M tets were 1-4 % slower (seventh
+session). The solver's own kernel replayed alone does match its time in the solve (Nsight
+Compute, within 3 %).
 """
 
 from __future__ import annotations
