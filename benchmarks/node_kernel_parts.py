@@ -40,9 +40,9 @@ without the register cap, 48 registers both: 175 and 198 µs; the copy as commit
 175 in its working version). A change that a copy runs faster must be built into the solver
 and timed as the solver's kernel (``solver`` here, run with the changed library) and in the
 solve (``breastbiomech bench solver`` with each library copy in turn) before it is believed: the
-special-node rows ran 134 µs as a probe's copy, 160-168 as the solver's build, and a batch of 64
-0.8-3.4 % faster in the solve while a lone model and 2M tets were 1-4 % slower (seventh
-session). The solver's own kernel replayed alone does match its time in the solve (Nsight
+special-node rows ran 22 % faster than the solver's kernel as a probe's copy, 3-10 % faster (or
+22 % slower, with the cap) as the solver's build, and in the solve a batch of 64 0.8-3.4 % faster
+while a lone model and 2M tets were 1-4 % slower (seventh session). The solver's own kernel replayed alone does match its time in the solve (Nsight
 Compute, within 3 %).
 """
 
