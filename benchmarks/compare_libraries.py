@@ -36,16 +36,19 @@ from pathlib import Path
 
 COMMAND_LINE = "import sys; from BreastBiomechLib.cli import main; sys.exit(main(sys.argv[1:]))"
 PACKAGE = "BreastBiomechLib"
+REPOSITORY = Path(__file__).resolve().parents[1]
 FIGURES = ("us_per_step_per_model", "solve_wall_s", "steps", "plate_force_N", "max_displacement_mm")
 
 
 def export(revision: str, folder: Path) -> Path:
-    """Write git ``revision``'s ``BreastBiomechLib`` into ``folder`` (made if missing; refused
-    where it holds the package already, so that no version is overwritten unseen)."""
+    """Write ``revision``'s ``BreastBiomechLib`` (of the repository this script is in) into
+    ``folder`` (made if missing; refused where it holds the package already, so that no version is
+    overwritten unseen)."""
     target = folder / PACKAGE
     if target.exists():
         raise SystemExit(f"{target} exists: remove it or export to another folder")
-    archive = subprocess.run(["git", "archive", "--format=tar", revision, PACKAGE], capture_output=True)
+    archive = subprocess.run(["git", "archive", "--format=tar", revision, PACKAGE], capture_output=True,
+                             cwd=REPOSITORY)
     if archive.returncode != 0:
         raise SystemExit(f"git archive {revision}: {archive.stderr.decode().strip()}")
     folder.mkdir(parents=True, exist_ok=True)
@@ -82,7 +85,7 @@ def bench_run(folder: Path, arguments: str, device: str) -> dict:
     done = subprocess.run(command, capture_output=True, text=True, env=version_environment(folder))
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
     if done.returncode != 0 or not lines:
-        raise SystemExit(f"{shlex.join(command[3:])} with {folder} failed (exit {done.returncode}):\n"
+        raise SystemExit(f"{shlex.join(command[4:])} with {folder} failed (exit {done.returncode}):\n"
                          f"{done.stderr.strip()[-2000:]}")
     return json.loads(lines[-1])
 
