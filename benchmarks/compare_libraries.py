@@ -11,10 +11,10 @@ lease's copy of the working tree has no history, so export before and carry the 
     python benchmarks/compare_libraries.py base=.base new=. [--runs "--batch 64" "--batch 16" ""]
                                            [--rounds 2] [--device cuda]
 
-Each run is ``bench solver --relaxation RUN --device DEVICE --json`` in a fresh interpreter whose
-only copy of the library is the version's (``python -P``, the version's folder first on
-``PYTHONPATH``; checked before the first run), so its kernels are built from that version's
-source. Prints one JSON line per run (the version, the run's arguments, the round, and the bench's
+Each run is ``bench solver --relaxation RUN --device DEVICE --json`` in a fresh interpreter that
+imports the library from the version's folder (``python -P``, the folder first on ``PYTHONPATH``;
+checked before the first run, so an installed copy cannot stand in for it), so its kernels are
+built from that version's source. Prints one JSON line per run (the version, the run's arguments, the round, and the bench's
 µs per model-step, solve seconds, steps, plate force and largest displacement, which tell a
 faster version from one that solved something else), then one line per run's arguments with each
 version's median and its ratio to the first version's. Never asserted anywhere; the bench needs
