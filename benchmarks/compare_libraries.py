@@ -14,11 +14,12 @@ lease's copy of the working tree has no history, so export before and carry the 
 Each run is ``bench solver --relaxation RUN --device DEVICE --json`` in a fresh interpreter that
 imports the library from the version's folder (``python -P``, the folder first on ``PYTHONPATH``;
 checked before the first run, so an installed copy cannot stand in for it), so its kernels are
-built from that version's source. Prints one JSON line per run (the version, the run's arguments, the round, and the bench's
-µs per model-step, solve seconds, steps, plate force and largest displacement, which tell a
-faster version from one that solved something else), then one line per run's arguments with each
-version's median and its ratio to the first version's. Never asserted anywhere; the bench needs
-warp, NumPy and SciPy only (``bench solver`` imports nothing else).
+built from that version's source. Prints one JSON line per run (the version, the run's
+arguments, the round, and the bench's µs per model-step, solve seconds, steps, plate force and
+largest displacement, which tell a faster version from one that solved something else), then
+one line per run's arguments with each version's median and its ratio to the first version's.
+Never asserted anywhere; the bench needs warp, NumPy and SciPy only (``bench solver`` imports
+nothing else).
 """
 
 from __future__ import annotations

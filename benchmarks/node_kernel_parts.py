@@ -20,10 +20,7 @@ script's work in the solver's layout, model list and launch), ``update_plus_<par
 ``slots_first`` (the plate slots read with the node's other reads, as two scalars, the two
 plates' contact unrolled). The copy is straight-line code as the solver's: wrapped in a loop over
 a thread's nodes (even of one node) the same update took 279 µs a launch against the solver's
-172 at 64 models (H200), so the loop, not the parts, would have been measured. The copy's
-machine code is not the solver's instruction for instruction (ptxas orders a source's loads and
-arithmetic its own way, and on this kernel two orders of one source differed by 13 %, see
-docs/benchmarks.md): read a variant against ``copy``, not against ``solver``.
+172 at 64 models (H200), so the loop, not the parts, would have been measured.
 Before timing, every variant that keeps every part is run once from the recorded state beside
 the solver's kernel and must leave its displacements, increments, forces and ANP sums (see
 :func:`check`), so the copy cannot drift from the solver unnoticed; on the CPU (``--device
@@ -37,12 +34,13 @@ asserted anywhere. Figures: docs/benchmarks.md (H200, 2026-12-02, sixth and seve
 What a variant's figure does and does not say: it times the copy's build, and ptxas schedules
 this kernel differently for small differences of source or arguments (one source with and
 without the register cap, 48 registers both: 175 and 198 µs; the copy as committed 190 against
-175 in its working version). A change that a copy runs faster must be built into the solver
-and timed as the solver's kernel (``solver`` here, run with the changed library) and in the
-solve (``breastbiomech bench solver`` with each library copy in turn) before it is believed: the
-special-node rows ran 22 % faster than the solver's kernel as a probe's copy, 3-10 % faster (or
-22 % slower, with the cap) as the solver's build, and in the solve a batch of 64 0.8-3.4 % faster
-while a lone model and 2M tets were 1-4 % slower (seventh session). The solver's own kernel replayed alone does match its time in the solve (Nsight
+175 in its working version), so read a variant against ``copy``, not against ``solver``. A
+change that a copy runs faster must be built into the solver and timed as the solver's kernel
+(``solver`` here, run with the changed library) and in the solve (``compare_libraries.py``)
+before it is believed: the special-node rows ran 22 % faster than the solver's kernel as a
+probe's copy, 3-10 % faster (or 22 % slower, with the cap) as the solver's build, and in the
+solve a batch of 64 0.8-3.4 % faster while a lone model and 2M tets were 1-4 % slower (seventh
+session). The solver's own kernel replayed alone does match its time in the solve (Nsight
 Compute, within 3 %).
 """
 
