@@ -32,7 +32,7 @@ import warp as wp
 
 from graph_replay import replayed  # this folder's
 
-wp.set_module_options({"fast_math": True})  # as the solver's kernels (kernels.py)
+wp.set_module_options({"fast_math": True})  # as the solver's kernels (solver/kernels/common.py)
 
 UPDATE_BYTES = 3 * 4 + 3 * 12 + 4 + 3 * 12 + 3 * 4  # reads: force planes, u/low/du, mass; writes: u/low/du, force
 COPY_BYTES = 2 * 16
