@@ -243,7 +243,7 @@ def test_the_panel_and_a_case_file_of_the_same_scene_build_the_same_model(scene,
 
     from BreastBiomechLib.io.cases import read_case
     from BreastBiomechLib.io.meshes import write_vtu
-    from BreastBiomechLib.solver.tled import merged_constraints
+    from BreastBiomechLib.solver.host_setup import merged_constraints
 
     logic, p = _set_up(scene, breast)
     p["plateFriction1"], p["plateFriction2"] = 0.4, 0.2

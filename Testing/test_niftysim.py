@@ -23,8 +23,8 @@ from BreastBiomechLib.solver import (Constraint, DynamicRelaxation, ElementMater
 from BreastBiomechLib.solver import kernels
 from BreastBiomechLib.solver.model import LOAD_SHAPES, PlateEdge
 from BreastBiomechLib.solver.geometry import shape_derivatives
-from BreastBiomechLib.solver.tled import (anp_slots, constraint_load_shapes, critical_time_step, internal_forces,
-                                         merged_constraints)
+from BreastBiomechLib.solver.host_setup import anp_slots, constraint_load_shapes, critical_time_step, merged_constraints
+from BreastBiomechLib.solver.tled import internal_forces
 
 SIDE = 10.0
 

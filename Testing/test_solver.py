@@ -11,7 +11,8 @@ from scipy.optimize import brentq, minimize
 from BreastBiomechLib.mesh.primitives import box_mesh
 from BreastBiomechLib.solver import (Constraint, ElementMaterials, Loading, Material, Model, Plate, solve,
                                      solve_batch)
-from BreastBiomechLib.solver.tled import critical_time_step, internal_forces
+from BreastBiomechLib.solver.host_setup import critical_time_step
+from BreastBiomechLib.solver.tled import internal_forces
 
 E, NU = 10e3, 0.45
 SIDE = 10.0  # mm
@@ -87,7 +88,7 @@ def test_anp_averages_within_each_material():
     interface: the pressure is averaged per material (node slots), never mixing a stiff tissue's
     bulk modulus into a soft one (which scaled an interface element's pressure by their ratio)."""
     from BreastBiomechLib.solver.geometry import shape_derivatives
-    from BreastBiomechLib.solver.tled import anp_slots
+    from BreastBiomechLib.solver.host_setup import anp_slots
 
     mesh = _block()
     stiff = mesh.nodes[mesh.tets].mean(axis=1)[:, 0] > 0.5 * SIDE
@@ -169,7 +170,7 @@ def test_anp_slots_number_each_node_and_material_as_sorting_would():
     material set of the batch), numbered in the order of (node, group) with the groups in the
     lexicographic order of their moduli: against that definition written with sorts, for sets
     that share the tissues' partition, split it, merge it, and give every element its own."""
-    from BreastBiomechLib.solver.tled import anp_slots
+    from BreastBiomechLib.solver.host_setup import anp_slots
 
     mesh = _block(5)
     M = len(mesh.tets)
@@ -257,7 +258,7 @@ def test_material_table_gives_each_element_its_materials_in_every_set():
     splits it by fibre direction alone, and a skin layer's blending (every element its own row)."""
     import warp as wp
 
-    from BreastBiomechLib.solver.tled import material_table
+    from BreastBiomechLib.solver.host_setup import material_table
 
     mesh = _block(4)
     M = len(mesh.tets)
@@ -294,7 +295,7 @@ def test_sets_of_one_tissue_labelling_are_grouped_per_tissue_as_element_by_eleme
     read-only, and a field given another array drops the table."""
     import warp as wp
 
-    from BreastBiomechLib.solver.tled import anp_slots, material_table
+    from BreastBiomechLib.solver.host_setup import anp_slots, material_table
 
     mesh = _block(5)
     M = len(mesh.tets)
@@ -417,7 +418,7 @@ def test_kernels_built_for_a_formulation_give_the_general_builds_answers(monkeyp
     on the CPU, the same batch solved with the builds that read all of these at run time (each
     then zero or absent), in both element kernels' variants (a thread per model and element, and
     several models a thread)."""
-    from BreastBiomechLib.solver import DynamicRelaxation, kernels, tled
+    from BreastBiomechLib.solver import DynamicRelaxation, host_setup, kernels
 
     mesh = _block(3)
     model = _compression_model(mesh, Material(E, NU), strain=0.2)
@@ -434,7 +435,7 @@ def test_kernels_built_for_a_formulation_give_the_general_builds_answers(monkeyp
         monkeypatch.setattr(kernels, "node_kernel", node_build)
         runs.append([])
         for per_thread in (1, 3):
-            monkeypatch.setattr(tled, "MODELS_PER_THREAD", ((1 << 30, per_thread),))
+            monkeypatch.setattr(host_setup, "MODELS_PER_THREAD", ((1 << 30, per_thread),))
             runs[-1] += solve_batch(model, variants, device="cpu", relaxation=relaxation)
     specialised, general = runs
     assert all(s.ok for s in general) and len({s.steps for s in general}) > 1
@@ -449,7 +450,7 @@ def test_a_thread_computing_several_models_gives_the_per_model_kernels_answers(m
     seven whose models converge at different iterations (the list of moving models shrinking
     through both variants' widths) and one of which inverts, and a physical-time visco batch (the
     Prony state updated per model), equal to the last bit on the CPU."""
-    from BreastBiomechLib.solver import DynamicRelaxation, tled
+    from BreastBiomechLib.solver import DynamicRelaxation, host_setup
 
     mesh = _block(3)
     model = _compression_model(mesh, Material(E, NU), strain=0.2)
@@ -460,7 +461,7 @@ def test_a_thread_computing_several_models_gives_the_per_model_kernels_answers(m
     visco = [ElementMaterials.uniform(len(mesh.tets), Material(e, 0.45, prony=((0.3, 0.05),))) for e in (8e3, 1e4, 12e3)]
     runs = {}
     for per_thread in (1, 3):
-        monkeypatch.setattr(tled, "MODELS_PER_THREAD", ((1 << 30, per_thread),))
+        monkeypatch.setattr(host_setup, "MODELS_PER_THREAD", ((1 << 30, per_thread),))
         runs[per_thread] = (solve_batch(model, variants, plate_displacements=motions, device="cpu",
                                         relaxation=DynamicRelaxation(load_iterations=20, tolerance_mm=0.005))
                             + solve_batch(model, visco, device="cpu"))
@@ -649,7 +650,7 @@ def test_cpu_and_cuda_agree_on_a_relaxation_batch():
 
 
 def test_constraints_on_shared_nodes_are_merged_and_conflicts_refused():
-    from BreastBiomechLib.solver.tled import merged_constraints
+    from BreastBiomechLib.solver.host_setup import merged_constraints
 
     mesh = _block(1)
     mat = ElementMaterials.uniform(len(mesh.tets), Material(E, NU))
@@ -943,7 +944,7 @@ def test_a_batch_packed_down_to_its_moving_models_gives_the_unpacked_batchs_answ
     histories of kinetic energy and plate forces are those of the same batch never packed, to the
     last bit (warp's CPU device): a set packed out shows no motion and no plate force in the
     samples after, as a frozen model in the batch."""
-    from BreastBiomechLib.solver import DynamicRelaxation, packing, tled
+    from BreastBiomechLib.solver import DynamicRelaxation, batch_run, packing
 
     mesh = _block(3)
     model = _compression_model(mesh, Material(E, 0.49), strain=0.2)
@@ -964,7 +965,7 @@ def test_a_batch_packed_down_to_its_moving_models_gives_the_unpacked_batchs_answ
     packed = solve_batch(model, variants, plate_displacements=motions, device="cpu", relaxation=relaxation)
     assert sorted(set(packed_sizes), reverse=True)[:2] == [(5, 2), (2, 1)]  # packed at 2 moving of 5, then 1 of 2
     packed_sizes.clear()
-    monkeypatch.setattr(tled, "PACK_AT", 0.0)
+    monkeypatch.setattr(batch_run, "PACK_AT", 0.0)
     unpacked = solve_batch(model, variants, plate_displacements=motions, device="cpu", relaxation=relaxation)
     assert not packed_sizes
     assert [p.status for p in packed] == ["completed"] * 3 + ["inverted elements", "completed"]
@@ -985,11 +986,11 @@ def test_relaxation_stops_at_the_float32_noise_floor_of_a_nearly_incompressible_
     volumetric stress keeps the nodes moving by 2e-5-9e-5 mm between relaxation updates at rest,
     and the ratio of consecutive changes jumps above and below 1: the distance-to-rest estimate
     read "not contracting" at every other update, and a tolerance of 2e-4 mm took 13 800
-    iterations. A change below the model's noise floor (:func:`tled.stress_noise_floor_mm`) made
+    iterations. A change below the model's noise floor (:func:`host_setup.stress_noise_floor_mm`) made
     of high modes is now read as rest: the same solve stops in 3 400 iterations, within the
     tolerance of a 30 000-iteration run."""
     from BreastBiomechLib.solver import DynamicRelaxation
-    from BreastBiomechLib.solver.tled import stress_noise_floor_mm
+    from BreastBiomechLib.solver.host_setup import stress_noise_floor_mm
 
     model = _compression_model(_block(4), Material(5e3, 0.4999), strain=0.2)
     relaxed = solve(model, device="cpu", relaxation=DynamicRelaxation(load_iterations=300, tolerance_mm=2e-4))

@@ -16,7 +16,7 @@ generation, and prints one JSON line per setting: failures by status, the solves
 the iterations (median, largest) and the slowest batch; ``--batches`` also prints a line per
 batch (its seconds, each model's iterations and status), which shows how long a batch waits on its
 slowest model. ``--pack-at F`` sets the fraction of a batch still moving at which the solver packs
-it down to those models (``solver.tled.PACK_AT``; 0 never packs).
+it down to those models (``solver.batch_run.PACK_AT``; 0 never packs).
 
 The bench's case is rebuilt (``bench_fitting_problem``, default geometry: radii 70/60/65 mm,
 4 mm cubes); nothing is asserted.
@@ -36,7 +36,7 @@ import numpy as np
 from BreastBiomechLib import labels
 from BreastBiomechLib.cli.bench import bench_fitting_problem
 from BreastBiomechLib.optimisation.record import read_evaluations
-from BreastBiomechLib.solver import DynamicRelaxation, tled
+from BreastBiomechLib.solver import DynamicRelaxation, batch_run, host_setup
 
 PACES = (1, 4, 16)
 _AT = re.compile(r"at step (\d+) .* first element (\d+)")
@@ -45,7 +45,7 @@ _AT = re.compile(r"at step (\d+) .* first element (\d+)")
 def load_iterations(problem, z, relaxation: DynamicRelaxation) -> int:
     """The load iterations the solver gives the set at unit position ``z`` of ``problem``."""
     materials = problem.space.element_materials(z, problem.tissue).long_term()
-    return int(tled.relaxation_load_iterations(problem.model, [materials], [problem.model.loading.plates], relaxation)[0])
+    return int(host_setup.relaxation_load_iterations(problem.model, [materials], [problem.model.loading.plates], relaxation)[0])
 
 
 def failures(problem, evaluations, batch: int, out: str | None) -> None:
@@ -101,7 +101,7 @@ def workload(problem, evaluations, batch: int, paces, load: int, most: int, per_
             statuses += [s.status for s in solutions]
             steps += [s.steps for s in solutions if s.ok]
         counts = collections.Counter(statuses)
-        print(json.dumps({"pace": pace, "pack_at": tled.PACK_AT, "load_iterations": load, "max_iterations": most,
+        print(json.dumps({"pace": pace, "pack_at": batch_run.PACK_AT, "load_iterations": load, "max_iterations": most,
                           "solves": len(statuses),
                           "failed": len(statuses) - counts["completed"], "statuses": dict(counts),
                           "logged_statuses": logged, "solve_seconds": round(sum(seconds), 2),
@@ -132,7 +132,7 @@ def main() -> None:
 
     evaluations = read_evaluations(Path(args.fit) / "evaluations.jsonl")
     if args.pack_at is not None:
-        tled.PACK_AT = args.pack_at
+        batch_run.PACK_AT = args.pack_at
     # the failures' solves need no similarity: the undeformed image stands in for the measured one
     problem = bench_fitting_problem(args.radii, args.element_mm, device=args.device, measured=False,
                                     pull_corners=not args.stair_corners)

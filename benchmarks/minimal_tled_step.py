@@ -32,7 +32,7 @@ import warp as wp
 from BreastBiomechLib.cli.bench import BENCH_RADII_MM, _hemi_ellipsoid_spacing
 from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
 from BreastBiomechLib.solver.geometry import shape_derivatives
-from BreastBiomechLib.solver.tled import MM
+from BreastBiomechLib.solver.settings import MM
 
 
 @wp.func

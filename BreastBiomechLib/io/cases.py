@@ -10,7 +10,6 @@ node ids; materials are keyed by tissue name or label value of :mod:`BreastBiome
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -20,58 +19,7 @@ from BreastBiomechLib.labels import tissue as lookup_tissue
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate, PlateEdge
-from BreastBiomechLib.solver.tled import DynamicRelaxation
-
-SOLVER_METHODS = ("relaxation", "physical", "static")
-
-
-@dataclass
-class UnloadedRequest:
-    """A case's ``reference_state``: the mesh is the shape imaged under ``imaged_gravity`` (m/s^2,
-    LPS; prone MR: anterior, (0, -9.81, 0)); the solve starts pre-stressed from its estimated
-    stress-free shape (:mod:`BreastBiomechLib.solver.unloaded`, to ``tolerance_mm`` within
-    ``max_iterations``), with the case's ``gravity`` acting over the loading."""
-
-    imaged_gravity: np.ndarray
-    tolerance_mm: float = 0.02
-    max_iterations: int = 30
-
-    def __post_init__(self) -> None:
-        self.imaged_gravity = np.asarray(self.imaged_gravity, float).reshape(3)
-        if not np.all(np.isfinite(self.imaged_gravity)):
-            raise ValueError(f"imaged_gravity must be three finite numbers (m/s^2, LPS), not "
-                             f"{self.imaged_gravity.tolist()}")
-        if not self.tolerance_mm > 0 or int(self.max_iterations) < 1:
-            raise ValueError("the reference state needs tolerance_mm > 0 and max_iterations >= 1")
-
-
-@dataclass
-class SolverSettings:
-    """How to solve a case: ``method`` "relaxation" (static solution, fast), "physical"
-    (explicit dynamics in physical time) or "static" (the Newton reference of
-    :mod:`BreastBiomechLib.solver.static`: CPU, float64, small models), the device ("cuda",
-    "cpu", or None for warp's default), the dynamic-relaxation settings, for physical time the
-    optional early stop at steady state and mass scaling, and for static the number of load
-    increments."""
-
-    method: str = "relaxation"
-    device: str | None = None
-    relaxation: DynamicRelaxation = field(default_factory=DynamicRelaxation)
-    steady_state_mm: float | None = None  # physical time: stop settling once this close to rest
-    increments: int | None = None  # static: load steps (None: the solver's default)
-    mass_scaling: bool = False  # physical time: scale element masses up to a common stable step
-    unloaded: UnloadedRequest | None = None  # start pre-stressed from the imaged shape's unloaded state
-
-    def __post_init__(self) -> None:
-        if self.method not in SOLVER_METHODS:
-            raise ValueError(f"solver method must be one of {SOLVER_METHODS}, not {self.method!r}")
-        if self.steady_state_mm is not None and self.method != "physical":
-            raise ValueError("steady_state_mm applies to the physical method; relaxation has tolerance_mm")
-        if self.increments is not None and self.method != "static":
-            raise ValueError("increments apply to the static method")
-        if self.mass_scaling and self.method != "physical":
-            raise ValueError("mass_scaling applies to the physical method (relaxation always scales masses)")
-
+from BreastBiomechLib.solver.settings import DynamicRelaxation, SolverSettings, UnloadedRequest
 
 def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
     if isinstance(spec, str):

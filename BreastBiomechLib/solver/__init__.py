@@ -3,7 +3,7 @@ nodal pressure, neo-Hookean and transversely isotropic neo-Hookean materials, ri
 frictionless contact, prescribed displacements, gravity, batched solves.
 
 Building a model (materials, plates, constraints, loading) needs numpy only; warp is imported on
-first use of the solver itself (``solve``, ``solve_batch``, ``DynamicRelaxation``, ``Solution``),
+first use of the solver itself (``solve``, ``solve_batch``; the settings and ``Solution`` are light),
 so a Slicer panel can build and show a model before warp is installed."""
 
 from BreastBiomechLib.lazy import exports
@@ -11,7 +11,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials, Material, fibre_
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate
 
 __all__ = ["Constraint", "DynamicRelaxation", "ElementMaterials", "Loading", "Material", "Model", "Plate", "Solution",
-           "fibre_direction", "lame_from_young", "solve", "solve_batch"]
+           "SolverSettings", "fibre_direction", "lame_from_young", "solve", "solve_batch"]
 
-__getattr__, __dir__ = exports(__name__, {name: "tled" for name in ("DynamicRelaxation", "Solution", "solve",
-                                                                     "solve_batch")})
+__getattr__, __dir__ = exports(__name__, {"DynamicRelaxation": "settings", "SolverSettings": "settings",
+                                          "Solution": "solution", "solve": "tled", "solve_batch": "tled"})

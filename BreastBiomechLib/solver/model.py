@@ -239,7 +239,7 @@ class Model:
     (:class:`ReferenceState`; the mesh is then the stress-free shape), None: the mesh's shape is
     stress-free and the tissue starts at rest there. ``anp_across_materials`` (T4ANP): False
     averages each node's pressure over the elements of one material at a time (this project's
-    default, see :func:`~BreastBiomechLib.solver.tled.anp_slots`); True over all its elements, as
+    default, see :func:`~BreastBiomechLib.solver.host_setup.anp_slots`); True over all its elements, as
     NiftySim's T4ANP does (what a NiftySim model means; read NiftySim files come back so)."""
 
     mesh: TetMesh

@@ -2,7 +2,7 @@
 
 At every sample (every ``update_every`` steps) a relaxation estimates each model's distance to rest
 (:class:`DistanceToRest`), sets its damping from Rayleigh quotients and stops the models that have
-converged (the rules: :class:`BreastBiomechLib.solver.tled.DynamicRelaxation`). Made on the host,
+converged (the rules: :class:`BreastBiomechLib.solver.settings.DynamicRelaxation`). Made on the host,
 these decisions kept the GPU idle between a sample and the next steps (10-20 ms of a lone
 160k-tet solve on an H200, docs/benchmarks.md); made by :func:`relaxation_update`, one thread
 per model in the sample's graph, they let the host enqueue the next steps before it reads the
@@ -23,8 +23,8 @@ import warp as wp
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.packing import Selection
 from BreastBiomechLib.solver.readback import HostCopy
+from BreastBiomechLib.solver.settings import MM
 
-MM = 1e-3  # metres per millimetre
 ROUND_OFF_MM = 2e-5  # float32 round-off of displacements up to ~200 mm
 QUOTIENT_WINDOW = 5  # the Rayleigh quotient's reference state is renewed every this many updates
 CHATTER_QUOTIENT = 10.0  # a stalled motion whose quotient is this far above the least is chatter
@@ -198,7 +198,7 @@ def relaxation_update(s: RelaxationState, rules: RelaxationRules, distance: Dist
                       inverted: wp.array(dtype=int), clock: wp.array(dtype=int)):
     """One sample's decisions for model b (one thread per model), after the sample's energies
     (``kinetic`` J, ``internal`` twice the internal energy, J), Rayleigh-quotient terms and
-    distance measurement (see :class:`BreastBiomechLib.solver.tled.DynamicRelaxation` for the
+    distance measurement (see :class:`BreastBiomechLib.solver.settings.DynamicRelaxation` for the
     rules): a model with an inverted element stops moving; once some model's load is complete,
     the distance to rest is estimated, the damping set and converged models stopped (frozen:
     ``inverted[4b + 3]`` = 2)."""

@@ -25,7 +25,9 @@ import scipy.sparse.linalg as spla
 
 from BreastBiomechLib.solver.geometry import shape_derivatives
 from BreastBiomechLib.solver.model import Model
-from BreastBiomechLib.solver.tled import MM, Solution, anp_slots, merged_constraints
+from BreastBiomechLib.solver.host_setup import anp_slots, merged_constraints
+from BreastBiomechLib.solver.settings import MM
+from BreastBiomechLib.solver.solution import Solution
 
 _FD_STEP = 1e-6  # central-difference step on the deformation gradient (dimensionless)
 _MAX_BACKTRACKS = 10  # halvings of a Newton step that would invert elements
@@ -186,7 +188,7 @@ def solve_static(model: Model, increments: int | None = None, tolerance_mm: floa
     nodes the plate would pull leave it, and the step is solved again until the set no longer
     changes. A step that inverts elements or does not converge is halved, down to
     1/2^``max_cuts`` of the initial increment, and grows back after each step that converges.
-    Returns a :class:`~BreastBiomechLib.solver.tled.Solution` with status
+    Returns a :class:`~BreastBiomechLib.solver.solution.Solution` with status
     ``completed``, ``not converged``, ``inverted elements`` or ``singular`` (the supports leave
     rigid motion free); ``steps`` counts Newton iterations, ``plate_forces`` are the contact
     forces each plate applies to the tissue (N), ``estimated_error_mm`` the last correction.

@@ -22,7 +22,8 @@ import numpy as np
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.model import Loading, Model, ReferenceState
-from BreastBiomechLib.solver.tled import DynamicRelaxation, solve
+from BreastBiomechLib.solver.settings import DynamicRelaxation
+from BreastBiomechLib.solver.tled import solve
 
 
 @dataclass
@@ -122,7 +123,7 @@ def prestressed_model(model: Model, unloaded: UnloadedShape, gravity=None) -> Mo
 
 
 def start_from_reference_state(model: Model, request, device=None, progress=None) -> tuple[Model, dict]:
-    """A case's ``reference_state`` (:class:`BreastBiomechLib.io.cases.UnloadedRequest`) applied:
+    """A case's ``reference_state`` (:class:`BreastBiomechLib.solver.settings.UnloadedRequest`) applied:
     ``model``'s mesh taken as imaged under ``request.imaged_gravity``, its unloaded shape
     estimated, and the pre-stressed model with the model's gravity over the loading. Returns
     the model and the figures to report (imaged gravity, iterations, residual and largest sag in
