@@ -580,31 +580,35 @@ class BreastSimulationLogic(ParameterNodeLogic):
         ``progress(fraction, message)`` is called as the solve advances; returning False cancels
         it, and a cancelled run leaves the earlier results untouched. Returns a dict with the
         ``solution`` (library Solution, LPS), the ``model``, the ``device`` and a ``summary``."""
-        from BreastBiomechLib.solver import solve
-        from BreastBiomechLib.solver.unloaded import displacement_from_imaged, start_from_reference_state
+        from dataclasses import replace
+
+        from BreastBiomechLib.solver.run_case import run_case
 
         if parameterNode["method"] not in ("relaxation", "physical"):
             raise ValueError(f"method must be relaxation or physical, not {parameterNode['method']!r}")
         device = self.resolveDevice(parameterNode["device"])
         model, settings = self.buildCase(parameterNode)
+        settings = replace(settings, device=device)
         relaxation = settings.relaxation if settings.method == "relaxation" else None
-        steady = settings.steady_state_mm
         what = "dynamic relaxation" if relaxation else "explicit dynamics"
         imaged = model
-        if settings.unloaded is not None:
-            if progress is not None:
-                progress(0.0, "estimating the unloaded (stress-free) shape")
-            model, _ = start_from_reference_state(model, settings.unloaded, device)
+
         def report(fraction):
             return progress(fraction, f"{what} on {device}: {fraction:.0%} of the step budget")
 
+        def reference_report(iteration, residual):
+            progress(0.0, f"estimating the unloaded (stress-free) shape: iteration {iteration}, largest node "
+                          f"mismatch {residual:.3f} mm")
+
         if progress is not None:
-            progress(0.0, f"{what} on {device}: starting")
-        solution = solve(model, device=device, relaxation=relaxation, ke_ie_limit=self.KE_IE_LIMIT,
-                         progress=report if progress is not None else None,
-                         steady_state_mm=steady)
+            progress(0.0, "estimating the unloaded (stress-free) shape" if settings.unloaded is not None
+                     else f"{what} on {device}: starting")
+        result = run_case(model, settings, progress=report if progress is not None else None,
+                          reference_progress=reference_report if progress is not None else None,
+                          ke_ie_limit=self.KE_IE_LIMIT)
+        solution, model = result.solution, result.model
         # displacements from the mesh as imaged, not from its unloaded shape
-        solution.displacement = displacement_from_imaged(model, solution.displacement, imaged.mesh.nodes)
+        solution.displacement = result.displacement
         summary = self.summaryText(solution, model, device, relaxation is not None)
         logging.info("BreastSimulation: %s", summary)
         if solution.status != "cancelled":

@@ -93,9 +93,10 @@ def test_hidden_effects_change_the_truth_model_and_are_recorded():
     tilt, a sliding chest wall (with the sentence saying what holds the model), the gravity
     pre-stress (the model starts from the estimated unloaded state); the solve converges and
     moves the breast differently from the seed's model."""
-    from BreastBiomechLib.phantom.compressed import TruthModel, _with_hidden_effects
-    from BreastBiomechLib.solver import DynamicRelaxation, solve
+    from BreastBiomechLib.phantom.compressed import TruthModel, with_hidden_effects
+    from BreastBiomechLib.solver import DynamicRelaxation, SolverSettings
     from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+    from BreastBiomechLib.solver.run_case import run_case
 
     seed = hemi_ellipsoid_compression(10.0)
     relaxation = DynamicRelaxation(load_iterations=300)
@@ -103,17 +104,18 @@ def test_hidden_effects_change_the_truth_model_and_are_recorded():
                        plate_tilt_deg=[[0.5, 0.0], [0.0, -0.5]], skin=[50e3, 2.0])
     assert truth.hidden_effects == ["friction 0.5", "gravity pre-stress [0.0, -9.81, 0.0]", "sliding chest wall",
                                     "plate tilt [[0.5, 0.0], [0.0, -0.5]]", "skin 50000 Pa, 2 mm"]
-    model, unloaded = _with_hidden_effects(seed, truth, relaxation, "cpu")
+    model, unloaded = with_hidden_effects(seed, truth)
     assert [p.friction for p in model.loading.plates] == [0.5, 0.5]
     assert all(abs(p.normal @ q.normal) < 1 - 1e-6 for p, q in zip(model.loading.plates, seed.loading.plates))
     assert model.loading.supports[0].mode == "sliding" and "rigid motion along it stopped" in model.loading.notes[0]
-    assert model.prestate is not None and unloaded.residual_mm <= 0.02 and unloaded.iterations >= 2
     assert model.materials.mu.max() > 1.5 * seed.materials.mu.max()  # the skin layer's elements
-    with_effects, plain = solve(model, device="cpu", relaxation=relaxation), solve(seed, device="cpu",
-                                                                                 relaxation=relaxation)
-    assert with_effects.ok and plain.ok, with_effects.message
-    final = model.mesh.nodes + with_effects.displacement
-    assert np.abs(final - (seed.mesh.nodes + plain.displacement)).max() > 0.5
+    np.testing.assert_array_equal(unloaded.imaged_gravity, [0, -9.81, 0])
+    with_effects = run_case(model, SolverSettings(device="cpu", relaxation=relaxation, unloaded=unloaded))
+    plain = run_case(seed, SolverSettings(device="cpu", relaxation=relaxation))
+    assert with_effects.ok and plain.ok, with_effects.solution.message
+    assert with_effects.model.prestate is not None and with_effects.reference_state["residual_mm"] <= 0.02
+    assert with_effects.reference_state["iterations"] >= 2
+    assert np.abs(with_effects.displacement - plain.displacement).max() > 0.5
     assert TruthModel().hidden_effects == []
     for bad, match in (({"friction": -1}, "friction"), ({"gravity": [0, 1]}, "three finite"),
                        ({"compression_gravity": [0, 0, -9.81]}, "needs the gravity"),

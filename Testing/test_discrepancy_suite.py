@@ -41,11 +41,11 @@ def truth_model(compressed_case_dir):
 
 def test_the_unknown_effects_change_the_truth_where_they_say(truth_model):
     from BreastBiomechLib.labels import MUSCLE
-    from BreastBiomechLib.phantom.compressed import _with_hidden_effects
+    from BreastBiomechLib.phantom.compressed import with_hidden_effects
 
     model, settings = truth_model
-    plain, _ = _with_hidden_effects(model, TruthModel(), settings.relaxation, "cpu")
-    banded, _ = _with_hidden_effects(model, TruthModel(stiff_band=[4.0, 15.0]), settings.relaxation, "cpu")
+    plain, _ = with_hidden_effects(model, TruthModel())
+    banded, _ = with_hidden_effects(model, TruthModel(stiff_band=[4.0, 15.0]))
     ratio = banded.materials.mu / plain.materials.mu
     stiff = np.isclose(ratio, 4.0)
     assert np.all(stiff | np.isclose(ratio, 1.0)) and 0.05 < stiff.mean() < 0.5
@@ -58,8 +58,7 @@ def test_the_unknown_effects_change_the_truth_where_they_say(truth_model):
     depth = centroids[stiff] @ normal
     assert np.ptp(depth) <= 15.0 + 1e-9
 
-    shifted, _ = _with_hidden_effects(model, TruthModel(chest_wall_shift_mm=[0.0, -4.0, 0.0]),
-                                      settings.relaxation, "cpu")
+    shifted, _ = with_hidden_effects(model, TruthModel(chest_wall_shift_mm=[0.0, -4.0, 0.0]))
     assert shifted.loading.constraints
     for before, after in zip(plain.loading.constraints, shifted.loading.constraints):
         np.testing.assert_array_equal(before.nodes, after.nodes)
@@ -97,10 +96,10 @@ def test_the_seed_s_rig_holds_one_plate_against_the_breast(compressed_case_dir):
 def test_the_hidden_chest_wall_holds_the_breast_along_the_chest(truth_model):
     """The suite's hidden chest wall: held across the local chest surface, with springs of
     3.4 kPa/mm along it, in place of the seed's anterior-posterior hold."""
-    from BreastBiomechLib.phantom.compressed import _with_hidden_effects
+    from BreastBiomechLib.phantom.compressed import with_hidden_effects
 
     model, settings = truth_model
-    held, _ = _with_hidden_effects(model, TruthModel(**HIDDEN_EFFECTS["chest-wall"].truth), settings.relaxation, "cpu")
+    held, _ = with_hidden_effects(model, TruthModel(**HIDDEN_EFFECTS["chest-wall"].truth))
     (support,) = held.loading.supports
     assert support.mode == "sliding" and support.tangential_stiffness == 3400.0
     np.testing.assert_array_equal(support.nodes, np.unique(model.mesh.node_set("chest_wall")))

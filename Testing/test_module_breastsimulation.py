@@ -99,6 +99,14 @@ def test_run_matches_the_library_and_writes_results(scene, breast):
                        Constraint.fixed(patch(far), (True, False, False))], plates)
     direct = solve(Model(breast, materials, loading), device="cpu", relaxation=DynamicRelaxation(tolerance_mm=1e-4))
     np.testing.assert_allclose(solution.displacement, direct.displacement, atol=1e-3)
+    # the Logic runs its case as every other path does (issue 79: one way to run a case)
+    from dataclasses import replace
+
+    from BreastBiomechLib.solver.run_case import run_case
+
+    model, settings = logic.buildCase(p)
+    again = run_case(model, replace(settings, device="cpu"), ke_ie_limit=logic.KE_IE_LIMIT)
+    np.testing.assert_array_equal(solution.displacement, again.displacement)
 
     # deformed mesh node: RAS positions of the deformed nodes, displacement in RAS
     output = p.reference("outputMesh")

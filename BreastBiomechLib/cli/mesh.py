@@ -39,7 +39,7 @@ def cmd_mesh(args) -> int:
     case = compression_case(result.mesh, "mesh.vtu", args.axis, args.compression,
                             chest_clearance_mm=args.chest_clearance_mm)
     paths["case"] = out / "case.json"
-    write_text_atomically(paths["case"], json.dumps(case, indent=1) + "\n")
+    write_text_atomically(paths["case"], case.to_json())
     model, _ = case_from_dict(case, result.mesh, paths["case"])
     paths["niftysim"], niftysim_notes = export_for_niftysim(out / "model.xml", model)
     paths["report"] = out / "mesh_report.json"

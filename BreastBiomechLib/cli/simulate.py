@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import device_argument
@@ -17,43 +18,34 @@ def cmd_simulate(args) -> int:
     from BreastBiomechLib.io.cases import read_case
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.tetmesh import TetMesh
-    from BreastBiomechLib.solver import solve
-    from BreastBiomechLib.solver.static import solve_static
+    from BreastBiomechLib.solver.run_case import run_case
 
     model, settings = read_case(args.case)
-    device = args.device or settings.device
-    relaxation = settings.relaxation if settings.method == "relaxation" else None
+    settings = replace(settings, device=args.device or settings.device)
     mesh = model.mesh
     print(f"simulate {args.case}: {len(mesh.nodes)} nodes, {len(mesh.tets)} tets, {model.formulation}, "
-          f"{settings.method}, device {device or 'default'}")
+          f"{settings.method}, device {settings.device or 'default'}")
 
     def report(fraction):
         print(f"\r  {fraction:6.1%} of the step budget", end="", file=sys.stderr, flush=True)
 
-    reference_state = None
-    if settings.unloaded is not None:
-        from BreastBiomechLib.solver.unloaded import start_from_reference_state
+    def unloaded_report(iteration, residual):
+        print(f"  unloaded shape: iteration {iteration}, largest node mismatch {residual:.4f} mm", file=sys.stderr)
 
-        model, reference_state = start_from_reference_state(
-            model, settings.unloaded, device, progress=None if args.quiet else lambda i, r: print(
-                f"  unloaded shape: iteration {i}, largest node mismatch {r:.4f} mm", file=sys.stderr))
+    result = run_case(model, settings, progress=None if args.quiet else report,
+                      reference_progress=None if args.quiet else unloaded_report)
+    solution, model, reference_state = result.solution, result.model, result.reference_state
+    if reference_state is not None:
         print(f"  unloaded reference state: {reference_state['iterations']} iterations, residual "
               f"{reference_state['residual_mm']:.3g} mm, largest gravity sag {reference_state['largest_sag_mm']:.2f} mm, "
               f"{reference_state['wall_s']:.1f} s")
-    if settings.method == "static":
-        solution = solve_static(model, increments=settings.increments)
-    else:
-        solution = solve(model, device=device, relaxation=relaxation, progress=None if args.quiet else report,
-                         steady_state_mm=settings.steady_state_mm, mass_scaling=settings.mass_scaling)
     if not args.quiet:
         print(file=sys.stderr)
     out = Path(args.out)
     # displacements from the mesh as given (the imaged shape, also with a pre-stressed start)
-    from BreastBiomechLib.solver.unloaded import displacement_from_imaged
-
-    point_data = {**mesh.point_data, "displacement": displacement_from_imaged(model, solution.displacement, mesh.nodes)}
+    point_data = {**mesh.point_data, "displacement": result.displacement}
     if reference_state is not None:
-        point_data["unloaded_displacement"] = model.mesh.nodes - mesh.nodes
+        point_data["unloaded_displacement"] = result.unloaded_displacement
     deformed = TetMesh(mesh.nodes, mesh.tets, point_data=point_data, cell_data=dict(mesh.cell_data))
     mesh_path = write_vtu(out / "deformed.vtu", deformed)
     summary = {

@@ -18,6 +18,8 @@ import numpy as np
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import Plate
+from BreastBiomechLib.solver.run_case import CaseVariant, run_variants
+from BreastBiomechLib.solver.settings import SolverSettings
 
 
 @dataclass
@@ -49,20 +51,18 @@ class Outcome:
 def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation: DynamicRelaxation,
                    device=None) -> list[Outcome]:
     """Solve every variant (one batched launch per distinct ``model``) to static equilibrium by
-    dynamic ``relaxation``, a variant that inverts an element again alone with a slower load
-    (:mod:`BreastBiomechLib.solver.retries`); the outcomes in the variants' order."""
-    from BreastBiomechLib.solver.retries import solve_batch_with_retries
-    from BreastBiomechLib.solver.unloaded import displacement_from_imaged
-
+    dynamic ``relaxation`` (:func:`~BreastBiomechLib.solver.run_case.run_variants`: a variant that
+    inverts an element is solved again alone with a slower load); the outcomes in the variants' order."""
     outcomes: list[Outcome | None] = [None] * len(variants)
     groups: dict[int, list[int]] = {}
     for i, variant in enumerate(variants):
         groups.setdefault(id(variant.model), []).append(i)
+    settings = SolverSettings(method="relaxation", device=device, relaxation=relaxation)
     for members in groups.values():
-        model = variants[members[0]].model
-        solutions = solve_batch_with_retries(model, [variants[i].materials for i in members], relaxation,
-                                             plates=[variants[i].plates for i in members], device=device)
-        for i, solution in zip(members, solutions):
-            outcomes[i] = Outcome(displacement_from_imaged(model, solution.displacement, imaged_nodes),
-                                  solution.status, solution.message, solution.attempts)
+        results = run_variants(variants[members[0]].model,
+                               [CaseVariant(variants[i].materials, variants[i].plates) for i in members], settings,
+                               imaged_nodes=imaged_nodes)
+        for i, result in zip(members, results):
+            outcomes[i] = Outcome(result.displacement, result.solution.status, result.solution.message,
+                                  result.solution.attempts)
     return outcomes

@@ -10,6 +10,7 @@ node ids; materials are keyed by tissue name or label value of :mod:`BreastBiome
 from __future__ import annotations
 
 import json
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -213,54 +214,120 @@ def _flag(value, name: str, path: Path) -> bool:
     return value
 
 
-def case_from_dict(data: dict, mesh: TetMesh, path: Path = Path("<case>")) -> tuple[Model, SolverSettings]:
-    """Build the model and solver settings of a case dictionary (the JSON content) on ``mesh``."""
-    constraints = []
-    for i, c in enumerate(data.get("constraints", [])):
-        nodes = _node_set(mesh, c["nodes"], f"constraint {i}", path)
-        mask = np.array(_components(c.get("components", "xyz"), path))
-        values = np.zeros(3) if c.get("displacement") is None else np.asarray(c["displacement"], float)
-        constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1)),
-                                      load_shape=c.get("load_shape")))
-    plates = [_plate(mesh, p, i, path) for i, p in enumerate(data.get("plates", []))]
-    supports, notes = [], []
-    for i, spec in enumerate(data.get("supports", [])):
-        held, surface, note = _support(mesh, spec, i, path)
-        constraints += held
-        supports += surface
-        notes.append(note)
-    loading = Loading(constraints, plates, supports=supports, notes=notes,
-                      gravity=_vector(data.get("gravity", (0.0, 0.0, 0.0)), f"{path}: gravity", "m/s^2, LPS"),
-                      total_time=float(data.get("total_time", 1.0)), load_shape=data.get("load_shape", "POLY345"),
-                      settle_time=float(data.get("settle_time", 0.0)))
-    materials = _element_materials(mesh, data.get("materials", {}), path)
-    if "skin" in data:
-        materials, note = _skin_layer(mesh, materials, data["skin"], path)
-        loading.notes.append(note)
-    model = Model(mesh, materials, loading,
-                  formulation=data.get("formulation", "T4ANP"), damping=float(data.get("damping", 50.0)),
-                  time_step=data.get("time_step"), safety=float(data.get("safety", 0.8)),
-                  anp_across_materials=_flag(data.get("anp_across_materials", False), "anp_across_materials", path))
-    solver = dict(data.get("solver", {}))
-    method = solver.pop("method", "relaxation")
-    device = solver.pop("device", None)
-    steady = solver.pop("steady_state_mm", None)
-    increments = solver.pop("increments", None)
-    mass_scaling = solver.pop("mass_scaling", False)
-    if not isinstance(mass_scaling, bool):
-        raise ValueError(f"{path}: solver mass_scaling must be true or false")
-    try:
-        relaxation = DynamicRelaxation(**solver)
-    except TypeError:
-        raise ValueError(f"{path}: unknown solver settings {sorted(solver)}; use method, device, steady_state_mm, "
-                         "increments, mass_scaling, load_iterations, tolerance_mm, max_iterations, update_every") from None
-    settings = SolverSettings(method, device, relaxation, None if steady is None else float(steady),
-                              None if increments is None else int(increments), mass_scaling,
-                              _unloaded_request(data.get("reference_state"), path))
-    if settings.unloaded is not None and method == "static":
-        raise ValueError(f"{path}: the static reference solver starts from the stress-free mesh; a reference_state "
-                         "needs the relaxation or physical method")
-    return model, settings
+@dataclass
+class CaseDescription:
+    """A case file's content (``CASE.json``, format in docs/solver.md), typed: the mesh file (relative
+    to the case file), materials by tissue, constraints, plates and supports (node sets by name or
+    node ids), gravity (m/s^2, LPS), the load's times (s) and curve, an optional skin layer, the
+    formulation and solver settings, and an optional ``reference_state`` (start from the unloaded
+    shape). :meth:`from_dict` checks the top-level keys (an unknown one is an error that lists the
+    known ones, so that a misspelt key is never ignored); :meth:`build` makes the model and
+    solver settings on the mesh, checking every entry; :meth:`to_dict` writes the same format."""
+
+    mesh: str | None = None
+    materials: dict = field(default_factory=dict)
+    constraints: list = field(default_factory=list)
+    plates: list = field(default_factory=list)
+    supports: list = field(default_factory=list)
+    gravity: list | None = None
+    total_time: float = 1.0
+    settle_time: float = 0.0
+    load_shape: str = "POLY345"
+    skin: dict | None = None
+    formulation: str = "T4ANP"
+    damping: float = 50.0
+    time_step: float | None = None
+    safety: float = 0.8
+    anp_across_materials: bool = False
+    solver: dict = field(default_factory=dict)
+    reference_state: dict | None = None
+
+    @classmethod
+    def from_dict(cls, data: dict, path: Path = Path("<case>")) -> CaseDescription:
+        """The description of a case dictionary (a case file's JSON content)."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: a case is a JSON object of {sorted(f.name for f in fields(cls))}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"{path}: unknown case entries {unknown}; a case holds {sorted(known)} (docs/solver.md)")
+        return cls(**data)
+
+    @classmethod
+    def from_json(cls, text: str, path: Path = Path("<case>")) -> CaseDescription:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as error:
+            raise InputError(f"{path}: not valid JSON ({error})") from None
+        return cls.from_dict(data, path)
+
+    def to_dict(self) -> dict:
+        """The case file's JSON content: every entry set (None left out)."""
+        return {name: value for name, value in asdict(self).items() if value is not None}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=1) + "\n"
+
+    def build(self, mesh: TetMesh, path: Path = Path("<case>")) -> tuple[Model, SolverSettings]:
+        """The model and solver settings of this description on ``mesh`` (errors name ``path``)."""
+        constraints = []
+        for i, c in enumerate(self.constraints):
+            nodes = _node_set(mesh, c["nodes"], f"constraint {i}", path)
+            mask = np.array(_components(c.get("components", "xyz"), path))
+            values = np.zeros(3) if c.get("displacement") is None else np.asarray(c["displacement"], float)
+            constraints.append(Constraint(nodes, np.tile(mask, (len(nodes), 1)), np.tile(values, (len(nodes), 1)),
+                                          load_shape=c.get("load_shape")))
+        plates = [_plate(mesh, p, i, path) for i, p in enumerate(self.plates)]
+        supports, notes = [], []
+        for i, spec in enumerate(self.supports):
+            held, surface, note = _support(mesh, spec, i, path)
+            constraints += held
+            supports += surface
+            notes.append(note)
+        gravity = (0.0, 0.0, 0.0) if self.gravity is None else self.gravity
+        loading = Loading(constraints, plates, supports=supports, notes=notes,
+                          gravity=_vector(gravity, f"{path}: gravity", "m/s^2, LPS"),
+                          total_time=float(self.total_time), load_shape=self.load_shape,
+                          settle_time=float(self.settle_time))
+        materials = _element_materials(mesh, self.materials, path)
+        if self.skin is not None:
+            materials, note = _skin_layer(mesh, materials, self.skin, path)
+            loading.notes.append(note)
+        model = Model(mesh, materials, loading, formulation=self.formulation, damping=float(self.damping),
+                      time_step=self.time_step, safety=float(self.safety),
+                      anp_across_materials=_flag(self.anp_across_materials, "anp_across_materials", path))
+        return model, self._settings(path)
+
+    def _settings(self, path: Path) -> SolverSettings:
+        solver = dict(self.solver)
+        method = solver.pop("method", "relaxation")
+        device = solver.pop("device", None)
+        steady = solver.pop("steady_state_mm", None)
+        increments = solver.pop("increments", None)
+        mass_scaling = solver.pop("mass_scaling", False)
+        if not isinstance(mass_scaling, bool):
+            raise ValueError(f"{path}: solver mass_scaling must be true or false")
+        try:
+            relaxation = DynamicRelaxation(**solver)
+        except TypeError:
+            raise ValueError(f"{path}: unknown solver settings {sorted(solver)}; use method, device, steady_state_mm, "
+                             "increments, mass_scaling, load_iterations, tolerance_mm, max_iterations, "
+                             "update_every") from None
+        settings = SolverSettings(method, device, relaxation, None if steady is None else float(steady),
+                                  None if increments is None else int(increments), mass_scaling,
+                                  _unloaded_request(self.reference_state, path))
+        if settings.unloaded is not None and method == "static":
+            raise ValueError(f"{path}: the static reference solver starts from the stress-free mesh; a "
+                             "reference_state needs the relaxation or physical method")
+        return settings
+
+
+def case_from_dict(data: dict | CaseDescription, mesh: TetMesh,
+                   path: Path = Path("<case>")) -> tuple[Model, SolverSettings]:
+    """Build the model and solver settings of a case (its JSON content or its
+    :class:`CaseDescription`) on ``mesh``."""
+    description = data if isinstance(data, CaseDescription) else CaseDescription.from_dict(data, path)
+    return description.build(mesh, path)
 
 
 def _unloaded_request(spec, path: Path) -> UnloadedRequest | None:
@@ -292,17 +359,18 @@ def read_case(path: str | Path) -> tuple[Model, SolverSettings]:
             raise InputError(f"{path}: not valid JSON ({error})") from None
         if not isinstance(data, dict) or not isinstance(data.get("mesh"), str):
             raise InputError(f"{path}: the case must name its mesh file (\"mesh\": \"breast.vtu\")")
-        mesh_path = path.parent / data["mesh"]
+        description = CaseDescription.from_dict(data, path)
+        mesh_path = path.parent / description.mesh
         if not mesh_path.is_file():
-            raise InputError(f"{path}: its mesh {data['mesh']!r} is not a file ({mesh_path}); give the .vtu's path "
-                             "relative to the case file")
-        return case_from_dict(data, read_vtu(mesh_path), path)
+            raise InputError(f"{path}: its mesh {description.mesh!r} is not a file ({mesh_path}); give the .vtu's "
+                             "path relative to the case file")
+        return description.build(read_vtu(mesh_path), path)
 
 
 def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compression: float = 0.25,
                      moving: str = "both", total_time: float = 1.0, settle_time: float = 0.25,
-                     chest_clearance_mm: float | None = None) -> dict:
-    """The case-file dictionary of a plate compression of a breast mesh made by
+                     chest_clearance_mm: float | None = None) -> CaseDescription:
+    """The case description of a plate compression of a breast mesh made by
     :func:`BreastBiomechLib.mesh.from_labels.mesh_labels` (node sets ``chest_wall``, ``skin``,
     ``breast_skin``, ``fov_cut``): plates tangent to the breast skin on both sides of ``axis``
     closing by ``compression`` of the thickness between them; the chest wall fixed
@@ -345,13 +413,9 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
     tissues = np.unique(np.asarray(mesh.cell_data["tissue"], dtype=int))
     defaults = default_tissue_materials()
     materials = {BY_LABEL[int(t)].name: {"E": defaults[int(t)].E, "nu": defaults[int(t)].nu} for t in tissues}
-    return {
-        "mesh": mesh_file,
-        "materials": materials,
-        "constraints": constraints,
-        "plates": [{"name": p.name, "point": p.point.tolist(), "normal": p.normal.tolist(),
-                    "displacement": p.displacement.tolist(), "slaves": p.slave_nodes.tolist(),
-                    **({"edge": p.edge.to_dict()} if p.edge else {})} for p in plates],
-        "total_time": total_time, "settle_time": settle_time,
-        "solver": {"method": "relaxation"},
-    }
+    return CaseDescription(
+        mesh=mesh_file, materials=materials, constraints=constraints,
+        plates=[{"name": p.name, "point": p.point.tolist(), "normal": p.normal.tolist(),
+                 "displacement": p.displacement.tolist(), "slaves": p.slave_nodes.tolist(),
+                 **({"edge": p.edge.to_dict()} if p.edge else {})} for p in plates],
+        total_time=total_time, settle_time=settle_time, solver={"method": "relaxation"})

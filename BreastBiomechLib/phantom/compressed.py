@@ -184,11 +184,9 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     """Simulate ``truth`` on ``case`` and image the result (see the module notes). ``mesh``: a
     truth mesh made already (``breastbiomech mesh`` of the case's labels at ``truth.edge_mm``;
     default: made here). Raises RuntimeError when the truth solve fails (it would not be a truth)."""
-    from BreastBiomechLib.io.cases import case_from_dict, compression_case
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.solver.placement import final_planes
-    from BreastBiomechLib.solver.retries import solve_batch_with_retries
-    from BreastBiomechLib.solver.unloaded import displacement_from_imaged
+    from BreastBiomechLib.solver.run_case import run_case
     from BreastBiomechLib.warping import ImageWarper
 
     truth = truth or TruthModel()
@@ -202,22 +200,16 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         mesh = mesh_labels(case.labels, MeshSettings(edge_mm=truth.edge_mm),
                            nipple_mm=case.landmarks.position("nipple")).mesh
     report(0.3, "truth simulation")
-    spec = compression_case(mesh, "truth_mesh.vtu", truth.axis, truth.compression, moving=truth.moving_plate,
-                            chest_clearance_mm=truth.chest_clearance_mm)
-    present = set(spec["materials"])
-    missing = present - set(truth.materials)
-    if missing:
-        raise ValueError(f"the truth gives no material for {sorted(missing)}")
-    spec["materials"] = {name: dict(truth.materials[name]) for name in present}
-    model, settings = case_from_dict(spec, mesh)
+    model, settings = truth_case(mesh, truth, device)
     # the plates as the compression's record gives them (nominal poses): a tilt is hidden
-    recorded_plates = final_planes(model.loading.plates)
-    model, unloaded = _with_hidden_effects(model, truth, settings.relaxation, device)
-    solution = solve_batch_with_retries(model, [model.materials], settings.relaxation, device=device)[0]
+    recorded_plates = final_planes(nominal_plates(mesh, truth))
+    result = run_case(model, settings)
+    solution = result.solution
     if not solution.ok:
         raise RuntimeError(f"the truth simulation failed ({solution.status}: {solution.message})")
     # from the imaged shape, not the stress-free one a pre-stressed solve starts from
-    displacement = displacement_from_imaged(model, solution.displacement, mesh.nodes)
+    displacement = result.displacement
+    model = result.model
 
     report(0.8, "imaging the compressed breast")
     grid = _measured_grid(case, mesh.nodes + displacement)
@@ -253,9 +245,8 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         "hidden_effects": truth.hidden_effects, "support": list(model.loading.notes),
         "plate_tangential_forces_N": {p.name: float(np.linalg.norm(f))
                                       for p, f in zip(model.loading.plates, solution.plate_tangential_forces)},
-        "unloaded_state": None if unloaded is None else {
-            "iterations": unloaded.iterations, "residual_mm": unloaded.residual_mm,
-            "largest_sag_mm": unloaded.largest_sag_mm},
+        "unloaded_state": None if result.reference_state is None else {
+            key: result.reference_state[key] for key in ("iterations", "residual_mm", "largest_sag_mm")},
         "size_voxels": [int(n) for n in grid.size], "spacing_mm": [float(s) for s in grid.spacing],
         "seconds": round(time.perf_counter() - started, 2),
     }
@@ -263,16 +254,47 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     return CompressedCase(image, landmarks, recorded_plates, truth, truth_mesh, summary, truth.scan_gravity)
 
 
-def _with_hidden_effects(model, truth: TruthModel, relaxation, device):
-    """``model`` (the seed's compression of the truth mesh) with the truth's hidden effects:
-    plate friction and tilt, the chest-wall support (the field-of-view cut stays fixed and holds
-    the model), the skin layer and the gravity pre-stress (estimated unloaded state). Returns the model and the
-    unloaded shape (None without gravity)."""
+def _compression_description(mesh: TetMesh, truth: TruthModel):
+    """The seed's compression of the truth mesh (the case description) with the truth's materials."""
+    from BreastBiomechLib.io.cases import compression_case
+
+    spec = compression_case(mesh, "truth_mesh.vtu", truth.axis, truth.compression, moving=truth.moving_plate,
+                            chest_clearance_mm=truth.chest_clearance_mm)
+    missing = set(spec.materials) - set(truth.materials)
+    if missing:
+        raise ValueError(f"the truth gives no material for {sorted(missing)}")
+    spec.materials = {name: dict(truth.materials[name]) for name in spec.materials}
+    return spec
+
+
+def nominal_plates(mesh: TetMesh, truth: TruthModel) -> list:
+    """The plates of the truth's compression as its record gives them (nominal poses, no tilt)."""
+    return _compression_description(mesh, truth).build(mesh)[0].loading.plates
+
+
+def truth_case(mesh: TetMesh, truth: TruthModel, device=None) -> tuple:
+    """The truth's model and solver settings on its ``mesh`` (what :func:`compress_phantom` runs with
+    :func:`~BreastBiomechLib.solver.run_case.run_case`): the seed's compression with the truth's
+    materials and hidden effects (:func:`with_hidden_effects`), on ``device``."""
+    from dataclasses import replace
+
+    model, settings = _compression_description(mesh, truth).build(mesh)
+    model, unloaded = with_hidden_effects(model, truth)
+    return model, replace(settings, device=device, unloaded=unloaded)
+
+
+def with_hidden_effects(model, truth: TruthModel) -> tuple:
+    """``model`` (the seed's compression of a truth mesh) with the truth's hidden effects: plate
+    friction and tilt, the chest-wall support (the field-of-view cut stays fixed and holds the
+    model), the skin layer, a stiff band, a chest-wall shift; with gravity, the loading's gravity
+    ``truth.compression_gravity`` (None: ``truth.gravity``) and the request to start from the
+    unloaded shape of the mesh imaged under ``truth.gravity``
+    (:class:`~BreastBiomechLib.solver.settings.UnloadedRequest`, else None)."""
     from dataclasses import replace
 
     from BreastBiomechLib.solver.placement import posed_plate
+    from BreastBiomechLib.solver.settings import UnloadedRequest
     from BreastBiomechLib.solver.supports import chest_wall_support
-    from BreastBiomechLib.solver.unloaded import prestressed_model, unloaded_shape
 
     plates = [replace(p, friction=truth.friction) for p in model.loading.plates]
     if truth.plate_tilt_deg is not None:
@@ -303,12 +325,12 @@ def _with_hidden_effects(model, truth: TruthModel, relaxation, device):
         shift = np.asarray(truth.chest_wall_shift_mm, float)
         loading = replace(loading, constraints=[replace(c, values=np.where(c.mask, shift, 0.0))
                                                 for c in loading.constraints])
-    model = replace(model, loading=loading, materials=materials)
-    if truth.gravity is None:
-        return model, None
-    unloaded = unloaded_shape(model, truth.gravity, device=device, relaxation=relaxation)
-    final = truth.gravity if truth.compression_gravity is None else truth.compression_gravity
-    return prestressed_model(model, unloaded, final), unloaded
+    unloaded = None
+    if truth.gravity is not None:
+        final = truth.gravity if truth.compression_gravity is None else truth.compression_gravity
+        loading = replace(loading, gravity=np.asarray(final, float))
+        unloaded = UnloadedRequest(truth.gravity)
+    return replace(model, loading=loading, materials=materials), unloaded
 
 
 def _with_stiff_band(mesh: TetMesh, materials, band, plates):

@@ -122,14 +122,16 @@ def prestressed_model(model: Model, unloaded: UnloadedShape, gravity=None) -> Mo
                    prestate=ReferenceState(unloaded.loaded_displacement, unloaded.gravity))
 
 
-def start_from_reference_state(model: Model, request, device=None, progress=None) -> tuple[Model, dict]:
+def start_from_reference_state(model: Model, request, device=None, progress=None,
+                               relaxation: DynamicRelaxation | None = None) -> tuple[Model, dict]:
     """A case's ``reference_state`` (:class:`BreastBiomechLib.solver.settings.UnloadedRequest`) applied:
     ``model``'s mesh taken as imaged under ``request.imaged_gravity``, its unloaded shape
     estimated, and the pre-stressed model with the model's gravity over the loading. Returns
     the model and the figures to report (imaged gravity, iterations, residual and largest sag in
-    mm, wall time in s). What `breastbiomech simulate` and the Breast Simulation module run."""
+    mm, wall time in s); ``relaxation``: the forward solves' settings (None: the defaults). Part of
+    :func:`~BreastBiomechLib.solver.run_case.run_case`."""
     unloaded = unloaded_shape(model, request.imaged_gravity, request.tolerance_mm, request.max_iterations,
-                              device=device, progress=progress)
+                              device=device, relaxation=relaxation, progress=progress)
     figures = {"imaged_gravity": np.asarray(request.imaged_gravity, float).tolist(),
                "iterations": unloaded.iterations, "residual_mm": unloaded.residual_mm,
                "wall_s": unloaded.wall_time, "largest_sag_mm": unloaded.largest_sag_mm}
