@@ -154,17 +154,7 @@ def generate_phantom(params: PhantomParameters | None = None,
     anatomy = _calibrated_anatomy(params, params.seed)
     tree = anatomy.grow_duct_tree(rng)
 
-    # --- grids ---------------------------------------------------------------------------------
-    spacing = np.array(params.spacing_mm)
-    lo, hi = anatomy.extent(params.margin_mm)
-    size = np.ceil((hi - lo) / spacing).astype(int) + 1
-    grid = _Grid(lo, spacing, size)
-    factors = np.maximum(1, np.rint(spacing / _FINE_MM)).astype(int)
-    factors += factors % 2  # even, so the half-resolution grid below lands on fine voxels
-    while np.any(spacing / factors > params.subvoxel_mm):
-        factors[spacing / factors > params.subvoxel_mm] += 2
-    fine = grid.refined(factors)
-    half = _Grid(fine.origin, fine.spacing * 2, (fine.size + 1) // 2)
+    grid, factors, fine, half = _grids(anatomy, params)
     x, y, z = fine.broadcast(np.float32)  # float32 halves the memory traffic of the fine grid
 
     report(0.1, "body, skin, pectoral muscle and chest wall")
@@ -283,6 +273,35 @@ def generate_phantom(params: PhantomParameters | None = None,
     # --- landmarks -------------------------------------------------------------------------------
     landmarks = _landmarks(anatomy, tree, material, fine, tumour_centre, rng)
 
+    case = _phantom_case(params, grid, fractions, labels, noisy, bias, signal, landmarks, summary={
+        "base_radius_mm": float(anatomy.a), "duct_tree_nodes": int(len(tree.nodes)),
+        "seconds": round(time.perf_counter() - started, 2)})
+    report(1.0, "done")
+    return case
+
+
+def _grids(anatomy, params: PhantomParameters) -> tuple:
+    """The image grid over the anatomy's extent (``params.spacing_mm``), its per-axis refinement
+    factors (even, fine voxels at most ``params.subvoxel_mm``), the fine grid the anatomy is
+    painted on and the half-resolution grid of the gland's fields."""
+    spacing = np.array(params.spacing_mm)
+    lo, hi = anatomy.extent(params.margin_mm)
+    size = np.ceil((hi - lo) / spacing).astype(int) + 1
+    grid = _Grid(lo, spacing, size)
+    factors = np.maximum(1, np.rint(spacing / _FINE_MM)).astype(int)
+    factors += factors % 2  # even, so the half-resolution grid below lands on fine voxels
+    while np.any(spacing / factors > params.subvoxel_mm):
+        factors[spacing / factors > params.subvoxel_mm] += 2
+    fine = grid.refined(factors)
+    return grid, factors, fine, _Grid(fine.origin, fine.spacing * 2, (fine.size + 1) // 2)
+
+
+def _phantom_case(params: PhantomParameters, grid, fractions: dict, labels, noisy, bias, signal, landmarks,
+                  summary: dict) -> PhantomCase:
+    """The :class:`PhantomCase` of the generated arrays (z, y, x) on ``grid``, with its summary
+    (volumes in cm^3, glandular density, the tumour's equivalent diameter in mm, the grid, and the
+    entries of ``summary``)."""
+
     def to_image(array, pixel=None):
         img = sitk.GetImageFromArray(array if pixel is None else array.astype(pixel))
         img.SetOrigin(tuple(grid.origin))
@@ -290,8 +309,9 @@ def generate_phantom(params: PhantomParameters | None = None,
         return img
 
     voxel_cm3 = float(np.prod(grid.spacing)) / 1000.0
-    volumes = {n: float(fractions[n].sum() * voxel_cm3) for n in names}
+    volumes = {n: float(f.sum() * voxel_cm3) for n, f in fractions.items()}
     breast_cm3 = sum(v for n, v in volumes.items() if n != "muscle")
+    seconds = summary.pop("seconds")
     summary = {
         "breast_volume_cm3": breast_cm3,
         "tissue_volumes_cm3": volumes,
@@ -299,11 +319,9 @@ def generate_phantom(params: PhantomParameters | None = None,
         "tumour_equivalent_diameter_mm": float((6 * volumes["tumour"] * 1000 / np.pi) ** (1 / 3)),
         "size_voxels": [int(s) for s in grid.size],
         "spacing_mm": [float(s) for s in grid.spacing],
-        "base_radius_mm": float(anatomy.a),
-        "duct_tree_nodes": int(len(tree.nodes)),
-        "seconds": round(time.perf_counter() - started, 2),
+        **summary,
+        "seconds": seconds,
     }
-    report(1.0, "done")
     return PhantomCase(
         parameters=params,
         image=to_image(noisy),

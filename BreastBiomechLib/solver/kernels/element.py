@@ -244,13 +244,11 @@ ElementKernels = collections.namedtuple("ElementKernels", "nodal_pressure nodal_
 def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKernels:
     """The element kernels for one formulation: ANP mode ``anp_mode`` (``ANP_*``), Prony terms
     (``visco``) or none, and ANP slots that are the elements' nodes (``node_slots``, see
-    :func:`element_slots`) or a table of their own. These are compile-time constants of the
-    kernels, so a kernel holds only its formulation's arithmetic, branches and registers (the
-    batch element kernel 803 static instructions and 80 registers against 1 229 and 96 built for
-    every formulation; batches of 64 and 16 models 10 % faster, a lone 2M-tet model 3 %; H200,
-    docs/benchmarks.md). Each combination is compiled once, on its first launch, in a warp module
-    of its own; the kernels take the arguments the general build did, less ``anp`` and
-    ``slots_are_nodes``."""
+    :func:`element_slots`) or a table of their own, as compile-time constants, so that a kernel
+    holds only its formulation's arithmetic, branches and registers (the batch element kernel 803
+    static instructions and 80 registers against 1 229 and 96 built for every formulation; batches
+    of 64 and 16 models 10 % faster, a lone 2M-tet model 3 %; H200, docs/benchmarks.md). Each
+    combination is compiled once, on its first launch, in a warp module of its own."""
 
     @wp.kernel(name="nodal_pressure", **SPECIALISED)
     def nodal_pressure(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int), slots: wp.array2d(dtype=int),
