@@ -2,7 +2,7 @@
 #   make demo   create .venv, install, run the whole pipeline on the built-in phantom: compressed
 #               scan (plate friction hidden in its truth), segmentation, mesh, fit, the diagnosis
 #               that names the missing friction, out/demo/report.md (about 8 min on 2 CPU cores)
-#   make test   create .venv if missing, install, run the whole test suite, then the library tests
+#   make test   create .venv if missing, install, run the whole test suite (the slowest ten tests listed), then the library tests
 #               again on Slicer 5.10's own versions of numpy, scipy, SimpleITK and VTK (test-slicer-stack)
 #   make bench  print benchmark figures (see docs/benchmarks.md)
 #   make table1-cases  the five compressed phantom cases of the seed's Table 1 as cohort tasks (out/table1/case<N>;
@@ -29,7 +29,7 @@ demo: $(STAMP)
 	$(BIN)/breastbiomech demo --out out/demo
 
 test: $(STAMP)
-	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist worksteal --durations=10
 	$(MAKE) test-slicer-stack
 
 # Slicer 5.10's Python stack (Python 3.12 there; the Python CI has here): the library must not use an
@@ -40,10 +40,10 @@ SLICER_STACK := numpy==2.0.2 scipy==1.13.1 SimpleITK==2.5.2 vtk==9.5.2
 SLICER_STACK_STAMP := $(SLICER_STACK_VENV)/.installed
 # the library tests that exercise those packages' APIs (images, surfaces, meshes, registration,
 # readers and writers); about 3 min on 2 cores
-SLICER_STACK_TESTS := Testing/test_phantom.py Testing/test_segmentation.py Testing/test_meshing.py \
-  Testing/test_warping.py Testing/test_similarity.py Testing/test_landmark_mapping.py \
-  Testing/test_discrepancy_registration.py Testing/test_io_properties.py Testing/test_niftysim.py \
-  Testing/test_slicer_app_fidelity.py
+SLICER_STACK_TESTS := Testing/unit/phantom/test_phantom.py Testing/unit/segmentation/test_segmentation.py Testing/unit/mesh/test_meshing.py \
+  Testing/unit/warping/test_warping.py Testing/unit/warping/test_similarity.py Testing/unit/warping/test_landmark_mapping.py \
+  Testing/unit/discrepancy/test_discrepancy_registration.py Testing/unit/io/test_io_properties.py Testing/unit/io/test_niftysim.py \
+  Testing/slicer/test_slicer_app_fidelity.py
 
 $(SLICER_STACK_STAMP): pyproject.toml BreastBiomech/Resources/requirements.txt
 	$(PYTHON) -m venv $(SLICER_STACK_VENV)

@@ -17,30 +17,16 @@ import os
 import pathlib
 
 import slicer
-from BreastBiomechCommon import (
-    IN_SLICER_APPLICATION,
-    SLICER_MODULES,
-    ModuleTestMixin,
-    ParameterNodeLogic,
-    ParameterNodeWidgetMixin,
-    ScriptedLoadableModule,
-    ScriptedLoadableModuleTest,
-    ScriptedLoadableModuleWidget,
-    _,
-    dependencies_ready,
-    ensure_library_importable,
-    resource_path,
-    translate,
-)
-from slicer.util import VTKObservationMixin
+from BreastBiomechCommon import (CATEGORY, IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
+                                 ModuleWidgetBase, ScriptedLoadableModuleTest, _, dependencies_ready,
+                                 ensure_library_importable, resource_path)
 
 ensure_library_importable()
 
-CATEGORY = "Breast Biomechanics"
 DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib"]  # generating a phantom
 SAMPLE_NAME = "Breast phantom"
 # The shipped sample: Table 1 case 2 of the seed at 2 x 2 x 3 mm voxels (made by
-# BreastBiomechLogic.writeSampleData; the test in Testing/test_module_breastbiomech.py regenerates it)
+# BreastBiomechLogic.writeSampleData; the test in Testing/slicer/test_module_breastbiomech.py regenerates it)
 SAMPLE_CASE = 2
 SAMPLE_SPACING_MM = (2.0, 2.0, 3.0)
 SAMPLE_MR_SCALE = 1000.0  # the MR is stored as uint16: the phantom's signal x 1000
@@ -51,18 +37,10 @@ SAMPLE_FILES = (  # file name, node name, Slicer file type
 )
 
 
-#
-# Module
-#
-
-
-class BreastBiomech(ScriptedLoadableModule):
+class BreastBiomech(ModuleBase):
     def __init__(self, parent):
-        ScriptedLoadableModule.__init__(self, parent)
+        ModuleBase.__init__(self, parent, ("SampleData",))
         self.parent.title = _("BreastBiomech")
-        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
-        self.parent.dependencies = SLICER_MODULES + ["SampleData"]
-        self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Patient-specific biomechanical breast models from MR. This home module generates the "
             "built-in breast phantom (MR, tissue labels, partial-volume fractions, 17 landmarks) "
@@ -102,32 +80,15 @@ def registerSampleData():
     SampleData.SampleDataLogic.registerCustomSampleDataSource(**sampleDataArguments())
 
 
-#
-# Widget
-#
-
-
-class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastBiomechWidget(ModuleWidgetBase):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
-    def __init__(self, parent=None):
-        ScriptedLoadableModuleWidget.__init__(self, parent)
-        VTKObservationMixin.__init__(self)
-        self.logic = None
-        self._parameterNode = None
-        self._updatingGUI = False
+    UI_FILE = "UI/BreastBiomech.ui"
 
-    def setup(self):
-        ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(resource_path("UI/BreastBiomech.ui"))
-        self.layout.addWidget(uiWidget)
-        self.ui = slicer.util.childWidgetVariables(uiWidget)
-        uiWidget.setMRMLScene(slicer.mrmlScene)
-        self.logic = BreastBiomechLogic()
+    def createLogic(self):
+        return BreastBiomechLogic()
 
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
-
+    def connectGUI(self):
         self.ui.caseComboBox.currentIndexChanged.connect(self.onCaseChanged)
         for spinBox in (self.ui.seedSpinBox,):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
@@ -136,37 +97,25 @@ class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget
         self.ui.skinSeparateCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
         self.ui.generateButton.clicked.connect(self.onGenerateButton)
         self.ui.loadFolderButton.clicked.connect(self.onLoadFolderButton)
-        self.initializeParameterNode()
 
     def _sliders(self):
         return (self.ui.volumeSliderWidget, self.ui.densitySliderWidget, self.ui.tumourSliderWidget,
                 self.ui.snrSliderWidget, self.ui.biasSliderWidget)
 
-    def updateGUIFromParameterNode(self, caller=None, event=None):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        self._updatingGUI = True
-        try:
-            p = self._parameterNode
-            self.ui.caseComboBox.currentIndex = p["case"]
-            self.ui.seedSpinBox.value = p["seed"]
-            self.ui.volumeSliderWidget.value = p["volumeCm3"]
-            self.ui.densitySliderWidget.value = p["density"] * 100.0
-            self.ui.tumourSliderWidget.value = p["tumourMm"]
-            self.ui.snrSliderWidget.value = p["snr"]
-            self.ui.biasSliderWidget.value = p["bias"] * 100.0
-            self.ui.skinSeparateCheckBox.checked = p["skinSeparate"]
-            custom = p["case"] == 0
-            for widget in (self.ui.seedSpinBox, *self._sliders()):
-                widget.enabled = custom
-        finally:
-            self._updatingGUI = False
+    def showParameters(self, p):
+        self.ui.caseComboBox.currentIndex = p["case"]
+        self.ui.seedSpinBox.value = p["seed"]
+        self.ui.volumeSliderWidget.value = p["volumeCm3"]
+        self.ui.densitySliderWidget.value = p["density"] * 100.0
+        self.ui.tumourSliderWidget.value = p["tumourMm"]
+        self.ui.snrSliderWidget.value = p["snr"]
+        self.ui.biasSliderWidget.value = p["bias"] * 100.0
+        self.ui.skinSeparateCheckBox.checked = p["skinSeparate"]
+        custom = p["case"] == 0
+        for widget in (self.ui.seedSpinBox, *self._sliders()):
+            widget.enabled = custom
 
-    def updateParameterNodeFromGUI(self, *args):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        p = self._parameterNode
-        wasModifying = p.node.StartModify()
+    def storeParameters(self, p):
         p["case"] = self.ui.caseComboBox.currentIndex
         p["seed"] = self.ui.seedSpinBox.value
         p["volumeCm3"] = self.ui.volumeSliderWidget.value
@@ -175,7 +124,6 @@ class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget
         p["snr"] = self.ui.snrSliderWidget.value
         p["bias"] = self.ui.biasSliderWidget.value / 100.0
         p["skinSeparate"] = self.ui.skinSeparateCheckBox.checked
-        p.node.EndModify(wasModifying)
 
     def onCaseChanged(self, index):
         if self._parameterNode is None or self._updatingGUI:
@@ -210,12 +158,7 @@ class BreastBiomechWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget
             self.ui.summaryLabel.text = self.logic.summaryText(nodes["summary"])
 
 
-#
-# Logic
-#
-
-
-class BreastBiomechLogic(ParameterNodeLogic):
+class BreastBiomechLogic(ModuleLogicBase):
     """Phantom cases into MRML nodes. No Qt: runs in Slicer and headless (slicer-core wheel).
 
     ``scene`` defaults to ``slicer.mrmlScene`` inside the application."""

@@ -23,46 +23,23 @@ import os
 
 import numpy as np
 import slicer
-from BreastBiomechCommon import (
-    IN_SLICER_APPLICATION,
-    SLICER_MODULES,
-    ModuleTestMixin,
-    ParameterNodeLogic,
-    ParameterNodeWidgetMixin,
-    ScriptedLoadableModule,
-    ScriptedLoadableModuleTest,
-    ScriptedLoadableModuleWidget,
-    _,
-    chosen_folder,
-    dependencies_ready,
-    ensure_library_importable,
-    resolve_device,
-    resource_path,
-    translate,
-)
-from slicer.util import VTKObservationMixin
+from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
+                                 ModuleWidgetBase, ScriptedLoadableModuleTest, _, chosen_folder,
+                                 dependencies_ready, ensure_library_importable, resolve_device)
 
 ensure_library_importable()
 
-CATEGORY = "Breast Biomechanics"
 DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib", "warp"]
 ROUND_ATTRIBUTE = "BreastDiscrepancy.Round"  # the round a node belongs to
 KIND_ATTRIBUTE = "BreastDiscrepancy.Kind"    # what it shows, e.g. "residual-before"
 FOLDER_ATTRIBUTE = "BreastDiscrepancy.Folder"  # the output folder of its diagnosis
 SHOWN_FROM_MM = 0.25                        # residual magnitude drawn transparent below this
 
-#
-# Module
-#
 
-
-class BreastDiscrepancy(ScriptedLoadableModule):
+class BreastDiscrepancy(ModuleBase):
     def __init__(self, parent):
-        ScriptedLoadableModule.__init__(self, parent)
+        ModuleBase.__init__(self, parent, ("SubjectHierarchy", "ScreenCapture"))
         self.parent.title = _("Breast Discrepancy")
-        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
-        self.parent.dependencies = SLICER_MODULES + ["SubjectHierarchy", "ScreenCapture"]
-        self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Find where a fitted breast model and the measured compressed scan disagree, which physical effect "
             "(plate friction, gravity and the unloaded state, the chest wall holding the breast, skin, anisotropy, "
@@ -75,33 +52,19 @@ class BreastDiscrepancy(ScriptedLoadableModule):
         self.parent.acknowledgementText = _("Builds on the method of Han et al. 2012, Phys. Med. Biol. 57:455.")
 
 
-#
-# Widget
-#
-
-
-class BreastDiscrepancyWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastDiscrepancyWidget(ModuleWidgetBase):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
+    UI_FILE = "UI/BreastDiscrepancy.ui"
+
     def __init__(self, parent=None):
-        ScriptedLoadableModuleWidget.__init__(self, parent)
-        VTKObservationMixin.__init__(self)
-        self.logic = None
-        self._parameterNode = None
-        self._updatingGUI = False
+        ModuleWidgetBase.__init__(self, parent)
         self._cancelRequested = False
 
-    def setup(self):
-        ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(resource_path("UI/BreastDiscrepancy.ui"))
-        self.layout.addWidget(uiWidget)
-        self.ui = slicer.util.childWidgetVariables(uiWidget)
-        uiWidget.setMRMLScene(slicer.mrmlScene)
-        self.logic = BreastDiscrepancyLogic()
+    def createLogic(self):
+        return BreastDiscrepancyLogic()
 
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
-
+    def connectGUI(self):
         for pathLineEdit in (self.ui.casePathLineEdit, self.ui.fitPathLineEdit, self.ui.outputPathLineEdit):
             pathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.effectsLineEdit.editingFinished.connect(self.updateParameterNodeFromGUI)
@@ -121,44 +84,32 @@ class BreastDiscrepancyWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWi
         self.ui.saveReportButton.clicked.connect(self.onSaveReportButton)
         self.ui.candidatesTableView.selectionModel().selectionChanged.connect(self.onCandidateSelected)
         self._setRunning(False)
-        self.initializeParameterNode()
 
-    def updateGUIFromParameterNode(self, caller=None, event=None):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        self._updatingGUI = True
-        try:
-            p = self._parameterNode
-            self.ui.casePathLineEdit.currentPath = p["caseDirectory"]
-            self.ui.fitPathLineEdit.currentPath = p["fitDirectory"]
-            self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
-            self.ui.effectsLineEdit.text = p["effects"]
-            self.ui.iterationsSpinBox.value = p["refineIterations"]
-            self.ui.roundsSpinBox.value = p["maxRounds"]
-            self.ui.landmarkSdSpinBox.value = p["landmarkSdMm"]
-            self.ui.modelSdSpinBox.value = p["modelSdMm"]
-            self.ui.alphaSpinBox.value = p["alpha"]
-            self.ui.deviceComboBox.currentIndex = max(self.ui.deviceComboBox.findText(p["device"]), 0)
-            self.ui.residualFieldCheckBox.checked = p["residualField"]
-            self.ui.glyphsCheckBox.checked = p["fieldGlyphs"]
-            self.ui.regionsCheckBox.checked = p["showRegions"]
-            self.ui.candidatesTableView.setMRMLTableNode(p.reference("candidatesTable"))
-            rounds = self.logic.roundNumbers(p)
-            self.ui.roundComboBox.clear()
-            for number in rounds:
-                self.ui.roundComboBox.addItem(_("Round {number}").format(number=number), number)
-            if p["shownRound"] in rounds:
-                self.ui.roundComboBox.currentIndex = rounds.index(p["shownRound"])
-            self.ui.verdictLabel.text = self.logic.verdictText(p)
-            self.ui.candidateLabel.text = p["candidate"] or _("none: select a row of the table")
-        finally:
-            self._updatingGUI = False
+    def showParameters(self, p):
+        self.ui.casePathLineEdit.currentPath = p["caseDirectory"]
+        self.ui.fitPathLineEdit.currentPath = p["fitDirectory"]
+        self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
+        self.ui.effectsLineEdit.text = p["effects"]
+        self.ui.iterationsSpinBox.value = p["refineIterations"]
+        self.ui.roundsSpinBox.value = p["maxRounds"]
+        self.ui.landmarkSdSpinBox.value = p["landmarkSdMm"]
+        self.ui.modelSdSpinBox.value = p["modelSdMm"]
+        self.ui.alphaSpinBox.value = p["alpha"]
+        self.ui.deviceComboBox.currentIndex = max(self.ui.deviceComboBox.findText(p["device"]), 0)
+        self.ui.residualFieldCheckBox.checked = p["residualField"]
+        self.ui.glyphsCheckBox.checked = p["fieldGlyphs"]
+        self.ui.regionsCheckBox.checked = p["showRegions"]
+        self.ui.candidatesTableView.setMRMLTableNode(p.reference("candidatesTable"))
+        rounds = self.logic.roundNumbers(p)
+        self.ui.roundComboBox.clear()
+        for number in rounds:
+            self.ui.roundComboBox.addItem(_("Round {number}").format(number=number), number)
+        if p["shownRound"] in rounds:
+            self.ui.roundComboBox.currentIndex = rounds.index(p["shownRound"])
+        self.ui.verdictLabel.text = self.logic.verdictText(p)
+        self.ui.candidateLabel.text = p["candidate"] or _("none: select a row of the table")
 
-    def updateParameterNodeFromGUI(self, *args):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        p = self._parameterNode
-        wasModifying = p.node.StartModify()
+    def storeParameters(self, p):
         p["caseDirectory"] = self.ui.casePathLineEdit.currentPath
         p["fitDirectory"] = self.ui.fitPathLineEdit.currentPath
         p["outputDirectory"] = self.ui.outputPathLineEdit.currentPath
@@ -170,7 +121,6 @@ class BreastDiscrepancyWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWi
         p["alpha"] = self.ui.alphaSpinBox.value
         p["device"] = self.ui.deviceComboBox.currentText
         p["residualField"] = self.ui.residualFieldCheckBox.checked
-        p.node.EndModify(wasModifying)
 
     def _setRunning(self, running):
         for button in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.saveReportButton,
@@ -269,12 +219,7 @@ def captureSliceViews(path) -> None:
     ScreenCapture.ScreenCaptureLogic().captureImageFromView(None, str(path))
 
 
-#
-# Logic
-#
-
-
-class BreastDiscrepancyLogic(ParameterNodeLogic):
+class BreastDiscrepancyLogic(ModuleLogicBase):
     """The diagnosis of a fitted compressed case as MRML nodes, one step at a time
     (:class:`~BreastBiomechLib.discrepancy.session.DiagnosisSession`): rounds, their evidence as
     overlays, tables and plots, the user's decisions. No Qt: runs in Slicer and headless.
@@ -293,7 +238,7 @@ class BreastDiscrepancyLogic(ParameterNodeLogic):
              "measuresChart", "histogramTable", "histogramChart")
 
     def __init__(self, scene=None):
-        ParameterNodeLogic.__init__(self, scene)
+        ModuleLogicBase.__init__(self, scene)
         self.session = None   # the open DiagnosisSession
         self._surface = None  # the measured body's signed distance, made once per session
 

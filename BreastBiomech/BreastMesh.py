@@ -17,41 +17,20 @@ import logging
 import numpy as np
 import slicer
 import vtk
-from BreastBiomechCommon import (
-    IN_SLICER_APPLICATION,
-    SLICER_MODULES,
-    ModuleTestMixin,
-    ParameterNodeLogic,
-    ParameterNodeWidgetMixin,
-    ScriptedLoadableModule,
-    ScriptedLoadableModuleTest,
-    ScriptedLoadableModuleWidget,
-    _,
-    dependencies_ready,
-    ensure_library_importable,
-    resource_path,
-    translate,
-)
-from slicer.util import VTKObservationMixin
+from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
+                                 ModuleWidgetBase, ScriptedLoadableModuleTest, _, dependencies_ready,
+                                 ensure_library_importable)
 
 ensure_library_importable()
 
-CATEGORY = "Breast Biomechanics"
 DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "tetgen"]
 RED_SLICE = "vtkMRMLSliceNodeRed"  # the application's red slice node, where the mesh display is clipped
 
-#
-# Module
-#
 
-
-class BreastMesh(ScriptedLoadableModule):
+class BreastMesh(ModuleBase):
     def __init__(self, parent):
-        ScriptedLoadableModule.__init__(self, parent)
+        ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Mesh")
-        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
-        self.parent.dependencies = SLICER_MODULES
-        self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Tetrahedral finite-element mesh of the breast from a tissue segmentation: body surface, "
             "TetGen mesh refined by points of each tissue surface, tissue per element by voxel majority, "
@@ -68,32 +47,15 @@ class BreastMesh(ScriptedLoadableModule):
         )
 
 
-#
-# Widget
-#
-
-
-class BreastMeshWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastMeshWidget(ModuleWidgetBase):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
-    def __init__(self, parent=None):
-        ScriptedLoadableModuleWidget.__init__(self, parent)
-        VTKObservationMixin.__init__(self)
-        self.logic = None
-        self._parameterNode = None
-        self._updatingGUI = False
+    UI_FILE = "UI/BreastMesh.ui"
 
-    def setup(self):
-        ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(resource_path("UI/BreastMesh.ui"))
-        self.layout.addWidget(uiWidget)
-        self.ui = slicer.util.childWidgetVariables(uiWidget)
-        uiWidget.setMRMLScene(slicer.mrmlScene)
-        self.logic = BreastMeshLogic()
+    def createLogic(self):
+        return BreastMeshLogic()
 
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
-
+    def connectGUI(self):
         for selector in (self.ui.inputSegmentationSelector, self.ui.nippleSelector, self.ui.outputMeshSelector):
             selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
         for spinBox in (self.ui.edgeSpinBox, self.ui.interfaceEdgeSpinBox, self.ui.blurSpinBox,
@@ -103,36 +65,24 @@ class BreastMeshWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, V
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
         self.ui.clipCheckBox.toggled.connect(self.onClipToggled)
         self.ui.applyButton.clicked.connect(self.onApplyButton)
-        self.initializeParameterNode()
 
-    def updateGUIFromParameterNode(self, caller=None, event=None):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        self._updatingGUI = True
-        try:
-            p = self._parameterNode
-            self.ui.inputSegmentationSelector.setCurrentNode(p.reference("inputSegmentation"))
-            self.ui.nippleSelector.setCurrentNode(p.reference("nipple"))
-            self.ui.outputMeshSelector.setCurrentNode(p.reference("outputMesh"))
-            self.ui.edgeSpinBox.value = p["edgeMm"]
-            self.ui.interfaceEdgeSpinBox.value = p["interfaceEdgeMm"]
-            self.ui.refineCheckBox.checked = p["refineInterfaces"]
-            self.ui.interfaceEdgeSpinBox.enabled = p["refineInterfaces"]
-            self.ui.blurSpinBox.value = p["blurMm"]
-            self.ui.radiusEdgeSpinBox.value = p["minRadiusEdge"]
-            self.ui.dihedralSpinBox.value = p["minDihedralDeg"]
-            self.ui.clipCheckBox.checked = p["clip"]
-            self.ui.qualityTableView.setMRMLTableNode(p.reference("qualityTable"))
-            self.ui.tissueTableView.setMRMLTableNode(p.reference("tissueTable"))
-            self.ui.applyButton.enabled = p.reference("inputSegmentation") is not None
-        finally:
-            self._updatingGUI = False
+    def showParameters(self, p):
+        self.ui.inputSegmentationSelector.setCurrentNode(p.reference("inputSegmentation"))
+        self.ui.nippleSelector.setCurrentNode(p.reference("nipple"))
+        self.ui.outputMeshSelector.setCurrentNode(p.reference("outputMesh"))
+        self.ui.edgeSpinBox.value = p["edgeMm"]
+        self.ui.interfaceEdgeSpinBox.value = p["interfaceEdgeMm"]
+        self.ui.refineCheckBox.checked = p["refineInterfaces"]
+        self.ui.interfaceEdgeSpinBox.enabled = p["refineInterfaces"]
+        self.ui.blurSpinBox.value = p["blurMm"]
+        self.ui.radiusEdgeSpinBox.value = p["minRadiusEdge"]
+        self.ui.dihedralSpinBox.value = p["minDihedralDeg"]
+        self.ui.clipCheckBox.checked = p["clip"]
+        self.ui.qualityTableView.setMRMLTableNode(p.reference("qualityTable"))
+        self.ui.tissueTableView.setMRMLTableNode(p.reference("tissueTable"))
+        self.ui.applyButton.enabled = p.reference("inputSegmentation") is not None
 
-    def updateParameterNodeFromGUI(self, *args):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        p = self._parameterNode
-        wasModifying = p.node.StartModify()
+    def storeParameters(self, p):
         p.set_reference("inputSegmentation", self.ui.inputSegmentationSelector.currentNode())
         p.set_reference("nipple", self.ui.nippleSelector.currentNode())
         p.set_reference("outputMesh", self.ui.outputMeshSelector.currentNode())
@@ -143,7 +93,6 @@ class BreastMeshWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, V
         p["minRadiusEdge"] = self.ui.radiusEdgeSpinBox.value
         p["minDihedralDeg"] = self.ui.dihedralSpinBox.value
         p["clip"] = self.ui.clipCheckBox.checked
-        p.node.EndModify(wasModifying)
 
     def onClipToggled(self, checked):
         if self._parameterNode is not None and not self._updatingGUI:
@@ -169,12 +118,7 @@ class BreastMeshWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, V
             self.ui.applyButton.enabled = True
 
 
-#
-# Logic
-#
-
-
-class BreastMeshLogic(ParameterNodeLogic):
+class BreastMeshLogic(ModuleLogicBase):
     """Segmentation node -> label map -> BreastBiomechLib.mesh.mesh_labels -> model, table and plot
     nodes. No Qt: runs in Slicer and headless (slicer-core wheel).
 

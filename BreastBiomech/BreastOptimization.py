@@ -22,45 +22,22 @@ import logging
 
 import numpy as np
 import slicer
-from BreastBiomechCommon import (
-    IN_SLICER_APPLICATION,
-    SLICER_MODULES,
-    ModuleTestMixin,
-    ParameterNodeLogic,
-    ParameterNodeWidgetMixin,
-    ScriptedLoadableModule,
-    ScriptedLoadableModuleTest,
-    ScriptedLoadableModuleWidget,
-    _,
-    chosen_folder,
-    dependencies_ready,
-    ensure_library_importable,
-    resolve_device,
-    resource_path,
-    translate,
-)
-from slicer.util import VTKObservationMixin
+from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
+                                 ModuleWidgetBase, ScriptedLoadableModuleTest, _, chosen_folder, dependencies_ready,
+                                 ensure_library_importable, resolve_device)
 
 ensure_library_importable()
 
-CATEGORY = "Breast Biomechanics"
 CASE_DEPENDENCIES = ["numpy", "scipy", "SimpleITK"]  # reading a compressed case into the scene
 DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib", "warp", "cma"]  # fitting
 EDGE_ATTRIBUTE = "BreastBiomech.PlateEdge"  # a measured plate's rounded edge (JSON, LPS mm), as in plates.json
 NAME_ATTRIBUTE = "BreastBiomech.PlateName"  # its name in plates.json
 
-#
-# Module
-#
 
-
-class BreastOptimization(ScriptedLoadableModule):
+class BreastOptimization(ModuleBase):
     def __init__(self, parent):
-        ScriptedLoadableModule.__init__(self, parent)
+        ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Optimization")
-        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
-        self.parent.dependencies = SLICER_MODULES
-        self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Fit the tissues' Young's moduli, Poisson's ratios and fibre stiffness so that the FE-predicted "
             "compressed MR image matches the measured one (maximum NMI), with the seed's hybrid search or "
@@ -72,33 +49,19 @@ class BreastOptimization(ScriptedLoadableModule):
         self.parent.acknowledgementText = _("Method after Han et al. 2012, Phys. Med. Biol. 57:455, section 2.4.")
 
 
-#
-# Widget
-#
-
-
-class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastOptimizationWidget(ModuleWidgetBase):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
+    UI_FILE = "UI/BreastOptimization.ui"
+
     def __init__(self, parent=None):
-        ScriptedLoadableModuleWidget.__init__(self, parent)
-        VTKObservationMixin.__init__(self)
-        self.logic = None
-        self._parameterNode = None
-        self._updatingGUI = False
+        ModuleWidgetBase.__init__(self, parent)
         self._stopRequest = None  # None, "pause" or "cancel"
 
-    def setup(self):
-        ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(resource_path("UI/BreastOptimization.ui"))
-        self.layout.addWidget(uiWidget)
-        self.ui = slicer.util.childWidgetVariables(uiWidget)
-        uiWidget.setMRMLScene(slicer.mrmlScene)
-        self.logic = BreastOptimizationLogic()
+    def createLogic(self):
+        return BreastOptimizationLogic()
 
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
-
+    def connectGUI(self):
         for selector in (self.ui.undeformedVolumeSelector, self.ui.measuredVolumeSelector, self.ui.inputMeshSelector,
                          self.ui.referenceLandmarksSelector, self.ui.measuredLandmarksSelector):
             selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
@@ -128,7 +91,6 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         self.ui.pauseButton.clicked.connect(lambda: self._requestStop("pause"))
         self.ui.cancelButton.clicked.connect(lambda: self._requestStop("cancel"))
         self._setRunning(False)
-        self.initializeParameterNode()
 
     def _studyModelCheckBoxes(self):
         return {"iso-homo": self.ui.studyIsoHomoCheckBox, "aniso-homo": self.ui.studyAnisoHomoCheckBox,
@@ -138,56 +100,45 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
     def _setComboText(comboBox, text):
         comboBox.currentIndex = max(comboBox.findText(text), 0)
 
-    def updateGUIFromParameterNode(self, caller=None, event=None):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        self._updatingGUI = True
-        try:
-            p = self._parameterNode
-            for selector, role in ((self.ui.undeformedVolumeSelector, "undeformedVolume"),
-                                   (self.ui.measuredVolumeSelector, "measuredVolume"),
-                                   (self.ui.inputMeshSelector, "inputMesh"),
-                                   (self.ui.referenceLandmarksSelector, "referenceLandmarks"),
-                                   (self.ui.measuredLandmarksSelector, "measuredLandmarks")):
-                selector.setCurrentNode(p.reference(role))
-            for comboBox, name in ((self.ui.modelComboBox, "model"), (self.ui.optimiserComboBox, "optimiser"),
-                                   (self.ui.objectiveComboBox, "objective"), (self.ui.deviceComboBox, "device")):
-                self._setComboText(comboBox, p[name])
-            self.ui.freeECheckBox.checked = p["freeE"]
-            self.ui.freeNuCheckBox.checked = p["freeNu"]
-            self.ui.freeEtaCheckBox.checked = p["freeEta"]
-            self.ui.freeEtaCheckBox.enabled = p["model"].startswith("aniso")
-            self.ui.freeFibreCheckBox.checked = p["freeFibre"]
-            self.ui.freeFibreCheckBox.enabled = p["model"].startswith("aniso")
-            self.ui.freeOffsetCheckBox.checked = p["freeOffset"]
-            for spinBox, name in ((self.ui.budgetSpinBox, "budget"), (self.ui.secondsSpinBox, "seconds"),
-                                  (self.ui.seedSpinBox, "seed"), (self.ui.populationSpinBox, "population"),
-                                  (self.ui.binsSpinBox, "bins"), (self.ui.toleranceSpinBox, "toleranceMm"),
-                                  (self.ui.fibreRSpinBox, "fibreR"), (self.ui.fibreASpinBox, "fibreA"),
-                                  (self.ui.fibreSSpinBox, "fibreS")):
-                spinBox.value = p[name]
-            self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
-            self.ui.studyCasesPathLineEdit.currentPath = p["studyCasesDirectory"]
-            self.ui.studyOutputPathLineEdit.currentPath = p["studyOutputDirectory"]
-            self.ui.schedulerLineEdit.text = p["scheduler"]
-            self.ui.studyBudgetsLineEdit.text = p["studyBudgets"]
-            self.ui.studyEdgeSpinBox.value = p["studyEdgeMm"]
-            chosen = {m.strip() for m in p["studyModels"].split(",")}
-            for model, checkBox in self._studyModelCheckBoxes().items():
-                checkBox.checked = model in chosen
-            self.ui.studyTableView.setMRMLTableNode(p.reference("studyTable"))
-            plates = p.references("plates")
-            self.ui.platesLabel.text = ", ".join(n.GetName() for n in plates) if plates else "none: load a case"
-            self.ui.landmarkErrorsTableView.setMRMLTableNode(p.reference("landmarkErrorsTable"))
-            self.ui.parametersTableView.setMRMLTableNode(p.reference("parametersTable"))
-        finally:
-            self._updatingGUI = False
+    def showParameters(self, p):
+        for selector, role in ((self.ui.undeformedVolumeSelector, "undeformedVolume"),
+                               (self.ui.measuredVolumeSelector, "measuredVolume"),
+                               (self.ui.inputMeshSelector, "inputMesh"),
+                               (self.ui.referenceLandmarksSelector, "referenceLandmarks"),
+                               (self.ui.measuredLandmarksSelector, "measuredLandmarks")):
+            selector.setCurrentNode(p.reference(role))
+        for comboBox, name in ((self.ui.modelComboBox, "model"), (self.ui.optimiserComboBox, "optimiser"),
+                               (self.ui.objectiveComboBox, "objective"), (self.ui.deviceComboBox, "device")):
+            self._setComboText(comboBox, p[name])
+        self.ui.freeECheckBox.checked = p["freeE"]
+        self.ui.freeNuCheckBox.checked = p["freeNu"]
+        self.ui.freeEtaCheckBox.checked = p["freeEta"]
+        self.ui.freeEtaCheckBox.enabled = p["model"].startswith("aniso")
+        self.ui.freeFibreCheckBox.checked = p["freeFibre"]
+        self.ui.freeFibreCheckBox.enabled = p["model"].startswith("aniso")
+        self.ui.freeOffsetCheckBox.checked = p["freeOffset"]
+        for spinBox, name in ((self.ui.budgetSpinBox, "budget"), (self.ui.secondsSpinBox, "seconds"),
+                              (self.ui.seedSpinBox, "seed"), (self.ui.populationSpinBox, "population"),
+                              (self.ui.binsSpinBox, "bins"), (self.ui.toleranceSpinBox, "toleranceMm"),
+                              (self.ui.fibreRSpinBox, "fibreR"), (self.ui.fibreASpinBox, "fibreA"),
+                              (self.ui.fibreSSpinBox, "fibreS")):
+            spinBox.value = p[name]
+        self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
+        self.ui.studyCasesPathLineEdit.currentPath = p["studyCasesDirectory"]
+        self.ui.studyOutputPathLineEdit.currentPath = p["studyOutputDirectory"]
+        self.ui.schedulerLineEdit.text = p["scheduler"]
+        self.ui.studyBudgetsLineEdit.text = p["studyBudgets"]
+        self.ui.studyEdgeSpinBox.value = p["studyEdgeMm"]
+        chosen = {m.strip() for m in p["studyModels"].split(",")}
+        for model, checkBox in self._studyModelCheckBoxes().items():
+            checkBox.checked = model in chosen
+        self.ui.studyTableView.setMRMLTableNode(p.reference("studyTable"))
+        plates = p.references("plates")
+        self.ui.platesLabel.text = ", ".join(n.GetName() for n in plates) if plates else "none: load a case"
+        self.ui.landmarkErrorsTableView.setMRMLTableNode(p.reference("landmarkErrorsTable"))
+        self.ui.parametersTableView.setMRMLTableNode(p.reference("parametersTable"))
 
-    def updateParameterNodeFromGUI(self, *args):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        p = self._parameterNode
-        wasModifying = p.node.StartModify()
+    def storeParameters(self, p):
         p.set_reference("undeformedVolume", self.ui.undeformedVolumeSelector.currentNode())
         p.set_reference("measuredVolume", self.ui.measuredVolumeSelector.currentNode())
         p.set_reference("inputMesh", self.ui.inputMeshSelector.currentNode())
@@ -218,7 +169,6 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["studyBudgets"] = self.ui.studyBudgetsLineEdit.text.strip()
         p["studyEdgeMm"] = self.ui.studyEdgeSpinBox.value
         p["studyModels"] = ",".join(m for m, box in self._studyModelCheckBoxes().items() if box.checked)
-        p.node.EndModify(wasModifying)
 
     def onLoadCaseButton(self):
         if not dependencies_ready(CASE_DEPENDENCIES, _("Breast Optimization")):
@@ -291,12 +241,7 @@ class BreastOptimizationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             self._setRunning(False)
 
 
-#
-# Logic
-#
-
-
-class BreastOptimizationLogic(ParameterNodeLogic):
+class BreastOptimizationLogic(ModuleLogicBase):
     """A compressed case from MRML nodes into a :class:`~BreastBiomechLib.optimisation.FittingProblem`,
     the optimisation, and its results back as nodes. No Qt: runs in Slicer and headless.
 

@@ -17,44 +17,23 @@ import logging
 
 import numpy as np
 import slicer
-from BreastBiomechCommon import (
-    IN_SLICER_APPLICATION,
-    SLICER_MODULES,
-    ModuleTestMixin,
-    ParameterNodeLogic,
-    ParameterNodeWidgetMixin,
-    ScriptedLoadableModule,
-    ScriptedLoadableModuleTest,
-    ScriptedLoadableModuleWidget,
-    _,
-    dependencies_ready,
-    ensure_library_importable,
-    resource_path,
-    translate,
-)
-from slicer.util import VTKObservationMixin
+from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
+                                 ModuleWidgetBase, ScriptedLoadableModuleTest, _, dependencies_ready,
+                                 ensure_library_importable)
 
 ensure_library_importable()
 
-CATEGORY = "Breast Biomechanics"
 DEPENDENCIES = ["numpy", "scipy", "SimpleITK"]
 
 
 class StepCancelled(Exception):
     """The user stopped a segmentation step; the scene is as it was before the step."""
 
-#
-# Module
-#
 
-
-class BreastSegmentation(ScriptedLoadableModule):
+class BreastSegmentation(ModuleBase):
     def __init__(self, parent):
-        ScriptedLoadableModule.__init__(self, parent)
+        ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Segmentation")
-        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
-        self.parent.dependencies = SLICER_MODULES
-        self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Tissue classification of a breast MR volume: pectoral muscle and tumour grown from seed points, "
             "fat and fibroglandular tissue by expectation-maximisation with a Markov-random-field prior, "
@@ -68,34 +47,20 @@ class BreastSegmentation(ScriptedLoadableModule):
         )
 
 
-#
-# Widget
-#
-
-
-class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastSegmentationWidget(ModuleWidgetBase):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
+    UI_FILE = "UI/BreastSegmentation.ui"
+
     def __init__(self, parent=None):
-        ScriptedLoadableModuleWidget.__init__(self, parent)
-        VTKObservationMixin.__init__(self)
-        self.logic = None
-        self._parameterNode = None
-        self._updatingGUI = False
+        ModuleWidgetBase.__init__(self, parent)
         self._running = False
         self._cancelRequested = False
 
-    def setup(self):
-        ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(resource_path("UI/BreastSegmentation.ui"))
-        self.layout.addWidget(uiWidget)
-        self.ui = slicer.util.childWidgetVariables(uiWidget)
-        uiWidget.setMRMLScene(slicer.mrmlScene)
-        self.logic = BreastSegmentationLogic()
+    def createLogic(self):
+        return BreastSegmentationLogic()
 
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
-
+    def connectGUI(self):
         for selector in (self.ui.inputVolumeSelector, self.ui.muscleSeedsSelector, self.ui.tumourSeedsSelector,
                          self.ui.outputSegmentationSelector):
             selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
@@ -109,43 +74,31 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         self.ui.tissuesButton.clicked.connect(lambda: self.onStep(self.logic.classifyTissues, "Classification failed."))
         self.ui.allButton.clicked.connect(lambda: self.onStep(self.logic.runAll, "Segmentation failed."))
         self.ui.cancelButton.clicked.connect(self.onCancelButton)
-        self.initializeParameterNode()
 
-    def updateGUIFromParameterNode(self, caller=None, event=None):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        self._updatingGUI = True
-        try:
-            p = self._parameterNode
-            self.ui.inputVolumeSelector.setCurrentNode(p.reference("inputVolume"))
-            self.ui.muscleSeedsSelector.setCurrentNode(p.reference("muscleSeeds"))
-            self.ui.tumourSeedsSelector.setCurrentNode(p.reference("tumourSeeds"))
-            self.ui.outputSegmentationSelector.setCurrentNode(p.reference("outputSegmentation"))
-            self.ui.mrfSpinBox.value = p["mrfStrength"]
-            self.ui.biasOrderSpinBox.value = p["biasOrder"]
-            self.ui.iterationsSpinBox.value = p["maxIterations"]
-            self.ui.partialVolumeCheckBox.checked = p["partialVolume"]
-            self.ui.fractionSmoothingSpinBox.value = p["fractionSmoothing"]
-            self.ui.skinSpinBox.value = p["skinMm"]
-            self.ui.keepSkinCheckBox.checked = p["keepSkin"]
-            self.ui.fasciaCheckBox.checked = p["tissueOnFascia"]
-            self.ui.volumesTableView.setMRMLTableNode(p.reference("volumesTable"))
-            # a step runs alone: while one runs (it processes events) the others wait, Cancel stops it
-            ready = p.reference("inputVolume") is not None and not self._running
-            haveMuscleSeeds = p.reference("muscleSeeds") is not None
-            self.ui.muscleButton.enabled = ready and haveMuscleSeeds
-            self.ui.tumourButton.enabled = ready and p.reference("tumourSeeds") is not None
-            self.ui.tissuesButton.enabled = ready and p.reference("outputSegmentation") is not None
-            self.ui.allButton.enabled = ready and haveMuscleSeeds
-            self.ui.cancelButton.enabled = self._running
-        finally:
-            self._updatingGUI = False
+    def showParameters(self, p):
+        self.ui.inputVolumeSelector.setCurrentNode(p.reference("inputVolume"))
+        self.ui.muscleSeedsSelector.setCurrentNode(p.reference("muscleSeeds"))
+        self.ui.tumourSeedsSelector.setCurrentNode(p.reference("tumourSeeds"))
+        self.ui.outputSegmentationSelector.setCurrentNode(p.reference("outputSegmentation"))
+        self.ui.mrfSpinBox.value = p["mrfStrength"]
+        self.ui.biasOrderSpinBox.value = p["biasOrder"]
+        self.ui.iterationsSpinBox.value = p["maxIterations"]
+        self.ui.partialVolumeCheckBox.checked = p["partialVolume"]
+        self.ui.fractionSmoothingSpinBox.value = p["fractionSmoothing"]
+        self.ui.skinSpinBox.value = p["skinMm"]
+        self.ui.keepSkinCheckBox.checked = p["keepSkin"]
+        self.ui.fasciaCheckBox.checked = p["tissueOnFascia"]
+        self.ui.volumesTableView.setMRMLTableNode(p.reference("volumesTable"))
+        # a step runs alone: while one runs (it processes events) the others wait, Cancel stops it
+        ready = p.reference("inputVolume") is not None and not self._running
+        haveMuscleSeeds = p.reference("muscleSeeds") is not None
+        self.ui.muscleButton.enabled = ready and haveMuscleSeeds
+        self.ui.tumourButton.enabled = ready and p.reference("tumourSeeds") is not None
+        self.ui.tissuesButton.enabled = ready and p.reference("outputSegmentation") is not None
+        self.ui.allButton.enabled = ready and haveMuscleSeeds
+        self.ui.cancelButton.enabled = self._running
 
-    def updateParameterNodeFromGUI(self, *args):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        p = self._parameterNode
-        wasModifying = p.node.StartModify()
+    def storeParameters(self, p):
         p.set_reference("inputVolume", self.ui.inputVolumeSelector.currentNode())
         p.set_reference("muscleSeeds", self.ui.muscleSeedsSelector.currentNode())
         p.set_reference("tumourSeeds", self.ui.tumourSeedsSelector.currentNode())
@@ -158,7 +111,6 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
         p["skinMm"] = self.ui.skinSpinBox.value
         p["keepSkin"] = self.ui.keepSkinCheckBox.checked
         p["tissueOnFascia"] = self.ui.fasciaCheckBox.checked
-        p.node.EndModify(wasModifying)
 
     def onCancelButton(self):
         self._cancelRequested = True
@@ -192,12 +144,7 @@ class BreastSegmentationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleW
             self._setRunning(False)
 
 
-#
-# Logic
-#
-
-
-class BreastSegmentationLogic(ParameterNodeLogic):
+class BreastSegmentationLogic(ModuleLogicBase):
     """MR volume node + seed point lists -> BreastBiomechLib.segmentation -> segmentation node
     (segments named and coloured by the label table), probability and bias-field volume nodes,
     and a volumes table. No Qt: runs in Slicer and headless (slicer-core wheel).

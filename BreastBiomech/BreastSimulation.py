@@ -16,43 +16,20 @@ import logging
 import numpy as np
 import slicer
 import vtk
-from BreastBiomechCommon import (
-    IN_SLICER_APPLICATION,
-    SLICER_MODULES,
-    ModuleTestMixin,
-    ParameterNodeLogic,
-    ParameterNodeWidgetMixin,
-    ScriptedLoadableModule,
-    ScriptedLoadableModuleTest,
-    ScriptedLoadableModuleWidget,
-    _,
-    dependencies_ready,
-    ensure_library_importable,
-    resolve_device,
-    resource_path,
-    translate,
-    unmet_requirements,
-)
-from slicer.util import VTKObservationMixin
+from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
+                                 ModuleWidgetBase, ScriptedLoadableModuleTest, _, dependencies_ready,
+                                 ensure_library_importable, resolve_device, unmet_requirements)
 
 ensure_library_importable()
 
-CATEGORY = "Breast Biomechanics"
 MODEL_DEPENDENCIES = ["numpy"]  # building the model: materials, plates, node sets
 DEPENDENCIES = ["numpy", "scipy", "warp"]  # solving it
 
-#
-# Module
-#
 
-
-class BreastSimulation(ScriptedLoadableModule):
+class BreastSimulation(ModuleBase):
     def __init__(self, parent):
-        ScriptedLoadableModule.__init__(self, parent)
+        ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Simulation")
-        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
-        self.parent.dependencies = SLICER_MODULES
-        self.parent.contributors = ["BreastBiomech contributors"]
         self.parent.helpText = _(
             "Nonlinear finite-element simulation of breast compression between rigid plates (TLED: "
             "explicit dynamics on the GPU with NVIDIA warp, or dynamic relaxation to the static "
@@ -66,33 +43,19 @@ class BreastSimulation(ScriptedLoadableModule):
         )
 
 
-#
-# Widget
-#
-
-
-class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWidget, VTKObservationMixin):
+class BreastSimulationWidget(ModuleWidgetBase):
     """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
 
+    UI_FILE = "UI/BreastSimulation.ui"
+
     def __init__(self, parent=None):
-        ScriptedLoadableModuleWidget.__init__(self, parent)
-        VTKObservationMixin.__init__(self)
-        self.logic = None
-        self._parameterNode = None
-        self._updatingGUI = False
+        ModuleWidgetBase.__init__(self, parent)
         self._cancelRequested = False
 
-    def setup(self):
-        ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(resource_path("UI/BreastSimulation.ui"))
-        self.layout.addWidget(uiWidget)
-        self.ui = slicer.util.childWidgetVariables(uiWidget)
-        uiWidget.setMRMLScene(slicer.mrmlScene)
-        self.logic = BreastSimulationLogic()
+    def createLogic(self):
+        return BreastSimulationLogic()
 
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
-        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
-
+    def connectGUI(self):
         for selector in (self.ui.inputMeshSelector, self.ui.materialsSelector, self.ui.outputMeshSelector):
             selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
         for comboBox in (self.ui.compressionAxisComboBox, self.ui.movingPlatesComboBox, self.ui.methodComboBox,
@@ -117,7 +80,6 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         # Nothing is installed when the panel opens: warp comes with the first Run
         self.ui.deviceLabel.text = (_("warp is not installed yet: the first Run offers to install it")
                                     if unmet_requirements(["warp"]) else self.logic.deviceDescription())
-        self.initializeParameterNode()
 
     @staticmethod
     def _setComboText(comboBox, text):
@@ -127,58 +89,51 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
             index = comboBox.findText(text)
         comboBox.currentIndex = max(index, 0)
 
-    def updateGUIFromParameterNode(self, caller=None, event=None):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        self._updatingGUI = True
-        try:
-            p = self._parameterNode
-            self.ui.inputMeshSelector.setCurrentNode(p.reference("inputMesh"))
-            self.ui.materialsSelector.setCurrentNode(p.reference("materials"))
-            self.ui.materialsTableView.setMRMLTableNode(p.reference("materials"))
-            self.ui.outputMeshSelector.setCurrentNode(p.reference("outputMesh"))
-            self._fillNodeSetComboBoxes()
-            for comboBox, name in ((self.ui.compressionAxisComboBox, "compressionAxis"),
-                                   (self.ui.movingPlatesComboBox, "movingPlates"),
-                                   (self.ui.methodComboBox, "method"), (self.ui.formulationComboBox, "formulation"),
-                                   (self.ui.deviceComboBox, "device"), (self.ui.fixedNodeSetComboBox, "fixedNodeSet"),
-                                   (self.ui.contactNodeSetComboBox, "contactNodeSet"),
-                                   (self.ui.chestWallModeComboBox, "chestWallMode"), (self.ui.gravityComboBox, "gravity")):
-                self._setComboText(comboBox, p[name])
-            self.ui.plateFriction1SpinBox.value = p["plateFriction1"]
-            self.ui.plateFriction2SpinBox.value = p["plateFriction2"]
-            self.ui.chestWallNormalStiffnessSpinBox.value = p["chestWallNormalStiffness"]
-            self.ui.chestWallTangentialStiffnessSpinBox.value = p["chestWallTangentialStiffness"]
-            self.ui.startUnloadedCheckBox.checked = p["startUnloaded"]
-            self.ui.skinModulusSpinBox.value = p["skinModulusKPa"]
-            self.ui.skinThicknessSpinBox.value = p["skinThicknessMm"]
-            self.ui.skinThicknessSpinBox.enabled = p["skinModulusKPa"] > 0
-            self.ui.chestWallNormalStiffnessSpinBox.enabled = p["chestWallMode"] == "elastic"
-            self.ui.chestWallTangentialStiffnessSpinBox.enabled = p["chestWallMode"] != "fixed"
-            self.ui.fixedDirectionsWidget.enabled = p["chestWallMode"] == "fixed"
-            self.ui.startUnloadedCheckBox.enabled = p["gravity"] != "none"
-            self.ui.compressionSliderWidget.value = p["compressionPercent"]
-            self.ui.chestClearanceSpinBox.value = p["chestClearanceMm"]
-            self.ui.fixLRCheckBox.checked = p["fixLR"]
-            self.ui.fixAPCheckBox.checked = p["fixAP"]
-            self.ui.fixSICheckBox.checked = p["fixSI"]
-            self.ui.anchorCheckBox.checked = p["anchor"]
-            self.ui.dampingSpinBox.value = p["damping"]
-            self.ui.totalTimeSpinBox.value = p["totalTime"]
-            self.ui.settleTimeSpinBox.value = p["settleTime"]
-            self.ui.toleranceSpinBox.value = p["tolerance"]
-            self.ui.stopWhenSettledCheckBox.checked = p["stopWhenSettled"]
-            physical = p["method"] == "physical"
-            for widget in (self.ui.dampingSpinBox, self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox,
-                           self.ui.stopWhenSettledCheckBox):
-                widget.enabled = physical
-            self.ui.toleranceSpinBox.enabled = not physical or p["stopWhenSettled"]
-            plates = p.references("plates")
-            self.ui.platesLabel.text = (", ".join(self._plateText(n) for n in plates)
-                                        if plates else "none: press Place plates")
-            self.ui.runButton.enabled = p.reference("inputMesh") is not None
-        finally:
-            self._updatingGUI = False
+    def showParameters(self, p):
+        self.ui.inputMeshSelector.setCurrentNode(p.reference("inputMesh"))
+        self.ui.materialsSelector.setCurrentNode(p.reference("materials"))
+        self.ui.materialsTableView.setMRMLTableNode(p.reference("materials"))
+        self.ui.outputMeshSelector.setCurrentNode(p.reference("outputMesh"))
+        self._fillNodeSetComboBoxes()
+        for comboBox, name in ((self.ui.compressionAxisComboBox, "compressionAxis"),
+                               (self.ui.movingPlatesComboBox, "movingPlates"),
+                               (self.ui.methodComboBox, "method"), (self.ui.formulationComboBox, "formulation"),
+                               (self.ui.deviceComboBox, "device"), (self.ui.fixedNodeSetComboBox, "fixedNodeSet"),
+                               (self.ui.contactNodeSetComboBox, "contactNodeSet"),
+                               (self.ui.chestWallModeComboBox, "chestWallMode"), (self.ui.gravityComboBox, "gravity")):
+            self._setComboText(comboBox, p[name])
+        self.ui.plateFriction1SpinBox.value = p["plateFriction1"]
+        self.ui.plateFriction2SpinBox.value = p["plateFriction2"]
+        self.ui.chestWallNormalStiffnessSpinBox.value = p["chestWallNormalStiffness"]
+        self.ui.chestWallTangentialStiffnessSpinBox.value = p["chestWallTangentialStiffness"]
+        self.ui.startUnloadedCheckBox.checked = p["startUnloaded"]
+        self.ui.skinModulusSpinBox.value = p["skinModulusKPa"]
+        self.ui.skinThicknessSpinBox.value = p["skinThicknessMm"]
+        self.ui.skinThicknessSpinBox.enabled = p["skinModulusKPa"] > 0
+        self.ui.chestWallNormalStiffnessSpinBox.enabled = p["chestWallMode"] == "elastic"
+        self.ui.chestWallTangentialStiffnessSpinBox.enabled = p["chestWallMode"] != "fixed"
+        self.ui.fixedDirectionsWidget.enabled = p["chestWallMode"] == "fixed"
+        self.ui.startUnloadedCheckBox.enabled = p["gravity"] != "none"
+        self.ui.compressionSliderWidget.value = p["compressionPercent"]
+        self.ui.chestClearanceSpinBox.value = p["chestClearanceMm"]
+        self.ui.fixLRCheckBox.checked = p["fixLR"]
+        self.ui.fixAPCheckBox.checked = p["fixAP"]
+        self.ui.fixSICheckBox.checked = p["fixSI"]
+        self.ui.anchorCheckBox.checked = p["anchor"]
+        self.ui.dampingSpinBox.value = p["damping"]
+        self.ui.totalTimeSpinBox.value = p["totalTime"]
+        self.ui.settleTimeSpinBox.value = p["settleTime"]
+        self.ui.toleranceSpinBox.value = p["tolerance"]
+        self.ui.stopWhenSettledCheckBox.checked = p["stopWhenSettled"]
+        physical = p["method"] == "physical"
+        for widget in (self.ui.dampingSpinBox, self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox,
+                       self.ui.stopWhenSettledCheckBox):
+            widget.enabled = physical
+        self.ui.toleranceSpinBox.enabled = not physical or p["stopWhenSettled"]
+        plates = p.references("plates")
+        self.ui.platesLabel.text = (", ".join(self._plateText(n) for n in plates)
+                                    if plates else "none: press Place plates")
+        self.ui.runButton.enabled = p.reference("inputMesh") is not None
 
     def _plateText(self, planeNode):
         try:
@@ -193,11 +148,7 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
             for name in first + names:
                 comboBox.addItem(name)
 
-    def updateParameterNodeFromGUI(self, *args):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        p = self._parameterNode
-        wasModifying = p.node.StartModify()
+    def storeParameters(self, p):
         p.set_reference("inputMesh", self.ui.inputMeshSelector.currentNode())
         p.set_reference("materials", self.ui.materialsSelector.currentNode())
         p.set_reference("outputMesh", self.ui.outputMeshSelector.currentNode())
@@ -228,7 +179,6 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
         p["startUnloaded"] = self.ui.startUnloadedCheckBox.checked
         p["skinModulusKPa"] = self.ui.skinModulusSpinBox.value
         p["skinThicknessMm"] = self.ui.skinThicknessSpinBox.value
-        p.node.EndModify(wasModifying)
 
     def onInputMeshChanged(self, node):
         if self._parameterNode is not None and not self._updatingGUI:
@@ -274,12 +224,7 @@ class BreastSimulationWidget(ParameterNodeWidgetMixin, ScriptedLoadableModuleWid
             self.ui.cancelButton.enabled = False
 
 
-#
-# Logic
-#
-
-
-class BreastSimulationLogic(ParameterNodeLogic):
+class BreastSimulationLogic(ModuleLogicBase):
     """Mesh, materials, plates and constraints from MRML nodes into a solver model; results back as
     nodes. No Qt: runs in Slicer and headless (slicer-core wheel).
 

@@ -52,6 +52,8 @@ except ImportError:  # the slicer-core wheel has no translations
     def translate(context: str, text: str) -> str:
         return text
 
+from slicer.util import VTKObservationMixin  # noqa: E402
+
 from BreastBiomechCommon.dependencies import (  # noqa: E402,F401  (re-exported for the modules)
     MissingDependencies,
     dependencies_ready,
@@ -62,13 +64,89 @@ from BreastBiomechCommon.dependencies import (  # noqa: E402,F401  (re-exported 
 
 # The Slicer modules the BreastBiomech modules use (``parent.dependencies``)
 SLICER_MODULES = ["Volumes", "Segmentations", "Markups", "Models", "Tables", "Plots"]
+CATEGORY = "Breast Biomechanics"  # the modules' category in Slicer's module list
 
 
-class ParameterNodeWidgetMixin:
-    """The parameter-node lifecycle every module Widget shares (Slicer's scripted-module template):
-    observe the Logic's parameter node while the module is shown, drop it on scene close, and
-    refresh the panel through ``updateGUIFromParameterNode``. Mix in before
-    ``VTKObservationMixin``; the Widget sets ``self.logic`` and ``self._parameterNode = None``."""
+class ModuleBase(ScriptedLoadableModule):
+    """Base of the module classes: the extension's category, the Slicer modules every module
+    uses (:data:`SLICER_MODULES`, plus ``more_dependencies``) and its contributors. A module sets
+    its own ``parent.title``, ``helpText`` and ``acknowledgementText`` (each ``_(...)``, so that
+    Slicer's translation tools find them)."""
+
+    def __init__(self, parent, more_dependencies: tuple = ()):
+        ScriptedLoadableModule.__init__(self, parent)
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", CATEGORY)]
+        self.parent.dependencies = SLICER_MODULES + list(more_dependencies)
+        self.parent.contributors = ["BreastBiomech contributors"]
+
+
+class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
+    """Base of the module Widgets (Slicer's scripted-module template): :meth:`setup` loads the
+    panel ``UI_FILE`` (relative to ``Resources/``), makes the Logic (:meth:`createLogic`),
+    observes the scene's close events, calls :meth:`connectGUI` (the module's signals and slots)
+    and observes the Logic's parameter node while the module is shown, dropping it on scene
+    close. A subclass shows the node on the panel in :meth:`showParameters` and stores the panel
+    in it in :meth:`storeParameters`; its widgets' signals call ``updateParameterNodeFromGUI``."""
+
+    UI_FILE = ""
+
+    def __init__(self, parent=None):
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        VTKObservationMixin.__init__(self)
+        self.logic = None
+        self._parameterNode = None
+        self._updatingGUI = False
+
+    def setup(self):
+        import slicer
+
+        ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(resource_path(self.UI_FILE))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+        self.logic = self.createLogic()
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+        self.connectGUI()
+        self.initializeParameterNode()
+
+    def createLogic(self):
+        """The module's Logic (the subclass's)."""
+        raise NotImplementedError
+
+    def connectGUI(self):
+        """Connect the panel's widgets to the parameter node and the actions (the subclass's)."""
+        raise NotImplementedError
+
+    def showParameters(self, parameterNode):
+        """Show ``parameterNode``'s values and references on the panel (the subclass's)."""
+        raise NotImplementedError
+
+    def storeParameters(self, parameterNode):
+        """Store the panel's values and chosen nodes in ``parameterNode`` (the subclass's)."""
+        raise NotImplementedError
+
+    def updateGUIFromParameterNode(self, caller=None, event=None):
+        """The parameter node shown on the panel (:meth:`showParameters`); the panel's own
+        signals are not stored back meanwhile."""
+        if self._parameterNode is None or self._updatingGUI:
+            return
+        self._updatingGUI = True
+        try:
+            self.showParameters(self._parameterNode)
+        finally:
+            self._updatingGUI = False
+
+    def updateParameterNodeFromGUI(self, *args):
+        """The panel stored in the parameter node (:meth:`storeParameters`) as one modification."""
+        if self._parameterNode is None or self._updatingGUI:
+            return
+        wasModifying = self._parameterNode.node.StartModify()
+        try:
+            self.storeParameters(self._parameterNode)
+        finally:
+            self._parameterNode.node.EndModify(wasModifying)
 
     def cleanup(self):
         self.removeObservers()
@@ -127,7 +205,7 @@ class ModuleTestMixin:
             getattr(self, name)()
 
 
-class ParameterNodeLogic:
+class ModuleLogicBase:
     """Base of the module Logics: holds the scene (``slicer.mrmlScene`` by default) and gives the
     module's parameter node. Subclasses set ``MODULE_NAME``, ``DEFAULTS`` (names -> default
     values, whose types the values keep) and ``ROLES`` (node-reference names)."""

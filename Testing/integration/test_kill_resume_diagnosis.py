@@ -1,6 +1,6 @@
 """Kill and resume of a diagnosis: killed with SIGKILL at random moments and run again with
 --resume, it ends with exactly what an uninterrupted run writes (the CPU is deterministic), and no
-half-written file is left. Kill points: Testing/kill_resume.py.
+half-written file is left. Kill points: Testing/support/kill_resume.py.
 """
 
 from __future__ import annotations

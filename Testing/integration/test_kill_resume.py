@@ -1,7 +1,7 @@
 """Kill and resume: a fit and a study killed with SIGKILL at random moments and run again end
 with exactly what an uninterrupted run writes (the CPU is deterministic), and no half-written
 file is ever taken for a finished one (the diagnosis: test_kill_resume_diagnosis.py). Kill points:
-Testing/kill_resume.py.
+Testing/support/kill_resume.py.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from BreastBiomechLib import labels as lt
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.mesh import TetMesh
-from conftest import make_image
+from images import make_image
 
 slicer = pytest.importorskip("slicer")
 mrml = pytest.importorskip("BreastBiomechLib.mrml")

@@ -9,7 +9,7 @@ import SimpleITK as sitk
 
 from BreastBiomechLib.mesh.primitives import box_mesh
 from BreastBiomechLib.warping import ImageWarper, displacement_field, predict_image
-from conftest import make_image, oblique_direction
+from images import make_image, oblique_direction
 
 
 @pytest.fixture(scope="module")

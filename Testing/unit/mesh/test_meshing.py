@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from conftest import oblique_direction
+from images import oblique_direction
 from meshing_fixtures import (BREAST_RADII, GLAND_CENTRE, GLAND_RADII, MUSCLE_Y, TUMOUR_CENTRE, TUMOUR_RADIUS,
                               breast_labels)
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MODULE_DIR = ROOT / "BreastBiomech"
 MODULES = sorted(p.stem for p in MODULE_DIR.glob("*.py"))
 
@@ -109,7 +109,8 @@ def test_headless_a_missing_package_is_an_error_that_names_the_install_command(m
 def test_panels_install_nothing_when_they_open(module):
     for widget in _classes(_tree(module), "Widget"):
         for method in widget.body:
-            if isinstance(method, ast.FunctionDef) and method.name in ("setup", "__init__", "enter"):
+            if isinstance(method, ast.FunctionDef) and method.name in ("setup", "__init__", "enter", "connectGUI",
+                                                                        "createLogic"):
                 called = set(_calls(method))
                 assert not called & {"dependencies_ready", "ensure_dependencies", "pip_install", "pip_ensure"}, (
                     f"{module}Widget.{method.name} installs packages: install on the first action that needs them")
@@ -206,17 +207,26 @@ def test_a_self_test_without_its_packages_is_skipped_with_the_reason(monkeypatch
 
 @pytest.mark.parametrize("module", MODULES)
 def test_module_metadata_is_translatable_and_names_the_slicer_modules_used(module):
+    """The module sets its own title, help and acknowledgement as ``_(...)``; the category (translated),
+    the Slicer modules used and the contributors come from ``BreastBiomechCommon.ModuleBase``."""
+    def assigned_in(cls):
+        assigned = {}
+        for node in ast.walk(cls):
+            if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Attribute):
+                assigned[node.targets[0].attr] = node.value
+        return assigned
+
     (cls,) = [c for c in _classes(_tree(module), "") if c.name == module]
-    assigned = {}
-    for node in ast.walk(cls):
-        if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Attribute):
-            assigned[node.targets[0].attr] = node.value
+    assert [b.id for b in cls.bases if isinstance(b, ast.Name)] == ["ModuleBase"]
+    assigned = assigned_in(cls)
     for text in ("title", "helpText", "acknowledgementText"):
         value = assigned[text]
         assert isinstance(value, ast.Call) and getattr(value.func, "id", "") == "_", f"{module}: {text} is not _(...)"
-    assert "translate" in _calls(assigned["categories"])
-    deps = assigned["dependencies"]
-    assert "SLICER_MODULES" in ast.dump(deps), f"{module}: parent.dependencies must name the Slicer modules used"
+    common = ast.parse((MODULE_DIR / "BreastBiomechCommon" / "__init__.py").read_text())
+    (base,) = [c for c in common.body if isinstance(c, ast.ClassDef) and c.name == "ModuleBase"]
+    inherited = assigned_in(base)
+    assert "translate" in _calls(inherited["categories"])
+    assert "SLICER_MODULES" in ast.dump(inherited["dependencies"]), "parent.dependencies must name the Slicer modules used"
     assert {"Segmentations", "Markups", "Models"} <= set(BreastBiomechCommon.SLICER_MODULES)
 
 

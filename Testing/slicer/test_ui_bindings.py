@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MODULES = sorted(p.stem for p in (ROOT / "BreastBiomech").glob("*.py"))
 QT_CLASSES_USED = {"QWidget", "QLabel", "QComboBox", "QSpinBox", "QDoubleSpinBox", "QCheckBox", "QPushButton",
                    "QLineEdit", "QGroupBox", "QTableWidget", "QProgressBar", "QRadioButton", "QToolButton"}
