@@ -43,7 +43,7 @@ SLICER_STACK_STAMP := $(SLICER_STACK_VENV)/.installed
 SLICER_STACK_TESTS := Testing/unit/phantom/test_phantom.py Testing/unit/segmentation/test_segmentation.py Testing/unit/mesh/test_meshing.py \
   Testing/unit/warping/test_warping.py Testing/unit/warping/test_similarity.py Testing/unit/warping/test_landmark_mapping.py \
   Testing/unit/discrepancy/test_discrepancy_registration.py Testing/unit/io/test_io_properties.py Testing/unit/io/test_niftysim.py \
-  Testing/slicer/test_slicer_app_fidelity.py
+  Testing/modules/test_slicer_app_fidelity.py
 
 $(SLICER_STACK_STAMP): pyproject.toml BreastBiomech/Resources/requirements.txt
 	$(PYTHON) -m venv $(SLICER_STACK_VENV)
@@ -56,7 +56,7 @@ test-slicer-stack: $(SLICER_STACK_STAMP)
 	$(SLICER_STACK_VENV)/bin/python -c "import numpy, scipy, SimpleITK, vtk; \
 	  assert (numpy.__version__, scipy.__version__, vtk.vtkVersion.GetVTKVersion()) == ('2.0.2', '1.13.1', '9.5.2'), 'not the Slicer 5.10 stack'; \
 	  print('Slicer 5.10 stack: numpy', numpy.__version__, 'scipy', scipy.__version__, 'SimpleITK', SimpleITK.Version_VersionString(), 'VTK', vtk.vtkVersion.GetVTKVersion())"
-	QT_QPA_PLATFORM=offscreen $(SLICER_STACK_VENV)/bin/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder -p no:cacheprovider \
+	QT_QPA_PLATFORM=offscreen $(SLICER_STACK_VENV)/bin/python -m pytest -n 2 --dist worksteal -p no:cacheprovider \
 	  -m "not slow and not mrml" $(SLICER_STACK_TESTS)
 
 bench: $(STAMP)

@@ -26,7 +26,7 @@ ensure_library_importable()
 DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib"]  # generating a phantom
 SAMPLE_NAME = "Breast phantom"
 # The shipped sample: Table 1 case 2 of the seed at 2 x 2 x 3 mm voxels (made by
-# BreastBiomechLogic.writeSampleData; the test in Testing/slicer/test_module_breastbiomech.py regenerates it)
+# BreastBiomechLogic.writeSampleData; the test in Testing/modules/test_module_breastbiomech.py regenerates it)
 SAMPLE_CASE = 2
 SAMPLE_SPACING_MM = (2.0, 2.0, 3.0)
 SAMPLE_MR_SCALE = 1000.0  # the MR is stored as uint16: the phantom's signal x 1000

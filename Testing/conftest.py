@@ -1,4 +1,4 @@
-"""Shared fixtures of every test folder (unit/<package>, integration, slicer, fuzz; docs/developing.md,
+"""Shared fixtures of every test folder (unit/<package>, integration, modules, fuzz; docs/developing.md,
 "Tests"): a fresh real MRML scene per test (slicer-core wheel), small phantom cases."""
 
 from __future__ import annotations
@@ -40,8 +40,9 @@ def compressed_case_dir(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def friction_case(tmp_path_factory, worker_id):
-    """(case, fit): the test phantom compressed 40 % with plate friction mu = 1 hidden in its
-    truth, copied without its truth files, fitted without friction (``fit_coarse``). Made once
+    """(case, fit): a small phantom (400 cm^3, 2 x 2 x 4 mm voxels, 8 mm truth mesh) compressed 40 %
+    with plate friction mu = 1 hidden in its truth, copied without its truth files, fitted without
+    friction on a 12 mm mesh (``fit_coarse``): a diagnosis of it takes about 30 s on 2 cores. Made once
     for the whole run: under pytest-xdist the first worker that needs it makes it in the run's
     shared temporary folder while the others wait on a lock. Tests only read it."""
     import fcntl
@@ -56,10 +57,10 @@ def friction_case(tmp_path_factory, worker_id):
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (root / "done").is_file():
             root.mkdir(exist_ok=True)
-            assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3",
-                         "--compressed", "--compression", "0.4", "--truth-edge-mm", "6", "--device", "cpu",
+            assert main(["phantom", "--seed", "2", "--volume-cm3", "400", "--spacing", "2", "2", "4",
+                         "--compressed", "--compression", "0.4", "--truth-edge-mm", "8", "--device", "cpu",
                          "--no-overview", "--friction", "1.0", "--out", str(root / "made")]) == 0
             case = without_truth(root / "made", root / "case")
-            fit_coarse(case, root / "fit")
+            fit_coarse(case, root / "fit", edge_mm=12.0)
             (root / "done").write_text("made\n")
     return root / "case", root / "fit"

@@ -52,7 +52,14 @@ except ImportError:  # the slicer-core wheel has no translations
     def translate(context: str, text: str) -> str:
         return text
 
-from slicer.util import VTKObservationMixin  # noqa: E402
+try:  # the application and the slicer-core wheel
+    from slicer.util import VTKObservationMixin
+except ImportError:  # no slicer package at all (the library tests on Slicer's own Python stack)
+
+    class VTKObservationMixin:
+        """Stand-in where only this package's dependency checks are used: the module Widgets,
+        its only users, are never made without Slicer (see ``_ApplicationOnly``)."""
+
 
 from BreastBiomechCommon.dependencies import (  # noqa: E402,F401  (re-exported for the modules)
     MissingDependencies,

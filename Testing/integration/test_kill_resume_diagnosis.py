@@ -1,4 +1,4 @@
-"""Kill and resume of a diagnosis: killed with SIGKILL at random moments and run again with
+"""Kill and resume of a diagnosis: killed with SIGKILL at its checkpoints and run again with
 --resume, it ends with exactly what an uninterrupted run writes (the CPU is deterministic), and no
 half-written file is left. Kill points: Testing/support/kill_resume.py.
 """
@@ -9,7 +9,7 @@ import json
 import re
 
 import pytest
-from kill_resume import assert_resumes_to, run
+from kill_resume import assert_resumes_from_checkpoints, run
 
 
 def without_wall_times(value):
@@ -35,21 +35,27 @@ def diagnosis_outputs(out) -> dict:
     return outputs
 
 
+# the diagnosis's checkpoints, as its progress reports them: after the round's solves and statistics
+# and before its first write (the residual field), and between the round's two writes (the field
+# after the refit). Atomic writes themselves: Testing/integration/test_kill_resume.py.
+CHECKPOINTS = ["round 1: residual displacement field (deformable registration)",
+               "round 1: residual displacement field after adding friction"]
+
+
 @pytest.mark.slow
-def test_a_diagnosis_killed_anywhere_resumes_to_the_uninterrupted_result(friction_case, tmp_path):
-    """The hidden-friction case: one round that names friction (its one candidate: the other
-    effects' solves would only lengthen every trial), adds it and refits (the confirmation refit,
-    not refined: a Gauss-Newton iteration doubles every trial's time and is written nowhere of its
-    own); a kill before the round is written repeats it, one during the refit diagnoses the open
-    round again."""
+def test_a_diagnosis_killed_at_each_checkpoint_resumes_to_the_uninterrupted_result(friction_case, tmp_path):
+    """The hidden-friction case (conftest's small one): one round that names friction (its one
+    candidate: the other effects' solves would only lengthen every trial), adds it and refits
+    (the confirmation refit, not refined); a kill before the round is written repeats it, one
+    during the refit diagnoses the open round again."""
     case, fit = friction_case
 
-    def diagnosis(out, resume=False):
+    def diagnosis(out, resume=False, progress=False):
         return ["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--effects", "friction",
-                "--rounds", "1", "--refine-iterations", "0", "--device", "cpu", "--quiet",
-                *(["--resume"] if resume else [])]
+                "--rounds", "1", "--refine-iterations", "0", "--device", "cpu",
+                *([] if progress else ["--quiet"]), *(["--resume"] if resume else [])]
 
-    seconds = run(diagnosis(tmp_path / "reference"))
+    run(diagnosis(tmp_path / "reference"))
     reference = diagnosis_outputs(tmp_path / "reference")
     assert "round-1-residual-after.nrrd" in reference["files"], "the reference run added no effect"
-    assert_resumes_to(reference, seconds, diagnosis, diagnosis_outputs, tmp_path, salt=3)
+    assert_resumes_from_checkpoints(reference, diagnosis, diagnosis_outputs, tmp_path, CHECKPOINTS)

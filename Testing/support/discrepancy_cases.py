@@ -17,16 +17,17 @@ def without_truth(case: Path, into: Path) -> Path:
     return copy
 
 
-def fit_coarse(case: Path, out: Path) -> Path:
+def fit_coarse(case: Path, out: Path, edge_mm: float = 10.0) -> Path:
     """``breastbiomech optimise`` (iso-hetero, E free, 12 CMA-ES solves, on the CPU) of ``case``
-    into ``out``, with a 10 mm fitting mesh of its labels without interface refinement and a
-    5 mm skin (the diagnosis compares the skin)."""
+    into ``out``, with an ``edge_mm`` fitting mesh of its labels without interface refinement and
+    a surface of half that edge (the diagnosis compares the skin)."""
     from BreastBiomechLib.cli import main
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
-    mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=10.0, surface_edge_mm=5.0,
+    mesh = mesh_labels(read_image(case / "labels.nrrd"), MeshSettings(edge_mm=edge_mm,
+                                                                        surface_edge_mm=edge_mm / 2,
                                                                         refine_interfaces=False)).mesh
     write_vtu(out.parent / f"{out.name}-mesh.vtu", mesh)
     assert main(["optimise", str(case), "--out", str(out), "--mesh", str(out.parent / f"{out.name}-mesh.vtu"), *FIT]) == 0

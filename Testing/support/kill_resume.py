@@ -73,5 +73,35 @@ def assert_resumes_to(reference: dict, seconds: float, command, outputs, tmp_pat
         assert_no_partial_files(out)
 
 
+def kill_at(argv: list[str], message: str) -> bool:
+    """Start the command (with its progress on standard error) and SIGKILL it as soon as a line of
+    its progress holds ``message``; whether it was killed (False: it ended without saying it)."""
+    process = subprocess.Popen(CLI + argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    try:
+        for line in process.stderr:
+            if message in line:
+                os.killpg(process.pid, signal.SIGKILL)
+                return True
+        return False
+    finally:
+        process.stderr.close()
+        process.wait()
+
+
+def assert_resumes_from_checkpoints(reference: dict, command, outputs, tmp_path, messages: list[str]) -> None:
+    """For each progress message of ``messages``, kill ``command(out, progress=True)`` as soon as it
+    reports it, run ``command(out, resume=True)`` to its end and require ``outputs(out)`` to equal
+    ``reference`` key by key, with no temporary file left behind."""
+    for k, message in enumerate(messages):
+        out = tmp_path / f"checkpoint{k}"
+        assert kill_at(command(out, progress=True), message), f"the command never reported {message!r}"
+        run(command(out, resume=True))
+        resumed = outputs(out)
+        for key, value in reference.items():
+            assert resumed[key] == value, f"killed at {message!r}: {key} differs after the resume"
+        assert_no_partial_files(out)
+
+
 def assert_no_partial_files(out) -> None:
     assert not [p for p in out.rglob("*") if p.name.startswith(".partial-")], "a temporary file was left behind"

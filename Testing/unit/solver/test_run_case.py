@@ -1,7 +1,7 @@
 """One way to run a case (issue 79): the command line, the discrepancy workflow's variants and the
 phantom's truth run a case description through ``run_case`` and give its displacements to the
 last bit on the CPU; the typed case description keeps the case-file format. The Breast
-Simulation module's Logic is checked against ``run_case`` in Testing/slicer/test_module_breastsimulation.py."""
+Simulation module's Logic is checked against ``run_case`` in Testing/modules/test_module_breastsimulation.py."""
 
 from __future__ import annotations
 
