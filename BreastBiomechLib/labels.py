@@ -8,6 +8,7 @@ pectoral muscle that is not modelled).
 from __future__ import annotations
 
 from dataclasses import dataclass
+import numpy as np
 
 
 @dataclass(frozen=True)
@@ -44,8 +45,6 @@ def tissue(key: int | str) -> Tissue:
 def present_labels(values) -> list[int]:
     """The tissue labels present among a label map's voxel ``values`` (integers), in order.
     ValueError when none is (all background) or when a value is outside the label table."""
-    import numpy as np
-
     present = [int(v) for v in np.unique(values) if v != BACKGROUND]
     if not present:
         raise ValueError("the label map has no labelled voxels (all background); segment the breast first")

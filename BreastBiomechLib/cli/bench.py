@@ -11,6 +11,22 @@ from pathlib import Path
 from BreastBiomechLib import __version__
 from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, fraction, non_negative, non_negative_int,
                                          positive, positive_int)
+import numpy as np
+from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+from BreastBiomechLib.solver.warm import WarmStart
+from dataclasses import replace
+import tempfile
+from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings
+from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
+from BreastBiomechLib.discrepancy.suite.runner import run_case
+import os
+from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+from BreastBiomechLib.solver import DynamicRelaxation
+import subprocess
+import sys
+from BreastBiomechLib.cli.gpu_usage import GpuUsage
+from BreastBiomechLib.cohort import place
+from BreastBiomechLib.discrepancy.suite.cases import HIDDEN_EFFECTS as HIDDEN
 
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
@@ -21,8 +37,6 @@ WITHOUT_VTK = ("solver", "unloaded")
 
 def _hemi_ellipsoid_spacing(tets: int) -> float:
     """The grid spacing (mm) that gives the benchmarks' hemi-ellipsoid about ``tets`` elements."""
-    import numpy as np
-
     return float((np.pi * 4 * np.prod(BENCH_RADII_MM) / tets) ** (1 / 3))
 
 
@@ -30,20 +44,15 @@ def bench_parameter_sets(base, batch: int) -> list:
     """The solver bench's ``batch`` parameter sets: ``base`` (an ``ElementMaterials``), then
     ``batch`` - 1 copies with mu and kappa scaled by factors drawn uniformly from 0.7-1.3 (seed 0),
     so that the models converge at different iterations."""
-    import numpy as np
-
     factors = np.random.default_rng(0).uniform(0.7, 1.3, batch - 1)
     return [base] + [type(base)(base.mu * f, base.kappa * f, base.eta, base.fibre, base.density) for f in factors]
 
 
 def _bench_solver(args) -> dict:
     """One forward solve (or a batch) of the hemi-ellipsoid compression case; figures as a dict."""
-    import numpy as np
     import warp as wp
 
     from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
-    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
-    from BreastBiomechLib.solver.warm import WarmStart
 
     spacing = _hemi_ellipsoid_spacing(args.tets)
     settle = 0.25 * args.total_time if args.settle_time is None else args.settle_time
@@ -106,7 +115,6 @@ def _bench_unloaded(args) -> dict:
     time and the gravity sag."""
     import warp as wp
 
-    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
     from BreastBiomechLib.solver.unloaded import unloaded_shape
 
     spacing = _hemi_ellipsoid_spacing(args.tets)
@@ -137,10 +145,6 @@ def _bench_effects(args) -> dict:
     seed's model leaves out is switched on alone at a realistic size (the truth simulation with
     the effect vs without, one truth mesh of ``--truth-edge-mm``): the signal a discrepancy
     diagnosis has to find. Landmark shifts in mm (17 landmarks), wall times in s."""
-    from dataclasses import replace
-
-    import numpy as np
-
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.phantom import generate_phantom, table1_case
     from BreastBiomechLib.phantom.compressed import compress_phantom, table1_truth
@@ -178,12 +182,6 @@ def _bench_diagnose(args) -> dict:
     (:func:`~BreastBiomechLib.discrepancy.suite.runner.run_case`), in ``--out`` (kept; a rerun
     times only what is not done) or a temporary folder. Seconds per stage; the diagnosis's
     rounds with their solves and seconds (no residual fields, as in the suite); the verdicts."""
-    import tempfile
-
-    from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings
-    from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
-    from BreastBiomechLib.discrepancy.suite.runner import run_case
-
     settings = SuiteSettings(spacing_mm=tuple(args.voxel_mm), truth_edge_mm=args.truth_edge_mm,
                              fit_edge_mm=args.fit_edge_mm, fit_budget=args.fit_budget,
                              fit_population=min(12, args.fit_budget), rounds=args.rounds)
@@ -225,8 +223,6 @@ def _bench_segment(args) -> dict:
     """Segment a phantom (``--volume-cm3``, ``--tumour-mm``, ``--snr``, ``--bias``, ``--seed``)
     from its written seed points, its volume padded or cropped to ``--grid`` when given; Dice
     against the ground truth and the wall time (the phantom's generation is not timed)."""
-    import os
-
     from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
     from BreastBiomechLib.phantom.files import SEED_COUNTS
     from BreastBiomechLib.phantom.seeds import seed_points
@@ -256,11 +252,9 @@ def _bench_warp(args) -> dict:
     onto a ``--grid`` (default 256 x 256 x 100) covering it, and compare the result with the
     image by NMI and NCC, ``--repeat`` times; median and best milliseconds per call after a
     warm-up call (kernel compilation)."""
-    import numpy as np
     import SimpleITK as sitk
     import warp as wp
 
-    from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
     from BreastBiomechLib.similarity import Similarity
     from BreastBiomechLib.warping import ImageWarper
 
@@ -310,8 +304,6 @@ def _bench_mesh(args) -> dict:
     """Mesh a phantom of ``--volume-cm3`` breast tissue (seed 1 preset otherwise) at
     ``--edge-mm``, its label map padded (edge voxels repeated: the chest continues) or cropped
     to ``--grid`` voxels when given; figures as a dict (the phantom's generation is not timed)."""
-    import os
-
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.phantom import PhantomParameters, generate_phantom
 
@@ -364,10 +356,7 @@ def _bench_optimise(args) -> dict:
     whose measured image is the prediction at :data:`BENCH_TRUTH`, within ``--budget`` solves
     by ``--optimiser``; the case's set-up is not timed. The mesh's protruding stair corners are
     moved onto its ellipsoid unless ``--stair-corners`` (see :func:`bench_fitting_problem`)."""
-    import numpy as np
-
     from BreastBiomechLib.optimisation import optimise
-    from BreastBiomechLib.solver import DynamicRelaxation
 
     relaxation = DynamicRelaxation(tolerance_mm=0.01 if args.tolerance_mm is None else args.tolerance_mm)
     problem = bench_fitting_problem(args.radii, args.element_mm, args.voxel_mm, relaxation, args.device,
@@ -446,12 +435,6 @@ def _bench_cohort(args) -> dict:
     digits from run to run, on the CPU the rows are equal), and per worker its tasks, busy
     seconds and first start and last end (``workers``) and each task's key, worker, start (s
     after the run's start) and seconds (``tasks``; both empty for "processes")."""
-    import subprocess
-    import sys
-    import tempfile
-
-    from BreastBiomechLib.cli.gpu_usage import GpuUsage
-    from BreastBiomechLib.cohort import place
     from BreastBiomechLib.optimisation.study import StudySettings, read_study, run_study
 
     budgets = {model: args.budget for model in args.models}
@@ -551,8 +534,6 @@ def cmd_bench(args) -> int:
 
 def add_parsers(sub) -> None:
     """Register the ``bench`` command on ``sub`` (argparse sub-parsers)."""
-    from BreastBiomechLib.discrepancy.suite.cases import HIDDEN_EFFECTS as HIDDEN
-
     p = sub.add_parser("bench", help="print benchmark figures")
     p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise",
                                     "diagnose", "cohort"], help="what to time")

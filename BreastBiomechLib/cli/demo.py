@@ -8,6 +8,7 @@ from pathlib import Path
 from BreastBiomechLib import __version__
 from BreastBiomechLib.cli.common import device_argument, positive_int
 from BreastBiomechLib.io.atomic import write_text_atomically
+import shutil
 
 
 def clear_earlier_result(folder: Path, marker: str = "settings.json", what: str = "fit") -> None:
@@ -15,8 +16,6 @@ def clear_earlier_result(folder: Path, marker: str = "settings.json", what: str 
     left in ``folder``: the demo remakes its phantom, segmentation and mesh on every run, so that
     result is stale (resuming it would replay evaluations of another mesh). A folder that holds
     no such result (no ``marker`` file) is refused."""
-    import shutil
-
     if not folder.exists():
         return
     if not (folder / marker).is_file():

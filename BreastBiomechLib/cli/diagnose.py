@@ -8,6 +8,8 @@ import sys
 
 from BreastBiomechLib.cli.common import (device_argument, fraction, non_negative, non_negative_int, positive,
                                          positive_int)
+from BreastBiomechLib.discrepancy.effects import NAMES
+from BreastBiomechLib.discrepancy.observations import CHANNELS
 
 
 def cmd_diagnose(args) -> int:
@@ -43,9 +45,6 @@ def cmd_diagnose(args) -> int:
 
 def add_parsers(sub) -> None:
     """Register the ``diagnose`` command on ``sub`` (argparse sub-parsers)."""
-    from BreastBiomechLib.discrepancy.effects import NAMES
-    from BreastBiomechLib.discrepancy.observations import CHANNELS
-
     p = sub.add_parser("diagnose", help="name the effect a fitted model is missing, add it, refit, report")
     p.add_argument("case_dir", help="the compressed case folder the fit was made on")
     p.add_argument("--fit", required=True, help="the fit's folder (`breastbiomech optimise --out`)")

@@ -7,13 +7,15 @@ import json
 import time
 
 from BreastBiomechLib.cli.common import device_argument, finite, positive_int
+import numpy as np
+from BreastBiomechLib.io.markups import read_markups, write_markups
+from BreastBiomechLib.landmarks import map_landmarks
+from BreastBiomechLib.landmarks import landmark_errors
 
 
 def _nodal_displacement(path: str, mesh):
     """Nodal displacements (N, 3) mm from a .vtu with a ``displacement`` point array (e.g.
     ``simulate``'s deformed.vtu) or a .npy array, checked against ``mesh``."""
-    import numpy as np
-
     from BreastBiomechLib.io.meshes import read_vtu
 
     if str(path).endswith(".npy"):
@@ -32,13 +34,10 @@ def _nodal_displacement(path: str, mesh):
 def cmd_warp(args) -> int:
     """The FE-predicted deformed image (and optionally the displacement field and the moved
     landmarks) of a displacement of a mesh."""
-    import numpy as np
     import SimpleITK as sitk
 
     from BreastBiomechLib.io.images import read_image, write_image
-    from BreastBiomechLib.io.markups import read_markups, write_markups
     from BreastBiomechLib.io.meshes import read_vtu
-    from BreastBiomechLib.landmarks import map_landmarks
     from BreastBiomechLib.warping import ImageWarper
 
     mesh = read_vtu(args.mesh)
@@ -69,11 +68,8 @@ def cmd_warp(args) -> int:
 
 def cmd_compare(args) -> int:
     """NMI and NCC of a predicted and a measured image, and landmark errors."""
-    import numpy as np
-
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.markups import read_markups
-    from BreastBiomechLib.landmarks import landmark_errors
     from BreastBiomechLib.similarity import Similarity
 
     predicted, measured = read_image(args.predicted), read_image(args.measured)

@@ -7,16 +7,16 @@ from pathlib import Path
 
 from BreastBiomechLib.cli.common import end_progress, fraction, non_negative, positive, progress_line
 from BreastBiomechLib.io.atomic import write_text_atomically
+from BreastBiomechLib.io.cases import case_from_dict, compression_case
+from BreastBiomechLib.io.markups import read_markups
+from BreastBiomechLib.cli.niftysim import export_for_niftysim
 
 
 def cmd_mesh(args) -> int:
     """Mesh a label map; write the mesh, its surfaces, a report, a compression case and its
     NiftySim model."""
-    from BreastBiomechLib.io.cases import case_from_dict, compression_case
     from BreastBiomechLib.io.images import read_label_map
-    from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import write_surface, write_vtu
-    from BreastBiomechLib.cli.niftysim import export_for_niftysim
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
     labels = read_label_map(args.labels)

@@ -10,6 +10,9 @@ from pathlib import Path
 
 from BreastBiomechLib.cli.common import device_argument
 from BreastBiomechLib.io.atomic import write_text_atomically
+from BreastBiomechLib.io.cases import read_case
+import numpy as np
+from BreastBiomechLib.mesh.tetmesh import TetMesh
 
 
 def export_for_niftysim(path: Path, model, solved_displacement=None, formulation: str | None = None):
@@ -38,7 +41,6 @@ def export_for_niftysim(path: Path, model, solved_displacement=None, formulation
 def cmd_export(args) -> int:
     """Write CASE.json as a NiftySim model (ContactPlates, or the solved displacements of
     ``--solved``'s deformed mesh for NiftySim's CPU build)."""
-    from BreastBiomechLib.io.cases import read_case
     from BreastBiomechLib.io.meshes import read_vtu
 
     model, _ = read_case(args.case)
@@ -59,11 +61,8 @@ def cmd_export(args) -> int:
 def cmd_run(args) -> int:
     """Read MODEL.xml as NiftySim runs it and solve it in physical time; write the deformed mesh
     (``displacement`` point array, as NiftySim's ``-export-mesh``) and a JSON summary."""
-    import numpy as np
-
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.io.niftysim import NiftySimImportWarning, read_niftysim
-    from BreastBiomechLib.mesh.tetmesh import TetMesh
     from BreastBiomechLib.solver import solve
 
     out = Path(args.out)

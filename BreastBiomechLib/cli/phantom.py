@@ -8,11 +8,14 @@ from pathlib import Path
 
 from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, finite, fraction,
                                          non_negative, non_negative_int, positive, report_failures)
+from BreastBiomechLib.phantom import PhantomParameters, table1_case
+from dataclasses import replace
+from BreastBiomechLib.cohort import place, run_tasks
+from BreastBiomechLib.phantom.table1_cases import table1_tasks
+from BreastBiomechLib.phantom.parameters import TABLE1_CASES
 
 
 def _phantom_parameters(args):
-    from BreastBiomechLib.phantom import PhantomParameters, table1_case
-
     params = table1_case(args.case) if args.case else PhantomParameters()
     overrides = {
         "seed": args.seed, "volume_cm3": args.volume_cm3, "density": args.density,
@@ -42,8 +45,6 @@ def _truth_model(args):
     """The truth of ``phantom --compressed``: the Table 1 preset of ``--case`` (else the
     default truth), with ``--compression``, ``--axis``, ``--truth-edge-mm``,
     ``--chest-clearance-mm``, ``--moving-plate`` and the hidden effects applied."""
-    from dataclasses import replace
-
     from BreastBiomechLib.phantom.compressed import TruthModel, table1_truth
 
     truth = table1_truth(args.case) if args.case else TruthModel()
@@ -101,9 +102,7 @@ def cmd_phantom(args) -> int:
 def cmd_table1_cases(args) -> int:
     """The compressed cases of the seed's Table 1, one cohort task per case (a rerun makes only
     the missing ones)."""
-    from BreastBiomechLib.cohort import place, run_tasks
     from BreastBiomechLib.optimisation.study import log_failure
-    from BreastBiomechLib.phantom.table1_cases import table1_tasks
 
     tasks = table1_tasks(args.out, args.cases, truth_edge_mm=args.truth_edge_mm, overview=not args.no_overview)
     Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -118,8 +117,6 @@ def cmd_table1_cases(args) -> int:
 
 def add_parsers(sub) -> None:
     """Register the ``phantom`` and ``table1-cases`` commands on ``sub`` (argparse sub-parsers)."""
-    from BreastBiomechLib.phantom.parameters import TABLE1_CASES
-
 
     p = sub.add_parser("phantom", help="generate a synthetic breast MR case with ground truth")
     p.add_argument("--out", required=True, help="output folder")

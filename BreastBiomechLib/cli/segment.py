@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from BreastBiomechLib.cli.common import (end_progress, non_negative, non_negative_int, positive, positive_int,
                                          progress_line, weight)
+from BreastBiomechLib.io.markups import read_markups
 
 
 def _segmentation_settings(args):
@@ -21,7 +22,6 @@ def cmd_segment(args) -> int:
     """Segment an MR volume from seed point lists; write the label map, probabilities, bias field
     and a JSON summary."""
     from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.segmentation import write_segmentation
     from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
 

@@ -9,16 +9,15 @@ from pathlib import Path
 
 from BreastBiomechLib.cli.common import device_argument
 from BreastBiomechLib.io.atomic import write_text_atomically
+import numpy as np
+from BreastBiomechLib.io.cases import read_case
+from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.solver.run_case import run_case
 
 
 def cmd_simulate(args) -> int:
     """Solve CASE.json; write the mesh with its displacement and a JSON summary of the solve."""
-    import numpy as np
-
-    from BreastBiomechLib.io.cases import read_case
     from BreastBiomechLib.io.meshes import write_vtu
-    from BreastBiomechLib.mesh.tetmesh import TetMesh
-    from BreastBiomechLib.solver.run_case import run_case
 
     model, settings = read_case(args.case)
     settings = replace(settings, device=args.device or settings.device)

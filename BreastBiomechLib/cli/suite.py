@@ -9,13 +9,11 @@ from pathlib import Path
 from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, fraction, non_negative,
                                          positive, positive_int, report_failures)
 from BreastBiomechLib.io.atomic import write_text_atomically
+from BreastBiomechLib.cohort import place
+from BreastBiomechLib.discrepancy.suite import SuiteSettings, run_suite, scores_markdown, suite_cases, suite_scores
 
 
 def cmd_suite(args) -> int:
-    from BreastBiomechLib.cohort import place
-    from BreastBiomechLib.discrepancy.suite import (SuiteSettings, run_suite, scores_markdown, suite_cases,
-                                                    suite_scores)
-
     out = Path(args.out)
     cases = suite_cases(args.anatomies, args.hidden)
     settings = SuiteSettings(compression=args.compression,

@@ -23,6 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib import __version__
+from BreastBiomechLib.phantom.variants import describe
+from BreastBiomechLib.io.cases import case_from_dict, compression_case
+from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.phantom.variants import sweep_variants
 
 TISSUES = ("fat", "glandular", "muscle", "tumour")
 MESH_EDGES_MM = (3.0, 4.0, 6.0, 8.0, 10.0, 12.0, 15.0)
@@ -51,8 +55,6 @@ def _segmented(params):
 
 def segment_variant(index: int, params) -> dict:
     """One variant of the segmentation sweep: Dice per tissue, or the refusal or error."""
-    from BreastBiomechLib.phantom.variants import describe
-
     row = {"variant": index, "seed": params.seed, "options": describe(params)}
     try:
         row.update(_segmented(params)[2])
@@ -67,8 +69,6 @@ def compression_check(mesh, compression: float, device=None) -> dict:
     field-of-view cut held, the default tissue materials, dynamic relaxation
     (:func:`~BreastBiomechLib.io.cases.compression_case`); the solve's status and the elements
     it leaves inverted (volume <= 0 in the configuration it returns)."""
-    from BreastBiomechLib.io.cases import case_from_dict, compression_case
-    from BreastBiomechLib.mesh.tetmesh import TetMesh
     from BreastBiomechLib.solver import solve_batch
 
     model, settings = case_from_dict(compression_case(mesh, "mesh.vtu", compression=compression), mesh)
@@ -82,7 +82,6 @@ def mesh_variant(index: int, params, edges=MESH_EDGES_MM, compression: float | N
     elements, elements failing the quality criteria and seconds, or the refusal or error; with
     ``compression``, the :func:`compression_check` of each mesh on ``device``."""
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-    from BreastBiomechLib.phantom.variants import describe
 
     row = {"variant": index, "seed": params.seed, "options": describe(params), "meshes": {}}
     try:
@@ -115,8 +114,6 @@ def run_sweep(what: str, count: int, processes: int, out: str | None = None,
     """Run the ``what`` ("segment" or "mesh") sweep over the first ``count`` variants; figures
     as one dict (per-variant rows under ``variants``). ``compression``, ``device``: the mesh
     sweep's :func:`compression_check` (None: none)."""
-    from BreastBiomechLib.phantom.variants import sweep_variants
-
     variants = sweep_variants(count)
     done = {}
     path = Path(out) if out else None

@@ -15,6 +15,7 @@ import importlib.util
 import logging
 import os
 from dataclasses import dataclass
+import psutil
 
 SCHEDULER_ENVIRONMENT = "BREASTBIOMECH_SCHEDULER"
 
@@ -98,7 +99,6 @@ def _local_cluster(placement: Placement, dashboard: str | None):
     processes, worker i pinned to GPU ``gpus[i % len(gpus)]``, host memory and ITK's threads
     shared out evenly."""
     import dask
-    import psutil
     from distributed import Nanny, Scheduler, SpecCluster
 
     memory = int(psutil.virtual_memory().total // placement.workers)

@@ -16,6 +16,8 @@ import SimpleITK as sitk
 
 from BreastBiomechLib.discrepancy.fitted import FittedCase
 from BreastBiomechLib.discrepancy.registration import ResidualField
+from BreastBiomechLib.landmarks import map_landmarks
+from BreastBiomechLib.mesh.tetmesh import boundary_faces
 
 REGION_COLOURS = {"contact": (0.95, 0.6, 0.1), "chest wall": (0.6, 0.2, 0.7), "sub-surface": (0.2, 0.7, 0.9),
                   "tumour": (0.9, 0.1, 0.1), "glandular": (0.95, 0.85, 0.55), "fat": (0.85, 0.75, 0.35),
@@ -36,8 +38,6 @@ class LandmarkResiduals:
 def landmark_residuals(fitted: FittedCase, displacement_mm: np.ndarray) -> LandmarkResiduals | None:
     """The landmark residuals of the model whose solution is ``displacement_mm``; None when the
     case has no landmarks."""
-    from BreastBiomechLib.landmarks import map_landmarks
-
     if fitted.reference is None:
         return None
     predicted = map_landmarks(fitted.mesh, displacement_mm, fitted.reference).positions
@@ -52,7 +52,6 @@ def skin_surface(fitted: FittedCase, displacement_mm: np.ndarray, surface=None):
     distance to the measured body's surface (positive outside it: the model bulges beyond the
     scan; NaN outside the image). ``surface``: a :class:`~BreastBiomechLib.similarity.surface.SurfaceDistance`
     of the measured image (made when not given)."""
-    from BreastBiomechLib.mesh.tetmesh import boundary_faces
     from BreastBiomechLib.similarity.surface import SurfaceDistance
 
     mesh = fitted.mesh

@@ -23,6 +23,7 @@ from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 from BreastBiomechLib.solver.model import Plate
+from BreastBiomechLib.io.markups import read_markups
 
 FIT_FILES = ("settings.json", "result.json", "fitting_mesh.vtu")
 
@@ -86,7 +87,6 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
     that holds no finished fit, a fit made on another case (its recorded fingerprint, or its
     predicted image's grid, differs) or whose mesh the landmarks do not lie in."""
     from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from BreastBiomechLib.landmarks import LandmarkMapper
 
 CHANNELS = ("landmarks", "surface")
 
@@ -82,7 +83,6 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
     """The features of ``fitted`` (a :class:`~BreastBiomechLib.discrepancy.fitted.FittedCase`)
     in the channels of ``noise``, the surface features chosen where the fit's solution
     ``base_displacement`` (N, 3) mm puts them inside the measured image."""
-    from BreastBiomechLib.landmarks import LandmarkMapper
     from BreastBiomechLib.similarity.surface import SurfaceDistance
 
     noise = noise or NoiseModel()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from BreastBiomechLib import labels
+from BreastBiomechLib.landmarks.mapping import locate_points
 
 BAND_MM = 10.0
 CHEST_BAND_MM = 15.0
@@ -38,8 +39,6 @@ def touching(plate, nodes_mm: np.ndarray, displacement_mm: np.ndarray) -> np.nda
 def regions_of(fitted, points: np.ndarray, displacement_mm: np.ndarray) -> np.ndarray:
     """The region name of each point (K, 3) LPS mm of ``fitted``'s undeformed mesh, with the plate
     contact taken from the solution ``displacement_mm`` (N, 3)."""
-    from BreastBiomechLib.landmarks.mapping import locate_points
-
     mesh = fitted.mesh
     points = np.asarray(points, float).reshape(-1, 3)
     out = np.full(len(points), "", dtype=object)

@@ -41,6 +41,8 @@ from BreastBiomechLib.discrepancy.registration import RegistrationSettings, Resi
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.io.atomic import atomic_path, write_text_atomically
 from BreastBiomechLib.io.claims import CLAIM_FILE
+from BreastBiomechLib.discrepancy.regions import regions_of
+from BreastBiomechLib.discrepancy.report import write_report
 
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
 
@@ -82,7 +84,6 @@ class FieldRecorder:
     def of(cls, fitted: FittedCase, base_displacement: np.ndarray, settings: RegistrationSettings) -> FieldRecorder:
         import SimpleITK as sitk
 
-        from BreastBiomechLib.discrepancy.regions import regions_of
         from BreastBiomechLib.segmentation.body import body_mask
         from BreastBiomechLib.segmentation.volume import check_volume
 
@@ -328,7 +329,6 @@ class DiagnosisSession:
         record["residual_picture"] = picture.name
 
     def _write(self, record: dict) -> None:
-        from BreastBiomechLib.discrepancy.report import write_report
         from BreastBiomechLib.discrepancy.workflow import DiagnosisRun
 
         write_text_atomically(self.path(record["round"]), json.dumps(record, indent=1, default=float) + "\n")

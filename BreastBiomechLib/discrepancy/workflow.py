@@ -13,6 +13,7 @@ from pathlib import Path
 from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings
 from BreastBiomechLib.discrepancy.observations import NoiseModel
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings
+from BreastBiomechLib.io.claims import claimed
 
 
 @dataclass
@@ -43,7 +44,6 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
     models are also compared through the residual displacement field of a deformable
     registration (``registration``; None: not made)."""
     from BreastBiomechLib.discrepancy.session import DiagnosisSession, is_open
-    from BreastBiomechLib.io.claims import claimed
 
     if rounds < 1:
         raise ValueError("the diagnosis needs at least one round")

@@ -21,6 +21,13 @@ from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate, PlateEdge
 from BreastBiomechLib.solver.settings import DynamicRelaxation, SolverSettings, UnloadedRequest
+from BreastBiomechLib.solver.placement import posed_plate
+from BreastBiomechLib.labels import SKIN
+from BreastBiomechLib.solver.supports import chest_wall_support
+from BreastBiomechLib.labels import BY_LABEL
+from BreastBiomechLib.solver.materials import default_tissue_materials
+from BreastBiomechLib.solver.placement import PLATE_SIDES, compression_plates, held_plates_touching, plate_contacts
+from BreastBiomechLib.solver.supports import support_constraints
 
 def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
     if isinstance(spec, str):
@@ -67,8 +74,6 @@ def _plate(mesh: TetMesh, spec: dict, index: int, path: Path) -> Plate:
     pose change of its final position (:func:`~BreastBiomechLib.solver.placement.posed_plate`):
     ``tilt_deg`` (two angles about its tilt axes, at most 10 degrees) and ``offset_mm`` (along its
     normal, > 0 further in); the posed plate starts just touching its contact nodes."""
-    from BreastBiomechLib.solver.placement import posed_plate
-
     name = spec.get("name", f"plate{index}")
     what = f"plate {name}"
     unknown = set(spec) - set(PLATE_FIELDS)
@@ -100,7 +105,6 @@ def _skin_layer(mesh: TetMesh, materials: ElementMaterials, spec: dict, path: Pa
     this material; otherwise the elements within ``thickness_mm`` of the skin surface carry it by
     partial-volume weighting (:mod:`BreastBiomechLib.mesh.skin`). Returns the materials and a
     sentence saying which."""
-    from BreastBiomechLib.labels import SKIN
     from BreastBiomechLib.mesh.skin import check_thickness, skin_fraction
 
     if not isinstance(spec, dict) or set(spec) - set(SKIN_FIELDS) or not {"E", "nu", "thickness_mm"} <= set(spec):
@@ -141,8 +145,6 @@ def _support(mesh: TetMesh, spec: dict, index: int, path: Path):
     ``tangential_stiffness`` (Pa/mm, per area), ``anchor`` (default true: patches against the
     rigid motion the support leaves free). See
     :func:`~BreastBiomechLib.solver.supports.chest_wall_support`."""
-    from BreastBiomechLib.solver.supports import chest_wall_support
-
     what = f"support {index}"
     unknown = set(spec) - set(SUPPORT_FIELDS)
     if unknown:
@@ -385,12 +387,6 @@ def compression_case(mesh: TetMesh, mesh_file: str, axis: str = "LR", compressio
     nodes that start between them and lie more than
     ``chest_clearance_mm`` anterior to the chest (None: the plate travel per side, at least
     5 mm), listed in the case: see :func:`~BreastBiomechLib.solver.placement.plate_contacts`."""
-    from BreastBiomechLib.labels import BY_LABEL
-    from BreastBiomechLib.solver.materials import default_tissue_materials
-    from BreastBiomechLib.solver.placement import (PLATE_SIDES, compression_plates, held_plates_touching,
-                                                   plate_contacts)
-    from BreastBiomechLib.solver.supports import support_constraints
-
     for name in ("chest_wall", "skin", "breast_skin", "fov_cut"):
         if name not in mesh.point_data:
             raise ValueError(f"the mesh has no {name!r} node set; make it with `breastbiomech mesh`")

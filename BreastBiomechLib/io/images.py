@@ -9,6 +9,7 @@ import SimpleITK as sitk
 
 from BreastBiomechLib.errors import InputError, reading
 from BreastBiomechLib.io.atomic import atomic_path
+from BreastBiomechLib.labels import present_labels
 
 _SUFFIXES = (".nrrd", ".nhdr", ".nii", ".nii.gz", ".mha", ".mhd")
 
@@ -74,7 +75,6 @@ def read_label_map(path: str | Path) -> sitk.Image:
     """Read a tissue label map: a 3D image of whole values of the label table
     (:mod:`BreastBiomechLib.labels`), at least one labelled voxel. Anything else raises
     :class:`~BreastBiomechLib.errors.InputError` naming the file and what is wrong."""
-    from BreastBiomechLib.labels import present_labels
     from BreastBiomechLib.surface.extract import label_array
 
     image = read_image(path)

@@ -9,6 +9,7 @@ from itertools import permutations
 import numpy as np
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes, signed_volumes
+from BreastBiomechLib.mesh.refine import refine_uniform
 
 
 def box_mesh(size_mm, divisions, origin_mm=(0.0, 0.0, 0.0)) -> TetMesh:
@@ -171,8 +172,6 @@ def refined_hemi_ellipsoid_mesh(radii_mm=(80.0, 70.0, 75.0), edge_mm: float = 16
     """:func:`smooth_hemi_ellipsoid_mesh` refined ``levels`` times by splitting each tet into eight,
     new surface nodes projected onto the ellipsoid: a nested family for convergence studies
     (edges of about edge_mm / 2^levels)."""
-    from BreastBiomechLib.mesh.refine import refine_uniform
-
     mesh = smooth_hemi_ellipsoid_mesh(radii_mm, edge_mm)
     for _ in range(levels):
         mesh = refine_uniform(mesh, lambda p: project_to_hemi_ellipsoid(p, radii_mm))

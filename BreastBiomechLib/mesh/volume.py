@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from BreastBiomechLib.mesh.tetmesh import TetMesh, regular_tet_volume_mm3
 from BreastBiomechLib.surface.checks import check_surface
 from BreastBiomechLib.surface.trisurface import TriSurface
+from BreastBiomechLib.solver.memory import check_meshing_fits
 
 
 @dataclass
@@ -98,7 +99,6 @@ def tetrahedralize(boundary: TriSurface, extra_points: np.ndarray, settings: Tet
     TetGen starts) or a TetGen failure."""
     import tetgen
 
-    from BreastBiomechLib.solver.memory import check_meshing_fits
 
     problems = check_surface(boundary).problems()
     if problems:

@@ -3,15 +3,11 @@ nodes (RAS)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.mrml import frames
-
-if TYPE_CHECKING:  # the solver package imports warp: only where plates are used
-    from BreastBiomechLib.solver.model import Plate
+from BreastBiomechLib.solver.model import Plate
 
 
 def landmarks_to_markups_node(landmarks: Landmarks, scene, name: str = "Landmarks", node=None,
@@ -71,8 +67,6 @@ def plate_from_plane_node(node, slave_nodes, towards=None) -> Plate:
     """The rigid plate a markups plane node shows (LPS mm; world coordinates). ``towards`` (LPS
     mm, e.g. the mesh centre) orients the normal to face the tissue whichever way the plane was
     drawn; the travel (``BreastBiomech.PlateTravelMm``, default 0) moves the plate along it."""
-    from BreastBiomechLib.solver.model import Plate
-
     if node is None or not node.IsA("vtkMRMLMarkupsPlaneNode"):
         raise ValueError("a plate must be a markups plane node")
     if not node.GetIsPlaneValid():

@@ -6,16 +6,13 @@ Moduli in Pa, density kg/m^3, Prony time constants s, energies J, forces N, time
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import vtk
 
 from BreastBiomechLib import labels
 from BreastBiomechLib.mrml import frames
+from BreastBiomechLib.solver.materials import Material
 
-if TYPE_CHECKING:
-    from BreastBiomechLib.solver.materials import Material
 
 MATERIAL_COLUMNS = ("tissue", "E (Pa)", "nu", "eta (Pa)", "fibre R", "fibre A", "fibre S", "density (kg/m3)",
                     "prony g1", "prony tau1 (s)")
@@ -52,8 +49,6 @@ def materials_to_table_node(materials: dict[int, Material], scene, name: str = "
 def materials_from_table_node(node) -> dict[int, Material]:
     """{tissue label: Material} from a materials table (as made by materials_to_table_node and
     edited by the user); every bad cell is reported with its row and column."""
-    from BreastBiomechLib.solver.materials import Material
-
     if node is None or node.GetTable() is None:
         raise ValueError("choose a materials table (the module's 'Default materials' button makes one)")
     table = node.GetTable()

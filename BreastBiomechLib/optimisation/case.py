@@ -28,6 +28,9 @@ from BreastBiomechLib.optimisation.forward import FittingProblem
 from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solve_best
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation
+from BreastBiomechLib.io.markups import read_markups, write_markups
+from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
+from BreastBiomechLib.mesh.tetmesh import TetMesh
 
 
 @dataclass
@@ -72,10 +75,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     made from ``labels`` (default: the case's labels.nrrd; a segmentation's label map fits the
     real workflow) at ``settings.edge_mm``."""
     from BreastBiomechLib.io.images import read_image, read_label_map, write_image
-    from BreastBiomechLib.io.markups import read_markups, write_markups
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
-    from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
-    from BreastBiomechLib.mesh.tetmesh import TetMesh
     from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
 
     settings = settings or FitSettings()

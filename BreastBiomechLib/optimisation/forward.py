@@ -21,6 +21,8 @@ from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.optimisation.warm_starts import FitWarmStarts
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 from BreastBiomechLib.solver.retries import RETRIES, solve_batch_with_retries
+from BreastBiomechLib.io.cases import case_from_dict, compression_case
+from BreastBiomechLib.solver.placement import plates_to_final_planes
 
 OBJECTIVES = ("nmi", "landmarks", "surface", "nmi+landmarks", "nmi+surface")
 FAILED_NMI = 0.0  # -NMI of a failed solve: worse than any (NMI lies in [1, 2])
@@ -81,9 +83,7 @@ class FittingProblem:
                  objective: str = "nmi", landmark_weight: float = 0.01, surface_weight: float = 0.01,
                  body: sitk.Image | None = None, mask=None, bins: int = 64,
                  relaxation: DynamicRelaxation | None = None, device=None, warm_starts: bool = False):
-        from BreastBiomechLib.io.cases import case_from_dict, compression_case
         from BreastBiomechLib.similarity import Similarity
-        from BreastBiomechLib.solver.placement import plates_to_final_planes
         from BreastBiomechLib.warping import ImageWarper
 
         if objective not in OBJECTIVES:

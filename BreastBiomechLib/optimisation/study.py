@@ -33,6 +33,11 @@ from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
 from BreastBiomechLib.optimisation.search import OPTIMISERS
 from BreastBiomechLib.optimisation.space import HOMOGENEOUS, MODELS, REFERENCE_E
+from BreastBiomechLib.cohort import Task
+from BreastBiomechLib.io.markups import read_markups
+from BreastBiomechLib.cohort import write_json_atomically
+import datetime
+from collections import Counter
 
 # Forward solves per fit: about 20 per free parameter for the homogeneous variants (1-2 free),
 # more for the heterogeneous ones, whose 5-11 parameters interact.
@@ -156,8 +161,6 @@ def fit_priority(model: str, budget: int) -> int:
 def study_tasks(case_dirs, out_dir: str | Path, settings: StudySettings) -> list:
     """The study's tasks (:class:`~BreastBiomechLib.cohort.Task`) not yet done in ``out_dir``: a
     fitting mesh per case, then every (model, optimiser) fit of the case, which needs it."""
-    from BreastBiomechLib.cohort import Task
-
     cases = [Path(c) for c in case_dirs]
     if not cases:
         raise ValueError("give at least one compressed case folder (`breastbiomech phantom --case N --compressed`)")
@@ -189,7 +192,6 @@ def make_fitting_mesh(case_dir: str, mesh_file: str, edge_mm: float, device=None
     """A study task: the fitting mesh of the case's labels at ``edge_mm`` (nipple-aware), written
     to ``mesh_file`` (atomically). Returns its size."""
     from BreastBiomechLib.io.images import read_label_map
-    from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
@@ -207,7 +209,6 @@ def fit_study_case(case_dir: str, folder: str, mesh_file: str, settings: StudySe
     (resuming a fit interrupted in ``folder``) and write its row (:data:`ROW_FILE`, atomically).
     ``progress(message)`` returning False stops the fit after its batch (the row then says
     "cancelled" and a rerun continues). Returns the row."""
-    from BreastBiomechLib.cohort import write_json_atomically
     from BreastBiomechLib.phantom.compressed_files import read_compressed
 
     case, folder = Path(case_dir), Path(folder)
@@ -264,8 +265,6 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
 
 def log_failure(path: Path, outcome) -> None:
     """Append a failed task's key, error and traceback to the log file ``path``."""
-    import datetime
-
     with open(path, "a") as stream:
         stream.write(f"--- {datetime.datetime.now().isoformat(timespec='seconds')} {outcome.key}: {outcome.error}\n"
                      f"{outcome.traceback}\n")
@@ -344,8 +343,6 @@ def _mean_sd(summary: dict | None, key: str, with_max: bool = False) -> str:
 
 def _devices(rows: list[StudyFit]) -> str:
     """Which devices solved the fits ("Solved on: NAME (n fits); ..."), or nothing when no row says."""
-    from collections import Counter
-
     counts = Counter(row.device or "device not recorded" for row in rows)
     if set(counts) == {"device not recorded"}:
         return ""

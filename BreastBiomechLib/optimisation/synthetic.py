@@ -17,6 +17,8 @@ from scipy.ndimage import gaussian_filter
 from BreastBiomechLib import labels
 from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
 from BreastBiomechLib.mesh.tetmesh import TetMesh
+from BreastBiomechLib.io.cases import case_from_dict, compression_case
+from BreastBiomechLib.solver.placement import final_planes
 
 INTENSITY = {"fat": 1000.0, "glandular": 420.0, "muscle": 330.0, "tumour": 250.0}
 
@@ -40,9 +42,6 @@ def synthetic_case(radii_mm=(40.0, 35.0, 40.0), element_mm: float = 6.0, voxel_m
     random texture (``seed``) so that interior motion shows; plates closing by ``compression``;
     ``pull_corners``: the stairs' protruding corners moved onto the ellipsoid (see
     :func:`~BreastBiomechLib.mesh.primitives.hemi_ellipsoid_mesh`)."""
-    from BreastBiomechLib.io.cases import case_from_dict, compression_case
-    from BreastBiomechLib.solver.placement import final_planes
-
     a, d, b = (float(r) for r in radii_mm)
     mesh = hemi_ellipsoid_mesh((a, d, b), spacing_mm=element_mm, pull_corners=pull_corners)
     core_centre = np.array([0.0, -0.4 * d, 0.0])

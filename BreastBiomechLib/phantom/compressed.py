@@ -20,6 +20,14 @@ from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.phantom.generate import PhantomCase, _bias_field, _Grid
 from BreastBiomechLib.phantom.parameters import INTENSITY, PRONE_GRAVITY, TABLE1_COMPRESSION
 from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
+from BreastBiomechLib.solver.placement import final_planes
+from BreastBiomechLib.solver.run_case import run_case
+from BreastBiomechLib.io.cases import compression_case
+from dataclasses import replace
+from BreastBiomechLib.solver.placement import posed_plate
+from BreastBiomechLib.solver.settings import UnloadedRequest
+from BreastBiomechLib.solver.supports import chest_wall_support
+from BreastBiomechLib.labels import MUSCLE
 
 # Hidden truth materials (ours; within the seed's bounds): E in Pa, nu, eta in Pa.
 DEFAULT_TRUTH_MATERIALS = {
@@ -185,8 +193,6 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     truth mesh made already (``breastbiomech mesh`` of the case's labels at ``truth.edge_mm``;
     default: made here). Raises RuntimeError when the truth solve fails (it would not be a truth)."""
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-    from BreastBiomechLib.solver.placement import final_planes
-    from BreastBiomechLib.solver.run_case import run_case
     from BreastBiomechLib.warping import ImageWarper
 
     truth = truth or TruthModel()
@@ -256,8 +262,6 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
 
 def _compression_description(mesh: TetMesh, truth: TruthModel):
     """The seed's compression of the truth mesh (the case description) with the truth's materials."""
-    from BreastBiomechLib.io.cases import compression_case
-
     spec = compression_case(mesh, "truth_mesh.vtu", truth.axis, truth.compression, moving=truth.moving_plate,
                             chest_clearance_mm=truth.chest_clearance_mm)
     missing = set(spec.materials) - set(truth.materials)
@@ -276,8 +280,6 @@ def truth_case(mesh: TetMesh, truth: TruthModel, device=None) -> tuple:
     """The truth's model and solver settings on its ``mesh`` (what :func:`compress_phantom` runs with
     :func:`~BreastBiomechLib.solver.run_case.run_case`): the seed's compression with the truth's
     materials and hidden effects (:func:`with_hidden_effects`), on ``device``."""
-    from dataclasses import replace
-
     model, settings = _compression_description(mesh, truth).build(mesh)
     model, unloaded = with_hidden_effects(model, truth)
     return model, replace(settings, device=device, unloaded=unloaded)
@@ -290,12 +292,6 @@ def with_hidden_effects(model, truth: TruthModel) -> tuple:
     ``truth.compression_gravity`` (None: ``truth.gravity``) and the request to start from the
     unloaded shape of the mesh imaged under ``truth.gravity``
     (:class:`~BreastBiomechLib.solver.settings.UnloadedRequest`, else None)."""
-    from dataclasses import replace
-
-    from BreastBiomechLib.solver.placement import posed_plate
-    from BreastBiomechLib.solver.settings import UnloadedRequest
-    from BreastBiomechLib.solver.supports import chest_wall_support
-
     plates = [replace(p, friction=truth.friction) for p in model.loading.plates]
     if truth.plate_tilt_deg is not None:
         if len(truth.plate_tilt_deg) != len(plates):
@@ -336,10 +332,6 @@ def with_hidden_effects(model, truth: TruthModel) -> tuple:
 def _with_stiff_band(mesh: TetMesh, materials, band, plates):
     """``materials`` with the moduli (mu, kappa) of the breast elements inside the stiff band
     (see :class:`TruthModel`) times its factor."""
-    from dataclasses import replace
-
-    from BreastBiomechLib.labels import MUSCLE
-
     factor, thickness = band
     axis = np.asarray(plates[0].normal, float) if plates else np.array([1.0, 0.0, 0.0])
     normal = np.abs(axis) / np.linalg.norm(axis) + np.array([0.0, 0.0, 1.0])

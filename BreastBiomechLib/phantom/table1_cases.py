@@ -7,6 +7,9 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
+from BreastBiomechLib.cohort import Task
+from BreastBiomechLib.phantom.parameters import TABLE1_CASES
+from dataclasses import replace
 
 
 def case_folder(out_dir: str | Path, number: int) -> Path:
@@ -20,9 +23,6 @@ def case_done(folder: Path) -> bool:
 def table1_tasks(out_dir: str | Path, numbers, truth_edge_mm: float = 2.0, overview: bool = True) -> list:
     """The tasks (:class:`~BreastBiomechLib.cohort.Task`) of the Table 1 cases ``numbers`` not yet
     in ``out_dir``."""
-    from BreastBiomechLib.cohort import Task
-    from BreastBiomechLib.phantom.parameters import TABLE1_CASES
-
     unknown = [n for n in numbers if n not in TABLE1_CASES]
     if unknown:
         raise ValueError(f"Table 1 has cases {sorted(TABLE1_CASES)}, not {unknown}")
@@ -37,8 +37,6 @@ def make_table1_case(number: int, out_dir: str, truth_edge_mm: float = 2.0, over
     """A cohort task: Table 1 case ``number`` (its phantom and its truth compression, as
     ``breastbiomech phantom --case N --compressed``) written to ``out_dir/case<N>`` through a
     temporary folder renamed into place. Returns the case's summary figures."""
-    from dataclasses import replace
-
     from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
     from BreastBiomechLib.phantom.compressed import compress_phantom, table1_truth
     from BreastBiomechLib.phantom.compressed_files import write_compressed

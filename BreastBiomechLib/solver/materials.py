@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from BreastBiomechLib import labels
 
 
 def lame_from_young(E, nu) -> tuple[np.ndarray, np.ndarray]:
@@ -275,7 +276,5 @@ def default_tissue_materials() -> dict[int, Material]:
     nu = 0.49, 1000 kg/m^3. Fat is the seed's reference (E_f = 10 kPa); the other tissues are
     round multiples in the order reported ex vivo (glandular 2x, skin 5x, muscle and tumour 10x
     fat). They are initial values for the optimiser (seed section 2.4, step 1), not measurements."""
-    from BreastBiomechLib import labels
-
     multiples = {labels.FAT: 1.0, labels.GLANDULAR: 2.0, labels.MUSCLE: 10.0, labels.TUMOUR: 10.0, labels.SKIN: 5.0}
     return {tissue.label: Material(E=10e3 * factor, nu=0.49) for tissue, factor in multiples.items()}

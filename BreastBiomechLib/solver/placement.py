@@ -8,6 +8,8 @@ import numpy as np
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
 from BreastBiomechLib.solver.model import PENETRATION_TOLERANCE_MM, Plate
+from dataclasses import replace
+from BreastBiomechLib.solver.model import PlateEdge
 
 AXES = {"LR": (1.0, 0.0, 0.0), "AP": (0.0, 1.0, 0.0), "SI": (0.0, 0.0, 1.0)}  # LPS x, y, z
 MOVING = ("both", "first", "second")
@@ -61,8 +63,6 @@ def held_plates_touching(nodes_mm: np.ndarray, plates: list[Plate], contacts) ->
     point, where that lies in the band by the chest that plates do not touch, would otherwise
     stand off the tissue it is meant to hold, and the moving plate would push the breast over
     instead of pressing it against the held one. Moving plates are returned as they are."""
-    from dataclasses import replace
-
     contacts = np.asarray(contacts, dtype=np.int64).ravel()
     placed = []
     for plate in plates:
@@ -95,8 +95,6 @@ def plates_to_final_planes(mesh: TetMesh, planes: list[dict], candidates, extent
     LPS mm; optional ``edge`` as in a case file): each plate travels along its normal from the
     mesh's extreme node to its plane. The contact nodes are the ``candidates`` between the plates
     and within their reach. How a fitting mesh meets the plates seen in a compressed image."""
-    from BreastBiomechLib.solver.model import PlateEdge
-
     reference = mesh.nodes if extent_nodes is None else mesh.nodes[np.asarray(extent_nodes, dtype=np.int64)]
     if len(reference) == 0:
         raise ValueError("the node set the plates are placed against is empty")
@@ -142,7 +140,6 @@ def plate_contacts(mesh: TetMesh, candidates, plates: list[Plate], chest_clearan
     stiffer chest wall; the rounded edge spreads the step between pushed and free skin over
     several elements (a knife edge inverted elements there at 40 % compression)."""
     from BreastBiomechLib.mesh.node_sets import chest_front_y
-    from BreastBiomechLib.solver.model import PlateEdge
 
     travel = max([MIN_CHEST_CLEARANCE_MM] + [float(np.linalg.norm(p.displacement)) for p in plates])
     if chest_clearance_mm is None:

@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from BreastBiomechLib.solver.model import Constraint
+from BreastBiomechLib.mesh.tetmesh import boundary_faces
+from BreastBiomechLib.solver.model import SurfaceSupport
 
 
 def support_constraints(positions: np.ndarray, nodes, components=(False, True, False),
@@ -66,8 +68,6 @@ def surface_normals_and_areas(mesh, nodes) -> tuple[np.ndarray, np.ndarray]:
     it stands for (mm^2): a third of each boundary face whose three nodes are all in the set
     (area-weighted normals of those faces; for a node at the set's rim with no such face, of
     the boundary faces around it)."""
-    from BreastBiomechLib.mesh.tetmesh import boundary_faces
-
     nodes = np.unique(np.asarray(nodes, dtype=np.int64).ravel())
     faces, _ = boundary_faces(mesh.tets)
     p = mesh.nodes[faces]
@@ -111,8 +111,6 @@ def chest_wall_support(mesh, nodes, kind: str = "fixed", components=(False, True
     held along it (the coordinate axes other than the one the wall faces) at the chest wall's
     centre and in one of them at its far end, and the sentence says so. Without anchor and without tangential stiffness it is refused.
     ``mesh`` (TetMesh, LPS mm); ``nodes`` the chest-wall node ids."""
-    from BreastBiomechLib.solver.model import SurfaceSupport
-
     nodes = np.unique(np.asarray(nodes, dtype=np.int64).ravel())
     if kind not in SUPPORT_KINDS:
         raise ValueError(f"the chest-wall support is one of {SUPPORT_KINDS}, not {kind!r}")

@@ -16,6 +16,7 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from BreastBiomechLib.surface.trisurface import TriSurface, corner_angles
+from BreastBiomechLib.labels import BY_LABEL
 
 _PAD = 2  # background voxels added on every side
 
@@ -331,7 +332,6 @@ def tissue_surface(labels: sitk.Image, label: int, edge_mm: float,
     mask = _drop_small(mask, max(1, int(np.ceil(settings.min_component_mm3 / voxel_mm3))))
     if not mask.any():
         return None
-    from BreastBiomechLib.labels import BY_LABEL
 
     name = BY_LABEL[label].name if label in BY_LABEL else f"label {label}"
     return mask_surface(mask, labels, name, settings, edge_mm)

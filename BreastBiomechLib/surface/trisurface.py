@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from BreastBiomechLib.mesh.tetmesh import vtk_cells
 
 
 def corner_angles(p: np.ndarray) -> np.ndarray:
@@ -61,7 +62,6 @@ class TriSurface:
         import vtk
         from vtk.util import numpy_support as nps
 
-        from BreastBiomechLib.mesh.tetmesh import vtk_cells
 
         poly = vtk.vtkPolyData()
         points = vtk.vtkPoints()

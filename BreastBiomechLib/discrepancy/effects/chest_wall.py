@@ -16,6 +16,8 @@ import numpy as np
 
 from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
 from BreastBiomechLib.discrepancy.variants import Variant
+from BreastBiomechLib.solver.model import SurfaceSupport
+from BreastBiomechLib.solver.supports import surface_normals_and_areas
 
 REFERENCE_STIFFNESS = 340.0  # Pa/mm: about fat's shear modulus (3.4 kPa) over a 10 mm layer
 
@@ -47,9 +49,6 @@ class ChestWallHold(Effect):
         return None
 
     def apply(self, variant: Variant, values, fitted) -> Variant:
-        from BreastBiomechLib.solver.model import SurfaceSupport
-        from BreastBiomechLib.solver.supports import surface_normals_and_areas
-
         hold = float(np.clip(values[0], 0.0, self.parameters[0].upper))
         if hold == 0.0:
             return variant

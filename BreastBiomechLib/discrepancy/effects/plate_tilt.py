@@ -8,6 +8,7 @@ import numpy as np
 
 from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
 from BreastBiomechLib.discrepancy.variants import Variant
+from BreastBiomechLib.solver.placement import posed_plate
 
 
 class PlateTilt(Effect):
@@ -29,8 +30,6 @@ class PlateTilt(Effect):
         return "the case has no plates" if not fitted.plates else None
 
     def apply(self, variant: Variant, values, fitted) -> Variant:
-        from BreastBiomechLib.solver.placement import posed_plate
-
         tilts = np.asarray(values, float).reshape(-1, 2)
         if len(tilts) != len(variant.plates):
             raise ValueError(f"plate tilt: {len(tilts)} tilts for {len(variant.plates)} plates")

@@ -8,6 +8,7 @@ import numpy as np
 
 from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
 from BreastBiomechLib.discrepancy.variants import Variant
+from BreastBiomechLib.labels import SKIN
 
 THICKNESS_MM = 2.0  # skin is 1-3 mm thick over the breast
 
@@ -25,8 +26,6 @@ class SkinLayer(Effect):
                                   f"stiffness of a {THICKNESS_MM:g} mm skin layer relative to the tissue under it"),)
 
     def unavailable(self, fitted) -> str | None:
-        from BreastBiomechLib.labels import SKIN
-
         if np.any(fitted.tissue == SKIN.label):
             return "the mesh has skin elements of its own"
         return None

@@ -38,6 +38,14 @@ import numpy as np
 from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
 from BreastBiomechLib.io.atomic import write_json_atomically
 from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
+from BreastBiomechLib.io.markups import read_markups
+from BreastBiomechLib.landmarks import Landmarks
+from BreastBiomechLib.discrepancy.effects import library
+from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.landmarks import map_landmarks
+from BreastBiomechLib.discrepancy.suite.scores import case_result
+from BreastBiomechLib.cohort import Task
+from BreastBiomechLib.cohort import place, run_tasks
 
 # what a clinic has of a compressed case: the fit and the diagnosis see nothing else
 MEASURED_FILES = ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json",
@@ -135,7 +143,6 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
     """The phantom of Table 1 preset ``number``, its truth mesh, the segmentation of its MR and
     the fitting mesh of the segmentation, in ``out/anatomy<number>`` (made once; see the module)."""
     from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.io.segmentation import write_segmentation
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
@@ -202,7 +209,6 @@ def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, se
     compressed) moved by a localisation error drawn from N(0, ``landmark_noise_mm``²) per
     coordinate (mm; random numbers from ``seed``)."""
     from BreastBiomechLib.io.markups import read_markups, write_markups
-    from BreastBiomechLib.landmarks import Landmarks
 
     if landmark_noise_mm < 0:
         raise ValueError(f"the landmarks' localisation error is an sd in mm (>= 0), not {landmark_noise_mm}")
@@ -232,15 +238,11 @@ def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device
     round and after the last refit against the truth's exact landmarks ({"before", "after"}: the
     exact undeformed landmarks moved by each model's displacement against the exact compressed
     ones; the measured landmarks carry a localisation error that would floor the figure)."""
-    from BreastBiomechLib.discrepancy.effects import library
     from BreastBiomechLib.discrepancy.fitted import load_fitted_case
     from BreastBiomechLib.discrepancy.state import ModelState
-    from BreastBiomechLib.discrepancy.variants import solve_variants
     from BreastBiomechLib.discrepancy.session import state_from_record
     from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.markups import read_markups
     from BreastBiomechLib.io.meshes import read_vtu
-    from BreastBiomechLib.landmarks import map_landmarks
     from BreastBiomechLib.warping import ImageWarper
 
     fitted = load_fitted_case(folder / "measured", fit_dir, device=device)
@@ -292,7 +294,6 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
 def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, device, say) -> dict:
     """The body of :func:`run_case` (under the case's lock): what is missing of the case's truth,
     measured copy, fit and diagnosis made, then scored against the truth."""
-    from BreastBiomechLib.discrepancy.suite.scores import case_result
     from BreastBiomechLib.discrepancy.workflow import run_diagnosis
     from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
@@ -350,8 +351,6 @@ def suite_tasks(out: Path, cases: list[SuiteCase], settings: SuiteSettings) -> l
     """The suite's tasks (:class:`~BreastBiomechLib.cohort.Task`) not yet done in ``out``: each
     anatomy its cases need, then each case (made, fitted, diagnosed, scored), which needs it. The
     anatomies have the higher priority: on a cluster each one lets its cases start on any worker."""
-    from BreastBiomechLib.cohort import Task
-
     todo = [case for case in cases if not (out / case.name / "result.json").is_file()]
     tasks = [Task(f"anatomy/{number}", prepare_anatomy_task, {"number": number, "out": str(out), "settings": settings},
                   label=f"anatomy {number}", priority=1)
@@ -384,7 +383,6 @@ def run_suite(out, cases: list[SuiteCase], settings: SuiteSettings | None = None
     (:func:`BreastBiomechLib.cohort.place`; None: a local cluster); a case that fails is
     recorded with its error (error.json, failures.log) and the others go on; a rerun does what is
     missing. ``progress(CohortProgress)`` returning False cancels. Returns the tasks' outcomes."""
-    from BreastBiomechLib.cohort import place, run_tasks
     from BreastBiomechLib.optimisation.study import log_failure
 
     settings = settings or SuiteSettings()
