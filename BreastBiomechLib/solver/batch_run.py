@@ -103,11 +103,6 @@ class BatchOptions:
         return self.mass_scaling or self.relaxation is not None
 
 
-def per_model(width: int = 1):
-    """A :class:`StepState` field's metadata: ``width`` entries per model and outer index."""
-    return {"per_model": width}
-
-
 @dataclass
 class StepState:
     """The per-model device arrays of a run that packing moves (models innermost, see
