@@ -8,6 +8,7 @@ pectoral muscle that is not modelled).
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import numpy as np
 
 

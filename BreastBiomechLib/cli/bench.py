@@ -4,30 +4,37 @@ docs/benchmarks.md. Never asserts on time."""
 from __future__ import annotations
 
 import json
-import platform
-import time
-from pathlib import Path
-
-from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, fraction, non_negative, non_negative_int,
-                                         positive, positive_int)
-import numpy as np
-from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
-from BreastBiomechLib.solver.warm import WarmStart
-from dataclasses import replace
-import tempfile
-from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings
-from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
-from BreastBiomechLib.discrepancy.suite.runner import run_case
 import os
-from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
-from BreastBiomechLib.solver import DynamicRelaxation
+import platform
 import subprocess
 import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from BreastBiomechLib import __version__
+from BreastBiomechLib.cli.common import (
+    MODEL_CHOICES,
+    device_argument,
+    fraction,
+    non_negative,
+    non_negative_int,
+    positive,
+    positive_int,
+)
 from BreastBiomechLib.cli.gpu_usage import GpuUsage
 from BreastBiomechLib.cohort import place
+from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings
 from BreastBiomechLib.discrepancy.suite.cases import HIDDEN_EFFECTS as HIDDEN
-
+from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
+from BreastBiomechLib.discrepancy.suite.runner import run_case
+from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+from BreastBiomechLib.solver import DynamicRelaxation
+from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+from BreastBiomechLib.solver.warm import WarmStart
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
 # benchmarks that need only warp, NumPy and SciPy (the solver on its own hemi-ellipsoid meshes): they

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+import shutil
 import time
 from pathlib import Path
 
 from BreastBiomechLib import __version__
 from BreastBiomechLib.cli.common import device_argument, positive_int
 from BreastBiomechLib.io.atomic import write_text_atomically
-import shutil
 
 
 def clear_earlier_result(folder: Path, marker: str = "settings.json", what: str = "fit") -> None:
@@ -28,10 +28,13 @@ def cmd_demo(args) -> int:
     """The main job on the built-in phantom: phantom and its compressed "measured" scan,
     segmentation from seed points, FE mesh of the segmentation, a simulation with the starting
     materials, the material fit, and a Markdown report (out/demo/report.md)."""
+    import warp as wp
+
+    from BreastBiomechLib.discrepancy import DiagnosisSettings, run_diagnosis
+    from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.io.segmentation import write_segmentation
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-    from BreastBiomechLib.discrepancy import DiagnosisSettings, run_diagnosis
     from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
     from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
     from BreastBiomechLib.phantom.compressed import compress_phantom, table1_truth
@@ -39,9 +42,6 @@ def cmd_demo(args) -> int:
     from BreastBiomechLib.phantom.files import SEED_COUNTS
     from BreastBiomechLib.phantom.seeds import seed_points
     from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
-    import warp as wp
-
-    from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.visualisation import save_overview
 
     wp.init()

@@ -3,15 +3,25 @@ four-model study."""
 
 from __future__ import annotations
 
+import datetime
 import json
 import sys
 import time
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import (MODEL_CHOICES, OBJECTIVE_CHOICES, add_cluster_options, cohort_progress,
-                                         device_argument, end_progress, finite, non_negative_int, positive,
-                                         positive_int, report_failures)
-import datetime
+from BreastBiomechLib.cli.common import (
+    MODEL_CHOICES,
+    OBJECTIVE_CHOICES,
+    add_cluster_options,
+    cohort_progress,
+    device_argument,
+    end_progress,
+    finite,
+    non_negative_int,
+    positive,
+    positive_int,
+    report_failures,
+)
 from BreastBiomechLib.cohort import place
 
 
@@ -60,8 +70,7 @@ def cmd_optimise(args) -> int:
 
 def cmd_study(args) -> int:
     """The four-model study of the seed's Tables 2 and 3 on compressed cases."""
-    from BreastBiomechLib.optimisation.study import (StudySettings, provenance, run_study, study_markdown,
-                                                     write_report)
+    from BreastBiomechLib.optimisation.study import StudySettings, provenance, run_study, study_markdown, write_report
     from BreastBiomechLib.phantom.compressed_files import compressed_folder
 
     budgets = {}

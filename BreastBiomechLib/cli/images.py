@@ -6,11 +6,11 @@ from __future__ import annotations
 import json
 import time
 
-from BreastBiomechLib.cli.common import device_argument, finite, positive_int
 import numpy as np
+
+from BreastBiomechLib.cli.common import device_argument, finite, positive_int
 from BreastBiomechLib.io.markups import read_markups, write_markups
-from BreastBiomechLib.landmarks import map_landmarks
-from BreastBiomechLib.landmarks import landmark_errors
+from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
 
 
 def _nodal_displacement(path: str, mesh):

@@ -6,10 +6,10 @@ import json
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import end_progress, fraction, non_negative, positive, progress_line
+from BreastBiomechLib.cli.niftysim import export_for_niftysim
 from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.io.cases import case_from_dict, compression_case
 from BreastBiomechLib.io.markups import read_markups
-from BreastBiomechLib.cli.niftysim import export_for_niftysim
 
 
 def cmd_mesh(args) -> int:

@@ -8,10 +8,11 @@ import warnings
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from BreastBiomechLib.cli.common import device_argument
 from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.io.cases import read_case
-import numpy as np
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 
 

@@ -4,15 +4,24 @@ compressed "measured" scan made by a truth simulation with hidden effects."""
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, finite, fraction,
-                                         non_negative, non_negative_int, positive, report_failures)
-from BreastBiomechLib.phantom import PhantomParameters, table1_case
-from dataclasses import replace
+from BreastBiomechLib.cli.common import (
+    add_cluster_options,
+    cohort_progress,
+    device_argument,
+    finite,
+    fraction,
+    non_negative,
+    non_negative_int,
+    positive,
+    report_failures,
+)
 from BreastBiomechLib.cohort import place, run_tasks
-from BreastBiomechLib.phantom.table1_cases import table1_tasks
+from BreastBiomechLib.phantom import PhantomParameters, table1_case
 from BreastBiomechLib.phantom.parameters import TABLE1_CASES
+from BreastBiomechLib.phantom.table1_cases import table1_tasks
 
 
 def _phantom_parameters(args):

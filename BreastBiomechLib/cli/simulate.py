@@ -7,9 +7,10 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from BreastBiomechLib.cli.common import device_argument
 from BreastBiomechLib.io.atomic import write_text_atomically
-import numpy as np
 from BreastBiomechLib.io.cases import read_case
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.run_case import run_case

@@ -23,10 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.phantom.variants import describe
 from BreastBiomechLib.io.cases import case_from_dict, compression_case
 from BreastBiomechLib.mesh.tetmesh import TetMesh
-from BreastBiomechLib.phantom.variants import sweep_variants
+from BreastBiomechLib.phantom.variants import describe, sweep_variants
 
 TISSUES = ("fat", "glandular", "muscle", "tumour")
 MESH_EDGES_MM = (3.0, 4.0, 6.0, 8.0, 10.0, 12.0, 15.0)

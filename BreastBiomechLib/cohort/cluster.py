@@ -15,6 +15,7 @@ import importlib.util
 import logging
 import os
 from dataclasses import dataclass
+
 import psutil
 
 SCHEDULER_ENVIRONMENT = "BREASTBIOMECH_SCHEDULER"

@@ -16,6 +16,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from BreastBiomechLib.errors import InputError, reading
+from BreastBiomechLib.io.markups import read_markups
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.forward import FittingProblem
@@ -23,7 +24,6 @@ from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 from BreastBiomechLib.solver.model import Plate
-from BreastBiomechLib.io.markups import read_markups
 
 FIT_FILES = ("settings.json", "result.json", "fitting_mesh.vtu")
 

@@ -37,12 +37,12 @@ from BreastBiomechLib.discrepancy.diagnosis import Diagnosis, DiagnosisSettings,
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
+from BreastBiomechLib.discrepancy.regions import regions_of
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
+from BreastBiomechLib.discrepancy.report import write_report
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.io.atomic import atomic_path, write_text_atomically
 from BreastBiomechLib.io.claims import CLAIM_FILE
-from BreastBiomechLib.discrepancy.regions import regions_of
-from BreastBiomechLib.discrepancy.report import write_report
 
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
 

@@ -16,18 +16,21 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib.errors import InputError, reading
+from BreastBiomechLib.labels import BY_LABEL, SKIN
 from BreastBiomechLib.labels import tissue as lookup_tissue
 from BreastBiomechLib.mesh.tetmesh import TetMesh
-from BreastBiomechLib.solver.materials import ElementMaterials, Material
+from BreastBiomechLib.solver.materials import ElementMaterials, Material, default_tissue_materials
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate, PlateEdge
+from BreastBiomechLib.solver.placement import (
+    PLATE_SIDES,
+    compression_plates,
+    held_plates_touching,
+    plate_contacts,
+    posed_plate,
+)
 from BreastBiomechLib.solver.settings import DynamicRelaxation, SolverSettings, UnloadedRequest
-from BreastBiomechLib.solver.placement import posed_plate
-from BreastBiomechLib.labels import SKIN
-from BreastBiomechLib.solver.supports import chest_wall_support
-from BreastBiomechLib.labels import BY_LABEL
-from BreastBiomechLib.solver.materials import default_tissue_materials
-from BreastBiomechLib.solver.placement import PLATE_SIDES, compression_plates, held_plates_touching, plate_contacts
-from BreastBiomechLib.solver.supports import support_constraints
+from BreastBiomechLib.solver.supports import chest_wall_support, support_constraints
+
 
 def _node_set(mesh: TetMesh, spec, what: str, path: Path) -> np.ndarray:
     if isinstance(spec, str):

@@ -39,9 +39,9 @@ import numpy as np
 
 from BreastBiomechLib.errors import InputError, reading
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, check_mesh
+from BreastBiomechLib.solver.host_setup import constraint_load_shapes, critical_time_step, merged_constraints
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Constraint, Loading, Model, Plate, PlateEdge
-from BreastBiomechLib.solver.host_setup import constraint_load_shapes, critical_time_step, merged_constraints
 
 MM = 1e-3
 AXES = "012"

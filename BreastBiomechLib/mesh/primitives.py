@@ -8,8 +8,8 @@ from itertools import permutations
 
 import numpy as np
 
-from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes, signed_volumes
 from BreastBiomechLib.mesh.refine import refine_uniform
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes, signed_volumes
 
 
 def box_mesh(size_mm, divisions, origin_mm=(0.0, 0.0, 0.0)) -> TetMesh:

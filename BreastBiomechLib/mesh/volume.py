@@ -16,9 +16,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh, regular_tet_volume_mm3
+from BreastBiomechLib.solver.memory import check_meshing_fits
 from BreastBiomechLib.surface.checks import check_surface
 from BreastBiomechLib.surface.trisurface import TriSurface
-from BreastBiomechLib.solver.memory import check_meshing_fits
 
 
 @dataclass

@@ -13,7 +13,6 @@ from BreastBiomechLib import labels
 from BreastBiomechLib.mrml import frames
 from BreastBiomechLib.solver.materials import Material
 
-
 MATERIAL_COLUMNS = ("tissue", "E (Pa)", "nu", "eta (Pa)", "fibre R", "fibre A", "fibre S", "density (kg/m3)",
                     "prony g1", "prony tau1 (s)")
 

@@ -24,13 +24,13 @@ import numpy as np
 
 from BreastBiomechLib.io.atomic import write_json_atomically
 from BreastBiomechLib.io.claims import claimed
+from BreastBiomechLib.io.markups import read_markups, write_markups
+from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
+from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.forward import FittingProblem
 from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solve_best
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation
-from BreastBiomechLib.io.markups import read_markups, write_markups
-from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
-from BreastBiomechLib.mesh.tetmesh import TetMesh
 
 
 @dataclass

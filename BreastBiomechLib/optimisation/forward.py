@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from BreastBiomechLib.io.cases import case_from_dict, compression_case
 from BreastBiomechLib.landmarks import LandmarkMapper, Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.optimisation.warm_starts import FitWarmStarts
 from BreastBiomechLib.solver import DynamicRelaxation, Model
-from BreastBiomechLib.solver.retries import RETRIES, solve_batch_with_retries
-from BreastBiomechLib.io.cases import case_from_dict, compression_case
 from BreastBiomechLib.solver.placement import plates_to_final_planes
+from BreastBiomechLib.solver.retries import RETRIES, solve_batch_with_retries
 
 OBJECTIVES = ("nmi", "landmarks", "surface", "nmi+landmarks", "nmi+surface")
 FAILED_NMI = 0.0  # -NMI of a failed solve: worse than any (NMI lies in [1, 2])

@@ -20,24 +20,23 @@ Units: landmark errors and displacements in mm (LPS), moduli in Pa.
 
 from __future__ import annotations
 
+import datetime
 import json
 import platform
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.cohort import Task, write_json_atomically
 from BreastBiomechLib.errors import InputError, reading
 from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.io.claims import claimed
+from BreastBiomechLib.io.markups import read_markups
 from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
 from BreastBiomechLib.optimisation.search import OPTIMISERS
 from BreastBiomechLib.optimisation.space import HOMOGENEOUS, MODELS, REFERENCE_E
-from BreastBiomechLib.cohort import Task
-from BreastBiomechLib.io.markups import read_markups
-from BreastBiomechLib.cohort import write_json_atomically
-import datetime
-from collections import Counter
 
 # Forward solves per fit: about 20 per free parameter for the homogeneous variants (1-2 free),
 # more for the heterogeneous ones, whose 5-11 parameters interact.

@@ -15,9 +15,9 @@ import SimpleITK as sitk
 from scipy.ndimage import gaussian_filter
 
 from BreastBiomechLib import labels
+from BreastBiomechLib.io.cases import case_from_dict, compression_case
 from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
 from BreastBiomechLib.mesh.tetmesh import TetMesh
-from BreastBiomechLib.io.cases import case_from_dict, compression_case
 from BreastBiomechLib.solver.placement import final_planes
 
 INTENSITY = {"fat": 1000.0, "glandular": 420.0, "muscle": 330.0, "tumour": 250.0}

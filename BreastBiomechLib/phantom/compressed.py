@@ -10,24 +10,22 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import SimpleITK as sitk
 
+from BreastBiomechLib.io.cases import compression_case
+from BreastBiomechLib.labels import MUSCLE
 from BreastBiomechLib.landmarks import Landmarks, map_landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.phantom.generate import PhantomCase, _bias_field, _Grid
 from BreastBiomechLib.phantom.parameters import INTENSITY, PRONE_GRAVITY, TABLE1_COMPRESSION
 from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
-from BreastBiomechLib.solver.placement import final_planes
+from BreastBiomechLib.solver.placement import final_planes, posed_plate
 from BreastBiomechLib.solver.run_case import run_case
-from BreastBiomechLib.io.cases import compression_case
-from dataclasses import replace
-from BreastBiomechLib.solver.placement import posed_plate
 from BreastBiomechLib.solver.settings import UnloadedRequest
 from BreastBiomechLib.solver.supports import chest_wall_support
-from BreastBiomechLib.labels import MUSCLE
 
 # Hidden truth materials (ours; within the seed's bounds): E in Pa, nu, eta in Pa.
 DEFAULT_TRUTH_MATERIALS = {

@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
+
 from BreastBiomechLib.cohort import Task
 from BreastBiomechLib.phantom.parameters import TABLE1_CASES
-from dataclasses import replace
 
 
 def case_folder(out_dir: str | Path, number: int) -> Path:

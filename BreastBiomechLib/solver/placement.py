@@ -4,12 +4,12 @@ medio-lateral compression). Positions in the mesh's frame (LPS mm)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
-from BreastBiomechLib.solver.model import PENETRATION_TOLERANCE_MM, Plate
-from dataclasses import replace
-from BreastBiomechLib.solver.model import PlateEdge
+from BreastBiomechLib.solver.model import PENETRATION_TOLERANCE_MM, Plate, PlateEdge
 
 AXES = {"LR": (1.0, 0.0, 0.0), "AP": (0.0, 1.0, 0.0), "SI": (0.0, 0.0, 1.0)}  # LPS x, y, z
 MOVING = ("both", "first", "second")

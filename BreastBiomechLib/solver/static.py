@@ -24,8 +24,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from BreastBiomechLib.solver.geometry import shape_derivatives
-from BreastBiomechLib.solver.model import Model
 from BreastBiomechLib.solver.host_setup import anp_slots, merged_constraints
+from BreastBiomechLib.solver.model import Model
 from BreastBiomechLib.solver.settings import MM
 from BreastBiomechLib.solver.solution import Solution
 

@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from BreastBiomechLib.solver.model import Constraint
 from BreastBiomechLib.mesh.tetmesh import boundary_faces
-from BreastBiomechLib.solver.model import SurfaceSupport
+from BreastBiomechLib.solver.model import Constraint, SurfaceSupport
 
 
 def support_constraints(positions: np.ndarray, nodes, components=(False, True, False),

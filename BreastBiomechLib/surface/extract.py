@@ -15,8 +15,8 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from BreastBiomechLib.surface.trisurface import TriSurface, corner_angles
 from BreastBiomechLib.labels import BY_LABEL
+from BreastBiomechLib.surface.trisurface import TriSurface, corner_angles
 
 _PAD = 2  # background voxels added on every side
 

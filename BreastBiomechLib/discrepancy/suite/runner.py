@@ -35,17 +35,15 @@ from pathlib import Path
 
 import numpy as np
 
-from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
-from BreastBiomechLib.io.atomic import write_json_atomically
-from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
-from BreastBiomechLib.io.markups import read_markups
-from BreastBiomechLib.landmarks import Landmarks
+from BreastBiomechLib.cohort import Task, place, run_tasks
 from BreastBiomechLib.discrepancy.effects import library
-from BreastBiomechLib.discrepancy.variants import solve_variants
-from BreastBiomechLib.landmarks import map_landmarks
+from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
 from BreastBiomechLib.discrepancy.suite.scores import case_result
-from BreastBiomechLib.cohort import Task
-from BreastBiomechLib.cohort import place, run_tasks
+from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.io.atomic import write_json_atomically
+from BreastBiomechLib.io.markups import read_markups
+from BreastBiomechLib.landmarks import Landmarks, map_landmarks
+from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
 
 # what a clinic has of a compressed case: the fit and the diagnosis see nothing else
 MEASURED_FILES = ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json",
@@ -239,8 +237,8 @@ def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device
     exact undeformed landmarks moved by each model's displacement against the exact compressed
     ones; the measured landmarks carry a localisation error that would floor the figure)."""
     from BreastBiomechLib.discrepancy.fitted import load_fitted_case
-    from BreastBiomechLib.discrepancy.state import ModelState
     from BreastBiomechLib.discrepancy.session import state_from_record
+    from BreastBiomechLib.discrepancy.state import ModelState
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.warping import ImageWarper

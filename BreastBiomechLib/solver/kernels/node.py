@@ -10,7 +10,7 @@ import inspect
 
 import warp as wp
 
-from BreastBiomechLib.solver.kernels.common import NodeState, SPECIALISED, force_at, listed, load_factor, set_component
+from BreastBiomechLib.solver.kernels.common import SPECIALISED, NodeState, force_at, listed, load_factor, set_component
 from BreastBiomechLib.solver.kernels.contact import NodeConstraints, PlateContact, touch_plate
 
 wp.set_module_options({"fast_math": True})  # as every module of this package (why: common.py)
