@@ -16,15 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import (
-    MODEL_CHOICES,
-    device_argument,
-    fraction,
-    non_negative,
-    non_negative_int,
-    positive,
-    positive_int,
-)
+from BreastBiomechLib.cli.common import (MODEL_CHOICES, device_argument, fraction, non_negative, non_negative_int,
+                                         positive, positive_int)
 from BreastBiomechLib.cli.gpu_usage import GpuUsage
 from BreastBiomechLib.cohort import place
 from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings

@@ -6,14 +6,8 @@ from __future__ import annotations
 import json
 import sys
 
-from BreastBiomechLib.cli.common import (
-    device_argument,
-    fraction,
-    non_negative,
-    non_negative_int,
-    positive,
-    positive_int,
-)
+from BreastBiomechLib.cli.common import (device_argument, fraction, non_negative, non_negative_int, positive,
+                                         positive_int)
 from BreastBiomechLib.discrepancy.effects import NAMES
 from BreastBiomechLib.discrepancy.observations import CHANNELS
 

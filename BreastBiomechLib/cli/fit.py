@@ -9,19 +9,9 @@ import sys
 import time
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import (
-    MODEL_CHOICES,
-    OBJECTIVE_CHOICES,
-    add_cluster_options,
-    cohort_progress,
-    device_argument,
-    end_progress,
-    finite,
-    non_negative_int,
-    positive,
-    positive_int,
-    report_failures,
-)
+from BreastBiomechLib.cli.common import (MODEL_CHOICES, OBJECTIVE_CHOICES, add_cluster_options, cohort_progress,
+                                         device_argument, end_progress, finite, non_negative_int, positive,
+                                         positive_int, report_failures)
 from BreastBiomechLib.cohort import place
 
 

@@ -7,17 +7,8 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import (
-    add_cluster_options,
-    cohort_progress,
-    device_argument,
-    finite,
-    fraction,
-    non_negative,
-    non_negative_int,
-    positive,
-    report_failures,
-)
+from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, finite, fraction,
+                                         non_negative, non_negative_int, positive, report_failures)
 from BreastBiomechLib.cohort import place, run_tasks
 from BreastBiomechLib.phantom import PhantomParameters, table1_case
 from BreastBiomechLib.phantom.parameters import TABLE1_CASES

@@ -2,15 +2,8 @@
 
 from __future__ import annotations
 
-from BreastBiomechLib.cli.common import (
-    end_progress,
-    non_negative,
-    non_negative_int,
-    positive,
-    positive_int,
-    progress_line,
-    weight,
-)
+from BreastBiomechLib.cli.common import (end_progress, non_negative, non_negative_int, positive, positive_int,
+                                         progress_line, weight)
 from BreastBiomechLib.io.markups import read_markups
 
 

@@ -6,16 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from BreastBiomechLib.cli.common import (
-    add_cluster_options,
-    cohort_progress,
-    device_argument,
-    fraction,
-    non_negative,
-    positive,
-    positive_int,
-    report_failures,
-)
+from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, fraction, non_negative,
+                                         positive, positive_int, report_failures)
 from BreastBiomechLib.cohort import place
 from BreastBiomechLib.discrepancy.suite import SuiteSettings, run_suite, scores_markdown, suite_cases, suite_scores
 from BreastBiomechLib.io.atomic import write_text_atomically

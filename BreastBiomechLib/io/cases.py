@@ -21,13 +21,8 @@ from BreastBiomechLib.labels import tissue as lookup_tissue
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.materials import ElementMaterials, Material, default_tissue_materials
 from BreastBiomechLib.solver.model import Constraint, Loading, Model, Plate, PlateEdge
-from BreastBiomechLib.solver.placement import (
-    PLATE_SIDES,
-    compression_plates,
-    held_plates_touching,
-    plate_contacts,
-    posed_plate,
-)
+from BreastBiomechLib.solver.placement import (PLATE_SIDES, compression_plates, held_plates_touching, plate_contacts,
+                                               posed_plate)
 from BreastBiomechLib.solver.settings import DynamicRelaxation, SolverSettings, UnloadedRequest
 from BreastBiomechLib.solver.supports import chest_wall_support, support_constraints
 

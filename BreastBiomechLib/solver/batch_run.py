@@ -31,21 +31,10 @@ import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.geometry import MeshGeometry
-from BreastBiomechLib.solver.host_setup import (
-    anp_mode,
-    anp_slots,
-    constraint_load_shapes,
-    critical_time_step,
-    element_lanes,
-    material_table,
-    merged_constraints,
-    plate_pose,
-    plate_sets_of_batch,
-    relaxation_load_iterations,
-    stress_noise_floor_mm,
-    wave_modulus,
-    wave_speed_ratio,
-)
+from BreastBiomechLib.solver.host_setup import (anp_mode, anp_slots, constraint_load_shapes, critical_time_step,
+                                                element_lanes, material_table, merged_constraints, plate_pose,
+                                                plate_sets_of_batch, relaxation_load_iterations, stress_noise_floor_mm,
+                                                wave_modulus, wave_speed_ratio)
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.memory import SolveSize, check_fits
 from BreastBiomechLib.solver.model import LOAD_SHAPES, Model, Plate

@@ -26,13 +26,8 @@ import warp as wp
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.batch_run import BatchOptions, BatchRun
 from BreastBiomechLib.solver.geometry import MeshGeometry
-from BreastBiomechLib.solver.host_setup import (
-    anp_mode,
-    anp_slots,
-    constraint_load_shapes,
-    material_table,
-    merged_constraints,
-)
+from BreastBiomechLib.solver.host_setup import (anp_mode, anp_slots, constraint_load_shapes, material_table,
+                                                merged_constraints)
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder

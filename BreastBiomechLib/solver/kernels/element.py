@@ -9,18 +9,9 @@ import functools
 
 import warp as wp
 
-from BreastBiomechLib.solver.kernels.common import (
-    ANP_ACROSS_MATERIALS,
-    ANP_OFF,
-    SPECIALISED,
-    ElementMaterial,
-    MaterialTable,
-    add_force,
-    element_and_lane,
-    listed,
-    material_of,
-    model_at,
-)
+from BreastBiomechLib.solver.kernels.common import (ANP_ACROSS_MATERIALS, ANP_OFF, SPECIALISED, ElementMaterial,
+                                                    MaterialTable, add_force, element_and_lane, listed, material_of,
+                                                    model_at)
 
 wp.set_module_options({"fast_math": True})  # as every module of this package (why: common.py)
 
