@@ -92,8 +92,11 @@ class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
     panel ``UI_FILE`` (relative to ``Resources/``), makes the Logic (:meth:`createLogic`),
     observes the scene's close events, calls :meth:`connectGUI` (the module's signals and slots)
     and observes the Logic's parameter node while the module is shown, dropping it on scene
-    close. A subclass shows the node on the panel in :meth:`showParameters` and stores the panel
-    in it in :meth:`storeParameters`; its widgets' signals call ``updateParameterNodeFromGUI``."""
+    close. A subclass sets ``UI_FILE`` and defines ``createLogic()`` (its Logic),
+    ``connectGUI()`` (its widgets' signals: values to ``updateParameterNodeFromGUI``, buttons to
+    its actions), ``showParameters(parameterNode)`` (the node shown on the panel) and
+    ``storeParameters(parameterNode)`` (the panel stored in the node);
+    Testing/modules/test_slicer_app_fidelity.py checks that every module defines all four."""
 
     UI_FILE = ""
 
@@ -117,22 +120,6 @@ class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
         self.connectGUI()
         self.initializeParameterNode()
-
-    def createLogic(self):
-        """The module's Logic (the subclass's)."""
-        raise NotImplementedError
-
-    def connectGUI(self):
-        """Connect the panel's widgets to the parameter node and the actions (the subclass's)."""
-        raise NotImplementedError
-
-    def showParameters(self, parameterNode):
-        """Show ``parameterNode``'s values and references on the panel (the subclass's)."""
-        raise NotImplementedError
-
-    def storeParameters(self, parameterNode):
-        """Store the panel's values and chosen nodes in ``parameterNode`` (the subclass's)."""
-        raise NotImplementedError
 
     def updateGUIFromParameterNode(self, caller=None, event=None):
         """The parameter node shown on the panel (:meth:`showParameters`); the panel's own

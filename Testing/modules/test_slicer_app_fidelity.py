@@ -106,6 +106,19 @@ def test_headless_a_missing_package_is_an_error_that_names_the_install_command(m
 # -- when and where packages are installed ---------------------------------------------------------
 
 @pytest.mark.parametrize("module", MODULES)
+def test_every_widget_defines_what_its_base_calls(module):
+    """``ModuleWidgetBase.setup`` loads ``UI_FILE`` and calls ``createLogic`` and ``connectGUI``;
+    its parameter-node cycle calls ``showParameters`` and ``storeParameters``: each module's
+    Widget defines them (the base defines none, so a missing one would fail only in the app)."""
+    (widget,) = _classes(_tree(module), "Widget")
+    assert [b.id for b in widget.bases if isinstance(b, ast.Name)] == ["ModuleWidgetBase"]
+    defined = {n.name for n in widget.body if isinstance(n, ast.FunctionDef)}
+    assert {"createLogic", "connectGUI", "showParameters", "storeParameters"} <= defined, module
+    (ui,) = [n.value.value for n in widget.body if isinstance(n, ast.Assign) and n.targets[0].id == "UI_FILE"]
+    assert (MODULE_DIR / "Resources" / ui).is_file() and ui == f"UI/{module}.ui"
+
+
+@pytest.mark.parametrize("module", MODULES)
 def test_panels_install_nothing_when_they_open(module):
     for widget in _classes(_tree(module), "Widget"):
         for method in widget.body:
