@@ -42,7 +42,9 @@ def cmd_suite(args) -> int:
     write_text_atomically(out / "scores.md", scores_markdown(scores, finished))
     if args.json:
         print(json.dumps({k: scores[k] for k in ("cases", "finished", "right_verdicts", "false_alarms",
-                                                  "landmark_error_fall", "nmi_gap_closed", "seconds_per_case")}))
+                                                  "false_unexplained_after_right", "truth_in_interval",
+                                                  "friction_within_0.2", "mean_rounds", "landmark_error_fall",
+                                                  "nmi_gap_closed", "seconds_per_case")}))
     else:
         print(f"{len(finished)} of {len(cases)} cases done; scores: {out / 'scores.md'}")
     return 0

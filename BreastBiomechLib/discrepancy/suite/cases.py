@@ -40,12 +40,17 @@ MISSING = "missing effect"
 class HiddenEffect:
     """One kind of case: its ``name``, the :class:`~BreastBiomechLib.phantom.compressed.TruthModel`
     fields that hide it (``truth``), the library effects a right diagnosis adds (``expected``,
-    empty for the null and the unknown effects) and whether the library holds it (``known``)."""
+    empty for the null and the unknown effects), whether the library holds it (``known``) and,
+    where a library effect's parameters measure the quantity the truth sets, their true values
+    (``values``: {effect name: values in the effect's parameter order and units}), against which
+    the suite scores the refitted estimate (not the plate tilt's: which plate the truth tilts
+    depends on the case's rig)."""
 
     name: str
     truth: dict = field(default_factory=dict)
     expected: tuple[str, ...] = ()
     known: bool = True
+    values: dict = field(default_factory=dict)
 
     @property
     def kind(self) -> str:
@@ -61,13 +66,13 @@ class HiddenEffect:
 
 HIDDEN_EFFECTS: dict[str, HiddenEffect] = {h.name: h for h in (
     HiddenEffect("null"),
-    HiddenEffect("friction", {"friction": 0.6}, ("friction",)),
+    HiddenEffect("friction", {"friction": 0.6}, ("friction",), values={"friction": (0.6,)}),
     HiddenEffect("gravity", {"gravity": [0.0, -9.81, 0.0], "compression_gravity": [0.0, 0.0, -9.81]}, ("gravity",)),
     HiddenEffect("chest-wall", {"chest_wall": "sliding", "chest_wall_stiffness": [0.0, 3400.0]}, ("chest-wall",)),
     HiddenEffect("skin", {"skin": [100e3, 2.0]}, ("skin",)),
     HiddenEffect("plate-tilt", {"plate_tilt_deg": [[4.0, 0.0], [0.0, 0.0]]}, ("plate-tilt",)),
     HiddenEffect("friction+plate-tilt", {"friction": 0.6, "plate_tilt_deg": [[4.0, 0.0], [0.0, 0.0]]},
-                 ("friction", "plate-tilt")),
+                 ("friction", "plate-tilt"), values={"friction": (0.6,)}),
     HiddenEffect("stiff-band", {"stiff_band": [4.0, 15.0]}, known=False),
     HiddenEffect("chest-wall-shift", {"chest_wall_shift_mm": [0.0, -4.0, 0.0]}, known=False),
 )}

@@ -164,13 +164,14 @@ def test_a_hidden_plate_tilt_is_not_in_the_case_s_record(compressed_case_dir, tm
     np.testing.assert_allclose(read_compressed(tmp_path).gravity, [0.0, 0.0, -9.81])
 
 
-def _round(verdict, effect=None, added=None, before=(2.0, 1.20), after=None):
+def _round(verdict, effect=None, added=None, before=(2.0, 1.20), after=None, refit=None):
     record = {"diagnosis": {"verdict": verdict, "effect": effect, "overall": {"statistic": 50.0, "dof": 40,
                                                                               "p_value": 0.1}},
               "before": {"landmark_error_mm": {"mean": before[0]}, "nmi": before[1]}}
     if added:
         record["added"] = added
         record["after"] = {"landmark_error_mm": {"mean": after[0]}, "nmi": after[1]}
+        record["diagnosis"]["candidates"] = [{"name": added, "refit": refit or {}}]
     return record
 
 
@@ -179,7 +180,8 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
         return case_result(SuiteCase(1, HIDDEN_EFFECTS[hidden]), rounds, truth_nmi, {}, {"fit": 10.0})
 
     none = _round("no significant discrepancy")
-    friction = _round("missing effect", "friction", "friction", after=(0.8, 1.26))
+    friction = _round("missing effect", "friction", "friction", after=(0.8, 1.26),
+                      refit={"values": [0.2], "refined_values": [0.5], "sd": [0.06]})
     tilt = _round("missing effect", "plate-tilt", "plate-tilt", before=(0.8, 1.26), after=(0.5, 1.28))
     unexplained = _round("unexplained discrepancy")
     results = [result("null", [none]), result("null", [friction, none]), result("friction", [friction, none]),
@@ -187,6 +189,24 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
                result("stiff-band", [unexplained]), result("chest-wall-shift", [friction, none]),
                {"case": "anatomy2-skin", "error": "RuntimeError: boom"}]
     assert [r.get("correct") for r in results] == [True, False, True, False, True, True, False, None]
+    assert [r.get("final") for r in results[:7]] == ["none", "none", "none", "unexplained", "none", "unexplained", "none"]
+    # every round scored: the right effect added, then a false "unexplained", is not right; nor
+    # an effect added in the last round the rounds allowed (nothing tested the model with it)
+    later = [result("friction", [friction, unexplained]), result("friction", [friction])]
+    assert [r["correct"] for r in later] == [False, False]
+    assert [r["final"] for r in later] == ["unexplained", "unconfirmed"]
+    assert [r["false_unexplained_after_right"] for r in later] == [True, False]
+    # the refined estimate against the truth's mu 0.6: -0.1, inside 1.96 sd (0.118)
+    assert results[2]["estimates"]["friction"]["error"] == pytest.approx([-0.1])
+    assert results[2]["estimates"]["friction"]["in_interval"] and results[4]["estimates"]["friction"]["in_interval"]
+    assert "friction" not in results[6]["estimates"]  # no true friction in a chest-wall shift
+    narrow = result("friction", [_round("missing effect", "friction", "friction", after=(0.8, 1.26),
+                                        refit={"refined_values": [1.5], "sd": [0.05]}), none])
+    assert narrow["correct"] and not narrow["estimates"]["friction"]["in_interval"]
+    later_scores = suite_scores(results[:7] + later + [narrow])
+    assert later_scores["false_unexplained_after_right"] == pytest.approx(1 / 5)  # of the 5 with friction added
+    assert later_scores["truth_in_interval"] == pytest.approx(4 / 5)
+    assert later_scores["friction_within_0.2"] == pytest.approx(4 / 5)
     assert results[2]["landmark_error_fall"] == pytest.approx(0.6)
     assert results[2]["nmi_gap_closed"] == pytest.approx(0.6)
     assert results[4]["landmark_error_fall"] == pytest.approx(0.75)   # before the first round, after the last
@@ -204,6 +224,21 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
     assert scores["failed"] == [{"case": "anatomy2-skin", "error": "RuntimeError: boom"}]
     text = scores_markdown(scores, results)
     assert "| friction | 1 | 0 | 1 |" in text and "failed: RuntimeError: boom" in text
+    assert "| friction+plate-tilt | friction → none |" not in text and "| anatomy1-friction | friction → none |" in text
+    assert "of 2 (95 % CI 9%-91%)" in text  # the false alarms: 1 of 2 null cases
+
+
+def test_wilson_intervals_bound_a_rate_honestly():
+    """0 of 5 has an upper 95 % bound of 43 % (the issue's "0/5 bounds nothing"), 30 of 30 a
+    lower one of 89 %; the interval holds the rate and stays in [0, 1]."""
+    from BreastBiomechLib.discrepancy.suite.scores import wilson_interval
+
+    assert wilson_interval(0, 5) == pytest.approx((0.0, 0.4345), abs=1e-4)
+    assert wilson_interval(30, 30)[0] == pytest.approx(0.8865, abs=1e-4)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    for k, n in ((1, 2), (3, 40), (39, 40)):
+        low, high = wilson_interval(k, n)
+        assert 0.0 <= low <= k / n <= high <= 1.0
 
 
 def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
