@@ -207,7 +207,7 @@ class BreastBiomechLogic(ModuleLogicBase):
         """Load a case folder written by ``breastbiomech phantom --out DIR``."""
         from BreastBiomechLib.phantom import read_phantom
 
-        if not folder:
+        if not folder or os.path.normpath(folder) == ".":  # an empty path field reads "" or "."
             raise ValueError("choose a phantom case folder (made with `breastbiomech phantom --out DIR`)")
         case = read_phantom(folder)
         return self.addCaseToScene(case, name or os.path.basename(os.path.normpath(folder)))

@@ -557,7 +557,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
             if c["name"] == d["effect"]:
                 return "missing effect"
             if c["name"] in d["alternatives"]:
-                return "ambiguous" if d["verdict"] == "ambiguous" else "unexplained: best, removes too little"
+                return "ambiguous" if d["verdict"] == "ambiguous" else "unexplained: the nearest candidate"
             if c["p_adjusted"] < 0.01 or (c.get("refit") or {}).get("delta_bic") is not None:
                 return "significant, not confirmed"
             return "not significant"
@@ -571,12 +571,14 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                    "title": np.array([c["title"] for c in rows], dtype=object),
                    "statistic": np.array([c["statistic"] for c in rows], float),
                    "dof": np.array([c["dof"] for c in rows], float),
+                   "linearised dBIC": np.array([c.get("linear_delta_bic", float("nan")) for c in rows], float),
                    "p (corrected)": np.array([c["p_adjusted"] for c in rows], float),
                    "could explain": np.array([c["explained_fraction"] for c in rows], float),
                    "localisation": np.array([c["localisation"] for c in rows], float),
                    "absorbed by fit": np.array([c.get("absorbed", float("nan")) for c in rows], float),
                    "dBIC": np.array([refit(c, "delta_bic") for c in rows], float),
                    "removed": np.array([refit(c, "removed") for c in rows], float),
+                   "change (mm)": np.array([refit(c, "effect_mm") for c in rows], float),
                    "acts in": np.array([c.get("acts_in", "") for c in rows], dtype=object),
                    "verdict": np.array([role(c) for c in rows], dtype=object)}
         number = record["round"]

@@ -77,9 +77,10 @@ class BreastSimulationWidget(ModuleWidgetBase):
         self.ui.runButton.clicked.connect(self.onRunButton)
         self.ui.cancelButton.clicked.connect(self.onCancelButton)
         self.ui.cancelButton.enabled = False
-        # Nothing is installed when the panel opens: warp comes with the first Run
+        # Nothing is installed or initialised when the panel opens (warp's start looks for CUDA
+        # and loads its kernels' cache: seconds): the device is looked up at the first Run
         self.ui.deviceLabel.text = (_("warp is not installed yet: the first Run offers to install it")
-                                    if unmet_requirements(["warp"]) else self.logic.deviceDescription())
+                                    if unmet_requirements(["warp"]) else self.logic.deviceAtOpen())
 
     @staticmethod
     def _setComboText(comboBox, text):
@@ -504,6 +505,17 @@ class BreastSimulationLogic(ModuleLogicBase):
     def resolveDevice(choice: str) -> str:
         """"cuda" or "cpu" for the choice "auto" (the GPU when present), "cuda" or "cpu"."""
         return resolve_device(choice)
+
+    def deviceAtOpen(self) -> str:
+        """What the panel says about the device before anything starts warp: the description once
+        warp has been started in this session (by a Run or another module), else that the first
+        Run looks for the GPU."""
+        import sys
+
+        contexts = (sys.modules.get(name) for name in ("warp._src.context", "warp.context"))  # warp >= 1.10, older
+        if any(getattr(context, "runtime", None) is not None for context in contexts):
+            return self.deviceDescription()
+        return _("the GPU when there is one, else the CPU: looked up at the first Run (which starts warp)")
 
     def deviceDescription(self, choice: str = "auto") -> str:
         """What the solver will run on, for the panel, e.g. "GPU: NVIDIA H100 80GB HBM3"."""

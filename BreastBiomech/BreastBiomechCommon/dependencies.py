@@ -190,12 +190,17 @@ def ensure_dependencies(import_names, requester: str = "BreastBiomech") -> bool:
 
 def dependencies_ready(import_names, requester: str = "BreastBiomech") -> bool:
     """For a panel's action (application only): :func:`ensure_dependencies`, any failure shown
-    to the user as an error dialog. True when the action may go on."""
+    to the user as an error dialog (with the reason in its details). True when the action may
+    go on, False when a package is missing or could not be installed. (Not
+    ``slicer.util.tryWithErrorDisplay``: it shows the error and raises it again, so the action's
+    caller would never see False.)"""
     import slicer
 
-    with slicer.util.tryWithErrorDisplay(f"{requester} cannot go on without its Python packages."):
+    try:
         return ensure_dependencies(import_names, requester)
-    return False
+    except Exception as error:  # an install that failed, was declined, or a package that will not import
+        slicer.util.errorDisplay(f"{requester} cannot go on without its Python packages.", detailedText=str(error))
+        return False
 
 
 def skip_message(unmet: list[Unmet]) -> str:

@@ -3,26 +3,25 @@ the measured case, which candidate effect explains it, and is the answer clear.
 
 1. Sensitivities of every feature to the fitted parameters and to each candidate's
    (:mod:`~BreastBiomechLib.discrepancy.sensitivity`, one batch of solves).
-2. The overall test of the residual and each candidate's score test
-   (:mod:`~BreastBiomechLib.discrepancy.statistics`); p-values Bonferroni-corrected over the
-   candidates tested.
-3. The significant candidates (at most ``refit_top``, by p-value) refitted
-   (:mod:`~BreastBiomechLib.discrepancy.refit`) and confirmed by the likelihood-ratio test, BIC
-   and a localisation check: the residual's excess over the noise must sit in the regions where
-   the candidate's signature sits (overlap of the two distributions over the regions).
-4. The verdict: **missing effect** (one confirmed candidate's refit removes at least
-   ``min_explained`` of the residual's sum of squares; its parameters are then refined by
-   Gauss-Newton iterations), **ambiguous** (another confirmed candidate is
-   nearly as good by BIC and its signature correlates above ``ambiguity_correlation``),
-   **unexplained discrepancy** (significant, but no candidate confirmed or explains enough: the
-   answer when the missing effect is not in the library) or **no significant discrepancy**.
+2. The overall test of the residual, pooled and per channel, and each candidate's score test
+   likewise (:mod:`~BreastBiomechLib.discrepancy.statistics`); p-values Bonferroni-corrected
+   over the channels and over the candidates tested. Candidates are ranked by the linearised
+   dBIC of their score test (-S + dof ln n), so that a candidate with more parameters does not
+   win by its degrees of freedom alone.
+3. The significant candidates (at most ``refit_top``, by that rank) refitted
+   (:mod:`~BreastBiomechLib.discrepancy.refit`) against the refit of the fitted parameters alone
+   (the nested null model), with the LR test, dBIC, the localisation check (the residual's
+   excess over the noise must sit in the regions where the candidate's signature sits) and the
+   size of the change the refit makes to the features (``effect_mm``).
+4. The verdict and its sentence (:mod:`~BreastBiomechLib.discrepancy.verdicts`, the rules and
+   the words); the effect a missing-effect verdict names is refined by Gauss-Newton iterations.
    Whatever the verdict, a fitted parameter at an end of its range is reported: the data ask
    for more than the range allows, and a missing effect can hide in it (a chest wall that holds
    the breast fits as a stiffer pectoral muscle). Where the residual pushes such a parameter
    further out, it is held at its bound in the tests (it cannot move to absorb an effect).
-   Where no effect is named, the candidates whose signature the fitted parameters reproduce
-   (at least :data:`ABSORBED` of it) are said to be hard to see at this fit, with the fitted
-   parameter that takes them up most.
+   Where nothing significant is found, the candidates whose signature the fitted parameters
+   reproduce (at least :data:`ABSORBED` of it) are said to be what this case could not have
+   shown, with the fitted parameter that takes them up most.
 """
 
 from __future__ import annotations
@@ -32,7 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from BreastBiomechLib.discrepancy import statistics
+from BreastBiomechLib.discrepancy import statistics, verdicts
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.refit import Refit, refine, refit
@@ -40,7 +39,7 @@ from BreastBiomechLib.discrepancy.regions import regions_of
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
 
-VERDICTS = ("missing effect", "ambiguous", "unexplained discrepancy", "no significant discrepancy")
+VERDICTS = verdicts.VERDICTS
 EDGE = 0.005  # a fitted parameter this close to an end of its range (unit coordinates) is at it
 ABSORBED = 0.8  # a candidate this much of whose signature the fitted parameters reproduce is hard to see
 
@@ -63,13 +62,16 @@ class DiagnosisSettings:
     ambiguity_correlation: float = 0.9
     ambiguity_bic: float = 6.0
     min_localisation: float = 0.5
+    min_effect: float = 1.0
     refine_iterations: int = 2
 
 
 @dataclass
 class Candidate:
-    """One candidate's evidence: its score test (``statistic``, ``dof``, ``p_value``, the
-    Bonferroni-corrected ``p_adjusted``), the share of the residual its signature could explain
+    """One candidate's evidence: its score test (``statistic``, ``dof``, ``p_value`` pooled over
+    the features, each channel's own in ``channels``, and ``p_adjusted``: the smallest of the
+    family Bonferroni-corrected over it and over the candidates), ``linear_delta_bic`` (-S + dof
+    ln n, its rank), the share of the residual its signature could explain
     (``explained_fraction``), the linearised ``estimate`` and its ``sd``, where its signature
     sits (``signature_regions``: share per region), the ``localisation`` overlap, and after a
     refit the LR test and dBIC against the refit of the fitted parameters alone (the nested null
@@ -94,6 +96,8 @@ class Candidate:
     refit: dict | None = None
     absorbed: float = float("nan")
     absorbed_by: dict = field(default_factory=dict)
+    channels: dict = field(default_factory=dict)
+    linear_delta_bic: float = float("nan")
     skipped: str = ""
 
     def to_dict(self) -> dict:
@@ -175,14 +179,14 @@ def edges_sentence(edges: list[dict]) -> str:
 
 def absorbed_sentence(candidates: list[Candidate]) -> str:
     """The tested candidates whose signature the fitted parameters reproduce (at least
-    :data:`ABSORBED` of it), as a sentence ("" when none)."""
+    :data:`ABSORBED` of it), as what this case could not have shown ("" when none)."""
     hidden = [c for c in candidates if not c.skipped and c.absorbed >= ABSORBED]
     if not hidden:
         return ""
     listed = "; ".join(f"{c.title} ({c.absorbed:.0%} of its signature, chiefly by {c.absorbed_by['name']}, "
                        f"correlation {c.absorbed_by['correlation']:.2f})" for c in hidden)
-    return (f"Hard to see at this fit, since the fitted parameters reproduce what it would change: {listed}; "
-            "such an effect, if present, has been fitted as those parameters.")
+    return (f"What this case could not have shown, since the fitted parameters reproduce what it would change: "
+            f"{listed}; such an effect, if present, has been fitted as those parameters.")
 
 
 def _shares(values: np.ndarray, regions: np.ndarray) -> dict[str, float]:
@@ -265,7 +269,7 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     range are listed in ``edges`` and said after the verdict's sentence."""
     result = _decide(state, observations, candidates, settings, progress, excluded)
     result.edges = parameters_at_edges(state, result.held)
-    hidden = absorbed_sentence(result.candidates) if result.verdict != "missing effect" else ""
+    hidden = absorbed_sentence(result.candidates) if result.verdict == verdicts.NONE else ""
     if hidden:
         result.sentence = f"{result.sentence} {hidden}"
     if result.edges:
@@ -295,26 +299,30 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     whitened = weights * residual
     nuisance = weights[:, None] * sens.nuisance
     held = statistics.pushed_out(nuisance, whitened, *ends_of_range(state))
-    q_theta = statistics.basis(nuisance[:, ~held])
-    overall = statistics.overall(whitened, q_theta)
+    free = nuisance[:, ~held]
+    q_theta = statistics.basis(free)
+    overall = statistics.overall_by_channel(whitened, free, observations.channel)
     feature_regions = regions_of(fitted, observations.points, sens.displacement)
     excess = whitened ** 2 - 1.0
     residual_shares = _shares(excess, feature_regions)
     tested = [e for e in testable if e.name in sens.effects]
     m = max(len(tested), 1)
+    n = len(observations)
     ranked: list[Candidate] = []
     for effect in tested:
         b = weights[:, None] * sens.effects[effect.name]
-        test = statistics.score_test(whitened, q_theta, b)
+        test = statistics.score_by_channel(whitened, free, b, observations.channel)
         change = (b @ np.atleast_1d(test["estimate"])) ** 2
         signature = _shares(change, feature_regions)
         overlap = float(sum(min(signature.get(k, 0.0), residual_shares.get(k, 0.0)) for k in residual_shares))
         ranked.append(Candidate(effect.name, effect.title, effect.acts_in, test["statistic"], test["dof"],
-                                test["p_value"], min(1.0, test["p_value"] * m), test["explained_fraction"],
+                                test["p_value"], min(1.0, test["p_combined"] * m), test["explained_fraction"],
                                 np.atleast_1d(test["estimate"]).tolist(), np.atleast_1d(test["sd"]).tolist(),
                                 signature, overlap, absorbed=statistics.absorbed_share(b, q_theta),
-                                absorbed_by=_absorbed_by(b, nuisance, held, sens.nuisance_keys)))
-    ranked.sort(key=lambda c: (c.p_value, -c.statistic))
+                                absorbed_by=_absorbed_by(b, nuisance, held, sens.nuisance_keys),
+                                channels=test["channels"],
+                                linear_delta_bic=-test["statistic"] + test["dof"] * np.log(n)))
+    ranked.sort(key=lambda c: (c.linear_delta_bic, c.p_adjusted))
     for name, reason in sens.skipped.items():
         effect = next((e for e in candidates if e.name == name), None)
         ranked.append(Candidate(name, effect.title if effect else name, effect.acts_in if effect else "",
@@ -324,19 +332,17 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
         for b in tested[i + 1:]:
             correlations[f"{a.name}|{b.name}"] = statistics.canonical_correlation(
                 weights[:, None] * sens.effects[a.name], weights[:, None] * sens.effects[b.name], q_theta)
-    significant = overall["p_value"] < settings.alpha or any(c.p_adjusted < settings.alpha for c in ranked
-                                                            if not c.skipped)
     regions = region_summary(observations, residual, feature_regions)
     base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
                 sensitivities=sens, feature_regions=feature_regions, refits={},
                 held=[key for key, h in zip(sens.nuisance_keys, held) if h])
-    if not significant:
-        return Diagnosis("no significant discrepancy", None, [],
-                         f"No significant discrepancy: the residual is what the noise model expects "
-                         f"(T = {overall['statistic']:.1f} on {overall['dof']} degrees of freedom, p = "
-                         f"{overall['p_value']:.3g}) and no candidate's score test is significant.", refitted=None,
-                         **base)
+    evidence = verdicts.Evidence(overall, [], correlations, float(np.sqrt(np.mean(residual ** 2))),
+                                 _largest(regions), observations.floor_mm)
+    evidence.candidates = [c.to_dict() for c in ranked]
     chosen = [c for c in ranked if not c.skipped and c.p_adjusted < settings.alpha][:settings.refit_top]
+    if not chosen and not verdicts.overall_significant(evidence, settings.alpha):
+        decision = verdicts.decide(evidence, settings)
+        return Diagnosis(decision.verdict, None, [], decision.sentence, refitted=None, **base)
     by_name = {e.name: e for e in tested}
     say(f"refitting {', '.join(c.name for c in chosen) or 'no candidate'}")
     made = refit(state, observations, sens, [by_name[c.name] for c in chosen] + [None])
@@ -345,8 +351,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     # the nested null model refitted by the same step: what the fitted parameters alone remove
     fitted_only = next((r for r in made if r.effect is None and r.ok), None)
     rss_null = min(fitted_only.rss_after, fitted_only.rss_before) if fitted_only else None
-    n = len(observations)
-    confirmed = []
+    reference = (fitted_only.residual_after if fitted_only and fitted_only.rss_after <= fitted_only.rss_before
+                 else residual)
     for candidate in chosen:
         r = refits.get(candidate.name)
         if r is None:
@@ -362,63 +368,61 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                            "delta_bic": lr["delta_bic"],
                            "removed": max(null - r.rss_after, 0.0) / null if null > 0 else 0.0,
                            "excess_explained": statistics.excess_explained(null, r.rss_after, overall["dof"],
-                                                                           overall["dof"] - k)}
+                                                                           overall["dof"] - k),
+                           "effect_mm": effect_size_mm(reference - r.residual_after),
+                           "at_range_ends": range_ends(r)}
         if r.note:
             candidate.refit["note"] = r.note
-        if (r.ok and lr["p_value"] * m < settings.alpha and lr["delta_bic"] <= settings.bic_threshold
-                and candidate.localisation >= settings.min_localisation):
-            confirmed.append(candidate)
-    if not confirmed:
-        tried = ", ".join(f"{c.name} (dBIC {c.refit.get('delta_bic', float('nan')):.1f}, localisation "
-                          f"{c.localisation:.2f})" for c in chosen if c.refit) or "none was significant alone"
-        alone = 1.0 - rss_null / fitted_only.rss_before if fitted_only and fitted_only.rss_before > 0 else 0.0
-        hint = (f" Refitting the fitted parameters alone removes {alone:.0%} of it: the fit has not converged on "
-                "these features (landmarks and surface); refit with them before diagnosing."
-                if alone >= settings.min_explained else "")
-        return Diagnosis("unexplained discrepancy", None, [],
-                         f"Unexplained discrepancy: the residual is significant (T = {overall['statistic']:.1f} on "
-                         f"{overall['dof']} dof, p = {overall['p_value']:.3g}) but no candidate effect explains it "
-                         f"(refitted: {tried}).{hint}", refitted=None, **base)
-    confirmed.sort(key=lambda c: c.refit["delta_bic"])
-    best = confirmed[0]
-    if best.refit["removed"] < settings.min_explained:
-        return Diagnosis("unexplained discrepancy", None, [best.name],
-                         f"Unexplained discrepancy: the best candidate, {best.title}, removes only "
-                         f"{best.refit['removed']:.0%} of the residual beyond the fitted parameters alone "
-                         f"(dBIC {best.refit['delta_bic']:.1f}); something the library does not hold is missing.",
-                         refitted=None, **base)
-    rivals = [c for c in confirmed[1:]
-              if c.refit["delta_bic"] - best.refit["delta_bic"] < settings.ambiguity_bic
-              and correlations.get(f"{best.name}|{c.name}", correlations.get(f"{c.name}|{best.name}", 0.0))
-              >= settings.ambiguity_correlation]
-    if rivals:
-        pair = " or ".join([best.title] + [c.title for c in rivals])
-        corr = max(correlations.get(f"{best.name}|{c.name}", correlations.get(f"{c.name}|{best.name}", 0.0))
-                   for c in rivals)
-        return Diagnosis("ambiguous", None, [best.name] + [c.name for c in rivals],
-                         f"Ambiguous: {pair}. Their signatures correlate {corr:.2f} after the fitted parameters are "
-                         f"profiled out, and their refits differ by {rivals[0].refit['delta_bic'] - best.refit['delta_bic']:.1f} "
-                         "in BIC; the data cannot tell them apart.", refitted=None, **base)
+    evidence.candidates = [c.to_dict() for c in ranked]
+    if fitted_only and fitted_only.rss_before > 0:
+        evidence.fitted_alone_removed = 1.0 - rss_null / fitted_only.rss_before
+    decision = verdicts.decide(evidence, settings)
+    if decision.verdict != verdicts.MISSING:
+        return Diagnosis(decision.verdict, None, decision.alternatives, decision.sentence, refitted=None, **base)
+    best = next(c for c in ranked if c.name == decision.effect)
     chosen_refit = adopt(state, observations, sens, best, by_name[best.name], refits, settings.refine_iterations, say)
-    return Diagnosis("missing effect", best.name, [],
-                     f"Missing effect: {best.title} ({best.refit['refined_described']}). Score test p = "
-                     f"{best.p_adjusted:.2g} (corrected), refit dBIC {best.refit['delta_bic']:.1f}, removing "
-                     f"{best.refit['removed']:.0%} of the residual beyond the fitted parameters alone; its signature "
-                     f"and the residual overlap "
-                     f"{best.localisation:.0%} over the regions ({best.acts_in}).{_bound_note(chosen_refit)}",
+    return Diagnosis(verdicts.MISSING, best.name, [],
+                     verdicts.missing_effect_sentence(best.to_dict(), _bound_note(chosen_refit)),
                      refitted=chosen_refit, **base)
 
 
-def _bound_note(chosen: Refit) -> str:
-    """A sentence on the added effect's parameters that its refit left within :data:`EDGE` of
-    an end of their range ("" when none): their value is a bound the data press against, not an
-    estimate (friction beyond sticking, for one, changes nothing)."""
+def effect_size_mm(change: np.ndarray) -> float:
+    """The size of a refit's change of the features (mm): the RMS of the changes at or above
+    their :data:`~BreastBiomechLib.discrepancy.verdicts.EFFECT_QUANTILE` quantile in magnitude
+    (where the effect acts; an effect confined to a contact band is not diluted by the features
+    it leaves alone)."""
+    size = np.abs(np.asarray(change, float))
+    if size.size == 0:
+        return 0.0
+    top = size[size >= np.quantile(size, verdicts.EFFECT_QUANTILE)]
+    return float(np.sqrt(np.mean(top ** 2)))
+
+
+def _largest(regions: dict) -> str:
+    """The region and channel of :func:`region_summary` with the largest RMS residual, as
+    "region (channel)" ("" when none)."""
+    rows = [(figures["rms_mm"], f"{name} ({channel})") for name, channels in regions.items()
+            for channel, figures in channels.items()]
+    return max(rows)[1] if rows else ""
+
+
+def range_ends(chosen: Refit) -> list[str]:
+    """The refitted effect's parameters within :data:`EDGE` of an end of their range, as phrases
+    ("mu at the top of its range (1.5)")."""
     ends = []
     for parameter, value in zip(chosen.effect.parameters, chosen.values):
         end = range_end(value, parameter.lower, parameter.upper)
         if end:
             unit = f" {parameter.unit}" if parameter.unit else ""
             ends.append(f"{parameter.name} at the {end} of its range ({value:.4g}{unit})")
+    return ends
+
+
+def _bound_note(chosen: Refit) -> str:
+    """A sentence on the added effect's parameters that its refit left within :data:`EDGE` of
+    an end of their range ("" when none): their value is a bound the data press against, not an
+    estimate (friction beyond sticking, for one, changes nothing)."""
+    ends = range_ends(chosen)
     if not ends:
         return ""
     return (f" Refitted to an end of its range: {', '.join(ends)}; the value is a bound the data press against, "

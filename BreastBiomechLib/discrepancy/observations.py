@@ -52,7 +52,9 @@ class NoiseModel:
 class Observations:
     """``n`` features: their ``labels``, ``channel`` names, ``measured`` values, noise ``sigma``
     (mm) and reference ``points`` (N, 3) LPS mm (where in the undeformed breast each feature
-    sits, for the regions). :meth:`predicted` computes them from a displacement."""
+    sits, for the regions), ``floor_mm`` the model-error floor inside ``sigma`` (the size an
+    effect's change of the features is compared with before it is named; 0 where none was
+    assumed). :meth:`predicted` computes them from a displacement."""
 
     labels: list[str]
     channel: np.ndarray
@@ -60,6 +62,7 @@ class Observations:
     sigma: np.ndarray
     points: np.ndarray
     _parts: list = field(default_factory=list, repr=False)
+    floor_mm: float = 0.0
 
     def __len__(self) -> int:
         return len(self.measured)
@@ -125,4 +128,4 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
         raise ValueError("no feature to compare: the case has no landmarks and no breast skin inside the measured "
                          "image; add landmarks or check the fit's mesh and the measured image")
     return Observations(labels, np.array(channel), np.concatenate(measured), np.concatenate(sigma),
-                        np.concatenate(points), parts)
+                        np.concatenate(points), parts, noise.model_sd_mm)

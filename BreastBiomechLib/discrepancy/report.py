@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from BreastBiomechLib.discrepancy.verdicts import overall_phrase
 from BreastBiomechLib.io.atomic import write_text_atomically
 
 
@@ -29,19 +30,24 @@ def _absorbed(candidate: dict) -> str:
 
 
 def _candidates_table(candidates: list[dict]) -> str:
-    rows = ["| rank | effect | score S (dof) | p (corrected) | could explain | localisation | absorbed by the fit | "
-            "refit | dBIC | residual removed |", "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| rank | effect | score S (dof) | by channel | linearised dBIC | p (corrected) | could explain | "
+            "localisation | absorbed by the fit | refit | dBIC | residual removed | change where it acts (mm) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     rank = 0
     for c in candidates:
         if c["skipped"]:
             continue
         rank += 1
         refit = c.get("refit") or {}
-        rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {_number(c['p_adjusted'], 2)} | "
+        channels = "; ".join(f"{name} {t['statistic']:.1f} ({t['dof']}), p {t['p_value']:.2g}"
+                             for name, t in (c.get("channels") or {}).items()) or "-"
+        rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {channels} | "
+                    f"{_number(c.get('linear_delta_bic'), 3)} | {_number(c['p_adjusted'], 2)} | "
                     f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {_absorbed(c)} | "
                     f"{refit.get('described', '-')} | "
                     f"{_number(refit.get('delta_bic'), 3)} | "
-                    + (f"{refit['removed']:.0%}" if "removed" in refit else "-") + " |")
+                    + (f"{refit['removed']:.0%}" if "removed" in refit else "-") + " | "
+                    + _number(refit.get("effect_mm"), 2) + " |")
     skipped = [f"{c['title']} ({c['skipped']})" for c in candidates if c["skipped"]]
     refits = [c["refit"] for c in candidates if (c.get("refit") or {}).get("rss_fitted_only") is not None]
     note = ""
@@ -49,6 +55,11 @@ def _candidates_table(candidates: list[dict]) -> str:
         alone = 1.0 - refits[0]["rss_fitted_only"] / refits[0]["rss_before"]
         note = (f"\n\ndBIC and the residual removed are counted against the same refit of the fitted parameters "
                 f"alone (the nested model), which removed {max(alone, 0.0):.0%} of the residual by itself.")
+    note += ("\n\nCandidates are ranked by their linearised dBIC (-S + dof ln n: a candidate with more parameters "
+             "does not win by its degrees of freedom alone); the corrected p is the smallest of the pooled and the "
+             "channels' score tests, Bonferroni-corrected over them and over the candidates. *Change where it acts*: "
+             "the RMS of the largest tenth of the changes the refit makes to the features, compared with the "
+             "model-error floor before an effect is named.")
     note += ("\n\n*Absorbed by the fit*: the share of the candidate's signature that the fitted parameters "
              "reproduce (in brackets the one that alone reproduces most, and its correlation); near 100 % the fit has "
              "taken the effect up and no test of the residual can see it.")
@@ -124,8 +135,8 @@ def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
         parts += [f"## Round {record['round']}: {d['verdict']}", "", d["sentence"], "",
                   f"{record['features']['count']} features ({', '.join(f'{k} {v}' for k, v in record['features']['channels'].items())}); "
                   f"noise: landmarks {noise['landmark_sd_mm']:g} mm, model-error floor {noise['model_sd_mm']:g} mm. "
-                  f"Overall test T = {o['statistic']:.1f} on {o['dof']} degrees of freedom (T/dof {o['per_dof']:.2f}, "
-                  f"p = {o['p_value']:.3g}); {d['solves']} forward solves; {record['seconds']:.0f} s.", "",
+                  f"Overall test ({overall_phrase(o)}; T/dof of all features {o['per_dof']:.2f}); "
+                  f"{d['solves']} forward solves; {record['seconds']:.0f} s.", "",
                   "### Candidates", "", _candidates_table(d["candidates"]), "",
                   "### Residual by region", "", _regions_table(record["before"], record.get("after")), "",
                   *_field_section(record),

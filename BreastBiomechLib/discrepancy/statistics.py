@@ -6,6 +6,12 @@ effect's parameters (0 in the current model, the nested case).
 
 - Overall discrepancy: T = |P r|^2 with P the projection off span(J_theta); chi-square with
   n - rank(J_theta) degrees of freedom when nothing is missing.
+- Per channel (landmarks, surface): the same test on the channel's features alone, its own
+  projection off the span of J_theta's rows of that channel. Features are independent, so the
+  channels' statistics are independent chi-squares under "nothing is missing", each valid by
+  itself; a channel of 60 features is not drowned by one of 300 as in the pooled sum. The
+  family (the pooled test and each channel's) is combined by Bonferroni: p = family size times
+  the smallest p. The score tests are combined the same way (``score_by_channel``).
 - Rao's score (Lagrange-multiplier) test of a candidate: S = g' I^-1 g with g = B' P r and
   I = B' B, B = P J_phi (the efficient information, theta profiled out): chi-square with rank(B)
   degrees of freedom under "the effect is absent". Needs only the model at the current fit and
@@ -52,6 +58,52 @@ def overall(residual: np.ndarray, q_theta: np.ndarray) -> dict:
     t = float(np.sum(project_off(residual, q_theta) ** 2))
     dof = max(len(residual) - q_theta.shape[1], 1)
     return {"statistic": t, "dof": dof, "p_value": float(stats.chi2.sf(t, dof)), "per_dof": t / dof}
+
+
+def channel_family(pooled: dict, tests: dict[str, dict]) -> dict:
+    """The pooled test's numbers with each channel's (``tests``: {channel: test}) under
+    "channels", and the family's Bonferroni-combined p-value ("p_combined": the number of tests
+    times the smallest p, at most 1; the pooled p alone where no channel has its own test)."""
+    family = [pooled["p_value"]] + [t["p_value"] for t in tests.values()]
+    return {**pooled, "channels": tests, "family": len(family),
+            "p_combined": float(min(1.0, len(family) * min(family)))}
+
+
+def _channel_rows(channels, needed: int):
+    """{channel: boolean rows} of every channel name in ``channels`` (n,) with more than
+    ``needed`` features; {} where there is only one channel (the pooled test is its test)."""
+    channels = np.asarray(channels)
+    names = sorted(set(channels.tolist()))
+    if len(names) < 2:
+        return {}
+    return {name: channels == name for name in names if int((channels == name).sum()) > needed}
+
+
+def overall_by_channel(residual: np.ndarray, nuisance: np.ndarray, channels) -> dict:
+    """The overall test of the whitened ``residual`` (n,) against the whitened ``nuisance``
+    sensitivities (n, p) pooled and per channel (``channels`` (n,) names), combined by
+    :func:`channel_family`; each channel's test also gives its "features"."""
+    pooled = overall(residual, basis(nuisance))
+    tests = {}
+    for name, rows in _channel_rows(channels, nuisance.shape[1]).items():
+        q = basis(nuisance[rows])
+        if int(rows.sum()) > q.shape[1]:
+            tests[name] = overall(residual[rows], q) | {"features": int(rows.sum())}
+    return channel_family(pooled, tests)
+
+
+def score_by_channel(residual: np.ndarray, nuisance: np.ndarray, sensitivity: np.ndarray, channels) -> dict:
+    """A candidate's score test (:func:`score_test`; the estimate and explained fraction are the
+    pooled test's) with each channel's own (its rows of ``residual``, ``nuisance`` and
+    ``sensitivity``), combined by :func:`channel_family`."""
+    pooled = score_test(residual, basis(nuisance), sensitivity)
+    sensitivity = np.atleast_2d(sensitivity.T).T
+    tests = {}
+    for name, rows in _channel_rows(channels, nuisance.shape[1]).items():
+        test = score_test(residual[rows], basis(nuisance[rows]), sensitivity[rows])
+        if test["dof"]:
+            tests[name] = {"statistic": test["statistic"], "dof": test["dof"], "p_value": test["p_value"]}
+    return channel_family(pooled, tests)
 
 
 def score_test(residual: np.ndarray, q_theta: np.ndarray, sensitivity: np.ndarray) -> dict:

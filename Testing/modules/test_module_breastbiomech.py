@@ -107,6 +107,9 @@ def test_load_generated_phantom_and_case_folder(scene, case, tmp_path):
     assert loaded["segmentation"].GetSegmentation().GetSegment(lt.TUMOUR.name) is not None
     with pytest.raises(ValueError, match="choose a phantom case folder"):
         logic.loadPhantomFolder("")
+    for empty in (".", "./"):  # what an empty path field can read; never the working directory
+        with pytest.raises(ValueError, match="choose a phantom case folder"):
+            logic.loadPhantomFolder(empty)
     with pytest.raises(FileNotFoundError, match="not a phantom case folder"):
         logic.loadPhantomFolder(str(tmp_path))
 

@@ -304,3 +304,24 @@ def test_the_new_options_run_through_the_logic(scene, breast):
     assert np.linalg.norm(solution.plate_tangential_forces, axis=1).max() > 0.0
     output = p.reference("outputMesh")
     assert output is not None and output.GetUnstructuredGrid().GetNumberOfPoints() == len(breast.nodes)
+
+
+def test_the_panel_opens_without_starting_warp(scene):
+    """Opening the panel says how the device will be chosen without starting warp (its start looks
+    for CUDA and loads the kernel cache: seconds at every panel open); once warp has started in the
+    session it names the device. A fresh interpreter, since the tests before this one started it."""
+    import subprocess
+    import sys
+
+    script = ("import sys, slicer, BreastSimulation; "
+              "text = BreastSimulation.BreastSimulationLogic(slicer.vtkMRMLScene()).deviceAtOpen(); "
+              "contexts = [sys.modules.get(n) for n in ('warp._src.context', 'warp.context')]; "
+              "started = any(getattr(c, 'runtime', None) is not None for c in contexts); "
+              "print(repr(text), started)")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                         env={**__import__("os").environ, "PYTHONPATH": ":".join(sys.path)})
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip().endswith("False") and "looked up at the first Run" in run.stdout
+    logic = BreastSimulation.BreastSimulationLogic(scene)
+    logic.cudaAvailable()  # starts warp here
+    assert logic.deviceAtOpen() == logic.deviceDescription()

@@ -103,6 +103,23 @@ def test_headless_a_missing_package_is_an_error_that_names_the_install_command(m
         BreastBiomechCommon.ensure_dependencies(["numpy"], "Breast Test")
 
 
+def test_a_panel_action_is_told_false_when_a_package_is_missing(monkeypatch):
+    """``dependencies_ready`` shows the error and answers False (``slicer.util.tryWithErrorDisplay``
+    would show it and raise it again, so an action never saw False); the dialog itself is Qt's,
+    recorded here."""
+    import slicer.util
+
+    shown = []
+    monkeypatch.setattr(dependencies, "read_requirements",
+                        lambda path=None: {"numpy": dependencies.Requirement("numpy", "999.0"),
+                                           "scipy": dependencies.Requirement("scipy", "1.0")})
+    monkeypatch.setattr(slicer.util, "errorDisplay", lambda text, **kwargs: shown.append((text, kwargs)))
+    assert BreastBiomechCommon.dependencies_ready(["numpy"], "Breast Test") is False
+    [(text, kwargs)] = shown
+    assert "Breast Test cannot go on" in text and "numpy>=999.0" in kwargs["detailedText"]
+    assert BreastBiomechCommon.dependencies_ready(["scipy"], "Breast Test") is True and len(shown) == 1
+
+
 # -- when and where packages are installed ---------------------------------------------------------
 
 @pytest.mark.parametrize("module", MODULES)

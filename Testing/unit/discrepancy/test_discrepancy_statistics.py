@@ -106,3 +106,50 @@ def test_a_parameter_pushed_out_of_its_range_is_held_and_cannot_absorb_an_effect
     assert not statistics.pushed_out(a, -r, top, bottom).any()
     assert not statistics.pushed_out(a, r, bottom, top).any()
     assert statistics.pushed_out(a, -r, bottom, top).tolist() == [True, False, False]
+
+
+def _channels(n_landmarks=60, n_surface=300):
+    return np.array(["landmarks"] * n_landmarks + ["surface"] * n_surface)
+
+
+def test_the_channels_combined_test_keeps_its_level_when_nothing_is_missing():
+    """Pure noise plus anything the nuisance explains: each channel's own test is chi-square
+    (rejection at 5 % within Monte Carlo error) and the Bonferroni-combined family rejects at
+    most at its level (2000 draws; the family of three is conservative)."""
+    rng = np.random.default_rng(5)
+    channels = _channels()
+    a, b = _design(rng, n=len(channels))
+    landmark_p, combined, scores = [], [], []
+    for _ in range(2000):
+        r = rng.standard_normal(len(channels)) + a @ rng.standard_normal(3)
+        test = statistics.overall_by_channel(r, a, channels)
+        assert test["family"] == 3 and test["channels"]["landmarks"]["dof"] == 57
+        landmark_p.append(test["channels"]["landmarks"]["p_value"])
+        combined.append(test["p_combined"])
+        scores.append(statistics.score_by_channel(r, a, b, channels)["p_combined"])
+    assert abs(np.mean(np.array(landmark_p) < 0.05) - 0.05) < 0.015
+    assert np.mean(np.array(combined) < 0.05) < 0.05 + 0.015
+    assert np.mean(np.array(scores) < 0.05) < 0.05 + 0.015
+
+
+def test_a_channel_of_few_features_is_not_drowned_by_one_of_many():
+    """60 landmark features at 2.25 times the noise variance the model expects beside 300 surface features of
+    pure noise (the issue's case: landmarks alone 1.9-6 times the expected per feature): the
+    pooled test reads nothing, the landmarks' own test and the combined family do; the score test
+    of a signature confined to the landmarks likewise."""
+    rng = np.random.default_rng(6)
+    channels = _channels()
+    landmarks = channels == "landmarks"
+    a, _ = _design(rng, n=len(channels))
+    r = rng.standard_normal(len(channels)) * np.where(landmarks, 1.5, 1.0)
+    test = statistics.overall_by_channel(r, a, channels)
+    pooled_alone = statistics.overall(r, statistics.basis(a))
+    assert test["p_value"] == pooled_alone["p_value"] and test["p_value"] > 0.05  # pooled: nothing
+    assert test["channels"]["landmarks"]["p_value"] < 1e-4 and test["p_combined"] < 0.01
+    assert test["p_combined"] == min(1.0, 3 * test["channels"]["landmarks"]["p_value"])
+    single = statistics.overall_by_channel(r[landmarks], a[landmarks], channels[landmarks])
+    assert single["channels"] == {} and single["family"] == 1 and single["p_combined"] == single["p_value"]
+    signature = np.where(landmarks, rng.standard_normal(len(channels)), 0.0)[:, None]
+    scored = statistics.score_by_channel(r + 0.6 * signature[:, 0], a, signature, channels)
+    assert scored["channels"]["landmarks"]["p_value"] < scored["p_value"]
+    assert "surface" not in scored["channels"]  # no signature there: no test of it

@@ -1,0 +1,177 @@
+"""The diagnosis's verdict rules and sentences, fed with numbers on both sides of every threshold:
+the verdict follows the rule, and the words say what the numbers show (a sentence that calls the
+residual significant quotes a significant test; one that says there is no significant discrepancy
+quotes none)."""
+
+from __future__ import annotations
+
+import itertools
+import re
+
+import pytest
+
+from BreastBiomechLib.discrepancy import verdicts
+from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings, effect_size_mm
+
+SETTINGS = DiagnosisSettings()
+FLOOR = 0.5
+
+
+def _overall(p_combined: float) -> dict:
+    """A family whose smallest p is the landmarks' (the combined p three times it)."""
+    return {"statistic": 300.0, "dof": 350, "p_value": 0.97, "per_dof": 0.86, "family": 3,
+            "p_combined": p_combined,
+            "channels": {"landmarks": {"statistic": 80.0, "dof": 57, "p_value": p_combined / 3, "features": 60},
+                         "surface": {"statistic": 220.0, "dof": 290, "p_value": 0.99, "features": 300}}}
+
+
+def _candidate(name="friction", p=1e-6, lr_p=1e-6, dbic=-30.0, localisation=0.8, effect_mm=1.2, removed=0.7,
+               refitted=True) -> dict:
+    c = {"name": name, "title": name.replace("-", " "), "acts_in": "the contact bands", "statistic": 40.0, "dof": 1,
+         "p_value": p / 10, "p_adjusted": p, "localisation": localisation, "skipped": "", "refit": None}
+    if refitted:
+        c["refit"] = {"status": "completed", "values": [0.5], "sd": [0.05], "described": f"{name} 0.5",
+                      "refined_described": f"{name} 0.55", "lr_p_adjusted": lr_p, "delta_bic": dbic,
+                      "removed": removed, "effect_mm": effect_mm, "at_range_ends": []}
+    return c
+
+
+def _evidence(p_combined=0.5, candidates=(), correlations=None, alone=0.05) -> verdicts.Evidence:
+    return verdicts.Evidence(_overall(p_combined), list(candidates), correlations or {}, 0.42, "contact 1 (surface)",
+                             FLOOR, alone)
+
+
+def _quoted_combined_p(sentence: str) -> float:
+    return float(re.search(r"combined p = ([0-9.eE+-]+)", sentence).group(1))
+
+
+def _agrees(decision: verdicts.Decision, evidence: verdicts.Evidence) -> None:
+    """The words agree with the numbers: significance claimed only with a significant test quoted,
+    denied only with none."""
+    sentence = decision.sentence
+    if decision.verdict == verdicts.NONE:
+        assert sentence.startswith("No significant discrepancy")
+        assert _quoted_combined_p(sentence) >= SETTINGS.alpha
+        assert "residual is significant" not in sentence
+    if decision.verdict == verdicts.UNEXPLAINED:
+        assert sentence.startswith("Unexplained discrepancy: the residual is significant (")
+        assert _quoted_combined_p(sentence) < SETTINGS.alpha
+        assert "T/dof" in sentence and "landmarks: T = 80.0 on 57 dof" in sentence  # the test that found it
+    if decision.verdict == verdicts.AMBIGUOUS:
+        assert sentence.startswith("Ambiguous: ")
+
+
+def test_nothing_significant_is_said_so_with_every_channel_quoted():
+    evidence = _evidence(0.5, [_candidate(p=0.2, refitted=False)])
+    decision = verdicts.decide(evidence, SETTINGS)
+    assert decision.verdict == verdicts.NONE
+    assert "landmarks T = 80.0 on 57 dof, p = 0.167" in decision.sentence
+    assert "surface T = 220.0 on 290 dof" in decision.sentence and "combined p = 0.5" in decision.sentence
+    assert "smallest corrected p = 0.2" in decision.sentence
+    _agrees(decision, evidence)
+
+
+@pytest.mark.parametrize("overall_p", [0.5, 0.001])
+def test_each_confirmation_rule_on_both_sides_of_its_threshold(overall_p):
+    """One candidate significant by its score test; each rule moved just past its threshold
+    alone: on the right side the candidate is named, on the wrong side it is not, the sentence
+    names the rule it failed, and the verdict is "unexplained" only where the overall test is
+    significant (else a residual at the floor's level: no significant discrepancy)."""
+    floor_effect = SETTINGS.min_effect * FLOOR
+    sides = {"lr_p": (0.009, 0.011), "dbic": (-10.1, -9.9), "localisation": (0.51, 0.49),
+             "effect_mm": (floor_effect + 0.01, floor_effect - 0.01), "removed": (0.41, 0.39)}
+    failed_words = {"lr_p": "LR p 0.011", "dbic": "dBIC -9.9 > -10", "localisation": "localisation 0.49 < 0.5",
+                    "effect_mm": "moves the features by 0.49 mm, below 0.50 mm", "removed": "removes only 39%"}
+    for rule, (good, bad) in sides.items():
+        evidence = _evidence(overall_p, [_candidate(**{rule: good})])
+        named = verdicts.decide(evidence, SETTINGS)
+        assert named.verdict == verdicts.MISSING and named.effect == "friction", rule
+        evidence = _evidence(overall_p, [_candidate(**{rule: bad})])
+        decision = verdicts.decide(evidence, SETTINGS)
+        expected = verdicts.UNEXPLAINED if overall_p < SETTINGS.alpha else verdicts.NONE
+        assert decision.verdict == expected and decision.effect is None, rule
+        _agrees(decision, evidence)
+        if expected == verdicts.NONE:
+            assert "at the level of the model floor (0.50 mm) remains, largest in contact 1 (surface)" in decision.sentence
+            assert "0.42 mm RMS" in decision.sentence
+        if rule != "removed" or expected == verdicts.UNEXPLAINED:
+            assert failed_words[rule] in decision.sentence, (rule, decision.sentence)
+
+
+def test_a_significant_residual_with_no_significant_candidate_is_unexplained_and_says_which_test():
+    evidence = _evidence(0.003, [_candidate(p=0.3, refitted=False)])
+    decision = verdicts.decide(evidence, SETTINGS)
+    assert decision.verdict == verdicts.UNEXPLAINED
+    assert "no candidate's score test is significant" in decision.sentence
+    _agrees(decision, evidence)
+
+
+def test_unexplained_names_the_nearest_candidate_and_what_it_pressed_against():
+    near = _candidate("skin", dbic=-4.0, removed=0.15)
+    near["refit"]["at_range_ends"] = ["ln(E_skin/E_tissue) at the top of its range (4)"]
+    far = _candidate("plate-tilt", dbic=-2.0, removed=0.05)
+    evidence = _evidence(0.001, [near, far])
+    decision = verdicts.decide(evidence, SETTINGS)
+    assert decision.verdict == verdicts.UNEXPLAINED and decision.alternatives == ["skin"]
+    assert "Nearest: skin, at the ln(E_skin/E_tissue) at the top of its range (4)." in decision.sentence
+    assert "skin (removed 15%; dBIC -4.0 > -10)" in decision.sentence
+    _agrees(decision, evidence)
+
+
+def test_a_fit_that_had_not_converged_is_said_so():
+    """Whether or not the overall test is significant, a nested refit that removes most of the
+    residual by itself is said to be an unconverged fit, and no effect is credited with it."""
+    for overall_p, verdict in ((0.001, verdicts.UNEXPLAINED), (0.5, verdicts.NONE)):
+        evidence = _evidence(overall_p, [_candidate(removed=0.0, dbic=5.0)], alone=0.9)
+        decision = verdicts.decide(evidence, SETTINGS)
+        assert decision.verdict == verdict
+        assert "fitted parameters alone removes 90%" in decision.sentence
+        _agrees(decision, evidence)
+    quiet = verdicts.decide(_evidence(0.5, [_candidate(removed=0.0, dbic=5.0)], alone=0.3), SETTINGS)
+    assert "fitted parameters alone" not in quiet.sentence
+
+
+def test_ambiguity_on_both_sides_of_its_thresholds():
+    best, rival = _candidate("friction", dbic=-30.0), _candidate("skin", dbic=-26.0)
+    for correlation, gap, verdict in ((0.91, 4.0, verdicts.AMBIGUOUS), (0.89, 4.0, verdicts.MISSING),
+                                      (0.91, 6.1, verdicts.MISSING)):
+        rival["refit"]["delta_bic"] = -30.0 + gap
+        evidence = _evidence(0.001, [best, rival], {"friction|skin": correlation})
+        decision = verdicts.decide(evidence, SETTINGS)
+        assert decision.verdict == verdict, (correlation, gap)
+        if verdict == verdicts.AMBIGUOUS:
+            assert decision.alternatives == ["friction", "skin"]
+            assert f"correlate {correlation:.2f}" in decision.sentence and f"differ by {gap:.1f}" in decision.sentence
+        else:
+            assert decision.effect == "friction"
+
+
+def test_the_words_agree_with_the_numbers_over_a_grid():
+    """Every combination of overall p, score-test p and refit outcome on both sides of the
+    thresholds: whatever the verdict, its sentence agrees with the numbers it quotes; a missing
+    effect's sentence quotes its size."""
+    grid = itertools.product((0.5, 0.02, 0.009, 1e-8), (0.2, 0.011, 0.009, 1e-9), (-30.0, -9.0),
+                             (0.1, 0.9), (0.3, 2.0))
+    seen = set()
+    for overall_p, p, dbic, removed, size in grid:
+        candidate = _candidate(p=p, dbic=dbic, removed=removed, effect_mm=size, refitted=p < SETTINGS.alpha)
+        evidence = _evidence(overall_p, [candidate])
+        decision = verdicts.decide(evidence, SETTINGS)
+        seen.add(decision.verdict)
+        _agrees(decision, evidence)
+        if decision.verdict == verdicts.MISSING:
+            sentence = verdicts.missing_effect_sentence(candidate)
+            assert f"moving the features by {size:.2f} mm" in sentence and "(friction 0.55)" in sentence
+            assert p < SETTINGS.alpha and dbic <= SETTINGS.bic_threshold and removed >= SETTINGS.min_explained
+        if overall_p >= SETTINGS.alpha and p >= SETTINGS.alpha:
+            assert decision.verdict == verdicts.NONE
+    assert seen == {verdicts.NONE, verdicts.UNEXPLAINED, verdicts.MISSING}
+
+
+def test_an_effect_is_sized_where_it_acts():
+    """The RMS of the largest tenth of the changes: an effect confined to 10 of 100 features is
+    not diluted by the 90 it leaves alone."""
+    change = [0.0] * 90 + [1.0] * 10
+    assert effect_size_mm(change) == pytest.approx(1.0)
+    assert effect_size_mm([-2.0] * 100) == pytest.approx(2.0)
+    assert effect_size_mm([]) == 0.0
