@@ -9,7 +9,7 @@ import sys
 from BreastBiomechLib.cli.common import (device_argument, fraction, non_negative, non_negative_int, positive,
                                          positive_int)
 from BreastBiomechLib.discrepancy.effects import NAMES
-from BreastBiomechLib.discrepancy.observations import CHANNELS
+from BreastBiomechLib.discrepancy.observations import CHANNELS, FLOORS
 
 
 def cmd_diagnose(args) -> int:
@@ -17,7 +17,7 @@ def cmd_diagnose(args) -> int:
     from BreastBiomechLib.discrepancy.registration import RegistrationSettings
 
     noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
-                       surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels))
+                       surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor=args.floor)
     settings = DiagnosisSettings(alpha=args.alpha, refine_iterations=args.refine_iterations)
 
     def progress(message):
@@ -55,8 +55,13 @@ def add_parsers(sub) -> None:
                    help="what is compared (default: landmarks and the body surface)")
     p.add_argument("--landmark-sd-mm", type=non_negative, default=0.5,
                    help="landmark localisation error per coordinate (mm, default 0.5)")
+    p.add_argument("--floor", choices=FLOORS, default="measured",
+                   help="the model-error floor added to every feature's noise: measured from the case (the fitted "
+                        "model solved again on its refined fitting mesh: one solve of 8x the tets) or fixed at "
+                        "--model-sd-mm (default measured)")
     p.add_argument("--model-sd-mm", type=non_negative, default=0.5,
-                   help="model-error floor added to every feature's noise (mm, default 0.5)")
+                   help="the model-error floor (mm, default 0.5): the measured floor's lower bound, or with "
+                        "--floor fixed the floor itself")
     p.add_argument("--surface-spacing-mm", type=positive, default=8.0,
                    help="one surface feature per cube of this size (mm, default 8)")
     p.add_argument("--alpha", type=fraction, default=0.01, help="family-wise significance level (default 0.01)")

@@ -47,8 +47,9 @@ ABSORBED = 0.8  # a candidate this much of whose signature the fitted parameters
 @dataclass
 class DiagnosisSettings:
     """Decision thresholds: ``alpha`` the family-wise significance level, ``refit_top`` how many
-    significant candidates are refitted, ``min_explained`` the share of the residual (whitened
-    sum of squares) a named effect's refit must remove beyond the same refit of the fitted
+    significant candidates are refitted, ``min_explained`` the share of the residual (sum of
+    squares, each feature by its measurement's precision with the fixed floor:
+    :func:`removed_share`) a named effect's refit must remove beyond the same refit of the fitted
     parameters alone, ``bic_threshold`` the largest dBIC against that nested refit that confirms
     (-10: very strong evidence, Kass and Raftery), ``ambiguity_correlation`` and ``ambiguity_bic`` when two
     confirmed candidates cannot be told apart, ``min_localisation`` the overlap of residual and
@@ -336,8 +337,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
                 sensitivities=sens, feature_regions=feature_regions, refits={},
                 held=[key for key, h in zip(sens.nuisance_keys, held) if h])
-    evidence = verdicts.Evidence(overall, [], correlations, float(np.sqrt(np.mean(residual ** 2))),
-                                 _largest(regions), observations.floor_mm)
+    evidence = verdicts.Evidence(overall, [], correlations, _rms(residual), _largest(regions),
+                                 _rms(observations.feature_floor))
     evidence.candidates = [c.to_dict() for c in ranked]
     chosen = [c for c in ranked if not c.skipped and c.p_adjusted < settings.alpha][:settings.refit_top]
     if not chosen and not verdicts.overall_significant(evidence, settings.alpha):
@@ -366,10 +367,12 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                            "rss_fitted_only": null, "rss_after": r.rss_after, "rss_linear": r.rss_linear,
                            "lr": lr["statistic"], "lr_p_adjusted": min(1.0, lr["p_value"] * m),
                            "delta_bic": lr["delta_bic"],
-                           "removed": max(null - r.rss_after, 0.0) / null if null > 0 else 0.0,
+                           "removed": removed_share(reference, r.residual_after, observations.base_sigma),
+                           "removed_whitened": max(null - r.rss_after, 0.0) / null if null > 0 else 0.0,
                            "excess_explained": statistics.excess_explained(null, r.rss_after, overall["dof"],
                                                                            overall["dof"] - k),
                            "effect_mm": effect_size_mm(reference - r.residual_after),
+                           "floor_mm": _rms(observations.feature_floor[where_it_acts(reference - r.residual_after)]),
                            "at_range_ends": range_ends(r)}
         if r.note:
             candidate.refit["note"] = r.note
@@ -386,16 +389,39 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                      refitted=chosen_refit, **base)
 
 
-def effect_size_mm(change: np.ndarray) -> float:
-    """The size of a refit's change of the features (mm): the RMS of the changes at or above
-    their :data:`~BreastBiomechLib.discrepancy.verdicts.EFFECT_QUANTILE` quantile in magnitude
-    (where the effect acts; an effect confined to a contact band is not diluted by the features
-    it leaves alone)."""
+def removed_share(before: np.ndarray, after: np.ndarray, sigma: np.ndarray) -> float:
+    """The share (0-1) of the residual ``before`` (n,) mm that a refit leaving ``after`` removed,
+    each feature weighted by ``sigma`` (n,) mm: the measurement's precision with the fixed floor
+    (:attr:`~BreastBiomechLib.discrepancy.observations.Observations.base_sigma`), not the
+    measured floor, which is largest where the model's discretisation is coarsest - the plates'
+    contact, where friction acts - and would discount an effect's share exactly where it acts.
+    The tests of significance use the measured floor."""
+    total = float(np.sum((np.asarray(before, float) / sigma) ** 2))
+    if total <= 0:
+        return 0.0
+    return max(total - float(np.sum((np.asarray(after, float) / sigma) ** 2)), 0.0) / total
+
+
+def where_it_acts(change: np.ndarray) -> np.ndarray:
+    """The features (boolean (n,)) where a refit's ``change`` (n,) mm is largest: at or above the
+    :data:`~BreastBiomechLib.discrepancy.verdicts.EFFECT_QUANTILE` quantile of its magnitude."""
     size = np.abs(np.asarray(change, float))
     if size.size == 0:
-        return 0.0
-    top = size[size >= np.quantile(size, verdicts.EFFECT_QUANTILE)]
-    return float(np.sqrt(np.mean(top ** 2)))
+        return np.zeros(0, bool)
+    return size >= np.quantile(size, verdicts.EFFECT_QUANTILE)
+
+
+def effect_size_mm(change: np.ndarray) -> float:
+    """The size of a refit's change of the features (mm): the RMS of the changes where it acts
+    (:func:`where_it_acts`; an effect confined to a contact band is not diluted by the features
+    it leaves alone)."""
+    change = np.asarray(change, float)
+    acts = where_it_acts(change)
+    return float(np.sqrt(np.mean(change[acts] ** 2))) if acts.any() else 0.0
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.asarray(values, float) ** 2))) if np.size(values) else 0.0
 
 
 def _largest(regions: dict) -> str:

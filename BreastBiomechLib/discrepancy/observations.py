@@ -19,30 +19,35 @@ independent.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from BreastBiomechLib.landmarks import LandmarkMapper
 
 CHANNELS = ("landmarks", "surface")
+FLOORS = ("measured", "fixed")  # the model-error floor measured from the case (lower bound model_sd_mm), or fixed
 
 
 @dataclass
 class NoiseModel:
     """The noise the diagnosis assumes (mm, one standard deviation per coordinate):
     ``landmark_sd_mm`` the landmarks' localisation error, ``model_sd_mm`` the model-error floor
-    added to every feature, ``surface_spacing_mm`` the thinning of the surface features, and
-    the ``channels`` used."""
+    added to every feature (with ``floor`` "measured", the lower bound of the floor measured
+    from the case: :mod:`~BreastBiomechLib.discrepancy.floor`; "fixed": the floor itself),
+    ``surface_spacing_mm`` the thinning of the surface features, and the ``channels`` used."""
 
     landmark_sd_mm: float = 0.5
     model_sd_mm: float = 0.5
     surface_spacing_mm: float = 8.0
     channels: tuple[str, ...] = CHANNELS
+    floor: str = "measured"
 
     def __post_init__(self) -> None:
         if not (self.landmark_sd_mm >= 0 and self.model_sd_mm >= 0 and self.surface_spacing_mm > 0):
             raise ValueError("the noise model needs landmark_sd_mm >= 0, model_sd_mm >= 0, surface_spacing_mm > 0")
+        if self.floor not in FLOORS:
+            raise ValueError(f"the model-error floor is one of {FLOORS}, not {self.floor!r}")
         unknown = set(self.channels) - set(CHANNELS)
         if unknown or not self.channels:
             raise ValueError(f"channels are some of {CHANNELS}, not {sorted(unknown) or 'none'}")
@@ -52,9 +57,11 @@ class NoiseModel:
 class Observations:
     """``n`` features: their ``labels``, ``channel`` names, ``measured`` values, noise ``sigma``
     (mm) and reference ``points`` (N, 3) LPS mm (where in the undeformed breast each feature
-    sits, for the regions), ``floor_mm`` the model-error floor inside ``sigma`` (the size an
-    effect's change of the features is compared with before it is named; 0 where none was
-    assumed). :meth:`predicted` computes them from a displacement."""
+    sits, for the regions), ``floor_mm`` the fixed model-error floor inside ``sigma`` (0 where
+    none was assumed), ``measurement_sd`` (n,) mm the part of ``sigma`` that is measurement (the
+    landmarks' localisation, the surface's quantisation) and ``floor`` (n,) mm each feature's
+    measured floor where one was measured (:meth:`with_floor`). :meth:`predicted` computes the
+    features from a displacement."""
 
     labels: list[str]
     channel: np.ndarray
@@ -63,6 +70,28 @@ class Observations:
     points: np.ndarray
     _parts: list = field(default_factory=list, repr=False)
     floor_mm: float = 0.0
+    measurement_sd: np.ndarray | None = None
+    floor: np.ndarray | None = None
+
+    @property
+    def base_sigma(self) -> np.ndarray:
+        """Each feature's noise (n,) mm with the fixed floor ``floor_mm`` (what ``sigma`` is when
+        no floor was measured)."""
+        return self.sigma if self.measurement_sd is None else np.hypot(self.measurement_sd, self.floor_mm)
+
+    @property
+    def feature_floor(self) -> np.ndarray:
+        """Each feature's model-error floor (n,) mm: the measured one, else the fixed one."""
+        return self.floor if self.floor is not None else np.full(len(self), self.floor_mm)
+
+    def with_floor(self, floor: np.ndarray) -> "Observations":
+        """These features with each one's model-error floor ``floor`` (n,) mm in place of the fixed
+        one: sigma = sqrt(measurement_sd^2 + floor^2)."""
+        floor = np.asarray(floor, float)
+        if floor.shape != self.measured.shape or self.measurement_sd is None:
+            raise ValueError(f"a floor for {len(self)} features made by observations_of is needed, not "
+                             f"{floor.shape[0] if floor.ndim else 'a scalar'}")
+        return replace(self, sigma=np.hypot(self.measurement_sd, floor), floor=floor)
 
     def __len__(self) -> int:
         return len(self.measured)
@@ -91,7 +120,7 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
 
     noise = noise or NoiseModel()
     mesh = fitted.mesh
-    labels, channel, measured, sigma, points, parts = [], [], [], [], [], []
+    labels, channel, measured, measurement, points, parts = [], [], [], [], [], []
     if "landmarks" in noise.channels and fitted.reference is not None:
         mapper = LandmarkMapper(mesh, fitted.reference)
         for name in fitted.reference.labels:
@@ -99,7 +128,7 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
         n = 3 * len(fitted.reference.labels)
         channel += ["landmarks"] * n
         measured.append(fitted.measured.positions.ravel())
-        sigma.append(np.full(n, np.hypot(noise.landmark_sd_mm, noise.model_sd_mm)))
+        measurement.append(np.full(n, noise.landmark_sd_mm))
         points.append(np.repeat(fitted.reference.positions, 3, axis=0))
         parts.append(lambda u: mapper.map(u).positions.ravel())
     if "surface" in noise.channels:
@@ -116,7 +145,7 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
             labels += [f"skin node {i}" for i in skin]
             channel += ["surface"] * len(skin)
             measured.append(np.zeros(len(skin)))
-            sigma.append(np.full(len(skin), np.hypot(quantisation, noise.model_sd_mm)))
+            measurement.append(np.full(len(skin), quantisation))
             points.append(mesh.nodes[skin])
 
             def signed(u, skin=skin, base=base):
@@ -127,5 +156,6 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
     if not parts:
         raise ValueError("no feature to compare: the case has no landmarks and no breast skin inside the measured "
                          "image; add landmarks or check the fit's mesh and the measured image")
-    return Observations(labels, np.array(channel), np.concatenate(measured), np.concatenate(sigma),
-                        np.concatenate(points), parts, noise.model_sd_mm)
+    measurement = np.concatenate(measurement)
+    return Observations(labels, np.array(channel), np.concatenate(measured), np.hypot(measurement, noise.model_sd_mm),
+                        np.concatenate(points), parts, noise.model_sd_mm, measurement)

@@ -113,6 +113,19 @@ def _field_section(record: dict) -> list[str]:
     return lines + [""]
 
 
+def _floor_phrase(record: dict) -> str:
+    """The model-error floor a round used: measured (its RMS, the estimate's largest group, the
+    meshes) or fixed."""
+    floor = record.get("floor") or {}
+    if "rms_mm" not in floor:
+        return f"model-error floor {floor.get('fixed_mm', record['noise']['model_sd_mm']):g} mm (fixed)"
+    largest = floor["largest"]
+    return (f"model-error floor measured from the case: {floor['rms_mm']:.2f} mm RMS over the features (at least "
+            f"{floor['lower_bound_mm']:g} mm; the fitting mesh's discretisation error, estimated against its "
+            f"refinement of {floor['tets'][1]} tets, {floor['discretisation_rms_mm']:.2f} mm RMS, largest in "
+            f"{largest['group']} at {largest['rms_mm']:.2f} mm)")
+
+
 def _measures_line(name: str, m: dict) -> str:
     landmark = m.get("landmark_error_mm")
     text = f"{name}: NMI {m['nmi']:.4f}, RMS feature residual {m['residual_rms_mm']:.2f} mm"
@@ -134,7 +147,7 @@ def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
         noise = record["noise"]
         parts += [f"## Round {record['round']}: {d['verdict']}", "", d["sentence"], "",
                   f"{record['features']['count']} features ({', '.join(f'{k} {v}' for k, v in record['features']['channels'].items())}); "
-                  f"noise: landmarks {noise['landmark_sd_mm']:g} mm, model-error floor {noise['model_sd_mm']:g} mm. "
+                  f"noise: landmarks {noise['landmark_sd_mm']:g} mm, {_floor_phrase(record)}. "
                   f"Overall test ({overall_phrase(o)}; T/dof of all features {o['per_dof']:.2f}); "
                   f"{d['solves']} forward solves; {record['seconds']:.0f} s.", "",
                   "### Candidates", "", _candidates_table(d["candidates"]), "",

@@ -10,6 +10,9 @@ Output folder::
                      region before and after the refit; ``added`` (the effect added) or
                      ``rejected`` (candidates the user turned down) once decided
     diagnosis.json   the case and fit, the settings, all rounds and the latest verdict
+    floor.json       the measured model-error floor's per-feature discretisation estimate and
+                     groups (:mod:`BreastBiomechLib.discrepancy.floor`; with the noise model's
+                     floor "measured")
     round-<N>-residual-{before,after}.nrrd
                      the residual displacement field of the round's model before and after its refit
                      (vector, LPS mm, on the measured image's grid; Slicer loads it as a vector
@@ -36,6 +39,7 @@ import numpy as np
 from BreastBiomechLib.discrepancy.diagnosis import Diagnosis, DiagnosisSettings, adopt, diagnose, region_summary
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
+from BreastBiomechLib.discrepancy.floor import MeasuredFloor, measure_floor
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
 from BreastBiomechLib.discrepancy.regions import regions_of
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
@@ -44,6 +48,7 @@ from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.io.atomic import atomic_path, write_text_atomically
 from BreastBiomechLib.io.claims import CLAIM_FILE
 
+FLOOR_FILE = "floor.json"  # the measured model-error floor of the session's features
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
 
 
@@ -172,6 +177,10 @@ class DiagnosisSession:
                                   self.fitted.relaxation, device)[0].displacement
         self.base_displacement = base
         self.observations = observations_of(self.fitted, base, self.noise)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.floor = self._measured_floor(base) if self.noise.floor == "measured" else None
+        if self.floor is not None:
+            self.observations = self.observations.with_floor(self.floor.floor)
         self.recorder = FieldRecorder.of(self.fitted, base, registration) if registration is not None else None
         self.rounds: list[dict] = []
         self.state = ModelState(self.fitted, self.fitted.z)
@@ -184,6 +193,21 @@ class DiagnosisSession:
             self.rounds.append(record)
             self.state = state_from_record(self.fitted, record, self.candidates)
             number += 1
+
+    def _measured_floor(self, base: np.ndarray) -> MeasuredFloor:
+        """The model-error floor measured from the case (:mod:`~BreastBiomechLib.discrepancy.floor`),
+        written to floor.json; read from it where an earlier session of this folder measured it."""
+        path = self.out / FLOOR_FILE
+        if path.is_file():
+            floor = MeasuredFloor.from_dict(json.loads(path.read_text()), self.noise.model_sd_mm)
+            if len(floor.floor) == len(self.observations):
+                return floor
+        self._say("measuring the model-error floor (the fitted model solved on its refined fitting mesh)")
+        regions = regions_of(self.fitted, self.observations.points, base)
+        floor = measure_floor(ModelState(self.fitted, self.fitted.z), self.observations, base, regions,
+                              self.noise.model_sd_mm)
+        write_text_atomically(path, json.dumps(floor.to_dict()) + "\n")
+        return floor
 
     @staticmethod
     def _checked(progress):
@@ -233,7 +257,8 @@ class DiagnosisSession:
                   "features": {"count": len(observations),
                                "channels": {c: int(np.sum(observations.channel == c))
                                             for c in sorted(set(observations.channel))}},
-                  "noise": self.noise.__dict__ | {"channels": list(self.noise.channels)}}
+                  "noise": self.noise.__dict__ | {"channels": list(self.noise.channels)},
+                  "floor": self.floor.summary() if self.floor is not None else {"fixed_mm": self.noise.model_sd_mm}}
         record["refits"] = {name: measures(fitted, observations, r.displacement, regions)
                             for name, r in diagnosis.refits.items() if r.ok}
         if self.recorder is not None:

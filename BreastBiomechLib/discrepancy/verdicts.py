@@ -12,7 +12,8 @@ The rules (thresholds in :class:`~BreastBiomechLib.discrepancy.diagnosis.Diagnos
   (corrected), its dBIC against the refit of the fitted parameters alone is at most
   ``bic_threshold``, the residual's excess sits where its signature does (``localisation``) and
   the refit changes the features by a size that matters: the RMS of the largest tenth of the
-  feature changes (``effect_mm``) at least ``min_effect`` times the model-error floor.
+  feature changes (``effect_mm``) at least ``min_effect`` times the model-error floor of those
+  features (``floor_mm``: measured per feature where the floor was measured).
 - **Missing effect** X when the confirmed candidate with the lowest dBIC removes at least
   ``min_explained`` of the residual beyond the fitted parameters alone; **ambiguous** when a
   second confirmed one is within ``ambiguity_bic`` of it and their signatures correlate at least
@@ -96,10 +97,10 @@ def confirmation(candidate: dict, settings, floor_mm: float) -> list[str]:
         failed.append(f"dBIC {refit['delta_bic']:.1f} > {settings.bic_threshold:g}")
     if not candidate["localisation"] >= settings.min_localisation:
         failed.append(f"localisation {candidate['localisation']:.2f} < {settings.min_localisation:g}")
-    needed = settings.min_effect * floor_mm
+    needed = settings.min_effect * refit.get("floor_mm", floor_mm)  # the floor where it acts, where recorded
     if not refit.get("effect_mm", float("inf")) >= needed:
         failed.append(f"moves the features by {refit['effect_mm']:.2f} mm, below {needed:.2f} mm "
-                      f"({settings.min_effect:g} x the model floor)")
+                      f"({settings.min_effect:g} x the model floor there)")
     return failed
 
 
