@@ -73,6 +73,7 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
             spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.deviceComboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
         self.ui.residualFieldCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
+        self.ui.measuredFloorCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
         self.ui.glyphsCheckBox.toggled.connect(self.onGlyphsToggled)
         self.ui.regionsCheckBox.toggled.connect(self.onRegionsToggled)
         self.ui.roundComboBox.currentIndexChanged.connect(self.onRoundChosen)
@@ -97,6 +98,7 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         self.ui.alphaSpinBox.value = p["alpha"]
         self.ui.deviceComboBox.currentIndex = max(self.ui.deviceComboBox.findText(p["device"]), 0)
         self.ui.residualFieldCheckBox.checked = p["residualField"]
+        self.ui.measuredFloorCheckBox.checked = p["measuredFloor"]
         self.ui.glyphsCheckBox.checked = p["fieldGlyphs"]
         self.ui.regionsCheckBox.checked = p["showRegions"]
         self.ui.candidatesTableView.setMRMLTableNode(p.reference("candidatesTable"))
@@ -121,6 +123,7 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         p["alpha"] = self.ui.alphaSpinBox.value
         p["device"] = self.ui.deviceComboBox.currentText
         p["residualField"] = self.ui.residualFieldCheckBox.checked
+        p["measuredFloor"] = self.ui.measuredFloorCheckBox.checked
 
     def _setRunning(self, running):
         for button in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.saveReportButton,
@@ -231,8 +234,8 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
 
     MODULE_NAME = "BreastDiscrepancy"
     DEFAULTS = {"caseDirectory": "", "fitDirectory": "", "outputDirectory": "", "effects": "", "refineIterations": 2,
-                "maxRounds": 4, "landmarkSdMm": 0.5, "modelSdMm": 0.5, "alpha": 0.01, "device": "auto",
-                "residualField": True, "fieldGlyphs": False, "showRegions": False, "shownRound": 0, "candidate": ""}
+                "maxRounds": 4, "landmarkSdMm": 0.5, "modelSdMm": 0.5, "measuredFloor": True, "alpha": 0.01,
+                "device": "auto", "residualField": True, "fieldGlyphs": False, "showRegions": False, "shownRound": 0, "candidate": ""}
     ROLES = ("measuredVolume", "candidatesTable", "residualVolume", "candidateVolume", "residualTransform",
              "landmarkLines", "skinModel", "regions", "landmarkErrorsTable", "landmarkErrorsChart", "measuresTable",
              "measuresChart", "histogramTable", "histogramChart")
@@ -264,6 +267,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         them). Loads the measured compressed volume into the scene."""
         from BreastBiomechLib.discrepancy import DiagnosisSession, DiagnosisSettings, NoiseModel
         from BreastBiomechLib.discrepancy.registration import RegistrationSettings
+        from BreastBiomechLib.discrepancy.session import FLOOR_FILE
         from BreastBiomechLib.mrml import image_to_volume_node
 
         p = parameterNode
@@ -272,14 +276,17 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                                                    "Optimization's output folder)")
         out = chosen_folder(p["outputDirectory"], "an output folder for the rounds and the report")
         effects = [e.strip() for e in p["effects"].replace(",", " ").split() if e.strip()] or None
-        key = (case, fit, out, tuple(effects or ()), p["landmarkSdMm"], p["modelSdMm"], p["alpha"], p["residualField"])
+        key = (case, fit, out, tuple(effects or ()), p["landmarkSdMm"], p["modelSdMm"], p["measuredFloor"], p["alpha"],
+               p["residualField"])
         if self.session is not None and self._key == key:
             return self.session
-        earlier = os.path.isfile(os.path.join(out, "diagnosis.json"))
+        # a session started there: its rounds, or only the floor it measured before a Cancel
+        earlier = any(os.path.isfile(os.path.join(out, name)) for name in ("diagnosis.json", FLOOR_FILE))
         if not earlier and os.path.isdir(out) and os.listdir(out):
             raise ValueError(f"the output folder {out} is not empty and holds no diagnosis: choose a new or empty folder")
         session = DiagnosisSession(case, fit, out, effects,
-                                   NoiseModel(landmark_sd_mm=p["landmarkSdMm"], model_sd_mm=p["modelSdMm"]),
+                                   NoiseModel(landmark_sd_mm=p["landmarkSdMm"], model_sd_mm=p["modelSdMm"],
+                                              floor="measured" if p["measuredFloor"] else "fixed"),
                                    DiagnosisSettings(alpha=p["alpha"], refine_iterations=0),
                                    self.resolveDevice(p["device"]), resume=earlier,
                                    registration=RegistrationSettings() if p["residualField"] else None,

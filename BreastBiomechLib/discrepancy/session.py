@@ -199,14 +199,20 @@ class DiagnosisSession:
         written to floor.json; read from it where an earlier session of this folder measured it."""
         path = self.out / FLOOR_FILE
         if path.is_file():
-            floor = MeasuredFloor.from_dict(json.loads(path.read_text()), self.noise.model_sd_mm)
+            record = json.loads(path.read_text())
+            for key, ours in (("case_dir", self.case_dir), ("fit_dir", self.fit_dir)):
+                if Path(record.get(key, ours)).resolve() != ours.resolve():
+                    raise ValueError(f"{self.out} holds the floor of {key.split('_')[0]} {record[key]}, not {ours}: "
+                                     "choose another output folder")
+            floor = MeasuredFloor.from_dict(record, self.noise.model_sd_mm)
             if len(floor.floor) == len(self.observations):
                 return floor
         self._say("measuring the model-error floor (the fitted model solved on its refined fitting mesh)")
         regions = regions_of(self.fitted, self.observations.points, base)
         floor = measure_floor(ModelState(self.fitted, self.fitted.z), self.observations, base, regions,
                               self.noise.model_sd_mm)
-        write_text_atomically(path, json.dumps(floor.to_dict()) + "\n")
+        record = floor.to_dict() | {"case_dir": str(self.case_dir), "fit_dir": str(self.fit_dir)}
+        write_text_atomically(path, json.dumps(record) + "\n")
         return floor
 
     @staticmethod

@@ -108,6 +108,11 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert summary["final"] == "no significant discrepancy", summary["sentence"]
     assert summary["added"] == []
+    # by default against the floor measured from the case, which the record and the report state
+    floor = json.loads((out / "round-1.json").read_text())["floor"]
+    assert floor["rms_mm"] >= floor["lower_bound_mm"] == 0.5 and floor["tets"][1] == 8 * floor["tets"][0]
+    assert (out / "floor.json").is_file()
+    assert "model-error floor measured from the case" in (out / "report.md").read_text()
 
 
 def _friction_secant(null_case, step: float = 0.3):

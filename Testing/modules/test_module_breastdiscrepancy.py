@@ -164,6 +164,14 @@ def test_bad_inputs_are_refused_and_leave_the_scene_as_it_was(scene, friction_ca
         logic.diagnose(p, progress=lambda message: "building" not in message)
     assert not (tmp_path / "out" / "round-1.json").exists()
     assert logic.roundNumbers(p) == []
+    # the floor measured before the Cancel is kept: the folder is taken up again, not refused as
+    # "not empty", and the floor is read, not measured again
+    assert (tmp_path / "out" / "floor.json").is_file()
+    again, q = _logic(scene, case, fit, tmp_path / "out")
+    said = []
+    again.openSession(q, progress=said.append)
+    assert said and not any("measuring the model-error floor" in m for m in said)
+    assert again.session.floor is not None
     # Breast Optimization's fit is taken only when it has one
     with pytest.raises(ValueError, match="no case folder"):
         logic.useOptimizationFit(p)
