@@ -409,6 +409,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
 
         p = parameterNode
         session = self._session()
+        if p.reference("measuredVolume") is None:
+            raise ValueError("the measured compressed volume is no longer in the scene (was the scene closed?): "
+                             "diagnose again to load it")
         diagnosis, number = session.diagnosis, session.last["round"]
         candidate = next((c for c in diagnosis.candidates if c.name == name), None)
         if candidate is None or candidate.skipped or name not in diagnosis.sensitivities.fields:
@@ -424,13 +427,15 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         p.set_reference("candidateVolume", node)
         p["candidate"] = name
         if IN_SLICER_APPLICATION:
+            from BreastBiomechLib.mrml.views import compare_side_by_side
+
             layout = slicer.app.layoutManager()
             layout.setLayout(slicer.vtkMRMLLayoutNode.SlicerLayoutSideBySideView)
-            for view, foreground in (("Red", p.reference("residualVolume")), ("Yellow", node)):
-                composite = layout.sliceWidget(view).mrmlSliceCompositeNode()
-                composite.SetBackgroundVolumeID(p.reference("measuredVolume").GetID())
-                composite.SetForegroundVolumeID(foreground.GetID() if foreground is not None else None)
-                composite.SetForegroundOpacity(0.7)
+            residual = p.reference("residualVolume")
+            compare_side_by_side([(layout.sliceWidget(view).mrmlSliceNode(),
+                                   layout.sliceWidget(view).mrmlSliceCompositeNode()) for view in ("Red", "Yellow")],
+                                 p.reference("measuredVolume").GetID(),
+                                 [residual.GetID() if residual is not None else None, node.GetID()])
         return node
 
     def showRound(self, parameterNode, number: int) -> None:

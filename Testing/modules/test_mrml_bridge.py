@@ -256,3 +256,27 @@ def test_plate_plane_node_round_trip(scene):
         mrml.plate_from_plane_node(node, plate.slave_nodes)
     with pytest.raises(ValueError, match="markups plane"):
         mrml.plate_from_plane_node(scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode"), [])
+
+
+def test_a_side_by_side_comparison_shows_both_views_in_one_plane_linked(scene):
+    """Slicer keeps an existing Yellow view sagittal when the side-by-side layout is chosen; the
+    comparison sets it to Red's plane, links the two and puts each view's volumes in."""
+    from BreastBiomechLib.mrml.views import compare_side_by_side
+
+    slicer = pytest.importorskip("slicer")
+    slicer.vtkMRMLSliceNode.AddDefaultSliceOrientationPresets(scene)  # what the application's slice logic adds
+    views = []
+    for name, orientation in (("Red", "Axial"), ("Yellow", "Sagittal")):
+        slice_node = scene.AddNewNodeByClass("vtkMRMLSliceNode")
+        slice_node.SetLayoutName(name)
+        assert slice_node.SetOrientation(orientation)
+        composite = scene.AddNewNodeByClass("vtkMRMLSliceCompositeNode")
+        composite.SetLayoutName(name)
+        views.append((slice_node, composite))
+    volumes = [scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode").GetID() for _ in range(3)]
+    assert compare_side_by_side(views, volumes[0], volumes[1:]) == "Axial"
+    for (slice_node, composite), foreground in zip(views, volumes[1:]):
+        assert slice_node.GetOrientationString() == "Axial" and composite.GetLinkedControl()
+        assert composite.GetBackgroundVolumeID() == volumes[0] and composite.GetForegroundVolumeID() == foreground
+    with pytest.raises(ValueError, match="2 views for 1"):
+        compare_side_by_side(views, volumes[0], volumes[1:2])
