@@ -244,6 +244,14 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         ModuleLogicBase.__init__(self, scene)
         self.session = None   # the open DiagnosisSession
         self._surface = None  # the measured body's signed distance, made once per session
+        self._key = None
+        # File > Close Scene removes the session's nodes (the measured volume, the rounds): the
+        # session goes with them, and the next step opens it again from its output folder
+        self._closeObserver = self.scene.AddObserver(self.scene.EndCloseEvent, lambda caller, event: self.dropSession())
+
+    def dropSession(self) -> None:
+        """Forget the open session (its files stay in the output folder; the next step takes them up)."""
+        self.session, self._key, self._surface = None, None, None
 
     # -- inputs ----------------------------------------------------------------------------------
 

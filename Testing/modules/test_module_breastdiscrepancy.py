@@ -175,3 +175,15 @@ def test_bad_inputs_are_refused_and_leave_the_scene_as_it_was(scene, friction_ca
     # Breast Optimization's fit is taken only when it has one
     with pytest.raises(ValueError, match="no case folder"):
         logic.useOptimizationFit(p)
+
+
+def test_closing_the_scene_drops_the_session(scene, tmp_path):
+    """File > Close Scene removes the session's nodes (the measured volume, the rounds): the Logic
+    forgets the session with them (selecting a candidate afterwards had failed on the missing
+    volume); the next step opens it again from its output folder."""
+    logic = BreastDiscrepancy.BreastDiscrepancyLogic(scene)
+    logic.session, logic._key = object(), ("case", "fit", str(tmp_path))  # as openSession leaves them
+    scene.Clear(False)  # what File > Close Scene does
+    assert logic.session is None and logic._key is None
+    with pytest.raises(ValueError, match="diagnose first"):
+        logic.accept(logic.getParameterNode())
