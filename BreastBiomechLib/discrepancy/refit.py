@@ -3,8 +3,9 @@ effect's parameters together from their sensitivities (warm start at the current
 by a forward solve at the step, halved while it does not lower the residual and, where it does
 but by less than half of what the linearisation predicts for that step (a secant overshoots
 where the effect saturates), while the shorter step lowers it further (the best of the trials
-stands); then, for the
-effect that is added, further Gauss-Newton iterations from fresh sensitivities (:func:`refine`),
+stands). Where every trial fails to solve or none lowers the residual, the best of the effect's
+secant models (solved already for the sensitivities) stands if it lowers it: a second start
+along the effect's own signature. Then, for the effect that is added, further Gauss-Newton iterations from fresh sensitivities (:func:`refine`),
 since a secant from the off value is only the first guess of a nonlinear effect's size.
 
 The same step of the fitted parameters alone (the "effect" None) is the nested null model's
@@ -143,17 +144,27 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities,
             fraction[name] /= 2
     results = best | results
     for effect, _, _, sd, rss_linear, _ in plans:
-        if effect is not None and (effect.name not in results or not results[effect.name].ok):
-            secant = _best_secant(state, sens, effect, observations, weights, rss_before, sd, rss_linear)
+        if effect is None:
+            continue
+        failed = effect.name not in results or not results[effect.name].ok
+        if failed or results[effect.name].rss_after >= rss_before:
+            # a second start along the effect's own signature: its secant models were solved for
+            # the sensitivities (no solve more), and a significant score test that the joint step
+            # loses to the nonlinearity is a start to find, not an effect to drop
+            secant = _best_secant(state, sens, effect, observations, weights, rss_before, sd, rss_linear,
+                                  "every Gauss-Newton trial failed to solve" if failed
+                                  else "no Gauss-Newton trial lowered the residual")
             if secant is not None:
                 results[effect.name] = secant
     return [results[_key(e)] for e in effects if _key(e) in results]
 
 
 def _best_secant(state: ModelState, sens: Sensitivities, effect: Effect, observations: Observations,
-                 weights: np.ndarray, rss_before: float, sd: np.ndarray, rss_linear: float) -> Refit | None:
+                 weights: np.ndarray, rss_before: float, sd: np.ndarray, rss_linear: float,
+                 why: str) -> Refit | None:
     """The effect's secant model (one parameter at its sensitivity step, the rest and the fitted
-    parameters as they are) that lowers the residual most, as a refit; None when none lowers it."""
+    parameters as they are) that lowers the residual most, as a refit noted with ``why`` the
+    Gauss-Newton step did not stand; None when none lowers it."""
     if effect.name not in sens.steps:
         return None
     best = None
@@ -165,8 +176,7 @@ def _best_secant(state: ModelState, sens: Sensitivities, effect: Effect, observa
         rss_after = float(np.sum((weights * after) ** 2))
         if rss_after < rss_before and (best is None or rss_after < best.rss_after):
             best = Refit(effect, values, sd, state.with_effect(effect, values), rss_before, rss_after, rss_linear,
-                         displacement, after, "completed",
-                         "every Gauss-Newton trial failed to solve; the secant model of the sensitivities stands")
+                         displacement, after, "completed", f"{why}; the secant model of the sensitivities stands")
     return best
 
 

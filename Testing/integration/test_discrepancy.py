@@ -162,9 +162,37 @@ def test_a_refit_whose_every_trial_fails_falls_back_on_the_solved_secant(null_ca
     assert result.rss_after < 1e-6 * result.rss_before
     np.testing.assert_allclose(result.displacement, base + shift)
     assert result.state.added["friction"][1][0] == pytest.approx(step)
+    assert result.note.startswith("every Gauss-Newton trial failed to solve")
     # a secant that does not lower the residual is no refit: the failure stands
     [failed] = refit_module.refit(state, observed, sens, [friction])
     assert not failed.ok and failed.rss_after == float("inf") and not failed.note
+
+
+def test_a_refit_whose_trials_all_raise_the_residual_starts_again_along_the_signature(null_case, monkeypatch):
+    """The issue's cases where a highly significant score test refitted to nothing (dBIC +5.9): the
+    joint step's trials solve but every one raises the residual (here each moves the tissue the
+    wrong way). The effect's secant model, solved for the sensitivities, lowers it: it stands
+    (noted), and the effect is not dropped at its off value."""
+    from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+    from BreastBiomechLib.discrepancy.variants import Outcome
+
+    step = 0.3
+    state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case, step)
+    trials = []
+
+    def wrong_way(variants, *args, **kwargs):
+        trials.append(len(variants))
+        return [Outcome(base - shift, "completed", "") for _ in variants]
+
+    monkeypatch.setattr(refit_module, "solve_variants", wrong_way)
+    measured_as_secant = Observations(observed.labels, observed.channel, secant_features, observed.sigma,
+                                      observed.points, observed._parts)
+    [result] = refit_module.refit(state, measured_as_secant, sens, [friction])
+    assert len(trials) == refit_module.HALVINGS + 1  # the full step and every halving raised it
+    assert result.ok and result.note.startswith("no Gauss-Newton trial lowered the residual")
+    np.testing.assert_allclose(result.values, [step])
+    assert result.rss_after < 1e-6 * result.rss_before
 
 
 def test_a_refit_takes_the_shorter_step_where_the_full_one_overshoots(null_case, monkeypatch):

@@ -326,11 +326,18 @@ def test_extensions_index_entry_validates_and_matches_the_extension():
     assert f'set(EXTENSION_CATEGORY "{entry["category"]}")' in top
     assert entry["scm_url"].removesuffix(".git") == re.search(r'set\(EXTENSION_HOMEPAGE "([^"]+)"\)', top).group(1)
     assert entry["build_subdirectory"] == re.search(r'set\(EXTENSION_BUILD_SUBDIRECTORY "([^"]+)"\)', top).group(1)
-    # the icon and screenshot URLs name files of this repository's main branch
+    # the icon and screenshot URLs name image files of the top-level Resources/ on the main branch
     for variable in ("EXTENSION_ICONURL", "EXTENSION_SCREENSHOTURLS"):
         url = re.search(rf'set\({variable} "([^"]+)"\)', top).group(1)
         relative = url.split("/BreastBiomech/BreastBiomech/main/", 1)[1]
+        assert relative.startswith("Resources/") and relative.endswith(".png"), relative
         assert (ROOT / relative).is_file(), f"{variable} points at {relative}, which is not in the repository"
+    # the index's own check (Slicer/ExtensionsIndex scripts/check_description_files.py) accepts
+    # only its listed categories; Simulation is one (checked against the index on 2026-12-05)
+    assert entry["category"] == "Simulation"
+    # the repository name it requires (starting with "Slicer") is for publishing: the README says so
+    index_readme = (ROOT / "ExtensionsIndex" / "README.md").read_text()
+    assert "SlicerBreastBiomech" in index_readme and "3d-slicer-extension" in index_readme
 
 
 def _command_line_without(blocked: tuple[str, ...], *argv: str) -> subprocess.CompletedProcess:
