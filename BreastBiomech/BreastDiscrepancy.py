@@ -722,23 +722,21 @@ class BreastDiscrepancyTest(ModuleTestMixin, ScriptedLoadableModuleTest):
     REQUIRES = tuple(DEPENDENCIES + ["cma", "tetgen"])
 
     def test_diagnose_a_small_case_with_hidden_friction(self):
+        """The headless test's case and settings (BreastBiomechLib.cli.examples.small_friction_case,
+        Testing/modules/test_module_breastdiscrepancy.py), on the CPU as there."""
         import tempfile
 
-        from BreastBiomechLib.cli import main
+        from BreastBiomechLib.cli.examples import small_friction_case
 
-        self.delayDisplay("Making a small compressed phantom with hidden plate friction and fitting it (12 solves)")
+        self.delayDisplay("Making the small phantom with hidden plate friction and fitting it (12 solves, CPU)")
         folder = tempfile.mkdtemp()
-        case = f"{folder}/case"
-        main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
-              "--compression", "0.4", "--truth-edge-mm", "6", "--no-overview", "--friction", "1.0", "--out", case])
-        main(["optimise", case, "--out", f"{folder}/fit", "--model", "iso-hetero", "--free", "E", "--optimiser",
-              "cmaes", "--budget", "12", "--population", "6", "--edge-mm", "10", "--quiet"])
+        case, fit = small_friction_case(f"{folder}/example", device="cpu")
         logic = BreastDiscrepancyLogic()
         p = logic.getParameterNode()
-        p["caseDirectory"], p["fitDirectory"], p["outputDirectory"] = case, f"{folder}/fit", f"{folder}/diagnosis"
-        p["effects"], p["refineIterations"] = "friction skin", 1
+        p["caseDirectory"], p["fitDirectory"], p["outputDirectory"] = str(case), str(fit), f"{folder}/diagnosis"
+        p["effects"], p["refineIterations"], p["device"] = "friction skin", 1, "cpu"
         logic.diagnose(p)
-        self.assertEqual(logic.session.last["diagnosis"]["effect"], "friction")
+        self.assertEqual(logic.session.last["diagnosis"]["effect"], "friction", logic.session.last["diagnosis"]["sentence"])
         logic.accept(p)
         logic.showRound(p, 1)
         self.delayDisplay("Test passed")

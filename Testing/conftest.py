@@ -40,27 +40,21 @@ def compressed_case_dir(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def friction_case(tmp_path_factory, worker_id):
-    """(case, fit): a small phantom (400 cm^3, 2 x 2 x 4 mm voxels, 8 mm truth mesh) compressed 40 %
-    with plate friction mu = 1 hidden in its truth, copied without its truth files, fitted without
-    friction on a 12 mm mesh (``fit_coarse``): a diagnosis of it takes about 30 s on 2 cores. Made once
+    """(case, fit): the library's small hidden-friction case (``small_friction_case``: a 400 cm^3
+    phantom compressed 40 % with plate friction mu = 1 hidden in its truth, copied without its
+    truth files, fitted without friction on a 12 mm mesh), which the Breast Discrepancy module's
+    in-app self-test makes too: a diagnosis of it takes about 80 s on 2 cores. Made once
     for the whole run: under pytest-xdist the first worker that needs it makes it in the run's
     shared temporary folder while the others wait on a lock. Tests only read it."""
     import fcntl
 
-    from discrepancy_cases import fit_coarse, without_truth
-
-    from BreastBiomechLib.cli import main
+    from discrepancy_cases import small_friction_case
 
     base = tmp_path_factory.getbasetemp()
     root = (base if worker_id == "master" else base.parent) / "friction-case"
     with open(f"{root}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (root / "done").is_file():
-            root.mkdir(exist_ok=True)
-            assert main(["phantom", "--seed", "2", "--volume-cm3", "400", "--spacing", "2", "2", "4",
-                         "--compressed", "--compression", "0.4", "--truth-edge-mm", "8", "--device", "cpu",
-                         "--no-overview", "--friction", "1.0", "--out", str(root / "made")]) == 0
-            case = without_truth(root / "made", root / "case")
-            fit_coarse(case, root / "fit", edge_mm=12.0)
+            small_friction_case(root)
             (root / "done").write_text("made\n")
     return root / "case", root / "fit"

@@ -175,8 +175,9 @@ class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
 class ModuleTestMixin:
     """Base of the module self-tests (mix in before ``ScriptedLoadableModuleTest``): ``REQUIRES``
     names the packages (import names) the tests need; where one is missing or too old, the test
-    is skipped with the reason and how to install it, not failed with an ImportError. ``runTest``
-    (what ``slicer.selfTests[module]()`` and Reload and Test call) runs every ``test_*`` method."""
+    is skipped with the reason and how to install it, not failed with an ImportError, and the skip
+    is raised (``unittest.SkipTest``), so that it is not taken for a pass. ``runTest`` (what
+    ``slicer.selfTests[module]()`` and Reload and Test call) runs every ``test_*`` method."""
 
     REQUIRES: tuple = ()
 
@@ -195,7 +196,7 @@ class ModuleTestMixin:
             except unittest.SkipTest as skipped:
                 logging.warning("%s skipped: %s", type(self).__name__, skipped)
                 self.delayDisplay(f"{type(self).__name__} skipped: {skipped}")
-                return
+                raise  # a skip is reported as one (ctest: skipped; Reload and Test: the reason), never as a pass
             getattr(self, name)()
 
 

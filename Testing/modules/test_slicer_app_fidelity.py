@@ -229,8 +229,28 @@ def test_a_self_test_without_its_packages_is_skipped_with_the_reason(monkeypatch
     case = MeshTest("test_mesh")
     with pytest.raises(unittest.SkipTest, match=r"needs tetgen>=999.0 .*slicer.util.pip_install"):
         case.setUp()
-    case.runTest()  # what slicer.selfTests[...]() calls: reports the skip, does not raise
+    # what slicer.selfTests[...]() calls: shows the skip and raises it, so that it is not taken for a pass
+    with pytest.raises(unittest.SkipTest, match="needs tetgen>=999.0"):
+        case.runTest()
     assert not ran and shown and "MeshTest skipped: needs tetgen>=999.0" in shown[0]
+    # and a runner counts it as a skip, not a success
+    result = unittest.TestResult()
+    MeshTest("runTest").run(result)
+    assert len(result.skipped) == 1 and result.wasSuccessful() and not ran
+
+
+def test_the_discrepancy_self_test_makes_the_headless_tests_case():
+    """The in-app self-test of Breast Discrepancy diagnoses the case the headless test validates
+    (BreastBiomechLib.cli.examples.small_friction_case, conftest's friction_case) on the CPU with
+    the same candidates and refinement, not a set-up of its own."""
+    source = (MODULE_DIR / "BreastDiscrepancy.py").read_text()
+    test = source[source.index("class BreastDiscrepancyTest"):]
+    assert "small_friction_case(" in test and 'device="cpu"' in test
+    assert 'p["effects"], p["refineIterations"], p["device"] = "friction skin", 1, "cpu"' in test
+    conftest = (ROOT / "Testing" / "conftest.py").read_text()
+    assert "small_friction_case(root)" in conftest
+    module_test = (ROOT / "Testing" / "modules" / "test_module_breastdiscrepancy.py").read_text()
+    assert 'EFFECTS = "friction skin"' in module_test and '= EFFECTS, 1, "cpu"' in module_test
 
 
 # -- module metadata and layout --------------------------------------------------------------------
