@@ -147,7 +147,8 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
                 try:
                     return step()
                 except DiagnosisCancelled as cancelled:
-                    self.ui.statusLabel.text = _("{what}: nothing was changed").format(what=cancelled)
+                    # a step is cancelled only before its round is written (the session's rule)
+                    self.ui.statusLabel.text = _("{what}: no round was written or changed").format(what=cancelled)
                     return None
         finally:
             self._setRunning(False)

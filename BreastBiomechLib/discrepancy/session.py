@@ -139,7 +139,9 @@ class DiagnosisSession:
     (default the whole library); ``settings.refine_iterations`` refine the verdict's effect
     during :meth:`diagnose` (0 leaves the refinement to :meth:`add`); ``registration``: the
     residual displacement field's settings (None: no field). ``progress(message)`` of each step
-    returning False cancels it (:class:`DiagnosisCancelled`), before it writes anything."""
+    returning False cancels it (:class:`DiagnosisCancelled`), before it writes anything; the
+    message after a step's last write (the verdict, the effect added) cannot cancel: the step is
+    on disk."""
 
     def __init__(self, case_dir, fit_dir, out_dir, effects=None, noise: NoiseModel | None = None,
                  settings: DiagnosisSettings | None = None, device=None, resume: bool = False,
@@ -162,6 +164,7 @@ class DiagnosisSession:
         self.settings = settings or DiagnosisSettings()
         self.noise = noise or NoiseModel()
         self.device = device
+        self._progress = progress
         self._say = self._checked(progress)
         self._say("reading the case and the fit")
         self.fitted = load_fitted_case(case_dir, fit_dir, device=device)
@@ -222,6 +225,17 @@ class DiagnosisSession:
                 raise DiagnosisCancelled(f"cancelled while {message}")
         return say
 
+    def _told(self, progress):
+        """``progress`` for a message after a step's last write: its answer is not a Cancel (the
+        step is done and on disk; a Cancel clicked during it would otherwise land here and be
+        reported as "nothing was changed")."""
+        progress = progress if progress is not None else self._progress
+
+        def tell(message: str) -> None:
+            if progress is not None:
+                progress(message)
+        return tell
+
     # -- what the session holds ---------------------------------------------------------------
 
     @property
@@ -277,7 +291,7 @@ class DiagnosisSession:
         self.rounds[number - 1:] = [record]
         self.diagnosis = diagnosis
         self._write(record)
-        say(f"round {number}: {diagnosis.sentence}")
+        self._told(progress)(f"round {number}: {diagnosis.sentence}")
         return record
 
     def add(self, name: str, iterations: int | None = None, progress: Callable[[str], object] | None = None) -> dict:
@@ -316,7 +330,7 @@ class DiagnosisSession:
         record["seconds"] = round(record.get("seconds", 0.0) + time.perf_counter() - started, 1)
         self.diagnosis = replace(diagnosis, refitted=chosen, effect=name)
         self._write(record)
-        say(f"round {record['round']}: added {effect.title} ({effect.describe(chosen.values)})")
+        self._told(progress)(f"round {record['round']}: added {effect.title} ({effect.describe(chosen.values)})")
         return record
 
     def reject(self, name: str) -> dict:

@@ -439,3 +439,33 @@ def test_the_floor_is_measured_from_the_case(null_case, tmp_path):
     again = MeasuredFloor.from_dict(floor.to_dict(), 0.2)
     np.testing.assert_array_equal(again.discretisation, floor.discretisation)
     assert again.floor.min() >= 0.2 and np.all(again.floor <= floor.floor)
+
+
+def test_a_cancel_clicked_during_a_round_after_its_save_does_not_undo_what_was_said(null_case, tmp_path):
+    """The panel processes events only in the progress calls: a Cancel clicked during a round's
+    last stretch lands on the first message after the round is written. That message cannot
+    cancel (the round is on disk, and "nothing was changed" would be false); every message before
+    the write can, and a Cancel there leaves no round on disk."""
+    from BreastBiomechLib.discrepancy import DiagnosisCancelled, DiagnosisSession, NoiseModel
+
+    case, fit = null_case
+    out = tmp_path / "clicked-late"
+    heard = []
+
+    def cancel_once_saved(message):
+        saved = (out / "round-1.json").is_file()
+        heard.append((message, saved))
+        return not saved
+
+    session = DiagnosisSession(case, fit, out, ["friction"], NoiseModel(floor="fixed"), device="cpu",
+                               registration=None)
+    record = session.diagnose(progress=cancel_once_saved)
+    assert record["round"] == 1 and (out / "round-1.json").is_file()
+    assert heard[-1][1] and heard[-1][0].startswith("round 1: No significant discrepancy")
+    last_before = [message for message, saved in heard if not saved][-1]
+    early = tmp_path / "clicked-early"
+    session = DiagnosisSession(case, fit, early, ["friction"], NoiseModel(floor="fixed"), device="cpu",
+                               registration=None)
+    with pytest.raises(DiagnosisCancelled, match="cancelled while"):
+        session.diagnose(progress=lambda message: message != last_before)
+    assert not (early / "round-1.json").exists() and session.rounds == []
