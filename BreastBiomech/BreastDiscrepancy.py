@@ -25,7 +25,7 @@ import numpy as np
 import slicer
 from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
                                  ModuleWidgetBase, ScriptedLoadableModuleTest, _, chosen_folder,
-                                 dependencies_ready, ensure_library_importable, resolve_device)
+                                 dependencies_ready, ensure_library_importable, resolve_device, show_path)
 
 ensure_library_importable()
 
@@ -87,9 +87,9 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         self._setRunning(False)
 
     def showParameters(self, p):
-        self.ui.casePathLineEdit.currentPath = p["caseDirectory"]
-        self.ui.fitPathLineEdit.currentPath = p["fitDirectory"]
-        self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
+        show_path(self.ui.casePathLineEdit, p["caseDirectory"])
+        show_path(self.ui.fitPathLineEdit, p["fitDirectory"])
+        show_path(self.ui.outputPathLineEdit, p["outputDirectory"])
         self.ui.effectsLineEdit.text = p["effects"]
         self.ui.iterationsSpinBox.value = p["refineIterations"]
         self.ui.roundsSpinBox.value = p["maxRounds"]
@@ -126,9 +126,13 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         p["measuredFloor"] = self.ui.measuredFloorCheckBox.checked
 
     def _setRunning(self, running):
-        for button in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.saveReportButton,
-                       self.ui.useOptimizationButton):
-            button.enabled = not running
+        """While a step runs (it processes events in its progress calls) only Cancel is live: the
+        buttons, the folders and settings, the round selector, the table and the view options
+        would change what the step reads or shows."""
+        for widget in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.saveReportButton,
+                       self.ui.useOptimizationButton, self.ui.inputsCollapsibleButton,
+                       self.ui.settingsCollapsibleButton, self.ui.resultsCollapsibleButton):
+            widget.enabled = not running
         self.ui.cancelButton.enabled = running
 
     def _progress(self, message):
@@ -162,7 +166,8 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
     def onDiagnoseButton(self):
         if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
             return
-        if self._runStep(_("Diagnosis failed."), lambda: self.logic.diagnose(self._parameterNode, self._progress)):
+        if self._runStep(_("Diagnosis failed."), lambda: self.logic.diagnose(self._parameterNode, self._progress)) \
+                and self._parameterNode is not None:  # None: the module was left while the step ran
             self.ui.statusLabel.text = self.logic.verdictText(self._parameterNode)
             self.logic.showRound(self._parameterNode, self._parameterNode["shownRound"])
 
@@ -170,7 +175,8 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
             return
         name = self._parameterNode["candidate"] or None
-        if self._runStep(_("Refit failed."), lambda: self.logic.accept(self._parameterNode, name, self._progress)):
+        if self._runStep(_("Refit failed."), lambda: self.logic.accept(self._parameterNode, name, self._progress)) \
+                and self._parameterNode is not None:
             self.ui.statusLabel.text = self.logic.verdictText(self._parameterNode)
             self.logic.showRound(self._parameterNode, self._parameterNode["shownRound"])
 
@@ -383,8 +389,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         return sorted(numbers)
 
     def verdictText(self, parameterNode) -> str:
-        """The shown round's verdict sentence, with what was added or rejected."""
-        if self.session is None:
+        """The shown round's verdict sentence, with what was added or rejected ("" with no session
+        or no parameter node)."""
+        if self.session is None or parameterNode is None:
             return ""
         record = next((r for r in self.session.rounds if r["round"] == parameterNode["shownRound"]), None)
         if record is None:

@@ -24,7 +24,7 @@ import numpy as np
 import slicer
 from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
                                  ModuleWidgetBase, ScriptedLoadableModuleTest, _, chosen_folder, dependencies_ready,
-                                 ensure_library_importable, resolve_device)
+                                 ensure_library_importable, resolve_device, show_path)
 
 ensure_library_importable()
 
@@ -123,9 +123,9 @@ class BreastOptimizationWidget(ModuleWidgetBase):
                               (self.ui.fibreRSpinBox, "fibreR"), (self.ui.fibreASpinBox, "fibreA"),
                               (self.ui.fibreSSpinBox, "fibreS")):
             spinBox.value = p[name]
-        self.ui.outputPathLineEdit.currentPath = p["outputDirectory"]
-        self.ui.studyCasesPathLineEdit.currentPath = p["studyCasesDirectory"]
-        self.ui.studyOutputPathLineEdit.currentPath = p["studyOutputDirectory"]
+        show_path(self.ui.outputPathLineEdit, p["outputDirectory"])
+        show_path(self.ui.studyCasesPathLineEdit, p["studyCasesDirectory"])
+        show_path(self.ui.studyOutputPathLineEdit, p["studyOutputDirectory"])
         self.ui.schedulerLineEdit.text = p["scheduler"]
         self.ui.studyBudgetsLineEdit.text = p["studyBudgets"]
         self.ui.studyEdgeSpinBox.value = p["studyEdgeMm"]

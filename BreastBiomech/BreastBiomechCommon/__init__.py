@@ -236,6 +236,14 @@ def resolve_device(choice: str) -> str:
     return ("cuda" if cuda else "cpu") if choice == "auto" else choice
 
 
+def show_path(path_line_edit, path: str) -> None:
+    """Show ``path`` in a ``ctkPathLineEdit`` unless it shows it already: the panel's update after
+    each keystroke (the field's change stored in the parameter node, which updates the panel)
+    would otherwise set the text again and move the cursor to its end while the user types."""
+    if path_line_edit.currentPath != path:
+        path_line_edit.currentPath = path
+
+
 def chosen_folder(path: str, what: str) -> str:
     """``path`` as chosen in a folder field: refused when nothing was chosen ("" or ".", what an
     empty folder widget reports) or when relative (it would resolve against Slicer's working

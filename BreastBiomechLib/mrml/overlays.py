@@ -76,7 +76,9 @@ def show_as_overlay(volume_node, color_node_id: str, lower: float, upper: float,
 def segments_to_model_node(starts_lps: np.ndarray, ends_lps: np.ndarray, values: np.ndarray, value_name: str,
                            scene, name: str, node=None, color_node_id: str = "vtkMRMLColorTableNodeRainbow"):
     """A model node of line segments from ``starts_lps`` to ``ends_lps`` (K, 3) mm, with the cell
-    array ``value_name`` (``values``, K) shown in colour; made, or refilled when ``node`` is given."""
+    array ``value_name`` (``values``, K) shown in colour; made, or refilled when ``node`` is given.
+    In the slice views the segments are projected onto the slice (a segment meets a slice plane
+    in one point at most, which the default intersection display leaves nearly invisible)."""
     starts, ends = np.atleast_2d(np.asarray(starts_lps, float)), np.atleast_2d(np.asarray(ends_lps, float))
     values = np.ravel(np.asarray(values, float))
     if starts.shape != ends.shape or starts.shape[1:] != (3,) or len(values) != len(starts):
@@ -103,6 +105,7 @@ def segments_to_model_node(starts_lps: np.ndarray, ends_lps: np.ndarray, values:
     display.SetScalarVisibility(True)
     display.SetLineWidth(3.0)
     display.SetVisibility2D(True)
+    display.SetSliceDisplayModeToProjection()
     return node
 
 

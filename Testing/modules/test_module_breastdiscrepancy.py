@@ -65,6 +65,9 @@ def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_
 
     measured = read_markups(case / "compressed" / "landmarks.mrk.json")  # LPS
     np.testing.assert_allclose(lines.GetPolyData().GetPoints().GetPoint(1), flip(measured.positions[0]), atol=1e-3)
+    # seen in the slice views: projected onto the slice (a segment meets a plane in one point at most)
+    display = lines.GetDisplayNode()
+    assert display.GetVisibility2D() and display.GetSliceDisplayMode() == display.SliceDisplayProjection
     # the residual overlay: the field's magnitude on the measured grid, with a colour legend
     residual = p.reference("residualVolume")
     import SimpleITK as sitk

@@ -288,7 +288,10 @@ def test_tetgen_licence_is_stated_before_it_is_installed():
 
 
 def test_resources_lie_beside_the_module_scripts_where_slicer_looks():
-    assert not (ROOT / "Resources").exists(), "Slicer looks for Resources/ beside the module scripts"
+    # the top level's Resources/ holds the extension's own (icon, screenshots), none of a module's
+    top = {path.relative_to(ROOT / "Resources").parts[0] for path in (ROOT / "Resources").rglob("*") if path.is_file()}
+    assert top <= {"Icons", "Screenshots", "README.md"}, top
+    assert not (ROOT / "Resources" / "UI").exists(), "Slicer looks for a module's panel beside its script"
     for module in MODULES:
         # ScriptedLoadableModule: <folder of the script>/Resources/Icons/<Module>.png; "Edit UI": .../UI/<Module>.ui
         assert (MODULE_DIR / "Resources" / "Icons" / f"{module}.png").is_file()
