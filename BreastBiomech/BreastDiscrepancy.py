@@ -546,9 +546,13 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         return folder(self.scene, f"Round {number}", folder(self.scene, f"Discrepancy {self.session.out.name}"))
 
     def _removeRound(self, number: int) -> None:
+        """Remove round ``number``'s nodes with what they own (display and colour-legend nodes,
+        plot series), so that a round diagnosed again leaves nothing behind."""
+        from BreastBiomechLib.mrml.overlays import remove_with_what_it_owns
+
         for node in self._roundNodes():
             if node.GetAttribute(ROUND_ATTRIBUTE) == str(number):
-                self.scene.RemoveNode(node)
+                remove_with_what_it_owns(self.scene, node)
 
     def _limit(self, number: int) -> float:
         """The colour scale's top (mm) of round ``number``: the 99th percentile of its residual

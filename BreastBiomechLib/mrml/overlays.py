@@ -184,3 +184,19 @@ def nodes_in_folder(scene, folder_item: int) -> list:
     hierarchy.GetItemChildren(folder_item, children)
     nodes = [hierarchy.GetItemDataNode(children.GetId(i)) for i in range(children.GetNumberOfIds())]
     return [node for node in nodes if node is not None]
+
+
+def remove_with_what_it_owns(scene, node) -> None:
+    """Remove ``node`` and the nodes that exist only for it: its display nodes (with a colour
+    legend), its storage nodes and, for a plot chart, its plot series. ``scene.RemoveNode`` alone
+    leaves them in the scene, where a panel that remakes its results piles them up."""
+    owned = []
+    for getter, count in (("GetNthDisplayNode", "GetNumberOfDisplayNodes"),
+                          ("GetNthStorageNode", "GetNumberOfStorageNodes"),
+                          ("GetNthPlotSeriesNode", "GetNumberOfPlotSeriesNodes")):
+        if hasattr(node, count):
+            owned += [getattr(node, getter)(i) for i in range(getattr(node, count)())]
+    scene.RemoveNode(node)
+    for other in owned:
+        if other is not None and scene.IsNodePresent(other):
+            scene.RemoveNode(other)

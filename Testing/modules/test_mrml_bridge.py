@@ -280,3 +280,24 @@ def test_a_side_by_side_comparison_shows_both_views_in_one_plane_linked(scene):
         assert composite.GetBackgroundVolumeID() == volumes[0] and composite.GetForegroundVolumeID() == foreground
     with pytest.raises(ValueError, match="2 views for 1"):
         compare_side_by_side(views, volumes[0], volumes[1:2])
+
+
+def test_a_removed_result_takes_what_it_owns_with_it(scene):
+    """A panel that remakes its results removes the old nodes: their display, colour-legend and
+    storage nodes and a chart's plot series go with them (scene.RemoveNode alone leaves them)."""
+    from BreastBiomechLib.mrml import columns_to_table_node, plot_chart_node
+    from BreastBiomechLib.mrml.overlays import remove_with_what_it_owns, show_as_overlay
+
+    before = scene.GetNumberOfNodes()
+    volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "overlay")
+    image = vtk.vtkImageData()
+    image.SetDimensions(3, 3, 3)
+    image.AllocateScalars(vtk.VTK_FLOAT, 1)
+    volume.SetAndObserveImageData(image)
+    show_as_overlay(volume, "vtkMRMLColorTableNodeIron", 0.0, 1.0, "|r| (mm)")
+    table = columns_to_table_node({"x": np.arange(3.0), "y": np.arange(3.0)}, scene, "table")
+    chart = plot_chart_node(table, "x", ["y"], scene, "chart", "y")
+    assert scene.GetNumberOfNodes() - before == 6  # volume, display, legend, table, chart, series
+    for node in (volume, chart, table):
+        remove_with_what_it_owns(scene, node)
+    assert scene.GetNumberOfNodes() == before
