@@ -223,10 +223,26 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
 
 
 def captureSliceViews(path) -> None:
-    """Save the application's slice views as one PNG (the report's screenshot)."""
+    """Save the application's visible slice views, side by side, as one PNG (the report's
+    screenshot): not the whole layout, whose plots and 3D view are not slice views."""
+    import tempfile
+
     import ScreenCapture
 
-    ScreenCapture.ScreenCaptureLogic().captureImageFromView(None, str(path))
+    from BreastBiomechLib.visualisation import side_by_side
+
+    layout = slicer.app.layoutManager()
+    capture = ScreenCapture.ScreenCaptureLogic()
+    with tempfile.TemporaryDirectory() as folder:
+        pictures = []
+        for name in layout.sliceViewNames():
+            widget = layout.sliceWidget(name)
+            if widget is not None and widget.isVisible():
+                pictures.append(os.path.join(folder, f"{name}.png"))
+                capture.captureImageFromView(widget.sliceView(), pictures[-1])
+        if not pictures:
+            raise ValueError("no slice view is shown: choose a layout with slice views to capture them")
+        side_by_side(pictures, path)
 
 
 class BreastDiscrepancyLogic(ModuleLogicBase):

@@ -103,3 +103,25 @@ def save_overview(path: str | Path, image: sitk.Image, label_image: sitk.Image |
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def side_by_side(pictures, path: str | Path) -> Path:
+    """The PNG ``pictures`` (paths; RGB or RGBA, any heights) in one row, top-aligned on black,
+    written to ``path``: a screenshot of several views (e.g. the slice views alone, not the
+    layout's plots and 3D view)."""
+    images = []
+    for picture in pictures:
+        array = sitk.GetArrayFromImage(sitk.ReadImage(str(picture)))
+        if array.ndim == 2:
+            array = np.repeat(array[..., None], 3, axis=2)
+        images.append(array[..., :3].astype(np.uint8))
+    if not images:
+        raise ValueError("no picture to put side by side")
+    height = max(a.shape[0] for a in images)
+    row = np.zeros((height, sum(a.shape[1] for a in images), 3), np.uint8)
+    left = 0
+    for array in images:
+        row[:array.shape[0], left:left + array.shape[1]] = array
+        left += array.shape[1]
+    sitk.WriteImage(sitk.GetImageFromArray(row, isVector=True), str(path))
+    return Path(path)
