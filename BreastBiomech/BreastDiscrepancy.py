@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import os
+from pathlib import Path
 
 import numpy as np
 import slicer
@@ -363,7 +364,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         "refineIterations" Gauss-Newton iterations; the overlays and plots after the refit join
         the round's folder. Cancelling leaves the round as it was. Returns the round's record."""
         p = parameterNode
-        session = self._session()
+        session = self._session(p)
         record = session.last
         name = name or record["diagnosis"]["effect"] or p["candidate"]
         if not name:
@@ -382,7 +383,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         """Turn candidate ``name`` (default the selected one, else the verdict's) down: the next
         round does not test it. Returns its name."""
         p = parameterNode
-        session = self._session()
+        session = self._session(p)
         name = name or p["candidate"] or session.last["diagnosis"]["effect"]
         if not name:
             raise ValueError("select the candidate to reject in the table")
@@ -390,17 +391,32 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         self._candidatesTable(p, record, self._roundFolder(record["round"]))
         return name
 
-    def _session(self):
+    def _session(self, parameterNode=None):
+        """The open session; where there is none (a module Reload, a saved scene loaded again, a
+        scene closed) but the parameter node's output folder holds a diagnosis, it is opened
+        from there, so that the rounds in the scene are reachable again."""
+        if self.session is None and parameterNode is not None and parameterNode["outputDirectory"] and \
+                os.path.isfile(os.path.join(parameterNode["outputDirectory"], "diagnosis.json")):
+            self.openSession(parameterNode)
         if self.session is None or self.session.last is None:
             raise ValueError("diagnose first")
         return self.session
+
+    def _folder(self, parameterNode=None) -> str | None:
+        """The output folder whose round nodes the panel shows: the open session's, else the
+        parameter node's (None: neither)."""
+        if self.session is not None:
+            return str(self.session.out)
+        if parameterNode is not None and parameterNode["outputDirectory"]:
+            return str(Path(parameterNode["outputDirectory"]))
+        return None
 
     # -- what the scene shows --------------------------------------------------------------------
 
     def roundNumbers(self, parameterNode=None) -> list[int]:
         """The rounds whose nodes are in the scene, in order."""
         numbers = set()
-        for node in self._roundNodes():
+        for node in self._roundNodes(parameterNode):
             numbers.add(int(node.GetAttribute(ROUND_ATTRIBUTE)))
         return sorted(numbers)
 
@@ -440,11 +456,14 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         from BreastBiomechLib.mrml.overlays import MAGNITUDE_COLORS, put_in_folder, show_as_overlay
 
         p = parameterNode
-        session = self._session()
+        session = self._session(p)
         if p.reference("measuredVolume") is None:
             raise ValueError("the measured compressed volume is no longer in the scene (was the scene closed?): "
                              "diagnose again to load it")
         diagnosis, number = session.diagnosis, session.last["round"]
+        if diagnosis is None:
+            raise ValueError(f"round {number} was diagnosed in an earlier session, whose sensitivities are not kept: "
+                             "diagnose again to see what a candidate predicts")
         candidate = next((c for c in diagnosis.candidates if c.name == name), None)
         if candidate is None or candidate.skipped or name not in diagnosis.sensitivities.fields:
             raise ValueError(f"{name!r} was not tested in round {number}: no predicted residual to show")
@@ -475,8 +494,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         the residual overlay, field, landmark lines, skin model, regions, candidates table and
         plots; in the application the overlay lies over the measured volume."""
         p = parameterNode
-        if number not in self.roundNumbers():
-            raise ValueError(f"round {number} is not in the scene (rounds: {self.roundNumbers()})")
+        if number not in self.roundNumbers(p):
+            raise ValueError(f"round {number} is not in the scene (rounds: {self.roundNumbers(p)})")
+        self._session(p)  # taken up from the output folder after a Reload or a saved scene
         when = "after" if self._kindNode(number, "residual-after") or self._kindNode(number, "lines-after") else "before"
         for role, kind in (("residualVolume", f"residual-{when}"), ("residualTransform", f"field-{when}"),
                            ("landmarkLines", f"lines-{when}"), ("skinModel", f"skin-{when}"), ("regions", "regions"),
@@ -503,7 +523,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
     def setGlyphsVisible(self, parameterNode, visible: bool) -> None:
         """Show or hide the shown round's residual field as glyphs in the slice views."""
         parameterNode["fieldGlyphs"] = bool(visible)
-        for node in self._roundNodes():
+        for node in self._roundNodes(parameterNode):
             if node.IsA("vtkMRMLTransformNode") and node.GetDisplayNode() is not None:
                 node.GetDisplayNode().SetVisibility(bool(visible) and node is parameterNode.reference("residualTransform"))
 
@@ -511,7 +531,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         """Show or hide the shown round's regions (segments: contact bands, chest-wall band,
         sub-surface band, deeper tissue)."""
         parameterNode["showRegions"] = bool(visible)
-        for node in self._roundNodes():
+        for node in self._roundNodes(parameterNode):
             if node.IsA("vtkMRMLSegmentationNode") and node.GetDisplayNode() is not None:
                 node.GetDisplayNode().SetVisibility(bool(visible) and node is parameterNode.reference("regions"))
 
@@ -519,11 +539,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         """Write the diagnosis report (Markdown: each round's verdict, ranked candidates, residual by
         region, before/after, residual maps) into the output folder, with a picture of the slice
         views made by ``capture(path)`` where given (the application's screenshot). Returns its path."""
-        from pathlib import Path
-
         from BreastBiomechLib.discrepancy.report import write_report
 
-        session = self._session()
+        session = self._session(parameterNode)
         pictures = []
         if capture is not None:
             picture = Path(session.out) / f"round-{parameterNode['shownRound']}-slice-views.png"
@@ -533,15 +551,16 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
 
     # -- nodes of a round ------------------------------------------------------------------------
 
-    def _roundNodes(self) -> list:
-        """The round nodes of the open session's output folder."""
-        if self.session is None:
+    def _roundNodes(self, parameterNode=None) -> list:
+        """The round nodes of the output folder (:meth:`_folder`): found by their attributes, so
+        that they are found again in a saved scene loaded again or after a module Reload."""
+        folder = self._folder(parameterNode)
+        if folder is None:
             return []
         nodes = []
         for i in range(self.scene.GetNumberOfNodes()):
             node = self.scene.GetNthNode(i)
-            if node.GetAttribute(ROUND_ATTRIBUTE) is not None and node.GetAttribute(FOLDER_ATTRIBUTE) == str(
-                    self.session.out):
+            if node.GetAttribute(ROUND_ATTRIBUTE) is not None and node.GetAttribute(FOLDER_ATTRIBUTE) == folder:
                 nodes.append(node)
         return nodes
 

@@ -132,6 +132,20 @@ def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_
     assert "Missing effect: plate friction" in text and "round-1-slice-views.png" in text
     assert logic.verdictText(p).startswith("Round 1: Missing effect")
 
+    # a module Reload (a new Logic on the same scene, as after loading the saved scene): the rounds
+    # are reached from the parameter node's output folder, the session taken up from its files
+    again = BreastDiscrepancy.BreastDiscrepancyLogic(scene)
+    q = again.getParameterNode()
+    assert q.node is p.node and again.session is None
+    assert again.roundNumbers(q) == [1]
+    again.setGlyphsVisible(q, False)
+    assert not q.reference("residualTransform").GetDisplayNode().GetVisibility()
+    again.showRound(q, 1)
+    assert again.session is not None and again.session.last["added"] == "friction"
+    assert again.verdictText(q).startswith("Round 1: Missing effect")
+    with pytest.raises(ValueError, match="diagnosed in an earlier session"):
+        again.showCandidate(q, "skin")
+
 
 def test_bad_inputs_are_refused_and_leave_the_scene_as_it_was(scene, friction_case, tmp_path):
     from BreastBiomechLib.discrepancy import DiagnosisCancelled
