@@ -245,16 +245,19 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
         chosen = refits[candidate.name] = made[0]
     if iterations > 0:
         say(f"refining the refit with {candidate.name}")
-        refined, outcome = refine(chosen.state, observations, iterations, say)
+        refined, outcome, sd = refine(chosen.state, observations, iterations, say)
         weights = 1.0 / observations.sigma
         after = observations.residual(outcome.displacement)
-        chosen = replace(chosen, values=refined.added[candidate.name][1], state=refined,
-                         displacement=outcome.displacement, residual_after=after,
-                         rss_after=float(np.sum((weights * after) ** 2)))
+        values = refined.added[candidate.name][1]
+        keys = [f"{candidate.name}:{i}" for i in range(len(values))]
+        chosen = replace(chosen, values=values, state=refined, displacement=outcome.displacement, residual_after=after,
+                         rss_after=float(np.sum((weights * after) ** 2)),
+                         sd=np.array([sd[k] for k in keys]) if all(k in sd for k in keys) else chosen.sd)
     candidate.refit = candidate.refit or {"status": chosen.status, "values": chosen.values.tolist(),
                                           "sd": chosen.sd.tolist(), "described": chosen.effect.describe(chosen.values),
                                           "rss_before": chosen.rss_before, "rss_after": chosen.rss_after}
-    candidate.refit.update({"refined_values": chosen.values.tolist(),
+    candidate.refit.update({"refined_values": chosen.values.tolist(), "refined_sd": chosen.sd.tolist(),
+                            "interval": interval(chosen),
                             "refined_described": chosen.effect.describe(chosen.values),
                             "rss_refined": chosen.rss_after,
                             "refine_iterations": candidate.refit.get("refine_iterations", 0) + iterations})
@@ -430,6 +433,13 @@ def _largest(regions: dict) -> str:
     rows = [(figures["rms_mm"], f"{name} ({channel})") for name, channels in regions.items()
             for channel, figures in channels.items()]
     return max(rows)[1] if rows else ""
+
+
+def interval(chosen: Refit, z: float = 1.96) -> list[list[float]]:
+    """Each refitted parameter's 95 % interval (``z`` sd either side of its value, from the
+    linearised information), clipped to the parameter's range: [[low, high], ...] in its units."""
+    return [[float(max(p.lower, v - z * s)), float(min(p.upper, v + z * s))]
+            for p, v, s in zip(chosen.effect.parameters, chosen.values, chosen.sd)]
 
 
 def range_ends(chosen: Refit) -> list[str]:

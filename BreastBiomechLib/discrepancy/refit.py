@@ -181,10 +181,12 @@ def _best_secant(state: ModelState, sens: Sensitivities, effect: Effect, observa
 
 
 def refine(state: ModelState, observations: Observations, iterations: int = 1,
-           progress: Callable[[str], None] | None = None) -> tuple[ModelState, Outcome]:
+           progress: Callable[[str], None] | None = None) -> tuple[ModelState, Outcome, dict[str, float]]:
     """Gauss-Newton iterations of every fitted parameter of ``state`` (the fit's and the added
     effects'), each from fresh sensitivities and checked by a forward solve (halved while it does
-    not lower the residual; stopped when it no longer does). Returns the state and its solve.
+    not lower the residual; stopped when it no longer does). Returns the state, its solve and
+    each parameter's standard deviation from the last iteration's linearised information
+    ({nuisance key: sd}, the parameter's units; {} with no iteration).
     ``progress(message)`` is called before each batch of solves."""
     say = progress or (lambda message: None)
     fitted = state.fitted
@@ -193,6 +195,7 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
     if not current.ok:
         raise RuntimeError(f"the model to refine does not solve ({current.status}: {current.message})")
     rss = float(np.sum((weights * observations.residual(current.displacement)) ** 2))
+    sd: dict[str, float] = {}
     for iteration in range(iterations):
         say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: sensitivities")
         sens = sensitivities(state, observations, [], say)
@@ -201,6 +204,8 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
         lower = np.array([lo for _, _, lo, _ in nuisance]) - values
         upper = np.array([hi for _, _, _, hi in nuisance]) - values
         design = weights[:, None] * sens.nuisance
+        covariance = np.linalg.pinv(design.T @ design)
+        sd = {key: float(np.sqrt(max(covariance[k, k], 0.0))) for k, (key, *_) in enumerate(nuisance)}
         delta = lsq_linear(design, weights * (observations.measured - sens.features), bounds=(lower, upper)).x
         improved = False
         for halving in range(HALVINGS + 1):
@@ -214,4 +219,4 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
                     break
         if not improved:
             break
-    return state, current
+    return state, current, sd

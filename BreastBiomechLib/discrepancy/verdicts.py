@@ -223,7 +223,10 @@ def missing_effect_sentence(best: dict, bound_note: str = "") -> str:
     """A confirmed candidate explaining enough, after its refinement (``best["refit"]`` holds
     "refined_described")."""
     refit = best["refit"]
-    return (f"Missing effect: {best['title']} ({refit.get('refined_described', refit['described'])}). Score test p = "
+    bounds = refit.get("interval")
+    within = (f"; 95 % interval {'; '.join(f'{lo:.3g} to {hi:.3g}' for lo, hi in bounds)}" if bounds else "")
+    return (f"Missing effect: {best['title']} ({refit.get('refined_described', refit['described'])}{within}). "
+            f"Score test p = "
             f"{best['p_adjusted']:.2g} (corrected), refit dBIC {refit['delta_bic']:.1f}, removing "
             f"{refit['removed']:.0%} of the residual beyond the fitted parameters alone and moving the features by "
             f"{refit['effect_mm']:.2f} mm where it acts; its signature and the residual overlap "

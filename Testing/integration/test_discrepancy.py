@@ -396,6 +396,21 @@ def test_an_effect_refitted_to_an_end_of_its_range_is_said_to_be_a_bound():
     assert "mu at the top of its range (1.5)" in note and "not an estimate" in note
 
 
+def test_a_refitted_effect_has_an_interval_within_its_range():
+    """1.96 sd either side of the refitted value, clipped to the parameter's range (friction's mu
+    in [0, 1.5]): an estimate near the top has an interval that ends at the top."""
+    from types import SimpleNamespace
+
+    from BreastBiomechLib.discrepancy.diagnosis import interval
+    from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
+
+    friction = PlateFriction()
+    [(low, high)] = interval(SimpleNamespace(effect=friction, values=np.array([0.6]), sd=np.array([0.1])))
+    assert (low, high) == pytest.approx((0.404, 0.796))
+    [(low, high)] = interval(SimpleNamespace(effect=friction, values=np.array([1.45]), sd=np.array([0.1])))
+    assert (low, high) == pytest.approx((1.254, 1.5))
+
+
 def test_range_end_names_the_end_a_value_lies_at():
     """Within EDGE (a share of the range) of an end: that end; inside, or an empty range: none
     (before the helper, an empty nuisance range counted as mid-range and must still)."""

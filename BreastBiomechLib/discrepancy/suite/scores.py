@@ -46,12 +46,13 @@ def final_answer(rounds: list[dict]) -> str:
 
 
 def _added_estimate(record: dict) -> tuple[list, list]:
-    """The added effect's refined values and their sd from a round's record ([], [] where the
-    record holds no refit of it)."""
+    """The added effect's refined values and their sd (the refinement's, else the confirmation
+    refit's) from a round's record ([], [] where the record holds no refit of it)."""
     effect = record["added"]
     candidate = next((c for c in record["diagnosis"].get("candidates", []) if c.get("name") == effect), None)
     refit = (candidate or {}).get("refit") or {}
-    return list(refit.get("refined_values", refit.get("values", []))), list(refit.get("sd", []))
+    return (list(refit.get("refined_values", refit.get("values", []))),
+            list(refit.get("refined_sd", refit.get("sd", []))))
 
 
 def estimates(case: SuiteCase, rounds: list[dict]) -> dict:

@@ -168,6 +168,14 @@ def test_the_words_agree_with_the_numbers_over_a_grid():
     assert seen == {verdicts.NONE, verdicts.UNEXPLAINED, verdicts.MISSING}
 
 
+def test_a_named_effect_is_said_with_its_interval():
+    candidate = _candidate()
+    sentence = verdicts.missing_effect_sentence(candidate)
+    assert "(friction 0.55). Score test" in sentence  # a record made before intervals: none said
+    candidate["refit"]["interval"] = [[0.412, 0.688]]
+    assert "(friction 0.55; 95 % interval 0.412 to 0.688). Score test" in verdicts.missing_effect_sentence(candidate)
+
+
 def test_an_effect_is_sized_where_it_acts():
     """The RMS of the largest tenth of the changes: an effect confined to 10 of 100 features is
     not diluted by the 90 it leaves alone."""
