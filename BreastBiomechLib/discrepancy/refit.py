@@ -5,8 +5,9 @@ but by less than half of what the linearisation predicts for that step (a secant
 where the effect saturates), while the shorter step lowers it further (the best of the trials
 stands). Where every trial fails to solve or none lowers the residual, the best of the effect's
 secant models (solved already for the sensitivities) stands if it lowers it: a second start
-along the effect's own signature. Then, for the effect that is added, further Gauss-Newton iterations from fresh sensitivities (:func:`refine`),
-since a secant from the off value is only the first guess of a nonlinear effect's size.
+along the effect's own signature. Then, for the effect that is added, further Gauss-Newton
+iterations from fresh sensitivities (:func:`refine`), since a secant from the off value is only
+the first guess of a nonlinear effect's size.
 
 The same step of the fitted parameters alone (the "effect" None) is the nested null model's
 refit: a fit that had not quite converged on the diagnosis's features lowers its residual by

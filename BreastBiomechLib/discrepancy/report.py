@@ -30,9 +30,9 @@ def _absorbed(candidate: dict) -> str:
 
 
 def _candidates_table(candidates: list[dict]) -> str:
-    rows = ["| rank | effect | score S (dof) | by channel | linearised dBIC | p (corrected) | could explain | "
-            "localisation | absorbed by the fit | refit | dBIC | residual removed | change where it acts (mm) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| rank | effect | score S (dof) | S per dof | by channel | linearised dBIC | p (corrected) | "
+            "could explain | localisation | absorbed by the fit | refit | dBIC | residual removed | change where it acts (mm) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     rank = 0
     for c in candidates:
         if c["skipped"]:
@@ -41,7 +41,8 @@ def _candidates_table(candidates: list[dict]) -> str:
         refit = c.get("refit") or {}
         channels = "; ".join(f"{name} {t['statistic']:.1f} ({t['dof']}), p {t['p_value']:.2g}"
                              for name, t in (c.get("channels") or {}).items()) or "-"
-        rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {channels} | "
+        per_dof = _number(c["statistic"] / c["dof"], 3) if c["dof"] else "-"
+        rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {per_dof} | {channels} | "
                     f"{_number(c.get('linear_delta_bic'), 3)} | {_number(c['p_adjusted'], 2)} | "
                     f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {_absorbed(c)} | "
                     f"{refit.get('described', '-')} | "
