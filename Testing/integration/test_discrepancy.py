@@ -108,11 +108,25 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert summary["final"] == "no significant discrepancy", summary["sentence"]
     assert summary["added"] == []
-    # by default against the floor measured from the case, which the record and the report state
-    floor = json.loads((out / "round-1.json").read_text())["floor"]
-    assert floor["rms_mm"] >= floor["lower_bound_mm"] == 0.5 and floor["tets"][1] == 8 * floor["tets"][0]
-    assert (out / "floor.json").is_file()
+    # by default against the floor measured from the case (the fitted model solved again on its
+    # refined mesh), which the record and the report state: every feature's floor finite and at
+    # least the lower bound, one value per region and channel, the estimate not zero (a 10 mm
+    # mesh is coarse); a resumed session reads it back (at another lower bound, the same estimate)
+    from BreastBiomechLib.discrepancy.floor import MeasuredFloor
+
+    recorded = json.loads((out / "round-1.json").read_text())["floor"]
+    assert recorded["rms_mm"] >= recorded["lower_bound_mm"] == 0.5 and recorded["tets"][1] == 8 * recorded["tets"][0]
     assert "model-error floor measured from the case" in (out / "report.md").read_text()
+    floor = MeasuredFloor.from_dict(json.loads((out / "floor.json").read_text()), 0.5)
+    assert np.all(np.isfinite(floor.floor)) and floor.floor.min() >= 0.5
+    assert 0.0 < np.sqrt(np.mean(floor.discretisation ** 2)) < 5.0
+    assert floor.summary()["rms_mm"] == pytest.approx(recorded["rms_mm"])
+    for name, group in floor.groups.items():
+        members = floor.feature_groups == name
+        assert members.sum() == group["features"] and np.ptp(floor.floor[members]) == 0.0
+    lower = MeasuredFloor.from_dict(json.loads((out / "floor.json").read_text()), 0.2)
+    np.testing.assert_array_equal(lower.discretisation, floor.discretisation)
+    assert lower.floor.min() >= 0.2 and np.all(lower.floor <= floor.floor)
 
 
 def _friction_secant(null_case, step: float = 0.3):
@@ -420,40 +434,6 @@ def test_range_end_names_the_end_a_value_lies_at():
     assert range_end(0.0, 0.0, 1.5) == "bottom" and range_end(-2.0, -2.0, 8.0) == "bottom"
     assert range_end(0.75, 0.0, 1.5) == "" and range_end(1.5 * (1 - 2 * EDGE), 0.0, 1.5) == ""
     assert range_end(3.0, 3.0, 3.0) == ""
-
-
-def test_the_floor_is_measured_from_the_case(null_case, tmp_path):
-    """The model-error floor of the null case's features, from its fitted model solved again on
-    the refined fitting mesh (8x the tets): every feature's floor is finite and at least the
-    lower bound, each region and channel has one value, the estimate is not zero (a 10 mm mesh
-    is coarse) and is largest where the plates press, not in the chest wall's fixed nodes; a
-    session writes it to floor.json and a resumed one reads it back (at another lower bound, the
-    same estimate)."""
-    from BreastBiomechLib.discrepancy import ModelState, load_fitted_case, observations_of
-    from BreastBiomechLib.discrepancy.floor import MeasuredFloor, measure_floor
-    from BreastBiomechLib.discrepancy.regions import regions_of
-    from BreastBiomechLib.io.meshes import read_vtu
-
-    case, fit = null_case
-    fitted = load_fitted_case(case, fit, device="cpu")
-    base = read_vtu(fit / "deformed_mesh.vtu").point_data["displacement"]
-    observed = observations_of(fitted, base)
-    regions = regions_of(fitted, observed.points, base)
-    floor = measure_floor(ModelState(fitted, fitted.z), observed, base, regions, 0.5)
-    assert floor.tets[1] == 8 * floor.tets[0]
-    assert floor.floor.shape == (len(observed),) and np.all(np.isfinite(floor.floor)) and floor.floor.min() >= 0.5
-    assert 0.0 < np.sqrt(np.mean(floor.discretisation ** 2)) < 5.0
-    for name, group in floor.groups.items():
-        members = floor.feature_groups == name
-        assert members.sum() == group["features"] and np.ptp(floor.floor[members]) == 0.0
-    summary = floor.summary()
-    assert summary["largest"]["rms_mm"] == max(g["rms_mm"] for g in floor.groups.values())
-    with_floor = observed.with_floor(floor.floor)
-    np.testing.assert_allclose(with_floor.sigma, np.hypot(observed.measurement_sd, floor.floor))
-    assert np.all(with_floor.sigma >= observed.sigma - 1e-12)
-    again = MeasuredFloor.from_dict(floor.to_dict(), 0.2)
-    np.testing.assert_array_equal(again.discretisation, floor.discretisation)
-    assert again.floor.min() >= 0.2 and np.all(again.floor <= floor.floor)
 
 
 def test_a_cancel_clicked_during_a_round_after_its_save_does_not_undo_what_was_said(null_case, tmp_path):
