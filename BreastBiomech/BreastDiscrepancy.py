@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import os
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -270,8 +271,18 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         self._surface = None  # the measured body's signed distance, made once per session
         self._key = None
         # File > Close Scene removes the session's nodes (the measured volume, the rounds): the
-        # session goes with them, and the next step opens it again from its output folder
-        self._closeObserver = self.scene.AddObserver(self.scene.EndCloseEvent, lambda caller, event: self.dropSession())
+        # session goes with them, and the next step opens it again from its output folder. The
+        # observer holds the Logic weakly: a Python callback that held it would close a cycle
+        # (scene -> callback -> Logic -> scene) whose collection ran the callback inside the
+        # garbage collector, on a half-freed Logic (a segmentation fault under pytest)
+        logic = weakref.ref(self)
+
+        def dropped(caller, event):
+            alive = logic()
+            if alive is not None:
+                alive.dropSession()
+
+        self._closeObserver = self.scene.AddObserver(self.scene.EndCloseEvent, dropped)
 
     def dropSession(self) -> None:
         """Forget the open session (its files stay in the output folder; the next step takes them up)."""

@@ -204,3 +204,22 @@ def test_closing_the_scene_drops_the_session(scene, tmp_path):
     assert logic.session is None and logic._key is None
     with pytest.raises(ValueError, match="diagnose first"):
         logic.accept(logic.getParameterNode())
+
+
+def test_a_logic_does_not_keep_its_scene_in_a_cycle():
+    """The Logic's scene-close observer holds it weakly: a Logic and its scene are freed by their
+    references alone (a callback holding the Logic made a cycle whose collection ran the callback
+    inside the garbage collector on a half-freed Logic: a segmentation fault under pytest)."""
+    import gc
+    import weakref
+
+    import slicer
+
+    scene = slicer.vtkMRMLScene()
+    logic = BreastDiscrepancy.BreastDiscrepancyLogic(scene)
+    gone = weakref.ref(logic)
+    del logic
+    assert gone() is None  # freed at once: nothing but the caller held it
+    scene.Clear(False)  # the observer finds no Logic and does nothing
+    del scene
+    gc.collect()
