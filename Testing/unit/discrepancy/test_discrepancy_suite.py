@@ -300,3 +300,23 @@ def test_the_suite_command_refuses_bad_arguments(tmp_path, capsys):
     assert main(["discrepancy-suite", "--out", str(tmp_path / "none"), "--score-only"]) == 2
     assert "no suite run to score" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()
+
+
+def test_only_the_suite_s_scoring_reads_a_hidden_effect_s_truth():
+    """No inverse crime: the diagnosis, its effects and the fit never import the suite (which holds
+    the hidden effects' true values) nor name a case's truth files; within the suite only the
+    scoring and the runner's scoring step read the true values (``HiddenEffect.values``)."""
+    import re
+    from pathlib import Path
+
+    library = Path(__file__).resolve().parents[3] / "BreastBiomechLib"
+    guarded = [*(library / "discrepancy").glob("*.py"), *(library / "discrepancy" / "effects").glob("*.py"),
+               *(library / "optimisation").glob("*.py")]
+    assert len(guarded) > 20
+    for path in guarded:
+        text = path.read_text()
+        code = re.sub(r'"""[\s\S]*?"""', "", text)  # docstrings may say what is never read
+        assert "discrepancy.suite" not in code and "truth.json" not in code and "truth_mesh" not in code, path
+        assert ".hidden.values" not in code, path
+    readers = [p.name for p in (library / "discrepancy" / "suite").glob("*.py") if ".hidden.values" in p.read_text()]
+    assert readers == ["scores.py"], readers
