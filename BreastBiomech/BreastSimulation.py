@@ -50,7 +50,13 @@ class BreastSimulationWidget(ModuleWidgetBase):
 
     def __init__(self, parent=None):
         ModuleWidgetBase.__init__(self, parent)
-        self._cancelRequested = False
+        import qt
+        from BreastBiomechCommon.worker import POLL_INTERVAL_MS
+
+        self._worker = None  # the solver's process while it runs
+        self._timer = qt.QTimer()
+        self._timer.setInterval(POLL_INTERVAL_MS)
+        self._timer.timeout.connect(self._pollWorker)
 
     def createLogic(self):
         return BreastSimulationLogic()
@@ -198,31 +204,60 @@ class BreastSimulationWidget(ModuleWidgetBase):
             self.logic.createCompressionPlates(self._parameterNode)
 
     def onCancelButton(self):
-        self._cancelRequested = True
+        if self._worker is not None and self._worker.running:
+            seconds = self._worker.cancel()
+            self._timer.stop()
+            self._setRunning(False)
+            self.ui.statusLabel.text = _("Cancelled ({seconds:.1f} s to stop the solver); the earlier results are "
+                                         "unchanged.").format(seconds=seconds)
 
     def onRunButton(self):
         if not dependencies_ready(DEPENDENCIES, _("Breast Simulation")):
             return
-        self.ui.deviceLabel.text = self.logic.deviceDescription()
-        self._cancelRequested = False
-        self.ui.runButton.enabled = False
-        self.ui.cancelButton.enabled = True
-        self.ui.progressBar.value = 0
+        with slicer.util.tryWithErrorDisplay(_("Simulation failed to start."), waitCursor=True):
+            self._worker = self.logic.startRun(self._parameterNode)
+            self._setRunning(True)
+            self.ui.progressBar.value = 0
+            self.ui.progressBar.setFormat(_("starting the solver"))
+            self._timer.start()
 
-        def report(fraction, message):
-            self.ui.progressBar.value = int(100 * fraction)
-            self.ui.progressBar.setFormat(message)
-            slicer.app.processEvents()
-            return not self._cancelRequested
+    def _setRunning(self, running: bool) -> None:
+        self.ui.runButton.enabled = not running
+        self.ui.cancelButton.enabled = running
 
-        try:
-            with slicer.util.tryWithErrorDisplay(_("Simulation failed."), waitCursor=True):
-                result = self.logic.run(self._parameterNode, progress=report)
-                self.ui.statusLabel.text = result["summary"]
-                self.logic.showResults(self._parameterNode)
-        finally:
-            self.ui.runButton.enabled = True
-            self.ui.cancelButton.enabled = False
+    def _pollWorker(self):
+        """The timer's tick while the solver runs in its own process: the latest progress into
+        the bar; once it has ended, its results into the scene."""
+        worker = self._worker
+        if worker is None:
+            self._timer.stop()
+            return
+        worker.poll()
+        if worker.last is not None:
+            fraction = worker.last.get("fraction")
+            if fraction is not None:
+                self.ui.progressBar.value = int(100 * fraction)
+            self.ui.progressBar.setFormat(worker.last["message"])
+        if worker.running:
+            return
+        self._timer.stop()
+        self._setRunning(False)
+        self._worker = None
+        if worker.cancelled:
+            return
+        with slicer.util.tryWithErrorDisplay(_("Simulation failed."), waitCursor=True):
+            result = self.logic.finishRun(self._parameterNode, worker)
+            self.ui.progressBar.value = 100
+            self.ui.deviceLabel.text = result["device"]
+            self.ui.statusLabel.text = result["summary"]
+            self.logic.showResults(self._parameterNode)
+
+    def cleanup(self):
+        """Leaving for good (module closed, application quit): a running solver is stopped."""
+        if self._worker is not None and self._worker.running:
+            self._worker.cancel()
+        self._timer.stop()
+        ModuleWidgetBase.cleanup(self)
 
 
 class BreastSimulationLogic(ModuleLogicBase):
@@ -572,6 +607,75 @@ class BreastSimulationLogic(ModuleLogicBase):
             self._writeResults(parameterNode, imaged, solution, relaxation is not None)
         if progress is not None:
             progress(1.0, solution.status)
+        return {"solution": solution, "model": model, "device": device, "summary": summary}
+
+    # -- run out of Slicer's process -------------------------------------------------------------
+
+    def writeCase(self, parameterNode, folder) -> str:
+        """The current choices as a case file: ``folder``/case.json with the mesh beside it
+        (mesh.vtu), the format `breastbiomech simulate` reads (docs/solver.md). Returns its path."""
+        import json
+        from pathlib import Path
+
+        from BreastBiomechLib.io.atomic import write_text_atomically
+        from BreastBiomechLib.io.meshes import write_vtu
+
+        if parameterNode["method"] not in ("relaxation", "physical"):
+            raise ValueError(f"method must be relaxation or physical, not {parameterNode['method']!r}")
+        description, mesh = self.caseDescription(parameterNode)
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_vtu(folder / "mesh.vtu", mesh)
+        path = folder / "case.json"
+        write_text_atomically(path, json.dumps({**description, "mesh": "mesh.vtu"}, indent=1))
+        return str(path)
+
+    def startRun(self, parameterNode, folder=None):
+        """Start the solve in a process of its own (`breastbiomech simulate`, see
+        BreastBiomechCommon.worker): the case written to ``folder`` (default: a new folder in
+        Slicer's temporary folder), the results to ``folder``/result. Returns the running
+        :class:`~BreastBiomechCommon.worker.CommandWorker`: poll it, and once it has ended
+        :meth:`finishRun` puts its results into the scene. Bad choices are refused here, before
+        anything starts."""
+        import os
+        import tempfile
+
+        from BreastBiomechCommon.worker import CommandWorker
+
+        if parameterNode["device"] not in ("auto", "cuda", "cpu"):
+            raise ValueError(f"device must be auto, cuda or cpu, not {parameterNode['device']!r}")
+        if folder is None:
+            root = slicer.app.temporaryPath if IN_SLICER_APPLICATION else None
+            folder = tempfile.mkdtemp(prefix="BreastSimulation-", dir=root)
+        case = self.writeCase(parameterNode, folder)
+        device = [] if parameterNode["device"] == "auto" else ["--device", parameterNode["device"]]
+        return CommandWorker(["simulate", case, "--out", os.path.join(str(folder), "result"), *device],
+                             folder=str(folder)).start()
+
+    def finishRun(self, parameterNode, worker) -> dict:
+        """The results of an ended :meth:`startRun` into the scene, as :meth:`run` puts them (a
+        solve that did not complete, e.g. inverted elements, shows where it stopped, with its
+        status). A cancelled or crashed worker leaves the earlier results untouched and raises
+        RuntimeError with its reason. Returns :meth:`run`'s dict."""
+        import os
+
+        from BreastBiomechLib.io.cases import read_case
+        from BreastBiomechLib.io.solutions import read_solution
+
+        if worker.running:
+            raise RuntimeError("the simulation is still running: wait for it or cancel it")
+        if worker.cancelled:
+            raise RuntimeError("the simulation was cancelled; the earlier results are unchanged")
+        result = os.path.join(worker.folder, "result")
+        if worker.returncode not in (0, 1) or not os.path.isfile(os.path.join(result, "solution.json")):
+            raise RuntimeError(worker.error or "the simulation wrote no results")
+        solution, _summary = read_solution(result)
+        model, settings = read_case(os.path.join(worker.folder, "case.json"))
+        relaxation = settings.method == "relaxation"
+        device = worker.outputs().get("device") or parameterNode["device"]
+        summary = self.summaryText(solution, model, device, relaxation)
+        logging.info("BreastSimulation: %s", summary)
+        self._writeResults(parameterNode, model, solution, relaxation)
         return {"solution": solution, "model": model, "device": device, "summary": summary}
 
     def _writeResults(self, parameterNode, model, solution, relaxation: bool) -> None:

@@ -14,6 +14,7 @@ import sys
 from BreastBiomechLib import __version__
 from BreastBiomechLib.cli import bench, demo, diagnose, fit, images, mesh, niftysim, phantom, segment, simulate, suite
 from BreastBiomechLib.cli.common import end_progress
+from BreastBiomechLib.cli.events import open_events
 
 
 GROUPS = (phantom, fit, diagnose, suite, segment, mesh, simulate, niftysim, images, demo, bench)  # the order `--help` lists them in
@@ -45,23 +46,31 @@ def main(argv: list[str] | None = None) -> int:
         print(f"breastbiomech {args.command}: error: VTK is not installed; outside Slicer install the library with "
               "its headless extra: pip install 'breastbiomech[headless]'", file=sys.stderr)
         return 2
-    if getattr(args, "json", False):  # standard output is for the one JSON line: no warp banner
+    from BreastBiomechLib.cohort import CohortCancelled
+
+    args.events, restore = open_events(args)
+    if getattr(args, "json", False) or args.events is not None:  # standard output is for JSON: no warp banner
         import warp
 
         warp.config.log_level = warp.LOG_WARNING
-    from BreastBiomechLib.cohort import CohortCancelled
-
     try:
-        return args.func(args)
+        code, message = args.func(args), None
     except (CohortCancelled, KeyboardInterrupt) as exc:
-        end_progress()
-        print(f"breastbiomech {args.command}: cancelled{': ' + str(exc) if str(exc) else ''}; what finished is kept, "
-              "and the same command resumes", file=sys.stderr)
-        return 130
+        code, message = 130, (f"breastbiomech {args.command}: cancelled{': ' + str(exc) if str(exc) else ''}; what "
+                              "finished is kept, and the same command resumes")
     except (ValueError, OSError, RuntimeError) as exc:
+        code, message = 2, f"breastbiomech {args.command}: error: {_described(exc)}"
+    finally:
+        restore()  # an unexpected error too gives standard output back (its traceback is on standard error)
+    if message is not None:
         end_progress()
-        print(f"breastbiomech {args.command}: error: {_described(exc)}", file=sys.stderr)
-        return 2
+        print(message, file=sys.stderr)
+    if args.events is not None:  # the last event
+        if code == 0:
+            args.events.done(code)
+        else:
+            args.events.error(code, message or f"breastbiomech {args.command} ended with exit code {code}")
+    return code
 
 
 def _described(error: Exception) -> str:

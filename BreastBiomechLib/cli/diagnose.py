@@ -8,6 +8,7 @@ import sys
 
 from BreastBiomechLib.cli.common import (device_argument, fraction, non_negative, non_negative_int, positive,
                                          positive_int)
+from BreastBiomechLib.cli.events import add_progress_option, events_of, wants_bar
 from BreastBiomechLib.discrepancy.effects import NAMES
 from BreastBiomechLib.discrepancy.observations import CHANNELS, FLOORS
 
@@ -20,13 +21,17 @@ def cmd_diagnose(args) -> int:
                        surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor=args.floor)
     settings = DiagnosisSettings(alpha=args.alpha, refine_iterations=args.refine_iterations)
 
+    bar, events = wants_bar(args), events_of(args)
+
     def progress(message):
-        if not args.quiet:
+        if bar:
             print(f"  {message}", file=sys.stderr, flush=True)
+        events.progress(message)
 
     run = run_diagnosis(args.case_dir, args.fit, args.out, effects=args.effects, rounds=args.rounds, noise=noise,
                         settings=settings, device=args.device, resume=args.resume, progress=progress,
                         registration=None if args.no_residual_field else RegistrationSettings())
+    events.output("diagnosis", run.folder)
     if args.json:
         print(json.dumps({"final": run.final["verdict"], "sentence": run.final["sentence"], "added": run.added,
                           "rounds": len(run.rounds)}))
@@ -73,5 +78,5 @@ def add_parsers(sub) -> None:
     p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")
-    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+    add_progress_option(p)
     p.set_defaults(func=cmd_diagnose)

@@ -12,6 +12,7 @@ from pathlib import Path
 from BreastBiomechLib.cli.common import (MODEL_CHOICES, OBJECTIVE_CHOICES, add_cluster_options, cohort_progress,
                                          device_argument, end_progress, finite, non_negative_int, positive,
                                          positive_int, report_failures)
+from BreastBiomechLib.cli.events import add_progress_option, events_of, wants_bar
 from BreastBiomechLib.cohort import place
 
 
@@ -24,17 +25,21 @@ def cmd_optimise(args) -> int:
                            objective=args.objective, bins=args.bins, tolerance_mm=args.tolerance_mm,
                            population=args.population)
     started = time.perf_counter()
+    bar, events = wants_bar(args), events_of(args)
 
     def progress(done, budget, best, phase):
-        if not args.quiet:
+        if bar:
             width = 30
             filled = int(width * done / budget)
             print(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{budget} {phase:6s} best {best:.5f} "
                   f"{time.perf_counter() - started:6.0f} s", end="", file=sys.stderr, flush=True)
+        events.progress(f"{done}/{budget} forward solves ({phase}), best objective {best:.5f}", done / budget)
 
+    events.progress(f"{settings.model} fit: preparing the case and the fitting mesh", 0.0)
     fit = fit_compressed_case(args.case_dir, args.out, settings, labels=args.labels, mesh_path=args.mesh,
                               resume=args.resume, device=args.device, progress=progress)
-    if not args.quiet:
+    events.output("fit", fit.folder)
+    if bar:
         print(file=sys.stderr)
     summary = fit.result.summary()
     if args.json:
@@ -124,7 +129,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue a fit interrupted in --out")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_progress_option(p)
     p.set_defaults(func=cmd_optimise)
 
     p = sub.add_parser("study", help="the four model variants fitted to compressed cases (the seed's Tables 2, 3)")

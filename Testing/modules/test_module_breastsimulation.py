@@ -6,6 +6,8 @@ table edit or a mis-oriented plate shows up as a different answer."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -325,3 +327,50 @@ def test_the_panel_opens_without_starting_warp(scene):
     logic = BreastSimulation.BreastSimulationLogic(scene)
     logic.cudaAvailable()  # starts warp here
     assert logic.deviceAtOpen() == logic.deviceDescription()
+
+
+def test_a_run_out_of_process_shows_progress_cancels_and_matches_the_run_in_process(scene, breast, tmp_path):
+    """The panel's Run: the solve runs as `breastbiomech simulate` in a process of its own while
+    Slicer stays live; its progress arrives as it runs; its results in the scene equal the
+    in-process run's; a Cancel stops the process and leaves the scene's results as they were;
+    a failing start says why."""
+    logic, p = _set_up(scene, breast)
+    p["method"], p["totalTime"], p["settleTime"], p["stopWhenSettled"] = "physical", 0.2, 0.05, False
+    in_process = logic.run(p)["solution"]
+    output, history = p.reference("outputMesh"), p.reference("history")
+    expected = BreastSimulation.slicer.util.arrayFromModelPoints(output).copy()
+
+    worker = logic.startRun(p, tmp_path / "run")
+    seen = []
+    assert worker.wait(300, on_events=seen.extend) == 0, worker.error
+    progress = [e for e in seen if e["event"] == "progress"]
+    assert len(progress) > 3 and progress[0]["fraction"] == 0.0 and progress[-1]["fraction"] == 1.0
+    assert seen[-1]["event"] == "done" and worker.succeeded
+    result = logic.finishRun(p, worker)
+    assert result["solution"].status == "completed" and result["solution"].steps == in_process.steps
+    assert p.reference("outputMesh") is output and p.reference("history") is history  # the same nodes, updated
+    np.testing.assert_allclose(BreastSimulation.slicer.util.arrayFromModelPoints(output), expected, atol=1e-4)
+    assert "completed" in result["summary"]
+
+    # Cancel: the process ends within the grace period; the scene keeps the last results
+    p["totalTime"] = 50.0  # long enough to be running when cancelled
+    worker = logic.startRun(p, tmp_path / "cancelled")
+    while worker.running and worker.last is None:  # until the solver reports
+        worker.poll()
+        time.sleep(0.05)
+    seconds = worker.cancel(grace_s=10.0)
+    assert not worker.running and worker.cancelled and seconds < 10.0 and worker.error == "cancelled"
+    with pytest.raises(RuntimeError, match="cancelled"):
+        logic.finishRun(p, worker)
+    np.testing.assert_allclose(BreastSimulation.slicer.util.arrayFromModelPoints(output), expected, atol=1e-4)
+
+    # a worker that fails says why, in the command's own words
+    from BreastBiomechCommon.worker import CommandWorker
+
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "case.json").write_text("{")
+    broken = CommandWorker(["simulate", str(tmp_path / "broken" / "case.json"), "--out", str(tmp_path / "x")],
+                           folder=str(tmp_path / "broken")).start()
+    assert broken.wait(120) == 2 and not broken.succeeded
+    with pytest.raises(RuntimeError, match="breastbiomech simulate: error: .*case.json"):
+        logic.finishRun(p, broken)

@@ -300,7 +300,8 @@ def test_resources_lie_beside_the_module_scripts_where_slicer_looks():
     cmake = (MODULE_DIR / "CMakeLists.txt").read_text()
     for pattern in ("Resources/Icons/*.png", "Resources/UI/*.ui", "Resources/SampleData/*", "Resources/requirements.txt"):
         assert pattern in cmake
-    assert "BreastBiomechCommon/dependencies.py" in cmake
+    for helper in sorted((MODULE_DIR / "BreastBiomechCommon").glob("*.py")):  # every helper is built and installed
+        assert f"BreastBiomechCommon/{helper.name}" in cmake, helper.name
 
 
 def test_no_module_code_prepends_to_sys_path():
