@@ -291,17 +291,24 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
     # -- inputs ----------------------------------------------------------------------------------
 
     def useOptimizationFit(self, parameterNode) -> None:
-        """Take the case and fit folders of the Breast Optimization result in the scene (its case
-        folder, loaded with Load case, and its output folder, once a run has ended)."""
+        """Take the case and fit folders of the Breast Optimization result in the scene: its output
+        folder, once a run has ended, and the case that fit was made on (the fit's case.json: the
+        case folder loaded with Load case, or the inputs a fit run out of Slicer's process wrote)."""
+        import json
+
         optimisation = self.scene.GetSingletonNode("BreastOptimization", "vtkMRMLScriptedModuleNode")
         case = (optimisation.GetParameter("caseDirectory") if optimisation is not None else "") or ""
         fit = (optimisation.GetParameter("outputDirectory") if optimisation is not None else "") or ""
-        if not case:
-            raise ValueError("Breast Optimization has no case folder: load a compressed case there (Load case) and fit "
-                             "it, or choose the case and fit folders here")
         if not fit or not os.path.isfile(os.path.join(fit, "fitting_mesh.vtu")):
             raise ValueError(f"Breast Optimization's output folder {fit!r} holds no finished fit: run the fit to its "
                              "end first")
+        record = os.path.join(fit, "case.json")
+        if os.path.isfile(record):
+            with open(record, encoding="utf-8") as file:
+                case = json.load(file).get("case_dir") or case
+        if not case:
+            raise ValueError("Breast Optimization has no case folder: load a compressed case there (Load case) and fit "
+                             "it, or choose the case and fit folders here")
         parameterNode["caseDirectory"], parameterNode["fitDirectory"] = case, fit
 
     def openSession(self, parameterNode, progress=None):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 
 import numpy as np
 import slicer
@@ -56,7 +57,14 @@ class BreastOptimizationWidget(ModuleWidgetBase):
 
     def __init__(self, parent=None):
         ModuleWidgetBase.__init__(self, parent)
-        self._stopRequest = None  # None, "pause" or "cancel"
+        import qt
+        from BreastBiomechCommon.worker import POLL_INTERVAL_MS
+
+        self._stopRequest = None  # the study's: None or "cancel"
+        self._worker = None  # the fit's process while it runs
+        self._timer = qt.QTimer()
+        self._timer.setInterval(POLL_INTERVAL_MS)
+        self._timer.timeout.connect(self._pollWorker)
 
     def createLogic(self):
         return BreastOptimizationLogic()
@@ -88,8 +96,8 @@ class BreastOptimizationWidget(ModuleWidgetBase):
         self.ui.loadCaseButton.clicked.connect(self.onLoadCaseButton)
         self.ui.runButton.clicked.connect(lambda: self.onRunButton(resume=False))
         self.ui.resumeButton.clicked.connect(lambda: self.onRunButton(resume=True))
-        self.ui.pauseButton.clicked.connect(lambda: self._requestStop("pause"))
-        self.ui.cancelButton.clicked.connect(lambda: self._requestStop("cancel"))
+        self.ui.pauseButton.clicked.connect(self.onStopFit)
+        self.ui.cancelButton.clicked.connect(self.onStopFit)
         self._setRunning(False)
 
     def _studyModelCheckBoxes(self):
@@ -220,25 +228,50 @@ class BreastOptimizationWidget(ModuleWidgetBase):
     def onRunButton(self, resume):
         if not dependencies_ready(DEPENDENCIES, _("Breast Optimization")):
             return
-        self._stopRequest = None
-        self._setRunning(True)
-        self.ui.progressBar.value = 0
+        with slicer.util.tryWithErrorDisplay(_("Optimisation failed to start."), waitCursor=True):
+            self._worker = self.logic.startRun(self._parameterNode, resume=resume)
+            self._setRunning(True)
+            self.ui.progressBar.value = 0
+            self.ui.progressBar.setFormat(_("starting the fit"))
+            self._timer.start()
 
-        def report(done, budget, best, phase):
-            self.ui.progressBar.value = int(100 * done / max(budget, 1))
-            self.ui.progressBar.setFormat(f"{done}/{budget} solves ({phase}), best {best:.4f}")
-            slicer.app.processEvents()
-            return self._stopRequest is None
+    def onStopFit(self):
+        """Pause and Cancel: the fit's process is stopped; the solves it made are kept in the output
+        folder and Resume goes on from them."""
+        if self._worker is not None and self._worker.running:
+            self._worker.cancel()
 
-        try:
-            with slicer.util.tryWithErrorDisplay(_("Optimisation failed."), waitCursor=True):
-                outcome = self.logic.run(self._parameterNode, progress=report, resume=resume,
-                                         showBest=lambda: self._stopRequest != "pause")
-                self.ui.statusLabel.text = outcome["summary"]
-                if outcome["result"].stopped != "cancelled" or self._stopRequest == "cancel":
-                    self.logic.showComparison(self._parameterNode)
-        finally:
-            self._setRunning(False)
+    def _pollWorker(self):
+        """The timer's tick while the fit runs in its own process: the latest progress into the
+        bar; once it has ended (or was stopped), its results into the scene."""
+        worker = self._worker
+        if worker is None:
+            self._timer.stop()
+            return
+        worker.poll()
+        if worker.last is not None:
+            fraction = worker.last.get("fraction")
+            if fraction is not None:
+                self.ui.progressBar.value = int(100 * fraction)
+            self.ui.progressBar.setFormat(worker.last["message"])
+        if worker.running:
+            return
+        self._timer.stop()
+        self._setRunning(False)
+        self._worker = None
+        with slicer.util.tryWithErrorDisplay(_("Optimisation failed."), waitCursor=True):
+            outcome = self.logic.finishRun(self._parameterNode, worker)
+            self.ui.statusLabel.text = outcome["summary"]
+            if outcome["record"] is not None:
+                self.logic.showComparison(self._parameterNode)
+
+    def cleanup(self):
+        """Leaving for good (module closed, application quit): a running fit is stopped (its solves
+        are kept; Resume goes on from them)."""
+        if self._worker is not None and self._worker.running:
+            self._worker.cancel()
+        self._timer.stop()
+        ModuleWidgetBase.cleanup(self)
 
 
 class BreastOptimizationLogic(ModuleLogicBase):
@@ -284,8 +317,9 @@ class BreastOptimizationLogic(ModuleLogicBase):
         if (folder / "landmarks.mrk.json").is_file():
             p.set_reference("referenceLandmarks", landmarks_to_markups_node(
                 read_markups(folder / "landmarks.mrk.json"), self.scene, "Reference landmarks"))
-        p.set_reference("measuredLandmarks", landmarks_to_markups_node(measured.landmarks, self.scene,
-                                                                       "Measured landmarks"))
+        if measured.landmarks is not None:
+            p.set_reference("measuredLandmarks", landmarks_to_markups_node(measured.landmarks, self.scene,
+                                                                           "Measured landmarks"))
         p.set_references("plates", [self._planeNode(plate) for plate in measured.plates])
         p["caseDirectory"] = str(folder)
         if meshPath:
@@ -342,17 +376,23 @@ class BreastOptimizationLogic(ModuleLogicBase):
             raise ValueError("the fibre direction must not be zero")
         return tuple(float(v) for v in frames.flip(ras / np.linalg.norm(ras)))
 
+    @staticmethod
+    def freeParameters(parameterNode) -> tuple[str, ...]:
+        """The free parameter names the checkboxes choose ("fibre" only for anisotropic models)."""
+        free = tuple(name for name, key in (("E", "freeE"), ("nu", "freeNu"), ("eta", "freeEta"),
+                                            ("fibre", "freeFibre"), ("offset", "freeOffset"))
+                     if parameterNode[key])
+        if "fibre" in free and not parameterNode["model"].startswith("aniso"):
+            free = tuple(name for name in free if name != "fibre")  # the checkbox is disabled there
+        return free
+
     def space(self, parameterNode, mesh):
         """The parameter space of the chosen model and free parameters on ``mesh``'s tissues (the
         fibre direction's angles, anisotropic models only, and the plates' offsets included
         where chosen)."""
         from BreastBiomechLib.optimisation import ParameterSpace
 
-        free = tuple(name for name, key in (("E", "freeE"), ("nu", "freeNu"), ("eta", "freeEta"),
-                                            ("fibre", "freeFibre"), ("offset", "freeOffset"))
-                     if parameterNode[key])
-        if "fibre" in free and not parameterNode["model"].startswith("aniso"):
-            free = tuple(name for name in free if name != "fibre")  # the checkbox is disabled there
+        free = self.freeParameters(parameterNode)
         if "tissue" not in mesh.cell_data:
             raise ValueError("the mesh has no cell array 'tissue' (make it with Breast Mesh)")
         tissues = np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int))
@@ -360,11 +400,11 @@ class BreastOptimizationLogic(ModuleLogicBase):
         return ParameterSpace.for_model(parameterNode["model"], tissues, free=free, fibre=self.fibre(parameterNode),
                                         plates=plates)
 
-    def problem(self, parameterNode):
-        """The :class:`~BreastBiomechLib.optimisation.FittingProblem` of the chosen nodes."""
+    def inputs(self, parameterNode) -> dict:
+        """What a fit reads of the chosen nodes (LPS): the fitting ``mesh``, the ``undeformed`` and
+        ``measured`` images, the ``landmarks`` (reference, measured; None without both) and the
+        final ``plates``. Refuses a missing input, naming it."""
         from BreastBiomechLib.mrml import image_from_volume_node, landmarks_from_markups_node, tetmesh_from_model_node
-        from BreastBiomechLib.optimisation import FittingProblem
-        from BreastBiomechLib.solver import DynamicRelaxation
 
         p = parameterNode
         mesh = tetmesh_from_model_node(self._required(p, "inputMesh", "fitting mesh (a model node with tets)"))
@@ -376,8 +416,18 @@ class BreastOptimizationLogic(ModuleLogicBase):
             landmarks = (landmarks_from_markups_node(reference), landmarks_from_markups_node(moved))
         elif "landmarks" in p["objective"]:
             raise ValueError(f"the objective {p['objective']!r} needs the reference and measured landmarks")
-        return FittingProblem(self.space(p, mesh), mesh, undeformed, measured, self.finalPlates(p, mesh),
-                              landmarks=landmarks, objective=p["objective"], bins=p["bins"],
+        return {"mesh": mesh, "undeformed": undeformed, "measured": measured, "landmarks": landmarks,
+                "plates": self.finalPlates(p, mesh)}
+
+    def problem(self, parameterNode):
+        """The :class:`~BreastBiomechLib.optimisation.FittingProblem` of the chosen nodes."""
+        from BreastBiomechLib.optimisation import FittingProblem
+        from BreastBiomechLib.solver import DynamicRelaxation
+
+        p = parameterNode
+        i = self.inputs(p)
+        return FittingProblem(self.space(p, i["mesh"]), i["mesh"], i["undeformed"], i["measured"], i["plates"],
+                              landmarks=i["landmarks"], objective=p["objective"], bins=p["bins"],
                               relaxation=DynamicRelaxation(tolerance_mm=p["toleranceMm"]),
                               device=self.resolveDevice(p["device"]))
 
@@ -396,7 +446,6 @@ class BreastOptimizationLogic(ModuleLogicBase):
         A run that ends, or stops with ``showBest`` (a bool, or a function asked when it stops:
         pause or cancel), puts the results at the best parameters into the scene
         (:meth:`writeResults`). Returns {"result", "summary"}."""
-        from BreastBiomechLib.mrml import frames
         from BreastBiomechLib.optimisation import optimise
 
         p = parameterNode
@@ -413,24 +462,120 @@ class BreastOptimizationLogic(ModuleLogicBase):
 
         result = optimise(problem, p["optimiser"], p["budget"], p["seconds"] or None, p["seed"],
                           output, resume, report, population=p["population"] or None)
-        summary = (f"{result.stopped}: best objective {result.best.objective:.5f} (NMI {result.best.nmi:.4f}) after "
-                   f"{len(result.evaluations)} solves ({result.replayed} replayed, "
-                   f"{sum(result.failures.values())} failed"
-                   + "".join(f"; {count} {status}" for status, count in result.failures.items())
-                   + f"), {result.seconds:.0f} s")
-        if "fibre" in result.geometry:
-            ras = frames.flip(np.asarray(result.geometry["fibre"]))
-            summary += "\nfitted fibre direction (RAS): " + " ".join(f"{v:.3f}" for v in ras)
-        if "plate_offsets_mm" in result.geometry:
-            summary += "\nfitted plate offsets (mm, towards the tissue): " + ", ".join(
-                f"{node.GetName()} {offset:+.2f}" for node, offset in
-                zip(p.references("plates"), result.geometry["plate_offsets_mm"]))
+        summary = self.resultSummary(p, result.summary())
         if result.stopped == "cancelled" and not (showBest() if callable(showBest) else showBest):
             summary += "; paused: Resume continues"
         else:
             summary += "\n" + self.writeResults(p, problem, result)
         logging.info("BreastOptimization: %s", summary)
         return {"result": result, "summary": summary}
+
+    # -- run out of Slicer's process -------------------------------------------------------------
+
+    INPUTS = "inputs"  # the output folder's subfolder holding the fit's inputs as a case folder
+
+    def writeInputs(self, parameterNode, folder) -> str:
+        """The chosen nodes as a case folder (``folder``: mr.nrrd, compressed/ with the measured
+        image and final plates, the landmarks where chosen;
+        :func:`~BreastBiomechLib.phantom.compressed_files.write_measured_case`) with the fitting
+        mesh beside them (fitting_mesh.vtu): what `breastbiomech optimise` reads. Returns the folder."""
+        from BreastBiomechLib.io.meshes import write_vtu
+        from BreastBiomechLib.phantom.compressed_files import write_measured_case
+
+        i = self.inputs(parameterNode)
+        self.space(parameterNode, i["mesh"])  # refuses bad choices before anything is written
+        write_measured_case(folder, i["undeformed"], i["measured"], i["plates"], i["landmarks"])
+        write_vtu(os.path.join(str(folder), "fitting_mesh.vtu"), i["mesh"])
+        return str(folder)
+
+    def fitArguments(self, parameterNode, inputs: str, output: str, resume: bool) -> list[str]:
+        """The `breastbiomech optimise` command line of the chosen settings."""
+        p = parameterNode
+        arguments = ["optimise", inputs, "--mesh", os.path.join(inputs, "fitting_mesh.vtu"), "--out", output,
+                     "--model", p["model"], "--free", *self.freeParameters(p),
+                     "--fibre", *[repr(v) for v in self.fibre(p)], "--optimiser", p["optimiser"],
+                     "--budget", str(p["budget"]), "--seed", str(p["seed"]), "--objective", p["objective"],
+                     "--bins", str(p["bins"]), "--tolerance-mm", repr(float(p["toleranceMm"]))]
+        if not self.freeParameters(p):
+            raise ValueError("choose at least one free parameter")
+        if p["seconds"]:
+            arguments += ["--seconds", repr(float(p["seconds"]))]
+        if p["population"]:
+            arguments += ["--population", str(p["population"])]
+        if p["device"] != "auto":
+            if p["device"] not in ("cuda", "cpu"):
+                raise ValueError(f"device must be auto, cuda or cpu, not {p['device']!r}")
+            arguments += ["--device", p["device"]]
+        return arguments + (["--resume"] if resume else [])
+
+    def startRun(self, parameterNode, resume=False):
+        """Start the fit in a process of its own (`breastbiomech optimise`, see
+        BreastBiomechCommon.worker): the chosen nodes written as a case folder in the output
+        folder's ``inputs/`` (kept as they were when resuming, so a resumed fit goes on with the
+        inputs it began with), every evaluation to the output folder as it goes. Returns the
+        running :class:`~BreastBiomechCommon.worker.CommandWorker`; once it has ended,
+        :meth:`finishRun` shows the results. Cancel (the worker's) keeps what was solved:
+        ``startRun(resume=True)`` goes on from it."""
+        from BreastBiomechCommon.worker import CommandWorker
+
+        p = parameterNode
+        output = chosen_folder(p["outputDirectory"], "an output folder: every evaluation is kept there, so a run "
+                                                        "can be resumed")
+        inputs = os.path.join(output, self.INPUTS)
+        if resume and not os.path.isfile(os.path.join(inputs, "compressed", "plates.json")):
+            raise ValueError(f"{output} holds no fit started from this panel to resume: press Run")
+        if not resume:
+            self.writeInputs(p, inputs)
+        return CommandWorker(self.fitArguments(p, inputs, output, resume), folder=output).start()
+
+    def finishRun(self, parameterNode, worker) -> dict:
+        """The results of an ended :meth:`startRun` into the scene (:meth:`showFit` of its output
+        folder); the convergence as it stood for a cancelled one (Resume continues it). Raises
+        RuntimeError with the worker's reason where it failed. Returns {"summary", "record"}."""
+        p = parameterNode
+        if worker.running:
+            raise RuntimeError("the fit is still running: wait for it or cancel it")
+        if worker.cancelled:
+            self._showEvaluations(p, worker.folder)
+            return {"summary": "cancelled: the solves made are kept; Resume continues the fit", "record": None}
+        if not worker.succeeded:
+            raise RuntimeError(worker.error or "the fit wrote no results")
+        line = self.showFit(p, worker.folder)
+        with open(os.path.join(worker.folder, "result.json"), encoding="utf-8") as file:
+            record = json.load(file)
+        summary = self.resultSummary(p, record) + "\n" + line
+        logging.info("BreastOptimization: %s", summary)
+        return {"summary": summary, "record": record}
+
+    def _showEvaluations(self, parameterNode, folder) -> None:
+        """The convergence of the evaluations a fit folder holds so far."""
+        from BreastBiomechLib.optimisation.record import read_evaluations
+
+        path = os.path.join(str(folder), "evaluations.jsonl")
+        if os.path.isfile(path):
+            objectives = [e.objective if e.status == "completed" else np.inf for e in read_evaluations(path)]
+            if objectives:
+                self._convergence(parameterNode, list(range(1, len(objectives) + 1)),
+                                  list(np.minimum.accumulate(objectives)))
+
+    def resultSummary(self, parameterNode, record: dict) -> str:
+        """The fit's outcome in a few lines, from its result.json ``record``."""
+        from BreastBiomechLib.mrml import frames
+
+        best = record["best"]
+        summary = (f"{record['stopped']}: best objective {best['objective']:.5f} (NMI {best['nmi']:.4f}) after "
+                   f"{record['evaluations']} solves ({record['replayed']} replayed, {record['failed']} failed"
+                   + "".join(f"; {count} {status}" for status, count in record["failures"].items())
+                   + f"), {record['seconds']:.0f} s")
+        geometry = record.get("geometry", {})
+        if "fibre" in geometry:
+            ras = frames.flip(np.asarray(geometry["fibre"]))
+            summary += "\nfitted fibre direction (RAS): " + " ".join(f"{v:.3f}" for v in ras)
+        if "plate_offsets_mm" in geometry:
+            summary += "\nfitted plate offsets (mm, towards the tissue): " + ", ".join(
+                f"{node.GetName()} {offset:+.2f}" for node, offset in
+                zip(parameterNode.references("plates"), geometry["plate_offsets_mm"]))
+        return summary
 
     def _convergence(self, parameterNode, done, best) -> None:
         from BreastBiomechLib.mrml import columns_to_table_node, plot_chart_node
@@ -445,62 +590,85 @@ class BreastOptimizationLogic(ModuleLogicBase):
             "objective (-NMI)" if p["objective"] == "nmi" else "objective", node=p.reference("convergenceChart")))
 
     def writeResults(self, parameterNode, problem, result) -> str:
-        """The results at the best parameters as nodes: the predicted compressed volume (on the
-        measured grid), the fitted parameters table, and with landmarks the predicted landmarks,
-        the landmark errors table (mm) and the error lines (predicted to measured, coloured by
-        error). The output folder becomes a complete fit folder, as ``breastbiomech optimise``
-        writes it (the fitting mesh, its solution, the predicted image, and the case folder when
-        the case was loaded with :meth:`loadCompressedCase`), which Breast Discrepancy diagnoses.
-        Returns a line summarising the landmark errors."""
+        """The results at the best parameters written to the output folder as ``breastbiomech
+        optimise`` writes them (a complete fit folder, which Breast Discrepancy diagnoses; with
+        the case folder's record when the case was loaded with :meth:`loadCompressedCase`), then
+        shown (:meth:`showFit`). Returns a line summarising the landmark errors."""
         import json
         from pathlib import Path
 
-        from BreastBiomechLib.io.images import write_image
-        from BreastBiomechLib.io.meshes import write_vtu
-        from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
-        from BreastBiomechLib.mesh.tetmesh import TetMesh
-        from BreastBiomechLib.mrml import (columns_to_table_node, image_to_volume_node,
-                                           landmarks_from_markups_node, landmarks_to_markups_node)
-        from BreastBiomechLib.optimisation.run import solve_best
+        from BreastBiomechLib.optimisation.case import write_fit_outputs
 
         p = parameterNode
-        out, mesh = Path(p["outputDirectory"]), problem.mesh
-        result, best = solve_best(problem, result, out)
-        write_vtu(out / "fitting_mesh.vtu", mesh)
-        write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
-                                                                              "displacement": best.displacement},
-                                                     dict(mesh.cell_data)))
-        predicted = problem.predict(best.displacement).image
-        write_image(out / "predicted.nrrd", predicted)
+        out = Path(p["outputDirectory"])
+        write_fit_outputs(out, problem, result)
         if p["caseDirectory"]:
             from BreastBiomechLib.phantom.compressed_files import case_fingerprint
 
             (out / "case.json").write_text(json.dumps({"case_dir": p["caseDirectory"],
                                                        "fingerprint": case_fingerprint(p["caseDirectory"])}, indent=2)
                                            + "\n")
+        return self.showFit(p, out)
+
+    def showFit(self, parameterNode, folder) -> str:
+        """A fit folder's results as nodes (what :func:`write_fit_outputs` wrote, read back: the
+        same for a fit run in this process, out of it, or by ``breastbiomech optimise``): the
+        predicted compressed volume (on the measured grid), the fitted parameters table, the
+        convergence, and with landmarks the predicted landmarks, the landmark errors table (mm)
+        and the error lines (predicted to measured, coloured by error; the measured landmarks
+        those of the case the fit was made on). Returns a line summarising the landmark errors."""
+        import json
+        from pathlib import Path
+
+        from BreastBiomechLib.io.images import read_image
+        from BreastBiomechLib.io.markups import read_markups
+        from BreastBiomechLib.landmarks import LandmarkErrors
+        from BreastBiomechLib.mrml import columns_to_table_node, image_to_volume_node, landmarks_to_markups_node
+
+        p, folder = parameterNode, Path(folder)
+        for name in ("result.json", "predicted.nrrd", "evaluations.jsonl"):
+            if not (folder / name).is_file():
+                raise FileNotFoundError(f"{folder} holds no {name}: not a finished fit")
+        record = json.loads((folder / "result.json").read_text())
         p.set_reference("predictedVolume", image_to_volume_node(
-            predicted, self.scene, "Predicted compressed MR",
+            read_image(folder / "predicted.nrrd"), self.scene, "Predicted compressed MR",
             node=p.reference("predictedVolume")))
-        names = list(result.materials)
+        materials = record["materials"]
+        names = list(materials)
         p.set_reference("parametersTable", columns_to_table_node(
-            {"material": np.array(names), "E (Pa)": np.array([result.materials[n]["E"] for n in names]),
-             "nu": np.array([result.materials[n]["nu"] for n in names]),
-             "eta (Pa)": np.array([result.materials[n]["eta"] for n in names])},
+            {"material": np.array(names), "E (Pa)": np.array([materials[n]["E"] for n in names]),
+             "nu": np.array([materials[n]["nu"] for n in names]),
+             "eta (Pa)": np.array([materials[n]["eta"] for n in names])},
             self.scene, "Fitted parameters", node=p.reference("parametersTable")))
-        reference, moved = p.reference("referenceLandmarks"), p.reference("measuredLandmarks")
-        if reference is None or moved is None:
+        self._showEvaluations(p, folder)
+        errors_path = folder / "landmark_errors.json"
+        if not errors_path.is_file():
             return "no landmarks chosen: no landmark errors"
-        reference, measured = landmarks_from_markups_node(reference), landmarks_from_markups_node(moved)
-        predicted = map_landmarks(problem.mesh, best.displacement, reference)
+        case = Path(json.loads((folder / "case.json").read_text())["case_dir"]) if (folder / "case.json").is_file() \
+            else None
+        measured_path = None if case is None else case / "compressed" / "landmarks.mrk.json"
+        predicted = read_markups(folder / "predicted_landmarks.mrk.json")
         p.set_reference("predictedLandmarks", landmarks_to_markups_node(
             predicted, self.scene, "Predicted landmarks", node=p.reference("predictedLandmarks")))
-        errors = landmark_errors(reference, predicted, measured)
+        table = json.loads(errors_path.read_text())
+        labels = list(table["per_landmark"])
+        errors = LandmarkErrors(labels, np.array([table["per_landmark"][k]["displacement_mm"] for k in labels]),
+                                np.array([table["per_landmark"][k]["error_mm"] for k in labels]))
         p.set_reference("landmarkErrorsTable", columns_to_table_node(
             {"landmark": np.array(errors.labels), "displacement (mm)": errors.displacement_mm,
              "error (mm)": errors.error_mm}, self.scene, "Landmark errors", node=p.reference("landmarkErrorsTable")))
-        p.set_reference("errorLines", self._errorLines(p, predicted, measured, errors))
-        s = errors.summary()["error_mm"]
-        return f"landmark error {s['mean']:.2f} ± {s['sd']:.2f} mm (max {s['max']:.2f}) over {len(errors.labels)} landmarks"
+        if measured_path is not None and measured_path.is_file():
+            measured = read_markups(measured_path)
+        elif p.reference("measuredLandmarks") is not None:  # a fit of nodes chosen by hand, in this process
+            from BreastBiomechLib.mrml import landmarks_from_markups_node
+
+            measured = landmarks_from_markups_node(p.reference("measuredLandmarks"))
+        else:
+            measured = None
+        if measured is not None:
+            p.set_reference("errorLines", self._errorLines(p, predicted, measured, errors))
+        s = table["error_mm"]
+        return f"landmark error {s['mean']:.2f} ± {s['sd']:.2f} mm (max {s['max']:.2f}) over {len(labels)} landmarks"
 
     def _errorLines(self, parameterNode, predicted, measured, errors):
         """A model of one line per landmark from its predicted to its measured position, with the

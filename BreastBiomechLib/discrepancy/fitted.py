@@ -124,6 +124,8 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
                              "was made on another case")
     mesh = read_vtu(fit / "fitting_mesh.vtu")
     reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
+    if measured.landmarks is None:  # landmarks count where both images have them
+        reference = None
     landmarks = (reference, measured.landmarks) if reference is not None else None
     if space.plates and space.plates != len(measured.plates):
         raise ValueError(f"{fit}: the fit offsets {space.plates} plates, {case} has {len(measured.plates)}; "

@@ -32,6 +32,8 @@ from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solv
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation
 
+LANDMARK_ERRORS = "landmark_errors.json"  # per landmark and summarised (mm)
+
 
 @dataclass
 class FitSettings:
@@ -74,7 +76,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     results to ``out_dir``. The fitting mesh is ``mesh_path`` (a ``breastbiomech mesh`` .vtu), or
     made from ``labels`` (default: the case's labels.nrrd; a segmentation's label map fits the
     real workflow) at ``settings.edge_mm``."""
-    from BreastBiomechLib.io.images import read_image, read_label_map, write_image
+    from BreastBiomechLib.io.images import read_image, read_label_map
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
     from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
 
@@ -84,6 +86,9 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     measured = read_compressed(case)
     undeformed = read_image(case / "mr.nrrd")
     reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
+    if reference is not None and measured.landmarks is None:
+        raise ValueError(f"{case}: the reference landmarks (landmarks.mrk.json) have no measured counterpart in "
+                         "compressed/landmarks.mrk.json; add it, or remove both to fit without landmarks")
     with claimed(out, "a fit of a compressed case"):
         out.mkdir(parents=True, exist_ok=True)
         write_json_atomically(out / "case.json", {"case_dir": str(case.resolve()), "fingerprint": case_fingerprint(case)})
@@ -109,22 +114,39 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
         result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
                           progress, population=settings.population)
 
-        result, best = solve_best(problem, result, out)
-        write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)
-        write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
-                                                                              "displacement": best.displacement},
-                                                     dict(mesh.cell_data)))
-        errors = None
-        if reference is not None:
-            moved = map_landmarks(mesh, best.displacement, reference)
-            write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
-            table = landmark_errors(reference, moved, measured.landmarks)
-            errors = table.summary()
-            write_json_atomically(out / "landmark_errors.json", {**errors, "per_landmark": {
-                label: {"displacement_mm": float(d), "error_mm": float(e)}
-                for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}})
-        save_convergence(out / "convergence.png", result)
+        result, errors = write_fit_outputs(out, problem, result)
         return CaseFit(result, errors, out)
+
+
+def write_fit_outputs(out: str | Path, problem: FittingProblem, result: OptimisationResult) -> tuple:
+    """The files a user looks at of an ended optimisation of ``problem`` in its folder ``out``
+    (the module's list; not case.json): the best parameters solved alone (a stand-in where they no
+    longer solve, :func:`~BreastBiomechLib.optimisation.run.solve_best`), the fitting mesh and its
+    solution, the predicted image, with landmarks the moved landmarks and their errors, the
+    convergence picture. Returns the (possibly stood-in) result and the landmark-error summary
+    (None without landmarks)."""
+    from BreastBiomechLib.io.images import write_image
+    from BreastBiomechLib.io.meshes import write_vtu
+
+    out, mesh = Path(out), problem.mesh
+    result, best = solve_best(problem, result, out)
+    write_vtu(out / "fitting_mesh.vtu", mesh)
+    write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)
+    write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
+                                                                          "displacement": best.displacement},
+                                                 dict(mesh.cell_data)))
+    errors = None
+    if problem.landmarks is not None:
+        reference, measured = problem.landmarks
+        moved = map_landmarks(mesh, best.displacement, reference)
+        write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
+        table = landmark_errors(reference, moved, measured)
+        errors = table.summary()
+        write_json_atomically(out / LANDMARK_ERRORS, {**errors, "per_landmark": {
+            label: {"displacement_mm": float(d), "error_mm": float(e)}
+            for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}})
+    save_convergence(out / "convergence.png", result)
+    return result, errors
 
 
 def save_convergence(path: str | Path, result: OptimisationResult) -> Path:

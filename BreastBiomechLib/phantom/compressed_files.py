@@ -64,17 +64,47 @@ def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview:
     return paths
 
 
+def write_measured_case(case_dir: str | Path, undeformed: sitk.Image, measured: sitk.Image, plates: list[dict],
+                        landmarks: tuple[Landmarks, Landmarks] | None = None,
+                        gravity=PRONE_GRAVITY) -> Path:
+    """A case folder a fit and a diagnosis read, made from measured data rather than a phantom:
+    ``case_dir``/mr.nrrd (the ``undeformed`` MR), ``compressed/mr.nrrd`` (the ``measured``
+    compressed MR, its own grid), ``compressed/plates.json`` (the final ``plates``: dicts with
+    name, point, normal towards the tissue, optional edge; LPS mm; the scan's posture
+    ``gravity`` m/s^2 LPS; axis and compression unknown) and, with ``landmarks`` (reference,
+    measured; the same labels in the same order), ``landmarks.mrk.json`` and
+    ``compressed/landmarks.mrk.json``. Returns ``case_dir``."""
+    folder = Path(case_dir)
+    (folder / FOLDER).mkdir(parents=True, exist_ok=True)
+    for plate in plates:
+        if np.linalg.norm(plate["normal"]) == 0:
+            raise ValueError(f"plate {plate.get('name')!r} has a zero normal")
+    write_image(folder / "mr.nrrd", undeformed)
+    write_image(folder / FOLDER / "mr.nrrd", measured)
+    if landmarks is not None:
+        reference, moved = landmarks
+        if reference.labels != moved.labels:
+            raise ValueError("the reference and measured landmarks must carry the same labels in the same order")
+        write_markups(folder / "landmarks.mrk.json", reference, name="Reference landmarks")
+        write_markups(folder / FOLDER / "landmarks.mrk.json", moved, name="Compressed landmarks")
+    write_text_atomically(folder / FOLDER / "plates.json", json.dumps(
+        {"axis": None, "compression": None, "plates": plates, "gravity": [float(g) for g in gravity]},
+        indent=2) + "\n")
+    return folder
+
+
 @dataclass
 class MeasuredCompression:
     """What a fit may use of a compressed case: the measured ``image``, the compressed
-    ``landmarks`` and the final ``plates`` (dicts: name, point, normal, optional edge; LPS mm),
-    the compression ``axis`` and ``compression`` fraction, the ``folder`` and the scan's posture
+    ``landmarks`` (None where the case has none) and the final ``plates`` (dicts: name, point,
+    normal, optional edge; LPS mm), the compression ``axis`` and ``compression`` fraction (None
+    and NaN where unknown: a case made from measured data), the ``folder`` and the scan's posture
     as ``gravity`` (m/s^2, LPS)."""
 
     image: sitk.Image
-    landmarks: Landmarks
+    landmarks: Landmarks | None
     plates: list[dict]
-    axis: str
+    axis: str | None
     compression: float
     folder: Path
     gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE_GRAVITY))
@@ -108,9 +138,10 @@ def read_compressed(case_dir: str | Path) -> MeasuredCompression:
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
         raise ValueError(f"{folder / 'plates.json'}: gravity is the scan's posture as three finite numbers "
                          f"(m/s^2, LPS; prone: [0, -9.81, 0]), not {document.get('gravity')!r}")
-    return MeasuredCompression(read_image(folder / "mr.nrrd"), read_markups(folder / "landmarks.mrk.json"),
-                               document["plates"], document["axis"], float(document["compression"]), folder,
-                               gravity)
+    landmarks = read_markups(folder / "landmarks.mrk.json") if (folder / "landmarks.mrk.json").is_file() else None
+    compression = document.get("compression")
+    return MeasuredCompression(read_image(folder / "mr.nrrd"), landmarks, document["plates"], document.get("axis"),
+                               float("nan") if compression is None else float(compression), folder, gravity)
 
 
 def case_fingerprint(case_dir: str | Path) -> str:

@@ -206,3 +206,59 @@ def test_a_cohort_study_sent_to_a_dask_scheduler(scene, compressed_case_dir, tmp
     p["studyCasesDirectory"] = str(tmp_path / "study")
     with pytest.raises(ValueError, match="holds no compressed case"):
         logic.studyCases(p)
+
+
+def test_a_fit_out_of_process_reports_cancels_resumes_and_is_diagnosable(scene, compressed_case_dir, fitting_mesh,
+                                                                        tmp_path):
+    """The panel's Run: the fit runs as `breastbiomech optimise` in a process of its own (the
+    chosen nodes written as a case folder in the output folder's inputs/); its progress arrives
+    while it runs; Cancel stops the process and keeps the solves made; Resume goes on from them
+    (replayed, not solved again) to the budget; the results are nodes as after a fit in process,
+    and the output folder is a fit Breast Discrepancy takes, with the case it was made on."""
+    import time
+
+    logic, p = _set_up(scene, compressed_case_dir, fitting_mesh, tmp_path, budget=4)
+    p["population"] = 2
+    worker = logic.startRun(p)
+    while worker.running and not any((e.get("fraction") or 0) > 0 for e in worker.events):
+        worker.poll()
+        time.sleep(0.05)  # until the first batch of solves has been written
+    assert worker.running, worker.error
+    seconds = worker.cancel(grace_s=10.0)
+    assert seconds < 10.0 and not worker.running
+    cancelled = logic.finishRun(p, worker)
+    assert "Resume" in cancelled["summary"] and p.reference("predictedVolume") is None
+    kept = (tmp_path / "evaluations.jsonl").read_text().splitlines()
+    assert 2 <= len(kept) < 4 and p.reference("convergenceTable") is not None
+
+    worker = logic.startRun(p, resume=True)
+    progress = []
+    assert worker.wait(600, on_events=progress.extend) == 0, worker.error
+    outcome = logic.finishRun(p, worker)
+    record = outcome["record"]
+    assert record["evaluations"] == 4 and record["replayed"] == len(kept)
+    assert [json.loads(line)["z"] for line in (tmp_path / "evaluations.jsonl").read_text().splitlines()[:len(kept)]] \
+        == [json.loads(line)["z"] for line in kept]
+    assert any("forward solves" in e.get("message", "") for e in progress)
+    assert "landmark error" in outcome["summary"] and p.reference("predictedVolume") is not None
+    assert p.reference("landmarkErrorsTable").GetTable().GetNumberOfRows() == 17
+    assert p.reference("errorLines").GetPolyData().GetNumberOfCells() == 17
+    parameters = p.reference("parametersTable").GetTable()
+    glandular = [parameters.GetValueByName(r, "material").ToString()
+                 for r in range(parameters.GetNumberOfRows())].index("glandular")
+    assert parameters.GetValueByName(glandular, "E (Pa)").ToDouble() == pytest.approx(
+        record["materials"]["glandular"]["E"])
+    # the fit's case is its inputs, written from the nodes: Breast Discrepancy diagnoses that pair
+    import BreastDiscrepancy
+    from BreastBiomechLib.discrepancy import load_fitted_case
+
+    discrepancy = BreastDiscrepancy.BreastDiscrepancyLogic(scene)
+    q = discrepancy.getParameterNode()
+    discrepancy.useOptimizationFit(q)
+    assert q["fitDirectory"] == str(tmp_path) and q["caseDirectory"] == str((tmp_path / "inputs").resolve())
+    fitted = load_fitted_case(q["caseDirectory"], tmp_path, device="cpu")
+    np.testing.assert_allclose(fitted.z, record["best"]["z"])
+    # resuming a folder that holds no fit started from the panel is refused
+    p["outputDirectory"] = str(tmp_path / "empty")
+    with pytest.raises(ValueError, match="no fit started from this panel"):
+        logic.startRun(p, resume=True)
