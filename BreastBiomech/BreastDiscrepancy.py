@@ -59,10 +59,6 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
 
     UI_FILE = "UI/BreastDiscrepancy.ui"
 
-    def __init__(self, parent=None):
-        ModuleWidgetBase.__init__(self, parent)
-        self._cancelRequested = False
-
     def createLogic(self):
         return BreastDiscrepancyLogic()
 
@@ -128,36 +124,14 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         p["measuredFloor"] = self.ui.measuredFloorCheckBox.checked
 
     def _setRunning(self, running):
-        """While a step runs (it processes events in its progress calls) only Cancel is live: the
-        buttons, the folders and settings, the round selector, the table and the view options
-        would change what the step reads or shows."""
+        """While a step runs (in its own process) only Cancel is live: the buttons, the folders and
+        settings, the round selector, the table and the view options would change what the step
+        reads or shows."""
         for widget in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.saveReportButton,
                        self.ui.useOptimizationButton, self.ui.inputsCollapsibleButton,
                        self.ui.settingsCollapsibleButton, self.ui.resultsCollapsibleButton):
             widget.enabled = not running
         self.ui.cancelButton.enabled = running
-
-    def _progress(self, message):
-        self.ui.statusLabel.text = message
-        slicer.app.processEvents()
-        return not self._cancelRequested
-
-    def _runStep(self, title, step):
-        """Run a long Logic step with the buttons disabled, progress in the status line and Cancel."""
-        from BreastBiomechLib.discrepancy import DiagnosisCancelled
-
-        self._cancelRequested = False
-        self._setRunning(True)
-        try:
-            with slicer.util.tryWithErrorDisplay(title, waitCursor=True):
-                try:
-                    return step()
-                except DiagnosisCancelled as cancelled:
-                    # a step is cancelled only before its round is written (the session's rule)
-                    self.ui.statusLabel.text = _("{what}: no round was written or changed").format(what=cancelled)
-                    return None
-        finally:
-            self._setRunning(False)
 
     def onUseOptimizationButton(self):
         if not dependencies_ready(["numpy"], _("Breast Discrepancy")):
@@ -168,19 +142,37 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
     def onDiagnoseButton(self):
         if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
             return
-        if self._runStep(_("Diagnosis failed."), lambda: self.logic.diagnose(self._parameterNode, self._progress)) \
-                and self._parameterNode is not None:  # None: the module was left while the step ran
-            self.ui.statusLabel.text = self.logic.verdictText(self._parameterNode)
-            self.logic.showRound(self._parameterNode, self._parameterNode["shownRound"])
+        self._startStep(_("Diagnosis failed to start."), lambda: self.logic.startDiagnosis(self._parameterNode),
+                        _("Diagnosis failed."), self.logic.finishDiagnosis)
 
     def onAcceptButton(self):
         if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
             return
         name = self._parameterNode["candidate"] or None
-        if self._runStep(_("Refit failed."), lambda: self.logic.accept(self._parameterNode, name, self._progress)) \
-                and self._parameterNode is not None:
-            self.ui.statusLabel.text = self.logic.verdictText(self._parameterNode)
-            self.logic.showRound(self._parameterNode, self._parameterNode["shownRound"])
+        self._startStep(_("Refit failed to start."), lambda: self.logic.startAccept(self._parameterNode, name),
+                        _("Refit failed."), self.logic.finishAccept)
+
+    def _startStep(self, startTitle, start, title, finish):
+        """A long step in its own process (the worker): the panel disabled but Cancel, its progress
+        in the status line; once it has ended, ``finish(parameterNode, worker)`` shows it."""
+        with slicer.util.tryWithErrorDisplay(startTitle, waitCursor=True):
+            worker = start()
+            self._setRunning(True)
+            self.ui.statusLabel.text = _("starting")
+
+            def ended(worker):
+                self._setRunning(False)
+                if worker.cancelled:
+                    self.ui.statusLabel.text = _("Cancelled: what had finished is kept in the output folder; the "
+                                                 "round in the panel is as it was")
+                    return
+                with slicer.util.tryWithErrorDisplay(title, waitCursor=True):
+                    parameterNode = self.logic.getParameterNode()  # also when the module was left meanwhile
+                    finish(parameterNode, worker)
+                    self.ui.statusLabel.text = self.logic.verdictText(parameterNode)
+                    self.logic.showRound(parameterNode, parameterNode["shownRound"])
+
+            self.startWorker(worker, ended, statusLabel=self.ui.statusLabel)
 
     def onRejectButton(self):
         if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
@@ -190,7 +182,7 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
             self.ui.statusLabel.text = _("{name} rejected: Diagnose runs the next round without it").format(name=name)
 
     def onCancelButton(self):
-        self._cancelRequested = True
+        self.cancelWorker()
 
     def onCandidateSelected(self, *args):
         rows = self.ui.candidatesTableView.selectionModel().selectedIndexes()
@@ -299,6 +291,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         optimisation = self.scene.GetSingletonNode("BreastOptimization", "vtkMRMLScriptedModuleNode")
         case = (optimisation.GetParameter("caseDirectory") if optimisation is not None else "") or ""
         fit = (optimisation.GetParameter("outputDirectory") if optimisation is not None else "") or ""
+        if not case and not fit:
+            raise ValueError("Breast Optimization has no case folder: load a compressed case there (Load case) and fit "
+                             "it, or choose the case and fit folders here")
         if not fit or not os.path.isfile(os.path.join(fit, "fitting_mesh.vtu")):
             raise ValueError(f"Breast Optimization's output folder {fit!r} holds no finished fit: run the fit to its "
                              "end first")
@@ -365,8 +360,12 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         if last is not None and not is_open(last) and len(session.rounds) >= p["maxRounds"]:
             raise ValueError(f"{len(session.rounds)} rounds made, the most allowed ({p['maxRounds']}): raise Rounds "
                              "to go on")
-        record = session.diagnose(progress)
-        number = record["round"]
+        return self._showDiagnosed(p, session.diagnose(progress))
+
+    def _showDiagnosed(self, parameterNode, record):
+        """A round just diagnosed into the scene: its candidates table, overlays and plots (the
+        nodes of an open round diagnosed again replaced). Returns the table node."""
+        p, number = parameterNode, record["round"]
         self._removeRound(number)  # an open round diagnosed again: its old nodes go
         folder = self._roundFolder(number)
         table = self._candidatesTable(p, record, folder)
@@ -383,19 +382,115 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         the round's folder. Cancelling leaves the round as it was. Returns the round's record."""
         p = parameterNode
         session = self._session(p)
+        return self._showAccepted(p, session.add(self._toAdd(p, session, name), p["refineIterations"], progress))
+
+    @staticmethod
+    def _toAdd(parameterNode, session, name=None) -> str:
+        """The candidate *Refit with effect* adds: ``name``, else the round's verdict, else the
+        selected candidate."""
         record = session.last
-        name = name or record["diagnosis"]["effect"] or p["candidate"]
+        name = name or record["diagnosis"]["effect"] or parameterNode["candidate"]
         if not name:
             raise ValueError(f"round {record['round']} names no effect ({record['diagnosis']['verdict']}): select a "
                              "candidate in the table to add it anyway, or diagnose again")
-        record = session.add(name, p["refineIterations"], progress)
+        return name
+
+    def _showAccepted(self, parameterNode, record) -> dict:
+        """A round whose effect was just added into the scene: the overlays and plots after the
+        refit join the round's folder. Returns the record."""
+        p = parameterNode
         folder = self._roundFolder(record["round"])
         self._evidence(p, record, "after", folder)
         self._candidatesTable(p, record, folder)
         self._plots(p, record, folder)
-        p["candidate"] = name
-        logging.info("BreastDiscrepancy: round %d: added %s", record["round"], name)
+        p["candidate"] = record["added"]
+        logging.info("BreastDiscrepancy: round %d: added %s", record["round"], record["added"])
         return record
+
+    # -- the long steps out of Slicer's process ---------------------------------------------------
+
+    def commandArguments(self, parameterNode) -> list[str]:
+        """`breastbiomech diagnose` with the panel's case, fit, output folder and settings (what
+        :meth:`openSession` passes to the session in this process)."""
+        p = parameterNode
+        case = chosen_folder(p["caseDirectory"], "the compressed case folder (it holds mr.nrrd and compressed/)")
+        fit = chosen_folder(p["fitDirectory"], "the fit folder (breastbiomech optimise --out, or Breast "
+                                                   "Optimization's output folder)")
+        out = chosen_folder(p["outputDirectory"], "an output folder for the rounds and the report")
+        effects = [e.strip() for e in p["effects"].replace(",", " ").split() if e.strip()]
+        from BreastBiomechLib.discrepancy.session import FLOOR_FILE
+
+        earlier = any(os.path.isfile(os.path.join(out, name)) for name in ("diagnosis.json", FLOOR_FILE))
+        if not earlier and os.path.isdir(out) and os.listdir(out):
+            raise ValueError(f"the output folder {out} is not empty and holds no diagnosis: choose a new or empty folder")
+        if p["device"] not in ("auto", "cuda", "cpu"):
+            raise ValueError(f"device must be auto, cuda or cpu, not {p['device']!r}")
+        arguments = ["diagnose", case, "--fit", fit, "--out", out, "--rounds", str(p["maxRounds"]),
+                     "--landmark-sd-mm", repr(float(p["landmarkSdMm"])), "--model-sd-mm", repr(float(p["modelSdMm"])),
+                     "--floor", "measured" if p["measuredFloor"] else "fixed", "--alpha", repr(float(p["alpha"])),
+                     "--refine-iterations", str(p["refineIterations"])]
+        arguments += ["--effects", *effects] if effects else []
+        arguments += [] if p["residualField"] else ["--no-residual-field"]
+        arguments += [] if p["device"] == "auto" else ["--device", p["device"]]
+        return arguments + (["--resume"] if earlier else [])
+
+    def startDiagnosis(self, parameterNode):
+        """*Diagnose* out of Slicer's process: `breastbiomech diagnose --one-round` diagnoses the
+        next round (an open one again) and stops before adding anything, its diagnosis kept in the
+        output folder. Returns the running :class:`~BreastBiomechCommon.worker.CommandWorker`;
+        once it has ended :meth:`finishDiagnosis` shows the round. Cancel (the worker's) keeps
+        what was finished (the measured floor, earlier rounds)."""
+        from BreastBiomechCommon.worker import CommandWorker
+
+        arguments = self.commandArguments(parameterNode) + ["--one-round"]
+        self.session, self._key = None, None  # the folder is about to change under it
+        return CommandWorker(arguments, folder=parameterNode["outputDirectory"]).start()
+
+    def finishDiagnosis(self, parameterNode, worker):
+        """The round an ended :meth:`startDiagnosis` diagnosed into the scene (the session opened
+        again from the output folder, the round's kept diagnosis with it). Raises RuntimeError
+        with the worker's reason where it failed or was cancelled. Returns the candidates table."""
+        self._ended(worker, "the diagnosis")
+        session = self.openSession(parameterNode)
+        if session.last is None:
+            raise RuntimeError("the diagnosis wrote no round")
+        return self._showDiagnosed(parameterNode, session.last)
+
+    def startAccept(self, parameterNode, name=None):
+        """*Refit with effect* out of Slicer's process: `breastbiomech diagnose --resume --add NAME`
+        adds the candidate (``name``, else the verdict's, else the selected one) to the open
+        round's model and refits it from the round's kept diagnosis. Returns the running worker;
+        once it has ended :meth:`finishAccept` shows the refit."""
+        from BreastBiomechCommon.worker import CommandWorker
+
+        p = parameterNode
+        session = self._session(p)
+        name = self._toAdd(p, session, name)
+        session._decidable(need_memory=False)  # refuses a round decided already, naming it
+        arguments = self.commandArguments(p)
+        if "--resume" not in arguments:
+            arguments.append("--resume")
+        self.session, self._key = None, None
+        return CommandWorker(arguments + ["--add", name], folder=p["outputDirectory"]).start()
+
+    def finishAccept(self, parameterNode, worker) -> dict:
+        """The refit of an ended :meth:`startAccept` into the scene. Raises RuntimeError with the
+        worker's reason where it failed or was cancelled (the round then stays as it was).
+        Returns the round's record."""
+        self._ended(worker, "the refit")
+        record = self.openSession(parameterNode).last
+        if not record.get("added"):
+            raise RuntimeError("the refit added nothing")
+        return self._showAccepted(parameterNode, record)
+
+    @staticmethod
+    def _ended(worker, what: str) -> None:
+        if worker.running:
+            raise RuntimeError(f"{what} is still running: wait for it or cancel it")
+        if worker.cancelled:
+            raise RuntimeError(f"{what} was cancelled; what it had finished is kept in the output folder")
+        if not worker.succeeded:
+            raise RuntimeError(worker.error or f"{what} ended without a result")
 
     def reject(self, parameterNode, name=None) -> str:
         """Turn candidate ``name`` (default the selected one, else the verdict's) down: the next
@@ -480,8 +575,8 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                              "diagnose again to load it")
         diagnosis, number = session.diagnosis, session.last["round"]
         if diagnosis is None:
-            raise ValueError(f"round {number} was diagnosed in an earlier session, whose sensitivities are not kept: "
-                             "diagnose again to see what a candidate predicts")
+            raise ValueError(f"round {number} was diagnosed in an earlier session whose diagnosis is not kept (an "
+                             "older library, or its kept file removed): diagnose again to see what a candidate predicts")
         candidate = next((c for c in diagnosis.candidates if c.name == name), None)
         if candidate is None or candidate.skipped or name not in diagnosis.sensitivities.fields:
             raise ValueError(f"{name!r} was not tested in round {number}: no predicted residual to show")

@@ -57,14 +57,7 @@ class BreastOptimizationWidget(ModuleWidgetBase):
 
     def __init__(self, parent=None):
         ModuleWidgetBase.__init__(self, parent)
-        import qt
-        from BreastBiomechCommon.worker import POLL_INTERVAL_MS
-
         self._stopRequest = None  # the study's: None or "cancel"
-        self._worker = None  # the fit's process while it runs
-        self._timer = qt.QTimer()
-        self._timer.setInterval(POLL_INTERVAL_MS)
-        self._timer.timeout.connect(self._pollWorker)
 
     def createLogic(self):
         return BreastOptimizationLogic()
@@ -229,49 +222,26 @@ class BreastOptimizationWidget(ModuleWidgetBase):
         if not dependencies_ready(DEPENDENCIES, _("Breast Optimization")):
             return
         with slicer.util.tryWithErrorDisplay(_("Optimisation failed to start."), waitCursor=True):
-            self._worker = self.logic.startRun(self._parameterNode, resume=resume)
+            worker = self.logic.startRun(self._parameterNode, resume=resume)
             self._setRunning(True)
             self.ui.progressBar.value = 0
             self.ui.progressBar.setFormat(_("starting the fit"))
-            self._timer.start()
+            self.startWorker(worker, self._fitEnded, self.ui.progressBar)
 
     def onStopFit(self):
         """Pause and Cancel: the fit's process is stopped; the solves it made are kept in the output
         folder and Resume goes on from them."""
-        if self._worker is not None and self._worker.running:
-            self._worker.cancel()
+        self.cancelWorker()
 
-    def _pollWorker(self):
-        """The timer's tick while the fit runs in its own process: the latest progress into the
-        bar; once it has ended (or was stopped), its results into the scene."""
-        worker = self._worker
-        if worker is None:
-            self._timer.stop()
-            return
-        worker.poll()
-        if worker.last is not None:
-            fraction = worker.last.get("fraction")
-            if fraction is not None:
-                self.ui.progressBar.value = int(100 * fraction)
-            self.ui.progressBar.setFormat(worker.last["message"])
-        if worker.running:
-            return
-        self._timer.stop()
+    def _fitEnded(self, worker):
+        """The fit's process has ended (or was stopped): its results, or its convergence so far."""
         self._setRunning(False)
-        self._worker = None
         with slicer.util.tryWithErrorDisplay(_("Optimisation failed."), waitCursor=True):
-            outcome = self.logic.finishRun(self._parameterNode, worker)
+            parameterNode = self.logic.getParameterNode()  # also when the module was left meanwhile
+            outcome = self.logic.finishRun(parameterNode, worker)
             self.ui.statusLabel.text = outcome["summary"]
             if outcome["record"] is not None:
-                self.logic.showComparison(self._parameterNode)
-
-    def cleanup(self):
-        """Leaving for good (module closed, application quit): a running fit is stopped (its solves
-        are kept; Resume goes on from them)."""
-        if self._worker is not None and self._worker.running:
-            self._worker.cancel()
-        self._timer.stop()
-        ModuleWidgetBase.cleanup(self)
+                self.logic.showComparison(parameterNode)
 
 
 class BreastOptimizationLogic(ModuleLogicBase):

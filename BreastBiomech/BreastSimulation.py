@@ -48,16 +48,6 @@ class BreastSimulationWidget(ModuleWidgetBase):
 
     UI_FILE = "UI/BreastSimulation.ui"
 
-    def __init__(self, parent=None):
-        ModuleWidgetBase.__init__(self, parent)
-        import qt
-        from BreastBiomechCommon.worker import POLL_INTERVAL_MS
-
-        self._worker = None  # the solver's process while it runs
-        self._timer = qt.QTimer()
-        self._timer.setInterval(POLL_INTERVAL_MS)
-        self._timer.timeout.connect(self._pollWorker)
-
     def createLogic(self):
         return BreastSimulationLogic()
 
@@ -204,10 +194,8 @@ class BreastSimulationWidget(ModuleWidgetBase):
             self.logic.createCompressionPlates(self._parameterNode)
 
     def onCancelButton(self):
-        if self._worker is not None and self._worker.running:
-            seconds = self._worker.cancel()
-            self._timer.stop()
-            self._setRunning(False)
+        seconds = self.cancelWorker()
+        if seconds:
             self.ui.statusLabel.text = _("Cancelled ({seconds:.1f} s to stop the solver); the earlier results are "
                                          "unchanged.").format(seconds=seconds)
 
@@ -215,49 +203,28 @@ class BreastSimulationWidget(ModuleWidgetBase):
         if not dependencies_ready(DEPENDENCIES, _("Breast Simulation")):
             return
         with slicer.util.tryWithErrorDisplay(_("Simulation failed to start."), waitCursor=True):
-            self._worker = self.logic.startRun(self._parameterNode)
+            worker = self.logic.startRun(self._parameterNode)
             self._setRunning(True)
             self.ui.progressBar.value = 0
             self.ui.progressBar.setFormat(_("starting the solver"))
-            self._timer.start()
+            self.startWorker(worker, self._runEnded, self.ui.progressBar)
 
     def _setRunning(self, running: bool) -> None:
         self.ui.runButton.enabled = not running
         self.ui.cancelButton.enabled = running
 
-    def _pollWorker(self):
-        """The timer's tick while the solver runs in its own process: the latest progress into
-        the bar; once it has ended, its results into the scene."""
-        worker = self._worker
-        if worker is None:
-            self._timer.stop()
-            return
-        worker.poll()
-        if worker.last is not None:
-            fraction = worker.last.get("fraction")
-            if fraction is not None:
-                self.ui.progressBar.value = int(100 * fraction)
-            self.ui.progressBar.setFormat(worker.last["message"])
-        if worker.running:
-            return
-        self._timer.stop()
+    def _runEnded(self, worker):
+        """The solver's process has ended: its results into the scene (not after a Cancel)."""
         self._setRunning(False)
-        self._worker = None
         if worker.cancelled:
             return
         with slicer.util.tryWithErrorDisplay(_("Simulation failed."), waitCursor=True):
-            result = self.logic.finishRun(self._parameterNode, worker)
+            parameterNode = self.logic.getParameterNode()  # also when the module was left meanwhile
+            result = self.logic.finishRun(parameterNode, worker)
             self.ui.progressBar.value = 100
             self.ui.deviceLabel.text = result["device"]
             self.ui.statusLabel.text = result["summary"]
-            self.logic.showResults(self._parameterNode)
-
-    def cleanup(self):
-        """Leaving for good (module closed, application quit): a running solver is stopped."""
-        if self._worker is not None and self._worker.running:
-            self._worker.cancel()
-        self._timer.stop()
-        ModuleWidgetBase.cleanup(self)
+            self.logic.showResults(parameterNode)
 
 
 class BreastSimulationLogic(ModuleLogicBase):

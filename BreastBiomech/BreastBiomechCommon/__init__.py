@@ -106,6 +106,8 @@ class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.logic = None
         self._parameterNode = None
         self._updatingGUI = False
+        self._worker = None  # the long step's process while it runs (startWorker)
+        self._workerTimer = None
 
     def setup(self):
         import slicer
@@ -143,7 +145,55 @@ class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._parameterNode.node.EndModify(wasModifying)
 
     def cleanup(self):
+        """Leaving for good (module closed, application quit): a running step's process is stopped
+        (what it finished is kept in its output folder)."""
+        self.cancelWorker()
         self.removeObservers()
+
+    # -- long steps out of Slicer's process (BreastBiomechCommon.worker) ---------------------------
+
+    def startWorker(self, worker, ended, progressBar=None, statusLabel=None) -> None:
+        """Follow the started ``worker`` from a timer (every ``POLL_INTERVAL_MS``) while Slicer
+        stays live: its latest progress into ``progressBar`` (value and text) and
+        ``statusLabel``; once it has ended (finished, failed or cancelled) the timer stops and
+        ``ended(worker)`` runs (the Logic's finishing step, in an error display)."""
+        import qt
+        from BreastBiomechCommon.worker import POLL_INTERVAL_MS
+
+        if self._workerTimer is None:
+            self._workerTimer = qt.QTimer()
+            self._workerTimer.setInterval(POLL_INTERVAL_MS)
+            self._workerTimer.timeout.connect(self._pollWorker)
+        self._worker, self._workerEnded, self._workerViews = worker, ended, (progressBar, statusLabel)
+        self._workerTimer.start()
+
+    def _pollWorker(self):
+        worker = self._worker
+        if worker is None:
+            self._workerTimer.stop()
+            return
+        worker.poll()
+        progressBar, statusLabel = self._workerViews
+        if worker.last is not None:
+            fraction = worker.last.get("fraction")
+            if progressBar is not None:
+                if fraction is not None:
+                    progressBar.value = int(100 * fraction)
+                progressBar.setFormat(worker.last["message"])
+            if statusLabel is not None:
+                statusLabel.text = worker.last["message"]
+        if worker.running:
+            return
+        self._workerTimer.stop()
+        self._worker = None
+        self._workerEnded(worker)
+
+    def cancelWorker(self) -> float:
+        """Stop the running step's process (its finishing step then reports the cancel); the
+        seconds it took to stop (0: none was running)."""
+        if self._worker is None or not self._worker.running:
+            return 0.0
+        return self._worker.cancel()
 
     def enter(self):
         self.initializeParameterNode()

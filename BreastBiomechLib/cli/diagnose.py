@@ -30,7 +30,8 @@ def cmd_diagnose(args) -> int:
 
     run = run_diagnosis(args.case_dir, args.fit, args.out, effects=args.effects, rounds=args.rounds, noise=noise,
                         settings=settings, device=args.device, resume=args.resume, progress=progress,
-                        registration=None if args.no_residual_field else RegistrationSettings())
+                        registration=None if args.no_residual_field else RegistrationSettings(),
+                        one_round=args.one_round, add=args.add)
     events.output("diagnosis", run.folder)
     if args.json:
         print(json.dumps({"final": run.final["verdict"], "sentence": run.final["sentence"], "added": run.added,
@@ -77,6 +78,11 @@ def add_parsers(sub) -> None:
                         "measured image, its maps and pictures; about 10-60 s per round)")
     p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    p.add_argument("--one-round", action="store_true",
+                   help="diagnose the next round (an open one again) and stop before adding anything: the round "
+                        "waits for a decision (--add), its diagnosis kept in --out")
+    p.add_argument("--add", choices=NAMES, metavar="EFFECT",
+                   help="with --resume: add EFFECT (one the open last round tested) to the model, refit, and stop")
     p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")
     add_progress_option(p)
     p.set_defaults(func=cmd_diagnose)

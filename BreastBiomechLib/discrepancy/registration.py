@@ -96,6 +96,17 @@ class ResidualField:
         image.CopyInformation(self.like)
         return image
 
+    @classmethod
+    def read(cls, path, accuracy: dict | None = None) -> "ResidualField":
+        """A field written by :meth:`image` (a round's residual .nrrd): its mask where the
+        residual is not zero (outside its mask it was written as 0), its ``accuracy`` as the
+        round's record states it; no landmarks (the record holds their figures)."""
+        image = sitk.ReadImage(str(path))
+        residual = sitk.GetArrayFromImage(image).astype(float)
+        like = sitk.Image(image.GetSize(), sitk.sitkFloat32)
+        like.CopyInformation(image)
+        return cls(residual, np.any(residual != 0.0, axis=-1), like, dict(accuracy or {}))
+
 
 def _spacing_zyx(image: sitk.Image) -> np.ndarray:
     return np.asarray(image.GetSpacing(), float)[::-1]

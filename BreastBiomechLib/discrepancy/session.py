@@ -19,6 +19,11 @@ Output folder::
                      volume; it is a residual, measured minus model position, not a resampling transform)
     round-<N>-residual.png
                      its magnitude over the measured image, before and after, with the landmark residuals
+    round-<N>-kept.npz
+                     a round that waited for a decision: its diagnosis kept (sensitivities, refits and,
+                     once decided, the refit with the added effect; :mod:`BreastBiomechLib.discrepancy.kept`),
+                     so that a later session (another process) decides and shows it without
+                     diagnosing the round again
     report.md        the report (:mod:`BreastBiomechLib.discrepancy.report`)
 
 A round is *open* while its verdict asks for a decision (a missing effect or an ambiguous
@@ -116,10 +121,10 @@ class FieldRecorder:
                 "regions": field_by_region(field, self.fitted.mesh.nodes, displacement, self.node_regions)}
 
 
-def state_from_record(fitted: FittedCase, record: dict, effects) -> ModelState:
-    """The model after a recorded round."""
+def state_from_record(fitted: FittedCase, record: dict, effects, when: str = "after") -> ModelState:
+    """The model after (``when`` "before": before) a recorded round."""
     by_name = {e.name: e for e in effects}
-    after = record["state_after"]
+    after = record[f"state_{when}"]
     state = ModelState(fitted, np.asarray(after["z"], float))
     for name, values in after["added"].items():
         state = state.with_effect(by_name[name], values)
@@ -196,6 +201,13 @@ class DiagnosisSession:
             self.rounds.append(record)
             self.state = state_from_record(self.fitted, record, self.candidates)
             number += 1
+        self.diagnosis = self._kept(self.last)
+        if self.last is not None:  # the last round's residual fields, for its pictures and the panel's views
+            for when in ("before", "after"):
+                summary = (self.last.get(when) or {}).get("residual_field")
+                if summary and self.path(self.last["round"], f"-residual-{when}.nrrd").is_file():
+                    self.fields[(self.last["round"], when)] = ResidualField.read(
+                        self.path(self.last["round"], f"-residual-{when}.nrrd"), summary.get("accuracy"))
 
     def _measured_floor(self, base: np.ndarray) -> MeasuredFloor:
         """The model-error floor measured from the case (:mod:`~BreastBiomechLib.discrepancy.floor`),
@@ -290,6 +302,8 @@ class DiagnosisSession:
         record["seconds"] = round(time.perf_counter() - started, 1)
         self.rounds[number - 1:] = [record]
         self.diagnosis = diagnosis
+        if is_open(record):  # it waits for a decision, maybe in another process: kept before the record is written
+            self._keep(record, diagnosis)
         self._write(record)
         self._told(progress)(f"round {number}: {diagnosis.sentence}")
         return record
@@ -329,6 +343,10 @@ class DiagnosisSession:
         record["state_after"] = self.state.to_dict()
         record["seconds"] = round(record.get("seconds", 0.0) + time.perf_counter() - started, 1)
         self.diagnosis = replace(diagnosis, refitted=chosen, effect=name)
+        from BreastBiomechLib.discrepancy.kept import SUFFIX
+
+        if self.path(record["round"], SUFFIX).is_file():  # kept with the refit: a later session shows it
+            self._keep(record, self.diagnosis)
         self._write(record)
         self._told(progress)(f"round {record['round']}: added {effect.title} ({effect.describe(chosen.values)})")
         return record
@@ -343,6 +361,26 @@ class DiagnosisSession:
         self._write(record)
         return record
 
+    def _kept(self, record: dict | None) -> Diagnosis | None:
+        """The kept diagnosis of round ``record`` (:mod:`~BreastBiomechLib.discrepancy.kept`: a round
+        that waited for a decision, with its refit once decided) where its file is there and
+        readable by this library; else None."""
+        from BreastBiomechLib.discrepancy.kept import SUFFIX, load_diagnosis
+
+        if record is None or not self.path(record["round"], SUFFIX).is_file():
+            return None
+        try:
+            before = state_from_record(self.fitted, record, self.candidates, "before")
+            return load_diagnosis(self.path(record["round"], SUFFIX), before, self.candidates)
+        except (ValueError, KeyError) as error:
+            self._say(f"round {record['round']}: its kept diagnosis is not used ({error}); diagnose it again")
+            return None
+
+    def _keep(self, record: dict, diagnosis: Diagnosis) -> None:
+        from BreastBiomechLib.discrepancy.kept import SUFFIX, save_diagnosis
+
+        save_diagnosis(self.path(record["round"], SUFFIX), diagnosis)
+
     def _decidable(self, need_memory: bool = True) -> tuple[dict, Diagnosis | None]:
         record = self.last
         if record is None:
@@ -350,8 +388,9 @@ class DiagnosisSession:
         if record.get("added"):
             raise ValueError(f"round {record['round']} already added {record['added']}: diagnose the next round")
         if need_memory and self.diagnosis is None:
-            raise ValueError(f"round {record['round']} was diagnosed in an earlier session, whose sensitivities are "
-                             "not kept: diagnose again (it replaces the open round)")
+            raise ValueError(f"round {record['round']} was diagnosed in an earlier session whose sensitivities are "
+                             "not kept (an older library, or its kept file removed): diagnose again (it replaces the "
+                             "open round)")
         return record, self.diagnosis
 
     def _record_field(self, record: dict, when: str, displacement: np.ndarray) -> None:

@@ -7,7 +7,7 @@ output folder) so that an interrupted run resumes.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings
@@ -35,29 +35,55 @@ class DiagnosisRun:
 def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noise: NoiseModel | None = None,
                   settings: DiagnosisSettings | None = None, device=None, resume: bool = False,
                   progress: Callable[[str], None] | None = None,
-                  registration: RegistrationSettings | None = RegistrationSettings()) -> DiagnosisRun:
+                  registration: RegistrationSettings | None = RegistrationSettings(), one_round: bool = False,
+                  add: str | None = None) -> DiagnosisRun:
     """Diagnose the fit in ``fit_dir`` of the compressed case in ``case_dir`` over the candidate
     ``effects`` (names; default the whole library) for at most ``rounds`` rounds, writing to
     ``out_dir`` (a new folder, or the folder of an interrupted run with ``resume``). Each round
     that names a missing effect adds it (refined by ``settings.refine_iterations``) and the next
     round diagnoses the refitted model; a round that names none ends the run. Each round's
     models are also compared through the residual displacement field of a deformable
-    registration (``registration``; None: not made)."""
+    registration (``registration``; None: not made).
+
+    A person deciding each round (the Breast Discrepancy panel) takes the steps one at a time:
+    ``one_round`` diagnoses the next round (an open one again; at most ``rounds`` in all) and
+    stops there, its diagnosis kept for the decision (its confirmation refits not refined);
+    ``add`` (a candidate's name, with ``resume``) adds that candidate to the open last round,
+    refits, refines by ``settings.refine_iterations``, and stops."""
     from BreastBiomechLib.discrepancy.session import DiagnosisSession, is_open
 
     if rounds < 1:
         raise ValueError("the diagnosis needs at least one round")
+    if add is not None and (one_round or not resume):
+        raise ValueError("adding a candidate decides the open round of an earlier run: give --resume, without "
+                         "--one-round")
     say = progress or (lambda message: None)
+    settings = settings or DiagnosisSettings()
+    if one_round:  # the refit of the effect a person accepts is refined when it is added (``add``)
+        settings = replace(settings, refine_iterations=0)
     with claimed(out_dir, "a diagnosis"):
         session = DiagnosisSession(case_dir, fit_dir, out_dir, effects, noise, settings, device, resume, registration,
                                    progress)
         for record in session.rounds:
             say(f"round {record['round']}: {record['diagnosis']['verdict']} (from {session.path(record['round'])})")
+        if add is not None:
+            session.add(add, settings.refine_iterations)
+            return session.run()
+        if one_round:
+            last = session.last
+            if last is not None and not is_open(last) and len(session.rounds) >= rounds:
+                raise ValueError(f"{len(session.rounds)} rounds made, the most allowed ({rounds}): raise the rounds "
+                                 "to go on")
+            session.diagnose()
+            return session.run()
         while True:
             last = session.last
             pending = last is not None and is_open(last) and last["diagnosis"]["verdict"] == "missing effect"
             if last is not None and not pending and (not last.get("added") or len(session.rounds) >= rounds):
                 break  # a round that added nothing ends the run (on resume: an interrupted add is redone)
+            if pending and session.diagnosis is not None:  # its kept diagnosis: the add goes on from it
+                session.add(last["diagnosis"]["effect"])
+                continue
             record = session.diagnose()
             if record["diagnosis"]["verdict"] != "missing effect":
                 break
