@@ -17,6 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from BreastBiomechLib.io.atomic import write_json_atomically
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.optimisation import search
@@ -41,6 +43,18 @@ class OptimisationResult:
     seconds: float
     geometry: dict = field(default_factory=dict)
     stand_in: dict = field(default_factory=dict)
+
+    def recent_gain(self, share: float = 0.5) -> float:
+        """How far the best objective fell over the last ``share`` of the evaluations (objective
+        units, >= 0; inf where nothing had completed before them, NaN with fewer than two
+        evaluations): about 0 where the search had settled, more where the fit was still
+        improving when its budget ended (an unfinished fit)."""
+        objectives = [e.objective if e.status == "completed" else np.inf for e in self.evaluations]
+        if len(objectives) < 2:
+            return float("nan")
+        best = np.minimum.accumulate(objectives)
+        before = best[max(1, int(round(len(best) * (1.0 - share)))) - 1]
+        return float(before - best[-1]) if np.isfinite(before) else float("inf")
 
     @property
     def failures(self) -> dict[str, int]:

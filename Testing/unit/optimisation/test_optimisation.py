@@ -305,3 +305,29 @@ def test_bench_optimise_figures_agree_with_its_log(tmp_path, capsys):
     assert after == sorted(after) and after[-1] == figures["best_nmi"]
     assert main(command) == 2
     assert "resume" in capsys.readouterr().err
+
+
+def test_a_fit_still_improving_at_its_end_is_told_from_a_settled_one():
+    """``recent_gain``: how far the best objective fell over the fit's last solves, which the demo
+    report and `breastbiomech optimise` turn into "not settled" (CMA-ES on a quadratic: settled
+    after 80 solves, not after 10)."""
+    from BreastBiomechLib.optimisation.forward import Evaluation
+    from BreastBiomechLib.optimisation.record import EvaluationLog
+    from BreastBiomechLib.optimisation.run import OptimisationResult
+    from BreastBiomechLib.optimisation.search import cmaes
+
+    def evaluate(positions):
+        return [Evaluation([float(v) for v in z], {}, float(np.sum((z - 0.3137) ** 2)), 1.0, 1.0, np.nan, np.nan,
+                           "completed", 1, 0.0) for z in positions]
+
+    def fit(budget):
+        log = EvaluationLog(evaluate, budget=budget)
+        cmaes(log, np.array([0.9, 0.1]), seed=0, population=5)
+        return OptimisationResult(log.best, {}, log.evaluations, "budget", 0, 0.0)
+
+    early, settled = fit(10).recent_gain(), fit(80).recent_gain()
+    assert early > 1e-3 > settled >= 0.0
+    failed = Evaluation([0.0, 0.0], {}, float("nan"), np.nan, np.nan, np.nan, np.nan, "inverted elements", 1, 0.0)
+    done = evaluate(np.array([[0.3, 0.3]]))[0]
+    assert OptimisationResult(done, {}, [failed] * 7 + [done] * 3, "budget", 0, 0.0).recent_gain() == np.inf
+    assert np.isnan(OptimisationResult(done, {}, [done], "budget", 0, 0.0).recent_gain())
