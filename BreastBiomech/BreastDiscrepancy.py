@@ -466,7 +466,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         p = parameterNode
         session = self._session(p)
         name = self._toAdd(p, session, name)
-        session._decidable(need_memory=False)  # refuses a round decided already, naming it
+        if session.last.get("added"):
+            raise ValueError(f"round {session.last['round']} already added {session.last['added']}: diagnose the "
+                             "next round")
         arguments = self.commandArguments(p)
         if "--resume" not in arguments:
             arguments.append("--resume")
