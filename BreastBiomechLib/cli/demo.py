@@ -173,13 +173,12 @@ def _diagnosis_section(diagnosis) -> str:
     return "\n".join(parts)
 
 
-SETTLED = 1e-3  # the best objective (-NMI) falling less than this over a fit's last half of solves: settled
-
-
 def _fit_note(fit, diagnosis) -> str:
     """Whether the fit had settled, and its landmark error against the model-error floor the
     diagnosis assumes: an unfinished fit leaves a residual that the diagnosis then tests too."""
-    gain, solves = fit.result.recent_gain(0.5), len(fit.result.evaluations)
+    from BreastBiomechLib.optimisation.run import SETTLED
+
+    gain, solves = fit.result.recent_gain(), len(fit.result.evaluations)
     error = fit.landmark_errors["error_mm"]["mean"]
     floor = diagnosis.rounds[0]["floor"] if diagnosis.rounds else {}
     floor_mm = floor.get("rms_mm", floor.get("fixed_mm", float("nan")))

@@ -49,8 +49,10 @@ def cmd_optimise(args) -> int:
     print(f"{settings.model} fit of {args.case_dir} ({settings.optimiser}, {summary['evaluations']} evaluations, "
           f"{summary['replayed']} replayed, stopped: {summary['stopped']}, {summary['seconds']:.0f} s)")
     print(f"  best objective {best.objective:.5f}: NMI {best.nmi:.4f}, NCC {best.ncc:.4f}")
-    gain = fit.result.recent_gain(0.5)
-    if not gain <= 1e-3:
+    from BreastBiomechLib.optimisation.run import SETTLED
+
+    gain = fit.result.recent_gain()
+    if not gain <= SETTLED:
         print(f"  not settled: the best objective still fell by {gain:.4f} over the last half of the solves; "
               "raise --budget (--resume goes on from these)")
     for name, values in fit.result.materials.items():

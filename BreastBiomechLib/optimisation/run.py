@@ -26,6 +26,9 @@ from BreastBiomechLib.optimisation.forward import Evaluation, FittingProblem
 from BreastBiomechLib.optimisation.record import EvaluationLog, read_evaluations
 
 
+SETTLED = 1e-3  # a best objective (-NMI) falling less than this over a fit's last half of solves: settled
+
+
 @dataclass
 class OptimisationResult:
     """``best``: the best evaluation; ``materials``: every material's {"E", "nu", "eta"} there;
