@@ -141,9 +141,12 @@ def model_volume_change(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: in
     wp.atomic_add(anp_sums, s[3] * n_models + b, change)
 
 
-@wp.func
+@wp.func(inline=False)
 def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
-    """Count an inverted element of model b, keeping the first one found and its step."""
+    """Count an inverted element of model b, keeping the first one found and its step. Out of line
+    (CUDA ``__noinline__``): the path is cold, and inlined into :func:`element_first_piola` its
+    atomic and stores cost the lone model's step 4-6 % (160k and 2M tets; H100, 2026-12-05,
+    docs/benchmarks.md)."""
     if wp.atomic_add(inverted, 4 * b, 1) == 0:
         inverted[4 * b + 1] = e
         inverted[4 * b + 2] = step
