@@ -358,7 +358,7 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         P = element_first_piola(F, m, mean, anp, v0, e, b, n_models, terms, prony_g, prony_decay, visco_state,
                                 update_state, clock[0], inverted)
         # the element's nodes and derivatives read again (from the cache) for the forces: held in
-        # registers through the stress they cost the lone model's step 6-9 % (H200, 2026-12-05)
+        # registers through the stress they cost the lone 160k step 2 % (H100, 2026-12-05)
         add_element_forces(forces, n_models, b, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3], P, dhdx[e, 0],
                            dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
 
