@@ -319,17 +319,13 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
                        n_models: int, clock: wp.array(dtype=int), models: wp.array(dtype=int), n_listed: int,
                        forces: wp.array2d(dtype=float), inverted: wp.array(dtype=int)):
         """Internal nodal forces f_a = V0 F S dN_a/dX (the stress: :func:`element_first_piola`, with
-        ANP from :func:`nodal_pressure`'s sums; visco terms ``n_terms`` per element).
-        Elements with J <= 0 are counted per model, the first one and its step recorded in
-        ``inverted[4b:4b+4]`` = [count, element, step, frozen] of model b; once frozen that model
-        stands still (the others of the batch go on), keeping its last configuration for
-        inspection instead of producing NaN (frozen is 1 then; 2 for a model a relaxation has found
-        converged, :mod:`BreastBiomechLib.solver.relaxation`). Only the listed ``models`` are computed
-        (see the module's docstring): converged models stand still, so their forces no longer change
-        anything.
-
-        The step is ``clock[0]``, copied to ``clock[1]`` for :func:`advance_nodes`, which advances
-        it."""
+        ANP from :func:`nodal_pressure`'s sums; visco terms ``n_terms`` per element). Elements with
+        J <= 0 are counted per model, the first one and its step in ``inverted[4b:4b+4]`` = [count,
+        element, step, frozen] of model b; once frozen (1; 2 for a model a relaxation has found
+        converged, :mod:`BreastBiomechLib.solver.relaxation`) that model stands still, keeping its
+        last configuration instead of producing NaN, while the others go on. Only the listed
+        ``models`` are computed (see the module's docstring). The step is ``clock[0]``, copied to
+        ``clock[1]`` for :func:`advance_nodes`, which advances it."""
         anp = wp.static(anp_mode)  # constants of this specialisation (see element_kernels)
         slots_are_nodes = wp.static(int(node_slots))
         terms = n_terms
