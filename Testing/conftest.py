@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from images import oblique_direction
 
@@ -25,17 +27,36 @@ def oblique_geometry():
     return (12.5, -40.25, 7.0), (0.7, 1.3, 2.5), tuple(oblique_direction().ravel())
 
 
+def made_once(tmp_path_factory, worker_id: str, name: str, make) -> Path:
+    """The folder ``name`` in the run's shared temporary folder, made by ``make(folder)`` once for
+    the whole run: under pytest-xdist the first worker that needs it makes it while the others
+    wait on a lock (a session fixture is otherwise made once per worker)."""
+    import fcntl
+
+    base = tmp_path_factory.getbasetemp()
+    root = (base if worker_id == "master" else base.parent) / name
+    with open(f"{root}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (root / "done").is_file():
+            root.mkdir(exist_ok=True)
+            make(root)
+            (root / "done").write_text("made\n")
+    return root
+
+
 @pytest.fixture(scope="session")
-def compressed_case_dir(tmp_path_factory):
+def compressed_case_dir(tmp_path_factory, worker_id):
     """A small coarse phantom (heterogeneous default truth materials) compressed by 25 % LR on a
-    6 mm truth mesh on the CPU by `breastbiomech phantom --compressed`: the case folder."""
+    6 mm truth mesh on the CPU by `breastbiomech phantom --compressed`: the case folder (made
+    once for the run, :func:`made_once`; tests only read it)."""
     from BreastBiomechLib.cli import main
 
-    out = tmp_path_factory.mktemp("compressed") / "case"
-    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
-                 "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
-                 "--out", str(out)]) == 0
-    return out
+    def make(root):
+        assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
+                     "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview",
+                     "--out", str(root / "case")]) == 0
+
+    return made_once(tmp_path_factory, worker_id, "compressed-case", make) / "case"
 
 
 @pytest.fixture(scope="session")
@@ -43,18 +64,9 @@ def friction_case(tmp_path_factory, worker_id):
     """(case, fit): the library's small hidden-friction case (``small_friction_case``: a 400 cm^3
     phantom compressed 40 % with plate friction mu = 1 hidden in its truth, copied without its
     truth files, fitted without friction on a 12 mm mesh), which the Breast Discrepancy module's
-    in-app self-test makes too: a diagnosis of it takes about 80 s on 2 cores. Made once
-    for the whole run: under pytest-xdist the first worker that needs it makes it in the run's
-    shared temporary folder while the others wait on a lock. Tests only read it."""
-    import fcntl
-
+    in-app self-test makes too: a diagnosis of it takes about 80 s on 2 cores. Made once for the
+    run (:func:`made_once`); tests only read it."""
     from discrepancy_cases import small_friction_case
 
-    base = tmp_path_factory.getbasetemp()
-    root = (base if worker_id == "master" else base.parent) / "friction-case"
-    with open(f"{root}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (root / "done").is_file():
-            small_friction_case(root)
-            (root / "done").write_text("made\n")
+    root = made_once(tmp_path_factory, worker_id, "friction-case", small_friction_case)
     return root / "case", root / "fit"
