@@ -332,7 +332,8 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         session = DiagnosisSession(case, fit, out, effects,
                                    NoiseModel(landmark_sd_mm=p["landmarkSdMm"], model_sd_mm=p["modelSdMm"],
                                               floor="measured" if p["measuredFloor"] else "fixed"),
-                                   DiagnosisSettings(alpha=p["alpha"], refine_iterations=0),
+                                   # refined, and its interval made, when an effect is added (accept)
+                                   DiagnosisSettings(alpha=p["alpha"], refine_iterations=0, profile=False),
                                    self.resolveDevice(p["device"]), resume=earlier,
                                    registration=RegistrationSettings() if p["residualField"] else None,
                                    progress=progress)
@@ -378,11 +379,12 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
     def accept(self, parameterNode, name=None, progress=None) -> dict:
         """*Refit with effect*: add candidate ``name`` (default the round's verdict, else the
         selected candidate) to the model and refit it, warm-started, refined by
-        "refineIterations" Gauss-Newton iterations; the overlays and plots after the refit join
-        the round's folder. Cancelling leaves the round as it was. Returns the round's record."""
+        "refineIterations" Gauss-Newton iterations, with its parameters' profile intervals; the
+        overlays and plots after the refit join the round's folder. Cancelling leaves the round as it was. Returns the round's record."""
         p = parameterNode
         session = self._session(p)
-        return self._showAccepted(p, session.add(self._toAdd(p, session, name), p["refineIterations"], progress))
+        return self._showAccepted(p, session.add(self._toAdd(p, session, name), p["refineIterations"], progress,
+                                                 profile=True))
 
     @staticmethod
     def _toAdd(parameterNode, session, name=None) -> str:

@@ -19,7 +19,8 @@ def cmd_diagnose(args) -> int:
 
     noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
                        surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor=args.floor)
-    settings = DiagnosisSettings(alpha=args.alpha, refine_iterations=args.refine_iterations)
+    settings = DiagnosisSettings(alpha=args.alpha, refine_iterations=args.refine_iterations,
+                                 profile=args.interval == "profile")
 
     bar, events = wants_bar(args), events_of(args)
 
@@ -73,6 +74,10 @@ def add_parsers(sub) -> None:
     p.add_argument("--alpha", type=fraction, default=0.01, help="family-wise significance level (default 0.01)")
     p.add_argument("--refine-iterations", type=non_negative_int, default=2,
                    help="Gauss-Newton iterations refining the refit of an added effect (default 2)")
+    p.add_argument("--interval", choices=("profile", "linearised"), default="profile",
+                   help="the added effect's 95 %% intervals: profile likelihood (up to 3 solves per side of each "
+                        "parameter; right where an effect saturates, as friction above sticking) or linearised from "
+                        "the refit's sensitivities (no solve; default profile)")
     p.add_argument("--no-residual-field", action="store_true",
                    help="skip the residual displacement field (the deformable registration of the predicted to the "
                         "measured image, its maps and pictures; about 10-60 s per round)")

@@ -34,6 +34,7 @@ import numpy as np
 from BreastBiomechLib.discrepancy import statistics, verdicts
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
+from BreastBiomechLib.discrepancy.profile import profile_intervals
 from BreastBiomechLib.discrepancy.refit import Refit, refine, refit
 from BreastBiomechLib.discrepancy.regions import regions_of
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
@@ -54,7 +55,9 @@ class DiagnosisSettings:
     (-10: very strong evidence, Kass and Raftery), ``ambiguity_correlation`` and ``ambiguity_bic`` when two
     confirmed candidates cannot be told apart, ``min_localisation`` the overlap of residual and
     signature over the regions a candidate needs; ``refine_iterations`` the Gauss-Newton
-    iterations of the refit of the effect that is added."""
+    iterations of the refit of the effect that is added, ``profile`` whether its parameters'
+    95 % intervals are profile-likelihood ones (:mod:`~BreastBiomechLib.discrepancy.profile`:
+    a few solves more, right where an effect saturates) rather than linearised only."""
 
     alpha: float = 0.01
     refit_top: int = 3
@@ -65,6 +68,7 @@ class DiagnosisSettings:
     min_localisation: float = 0.5
     min_effect: float = 1.0
     refine_iterations: int = 2
+    profile: bool = True
 
 
 @dataclass
@@ -229,11 +233,14 @@ def region_summary(observations: Observations, residual: np.ndarray, regions: np
 
 
 def adopt(state: ModelState, observations: Observations, sens: Sensitivities, candidate: Candidate, effect: Effect,
-          refits: dict[str, Refit], iterations: int, progress: Callable[[str], None] | None = None) -> Refit:
+          refits: dict[str, Refit], iterations: int, progress: Callable[[str], None] | None = None,
+          profile: bool = True) -> Refit:
     """The refit of ``state`` with ``candidate``'s ``effect`` added, refined by ``iterations``
     Gauss-Newton iterations of every fitted parameter (warm start: its confirmation refit in
-    ``refits``, else one made now from the round's sensitivities ``sens``). Records the refined
-    values in ``candidate.refit``; 0 iterations keep the confirmation refit as it is."""
+    ``refits``, else one made now from the round's sensitivities ``sens``), with its parameters'
+    profile intervals where ``profile`` (kept from an earlier call when nothing was refined).
+    Records the refined values and the intervals in ``candidate.refit``; 0 iterations keep the
+    confirmation refit as it is."""
     say = progress or (lambda message: None)
     chosen = refits.get(candidate.name)
     if chosen is None:
@@ -243,21 +250,31 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
             raise RuntimeError(f"{candidate.title}: no refit with it solves ({made[0].status if made else 'not built'}); "
                                "it cannot be added to this model")
         chosen = refits[candidate.name] = made[0]
+    design = (np.hstack([sens.nuisance, sens.effects[candidate.name]]) if candidate.name in sens.effects else None)
     if iterations > 0:
         say(f"refining the refit with {candidate.name}")
-        refined, outcome, sd = refine(chosen.state, observations, iterations, say)
+        refined = refine(chosen.state, observations, iterations, say)
         weights = 1.0 / observations.sigma
-        after = observations.residual(outcome.displacement)
-        values = refined.added[candidate.name][1]
+        after = observations.residual(refined.outcome.displacement)
+        values = refined.state.added[candidate.name][1]
         keys = [f"{candidate.name}:{i}" for i in range(len(values))]
-        chosen = replace(chosen, values=values, state=refined, displacement=outcome.displacement, residual_after=after,
-                         rss_after=float(np.sum((weights * after) ** 2)),
+        sd = refined.sd
+        chosen = replace(chosen, values=values, state=refined.state, displacement=refined.outcome.displacement,
+                         residual_after=after, rss_after=float(np.sum((weights * after) ** 2)), profile=None,
                          sd=np.array([sd[k] for k in keys]) if all(k in sd for k in keys) else chosen.sd)
+        if refined.sensitivities is not None:
+            design = refined.sensitivities.nuisance
+    if profile and chosen.profile is None and design is not None:
+        profiled = profile_intervals(chosen.state, observations, candidate.name, design, chosen.rss_after, say)
+        chosen = replace(chosen, profile=[p.to_dict() for p in profiled])
     candidate.refit = candidate.refit or {"status": chosen.status, "values": chosen.values.tolist(),
                                           "sd": chosen.sd.tolist(), "described": chosen.effect.describe(chosen.values),
                                           "rss_before": chosen.rss_before, "rss_after": chosen.rss_after}
     candidate.refit.update({"refined_values": chosen.values.tolist(), "refined_sd": chosen.sd.tolist(),
                             "interval": interval(chosen),
+                            "interval_kind": "profile" if chosen.profile else "linearised",
+                            "interval_open": [p["open"] for p in chosen.profile] if chosen.profile else [],
+                            "profile": chosen.profile or [],
                             "refined_described": chosen.effect.describe(chosen.values),
                             "rss_refined": chosen.rss_after,
                             "refine_iterations": candidate.refit.get("refine_iterations", 0) + iterations})
@@ -386,7 +403,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     if decision.verdict != verdicts.MISSING:
         return Diagnosis(decision.verdict, None, decision.alternatives, decision.sentence, refitted=None, **base)
     best = next(c for c in ranked if c.name == decision.effect)
-    chosen_refit = adopt(state, observations, sens, best, by_name[best.name], refits, settings.refine_iterations, say)
+    chosen_refit = adopt(state, observations, sens, best, by_name[best.name], refits, settings.refine_iterations, say,
+                         settings.profile)
     return Diagnosis(verdicts.MISSING, best.name, [],
                      verdicts.missing_effect_sentence(best.to_dict(), _bound_note(chosen_refit)),
                      refitted=chosen_refit, **base)
@@ -436,8 +454,11 @@ def _largest(regions: dict) -> str:
 
 
 def interval(chosen: Refit, z: float = 1.96) -> list[list[float]]:
-    """Each refitted parameter's 95 % interval (``z`` sd either side of its value, from the
-    linearised information), clipped to the parameter's range: [[low, high], ...] in its units."""
+    """Each refitted parameter's 95 % interval: its profile interval where the refit has one,
+    else ``z`` sd either side of its value (from the linearised information) clipped to the
+    parameter's range; [[low, high], ...] in its units."""
+    if chosen.profile:
+        return [list(p["interval"]) for p in chosen.profile]
     return [[float(max(p.lower, v - z * s)), float(min(p.upper, v + z * s))]
             for p, v, s in zip(chosen.effect.parameters, chosen.values, chosen.sd)]
 

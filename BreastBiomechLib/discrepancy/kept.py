@@ -50,7 +50,7 @@ def _refit_record(key: str, refit: Refit, arrays: dict) -> dict:
         arrays[f"refit.{key}.{name}"] = np.asarray(getattr(refit, name), float)
     return {"effect": None if refit.effect is None else refit.effect.name, "state": _state_record(refit.state),
             "rss_before": refit.rss_before, "rss_after": refit.rss_after, "rss_linear": refit.rss_linear,
-            "status": refit.status, "note": refit.note}
+            "status": refit.status, "note": refit.note, "profile": refit.profile}
 
 
 def _refit(key: str, record: dict, arrays, base: ModelState, effects: dict) -> Refit:
@@ -58,7 +58,7 @@ def _refit(key: str, record: dict, arrays, base: ModelState, effects: dict) -> R
     return Refit(effect, arrays[f"refit.{key}.values"], arrays[f"refit.{key}.sd"], _state(record["state"], base, effects),
                  float(record["rss_before"]), float(record["rss_after"]), float(record["rss_linear"]),
                  arrays[f"refit.{key}.displacement"], arrays[f"refit.{key}.residual_after"], record["status"],
-                 record["note"])
+                 record["note"], record.get("profile"))
 
 
 def save_diagnosis(path: str | Path, diagnosis: Diagnosis) -> Path:

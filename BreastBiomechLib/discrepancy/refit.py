@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import lsq_linear
@@ -57,6 +58,7 @@ class Refit:
     residual_after: np.ndarray
     status: str
     note: str = ""
+    profile: list[dict] | None = None  # the added effect's profile intervals (discrepancy.profile)
 
     @property
     def ok(self) -> bool:
@@ -181,13 +183,23 @@ def _best_secant(state: ModelState, sens: Sensitivities, effect: Effect, observa
     return best
 
 
+class Refined(NamedTuple):
+    """:func:`refine`'s result: the ``state``, its solve (``outcome``), each parameter's standard
+    deviation ``sd`` ({nuisance key: sd}, the parameter's units) and the last iteration's
+    ``sensitivities`` (None with no iteration)."""
+
+    state: ModelState
+    outcome: Outcome
+    sd: dict[str, float]
+    sensitivities: Sensitivities | None
+
+
 def refine(state: ModelState, observations: Observations, iterations: int = 1,
-           progress: Callable[[str], None] | None = None) -> tuple[ModelState, Outcome, dict[str, float]]:
+           progress: Callable[[str], None] | None = None) -> Refined:
     """Gauss-Newton iterations of every fitted parameter of ``state`` (the fit's and the added
     effects'), each from fresh sensitivities and checked by a forward solve (halved while it does
-    not lower the residual; stopped when it no longer does). Returns the state, its solve and
-    each parameter's standard deviation from the last iteration's linearised information
-    ({nuisance key: sd}, the parameter's units; {} with no iteration).
+    not lower the residual; stopped when it no longer does): a :class:`Refined`, the standard
+    deviations from the last iteration's linearised information ({} with no iteration).
     ``progress(message)`` is called before each batch of solves."""
     say = progress or (lambda message: None)
     fitted = state.fitted
@@ -197,6 +209,7 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
         raise RuntimeError(f"the model to refine does not solve ({current.status}: {current.message})")
     rss = float(np.sum((weights * observations.residual(current.displacement)) ** 2))
     sd: dict[str, float] = {}
+    sens = None
     for iteration in range(iterations):
         say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: sensitivities")
         sens = sensitivities(state, observations, [], say)
@@ -220,4 +233,4 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
                     break
         if not improved:
             break
-    return state, current, sd
+    return Refined(state, current, sd, sens)

@@ -308,12 +308,15 @@ class DiagnosisSession:
         self._told(progress)(f"round {number}: {diagnosis.sentence}")
         return record
 
-    def add(self, name: str, iterations: int | None = None, progress: Callable[[str], object] | None = None) -> dict:
+    def add(self, name: str, iterations: int | None = None, progress: Callable[[str], object] | None = None,
+            profile: bool | None = None) -> dict:
         """Add candidate ``name`` to the model of the last round and refit (warm start: the
         round's confirmation refit, else a refit from its sensitivities), refined by
         ``iterations`` Gauss-Newton iterations (default: the settings' when the round did not
-        refine it already); the measures and the residual field after; the round's record
-        rewritten. Needs the round's diagnosis in memory (diagnose it in this session)."""
+        refine it already), with its profile intervals where ``profile`` (default: the
+        settings'; a diagnosis whose refinement waits for a person's decision leaves them to this
+        step); the measures and the residual field after; the round's record rewritten. Needs the
+        round's diagnosis in memory (diagnose it in this session)."""
         say = self._checked(progress) if progress is not None else self._say
         record, diagnosis = self._decidable()
         candidate = next((c for c in diagnosis.candidates if c.name == name), None)
@@ -331,7 +334,8 @@ class DiagnosisSession:
         else:
             more = self.settings.refine_iterations if iterations is None else iterations
         chosen = adopt(self.state, self.observations, diagnosis.sensitivities, candidate, effect, refits, more,
-                       lambda m: say(f"round {record['round']}: {m}"))
+                       lambda m: say(f"round {record['round']}: {m}"),
+                       self.settings.profile if profile is None else profile)
         record["diagnosis"] = diagnosis.to_dict()
         record["added"] = name
         record["accepted"] = "verdict" if diagnosis.effect == name else "user"

@@ -219,12 +219,29 @@ def ambiguous_sentence(evidence: Evidence, best: dict, rivals: list[dict]) -> st
             "the data cannot tell them apart.")
 
 
+def interval_phrase(refit: dict) -> str:
+    """"; 95 % interval 0.152 to 1.5 (...)" for a refit's record (its "interval", "interval_kind"
+    and "interval_open"; "" without an interval): an end that reaches the parameter's range is
+    said to be unbounded by the data there."""
+    bounds = refit.get("interval")
+    if not bounds:
+        return ""
+    opened = refit.get("interval_open") or [[False, False]] * len(bounds)
+    parts = []
+    for (lo, hi), (open_low, open_high) in zip(bounds, opened):
+        side = ("the data do not bound it" if open_low and open_high else
+                "bounded by the data from below only" if open_high else
+                "bounded by the data from above only" if open_low else "")
+        parts.append(f"{lo:.3g} to {hi:.3g}" + (f", {side}" if side else ""))
+    kind = refit.get("interval_kind", "linearised")
+    return f"; 95 % {kind} interval {'; '.join(parts)}"
+
+
 def missing_effect_sentence(best: dict, bound_note: str = "") -> str:
     """A confirmed candidate explaining enough, after its refinement (``best["refit"]`` holds
     "refined_described")."""
     refit = best["refit"]
-    bounds = refit.get("interval")
-    within = (f"; 95 % interval {'; '.join(f'{lo:.3g} to {hi:.3g}' for lo, hi in bounds)}" if bounds else "")
+    within = interval_phrase(refit)
     return (f"Missing effect: {best['title']} ({refit.get('refined_described', refit['described'])}{within}). "
             f"Score test p = "
             f"{best['p_adjusted']:.2g} (corrected), refit dBIC {refit['delta_bic']:.1f}, removing "

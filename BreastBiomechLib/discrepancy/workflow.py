@@ -49,7 +49,8 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
     ``one_round`` diagnoses the next round (an open one again; at most ``rounds`` in all) and
     stops there, its diagnosis kept for the decision (its confirmation refits not refined);
     ``add`` (a candidate's name, with ``resume``) adds that candidate to the open last round,
-    refits, refines by ``settings.refine_iterations``, and stops."""
+    refits, refines by ``settings.refine_iterations``, makes its intervals (``settings.profile``),
+    and stops."""
     from BreastBiomechLib.discrepancy.session import DiagnosisSession, is_open
 
     if rounds < 1:
@@ -59,8 +60,8 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
                          "--one-round")
     say = progress or (lambda message: None)
     settings = settings or DiagnosisSettings()
-    if one_round:  # the refit of the effect a person accepts is refined when it is added (``add``)
-        settings = replace(settings, refine_iterations=0)
+    if one_round:  # the refit of the effect a person accepts is refined, and its interval made, when it is added
+        settings = replace(settings, refine_iterations=0, profile=False)
     with claimed(out_dir, "a diagnosis"):
         session = DiagnosisSession(case_dir, fit_dir, out_dir, effects, noise, settings, device, resume, registration,
                                    progress)

@@ -340,7 +340,8 @@ def test_an_effect_the_fitted_parameters_reproduce_is_said_hard_to_see_and_found
 
     monkeypatch.setattr(refit_module, "solve_variants", friction_moves_it)
     keys = state.fitted.space.keys
-    settings = diagnosis_module.DiagnosisSettings(refine_iterations=0)
+    # no profile interval: its solves would be real ones of a model whose friction is faked here
+    settings = diagnosis_module.DiagnosisSettings(refine_iterations=0, profile=False)
     z = np.full(len(keys), 0.5)
     inside = diagnosis_module.diagnose(type(state)(state.fitted, z), measured, [friction], settings)
     [candidate] = inside.candidates

@@ -25,6 +25,14 @@ def test_hidden_friction_is_named_added_and_the_gap_shrinks(friction_case, tmp_p
     assert record["diagnosis"]["verdict"] == "missing effect" and record["diagnosis"]["effect"] == "friction", \
         record["diagnosis"]["sentence"]
     assert summary["added"][0] == "friction"
+    # friction saturates above sticking: its profile interval holds the hidden mu 1.0, bounded by
+    # the data from below only, where the linearised one (estimate +- 1.96 sd) would not reach it
+    refit = next(c for c in record["diagnosis"]["candidates"] if c["name"] == "friction")["refit"]
+    (low, high), = refit["interval"]
+    assert refit["interval_kind"] == "profile" and refit["interval_open"] == [[False, True]]
+    assert 0.0 < low < refit["refined_values"][0] < high == 1.5
+    assert refit["refined_values"][0] + 1.96 * refit["refined_sd"][0] < 1.0
+    assert "profile interval" in record["diagnosis"]["sentence"] and "from below only" in record["diagnosis"]["sentence"]
     before, after = record["before"]["landmark_error_mm"]["mean"], record["after"]["landmark_error_mm"]["mean"]
     assert after < 0.7 * before
     report = (out / "report.md").read_text()

@@ -47,13 +47,15 @@ def test_a_diagnosis_killed_at_each_checkpoint_resumes_to_the_uninterrupted_resu
     """The hidden-friction case (conftest's small one): one round that names friction (its one
     candidate: the other effects' solves would only lengthen every trial), adds it and refits
     (the confirmation refit, not refined); a kill before the round is written repeats it, one
-    during the refit diagnoses the open round again. The fixed floor: the measured one's solve
-    (tested in test_discrepancy.py) would lengthen every killed run by a minute."""
+    during the refit diagnoses the open round again. The fixed floor and the linearised interval: the
+    measured floor's solve and the profile's (tested in test_discrepancy.py and
+    test_discrepancy_friction.py) would lengthen every killed run."""
     case, fit = friction_case
 
     def diagnosis(out, resume=False, progress=False):
         return ["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--effects", "friction",
                 "--rounds", "1", "--refine-iterations", "0", "--device", "cpu", "--floor", "fixed",
+                "--interval", "linearised",
                 *([] if progress else ["--quiet"]), *(["--resume"] if resume else [])]
 
     run(diagnosis(tmp_path / "reference"))

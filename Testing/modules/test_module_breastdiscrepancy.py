@@ -121,6 +121,12 @@ def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_
     assert worker.wait(900) == 0, worker.error
     record = logic.finishAccept(p, worker)
     assert record["added"] == "friction" and record["accepted"] == "verdict"
+    # its profile interval is made with the refinement, when it is added (the round's own
+    # confirmation refit, unrefined, carried the linearised one)
+    assert next(c for c in d["candidates"] if c["name"] == "friction")["refit"]["interval_kind"] == "linearised"
+    refit = next(c for c in record["diagnosis"]["candidates"] if c["name"] == "friction")["refit"]
+    (low, high), = refit["interval"]
+    assert refit["interval_kind"] == "profile" and low < refit["refined_values"][0] <= high
     before, after = record["before"]["landmark_error_mm"]["mean"], record["after"]["landmark_error_mm"]["mean"]
     assert after < 0.7 * before
     errors = p.reference("landmarkErrorsTable")

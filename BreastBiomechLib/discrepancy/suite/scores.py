@@ -12,8 +12,9 @@ library - finally "unexplained discrepancy" with nothing added. Where the right 
 added and the last round still says "unexplained", the case counts among the **false
 "unexplained" after the right effect**. Where a hidden effect's true values are known
 (:attr:`~BreastBiomechLib.discrepancy.suite.cases.HiddenEffect.values`), each added effect's
-refined estimate is scored against them: its error, and whether the truth lies within the
-estimate +- 1.96 sd (the refit's linearised interval). Where effects were added, the landmark error's fall is 1 - after / before (mean
+refined estimate is scored against them: its error, and whether the truth lies within its
+recorded 95 % interval (the profile interval, :mod:`~BreastBiomechLib.discrepancy.profile`; in
+records without one, the estimate +- 1.96 sd of the linearised information). Where effects were added, the landmark error's fall is 1 - after / before (mean
 over the landmarks, mm; against the truth's exact landmarks where the suite gives them, as the
 measured ones carry a localisation error) and the NMI gap closed is (after - before) / (truth -
 before), "truth" the NMI of the image the truth parameters predict (the ceiling of any model).
@@ -45,32 +46,37 @@ def final_answer(rounds: list[dict]) -> str:
     return "unconfirmed" if rounds[-1].get("added") else answer(rounds[-1]["diagnosis"])
 
 
-def _added_estimate(record: dict) -> tuple[list, list]:
-    """The added effect's refined values and their sd (the refinement's, else the confirmation
-    refit's) from a round's record ([], [] where the record holds no refit of it)."""
+def _added_estimate(record: dict) -> tuple[list, list, list]:
+    """The added effect's refined values, their sd (the refinement's, else the confirmation
+    refit's) and their 95 % intervals as recorded (profile or linearised; [] where the record
+    holds none) from a round's record ([], [], [] where the record holds no refit of it)."""
     effect = record["added"]
     candidate = next((c for c in record["diagnosis"].get("candidates", []) if c.get("name") == effect), None)
     refit = (candidate or {}).get("refit") or {}
     return (list(refit.get("refined_values", refit.get("values", []))),
-            list(refit.get("refined_sd", refit.get("sd", []))))
+            list(refit.get("refined_sd", refit.get("sd", []))), list(refit.get("interval", [])))
 
 
 def estimates(case: SuiteCase, rounds: list[dict]) -> dict:
-    """Each added effect whose true values the case knows: {name: {"values", "sd", "truth",
-    "error" (estimate - truth per parameter), "in_interval" (every parameter's truth within
-    +- :data:`Z95` sd)}}."""
+    """Each added effect whose true values the case knows: {name: {"values", "sd", "interval",
+    "truth", "error" (estimate - truth per parameter), "in_interval" (every parameter's truth
+    within its recorded 95 % interval, else within +- :data:`Z95` sd)}}."""
     out = {}
     for record in rounds:
         effect = record.get("added")
         truth = case.hidden.values.get(effect) if effect else None
         if truth is None:
             continue
-        values, sd = _added_estimate(record)
+        values, sd, bounds = _added_estimate(record)
         if len(values) != len(truth):
             continue
         error = [v - t for v, t in zip(values, truth)]
-        inside = len(sd) == len(values) and all(abs(e) <= Z95 * s for e, s in zip(error, sd))
-        out[effect] = {"values": values, "sd": sd, "truth": list(truth), "error": error, "in_interval": bool(inside)}
+        if len(bounds) == len(values):
+            inside = all(lo <= t <= hi for (lo, hi), t in zip(bounds, truth))
+        else:
+            inside = len(sd) == len(values) and all(abs(e) <= Z95 * s for e, s in zip(error, sd))
+        out[effect] = {"values": values, "sd": sd, "interval": bounds, "truth": list(truth), "error": error,
+                       "in_interval": bool(inside)}
     return out
 
 

@@ -203,6 +203,13 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
     narrow = result("friction", [_round("missing effect", "friction", "friction", after=(0.8, 1.26),
                                         refit={"refined_values": [1.5], "sd": [0.05]}), none])
     assert narrow["correct"] and not narrow["estimates"]["friction"]["in_interval"]
+    # a recorded (profile) interval is scored as it is: an estimate far below a saturating truth
+    # whose interval is open above holds it; the sd is not used then
+    profiled = result("friction", [_round("missing effect", "friction", "friction", after=(0.8, 1.26),
+                                          refit={"refined_values": [0.3], "sd": [0.01],
+                                                 "interval": [[0.2, 1.5]]}), none])
+    assert profiled["estimates"]["friction"]["in_interval"]
+    assert profiled["estimates"]["friction"]["interval"] == [[0.2, 1.5]]
     later_scores = suite_scores(results[:7] + later + [narrow])
     assert later_scores["false_unexplained_after_right"] == pytest.approx(1 / 5)  # of the 5 with friction added
     assert later_scores["truth_in_interval"] == pytest.approx(4 / 5)

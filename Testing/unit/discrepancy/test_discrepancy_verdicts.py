@@ -172,8 +172,16 @@ def test_a_named_effect_is_said_with_its_interval():
     candidate = _candidate()
     sentence = verdicts.missing_effect_sentence(candidate)
     assert "(friction 0.55). Score test" in sentence  # a record made before intervals: none said
-    candidate["refit"]["interval"] = [[0.412, 0.688]]
-    assert "(friction 0.55; 95 % interval 0.412 to 0.688). Score test" in verdicts.missing_effect_sentence(candidate)
+    candidate["refit"]["interval"] = [[0.412, 0.688]]  # a record made before profile intervals
+    assert ("(friction 0.55; 95 % linearised interval 0.412 to 0.688). Score test"
+            in verdicts.missing_effect_sentence(candidate))
+    # a profile interval that reaches the top of the range: the data bound it from below only
+    candidate["refit"].update(interval=[[0.132, 1.5]], interval_kind="profile", interval_open=[[False, True]])
+    assert ("(friction 0.55; 95 % profile interval 0.132 to 1.5, bounded by the data from below only). Score test"
+            in verdicts.missing_effect_sentence(candidate))
+    candidate["refit"].update(interval=[[-5.0, 0.2], [-5.0, 5.0]], interval_open=[[True, False], [True, True]])
+    assert ("95 % profile interval -5 to 0.2, bounded by the data from above only; -5 to 5, the data do not bound it)"
+            in verdicts.missing_effect_sentence(candidate))
 
 
 def test_an_effect_is_sized_where_it_acts():

@@ -1,0 +1,181 @@
+"""Profile-likelihood intervals of an added effect's parameters.
+
+The refit's linearised interval (estimate +- 1.96 sd from the Gauss-Newton information) is right
+only where the features change linearly with the parameter. Friction does not: above the
+coefficient at which the skin sticks to the plates nothing changes, so the residual is flat from
+there to the top of the range, the linearised sd is that of the slope just below it, and an
+estimate of 0.32 for a truth of 1.0 gets an interval that misses the truth by far
+(docs/discrepancy.md, "Why friction refits below its truth"). A profile interval is the set of
+values the data cannot tell from the estimate: each parameter is moved away from its estimate
+and solved, the other parameters (the fit's and the added effects') re-fitted to the features at
+each value by one linearised step from the refit's sensitivities, and the interval is where the
+whitened residual sum of squares rises by less than the chi-square 95 % quantile of one degree of
+freedom (3.84) above its least value; a saturating parameter's interval reaches the end of its
+range ("open"), which says that the data bound it from one side only.
+
+Each side of each parameter is walked outwards in at most :data:`STEPS` solves (batched over the
+parameters and sides): at 2 and 8 linearised sd from the estimate (at least 2 % and 8 % of the
+range), then the range's end, stopping at the first value the data reject; the bound is
+interpolated between the last value inside and the first outside linearly in the root deviance
+(linear in the parameter for a Gaussian likelihood). Values whose solve fails are left out
+(counted in ``failed``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from BreastBiomechLib.discrepancy.observations import Observations
+from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.discrepancy.variants import solve_variants
+
+CHI2_95 = 3.841458820694124  # the chi-square 95 % quantile with one degree of freedom
+STEPS = 3  # solves per side of a parameter at most
+FIRST_STEP = (2.0, 0.02)  # the first value tried: this many linearised sd from the estimate, at least this share of the range
+SECOND_STEP = 4.0  # the second this many times as far
+
+
+@dataclass
+class ProfiledParameter:
+    """One parameter's profile: its ``key`` ("<effect>:<index>"), ``estimate``, the 95 %
+    ``interval`` [low, high] (effect units), ``open`` [low, high] (True where the interval
+    reaches that end of the parameter's range: the data do not bound it on that side),
+    ``points`` [[value, deviance], ...] the values solved (the estimate at deviance 0) and
+    ``failed`` the number of values whose solve failed."""
+
+    key: str
+    estimate: float
+    interval: list[float]
+    open: list[bool]
+    points: list[list[float]] = field(default_factory=list)
+    failed: int = 0
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Side:
+    """One side of one parameter's walk: the parameter's ``index`` in its effect and ``column``
+    in the design, the ``direction`` (-1 down, +1 up), the ``values`` to try, those ``walked``
+    [(value, rss)], the ``failed`` solves and whether a value was rejected (``done``)."""
+
+    index: int
+    column: int
+    direction: int
+    values: list[float]
+    walked: list[tuple[float, float]] = field(default_factory=list)
+    failed: int = 0
+    done: bool = False
+
+    @property
+    def pending(self) -> bool:
+        return not self.done and len(self.walked) + self.failed < len(self.values)
+
+    @property
+    def next_value(self) -> float:
+        return self.values[len(self.walked) + self.failed]
+
+    def record(self, rss: float | None, rss_at_estimate: float) -> None:
+        """The next value's profiled residual sum of squares (None: its solve failed)."""
+        if rss is None:
+            self.failed += 1
+            return
+        self.walked.append((self.next_value, rss))
+        self.done = rss - rss_at_estimate > CHI2_95
+
+
+def side_values(estimate: float, sd: float, lower: float, upper: float, direction: int) -> list[float]:
+    """The values a side is walked through (:data:`STEPS` at most), outwards from ``estimate``
+    towards ``lower`` (``direction`` -1) or ``upper`` (+1): at the first step, four times as far,
+    then the range's end; none beyond the end, none where the estimate is at it."""
+    end = upper if direction > 0 else lower
+    span = upper - lower
+    first = max(FIRST_STEP[0] * (sd if np.isfinite(sd) else 0.0), FIRST_STEP[1] * span)
+    values = []
+    for distance in (first, SECOND_STEP * first):
+        value = estimate + direction * distance
+        if (value - end) * direction >= 0.0:
+            break
+        values.append(float(value))
+    if abs(end - estimate) > 1e-12 * max(span, 1.0):
+        values.append(float(end))
+    return values[:STEPS]
+
+
+def bound(estimate: float, walked: list[tuple[float, float]], end: float) -> tuple[float, bool]:
+    """One end of the interval from a side's walk ``walked`` [(value, deviance), ...] outwards
+    from ``estimate`` (deviance 0): where the root deviance reaches sqrt(:data:`CHI2_95`),
+    interpolated linearly between the last value inside and the first outside; the range's
+    ``end`` when no value is outside (open: True)."""
+    threshold = np.sqrt(CHI2_95)
+    inside_value, inside_root = estimate, 0.0
+    for value, deviance in walked:
+        root = np.sqrt(max(deviance, 0.0))
+        if root > threshold:
+            t = (threshold - inside_root) / (root - inside_root)
+            return float(inside_value + t * (value - inside_value)), False
+        inside_value, inside_root = value, root
+    return float(end), True
+
+
+def profile_intervals(state: ModelState, observations: Observations, effect_name: str, design: np.ndarray,
+                      rss_at_estimate: float, progress: Callable[[str], None] | None = None) -> list[ProfiledParameter]:
+    """The profile intervals of the added effect ``effect_name``'s parameters at ``state`` (its
+    refit), ``design`` (n, p) the features' change per unit of each of ``state.nuisance()``'s
+    parameters (in that order; from the refit's last sensitivities) and ``rss_at_estimate`` the
+    whitened residual sum of squares of ``state`` solved."""
+    say = progress or (lambda message: None)
+    effect, values = state.added[effect_name]
+    nuisance = state.nuisance()
+    keys = [key for key, *_ in nuisance]
+    current = np.array([v for _, v, _, _ in nuisance])
+    lower = np.array([lo for _, _, lo, _ in nuisance])
+    upper = np.array([hi for _, _, _, hi in nuisance])
+    weights = 1.0 / observations.sigma
+    whitened_design = weights[:, None] * design
+    sd = np.sqrt(np.maximum(np.diag(np.linalg.pinv(whitened_design.T @ whitened_design)), 0.0))
+
+    def profiled_rss(column: int, displacement: np.ndarray) -> float:
+        """The residual sum of squares at the value solved, the other parameters re-fitted by one
+        linearised step within their ranges."""
+        others = [k for k in range(len(keys)) if k != column]
+        whitened = weights * observations.residual(displacement)
+        a = whitened_design[:, others]
+        step = lsq_linear(a, whitened, bounds=(lower[others] - current[others], upper[others] - current[others])).x
+        return float(np.sum((whitened - a @ step) ** 2))
+
+    sides = [_Side(j, keys.index(f"{effect_name}:{j}"), direction,
+                   side_values(values[j], sd[keys.index(f"{effect_name}:{j}")], parameter.lower, parameter.upper,
+                               direction))
+             for j, parameter in enumerate(effect.parameters) for direction in (-1, 1)]
+    for step in range(STEPS):
+        active = [side for side in sides if side.pending]
+        if not active:
+            break
+        say(f"profile interval of {effect.title}: {len(active)} solves (step {step + 1} of at most {STEPS})")
+        trials = []
+        for side in active:
+            moved = values.copy()
+            moved[side.index] = side.next_value
+            trials.append(state.with_effect(effect, moved).variant())
+        outcomes = solve_variants(trials, state.fitted.mesh.nodes, state.fitted.relaxation, state.fitted.device)
+        for side, outcome in zip(active, outcomes):
+            side.record(profiled_rss(side.column, outcome.displacement) if outcome.ok else None, rss_at_estimate)
+    least = min([rss_at_estimate] + [rss for side in sides for _, rss in side.walked])
+    out = []
+    for j, parameter in enumerate(effect.parameters):
+        low_side, high_side = (side for side in sides if side.index == j)
+        ends, opened, points = [], [], [[float(values[j]), rss_at_estimate - least]]
+        for side, end in ((low_side, parameter.lower), (high_side, parameter.upper)):
+            walked = [(value, rss - least) for value, rss in side.walked]
+            points += [[value, deviance] for value, deviance in walked]
+            limit, is_open = bound(float(values[j]), walked, end)
+            ends.append(limit)
+            opened.append(is_open)
+        out.append(ProfiledParameter(keys[low_side.column], float(values[j]), ends, opened, sorted(points),
+                                     low_side.failed + high_side.failed))
+    return out
