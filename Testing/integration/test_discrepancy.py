@@ -414,18 +414,25 @@ def test_an_effect_refitted_to_an_end_of_its_range_is_said_to_be_a_bound():
 
 
 def test_a_refitted_effect_has_an_interval_within_its_range():
-    """1.96 sd either side of the refitted value, clipped to the parameter's range (friction's mu
-    in [0, 1.5]): an estimate near the top has an interval that ends at the top."""
+    """Without a profile, 1.96 sd either side of the refitted value, clipped to the parameter's
+    range (friction's mu in [0, 1.5]): an estimate near the top has an interval that ends at the
+    top. With one, the profile's interval as it is."""
     from types import SimpleNamespace
 
     from BreastBiomechLib.discrepancy.diagnosis import interval
     from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
 
     friction = PlateFriction()
-    [(low, high)] = interval(SimpleNamespace(effect=friction, values=np.array([0.6]), sd=np.array([0.1])))
+
+    def refit(value, sd, profile=None):
+        return SimpleNamespace(effect=friction, values=np.array([value]), sd=np.array([sd]), profile=profile)
+
+    [(low, high)] = interval(refit(0.6, 0.1))
     assert (low, high) == pytest.approx((0.404, 0.796))
-    [(low, high)] = interval(SimpleNamespace(effect=friction, values=np.array([1.45]), sd=np.array([0.1])))
+    [(low, high)] = interval(refit(1.45, 0.1))
     assert (low, high) == pytest.approx((1.254, 1.5))
+    profiled = [{"key": "friction:0", "estimate": 0.36, "interval": [0.13, 1.5], "open": [False, True]}]
+    assert interval(refit(0.36, 0.03, profiled)) == [[0.13, 1.5]]
 
 
 def test_range_end_names_the_end_a_value_lies_at():
