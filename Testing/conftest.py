@@ -5,8 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import os
+
 import pytest
 from images import oblique_direction
+
+# a CPU batch in this process, not split over worker processes (solver/cpu_pool.py): pytest-xdist
+# keeps the cores busy already; Testing/unit/solver/test_cpu_pool.py splits batches on purpose
+os.environ.setdefault("BREASTBIOMECH_CPU_WORKERS", "1")
 
 
 @pytest.fixture

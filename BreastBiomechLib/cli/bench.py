@@ -68,7 +68,12 @@ def _bench_solver(args) -> dict:
     # compile the kernels once, outside the timing: a relaxation's own module too (its first solve
     # in a process compiled it inside the timed span, 1.1-1.3 s on the H200)
     warm = hemi_ellipsoid_compression(20.0, total_time=0.05, settle_time=0.0)
-    solve_batch(warm, [warm.materials], device=device,
+    workers = None
+    if device.is_cpu:  # the batch's worker processes (solver/cpu_pool.py), started outside the timing
+        from BreastBiomechLib.solver.cpu_pool import cpu_workers
+
+        workers = min(args.cpu_workers, args.batch) if args.cpu_workers else cpu_workers(args.batch)
+    solve_batch(warm, [warm.materials] * (workers or 1), device=device, cpu_workers=workers,
                 relaxation=DynamicRelaxation(max_iterations=1200) if args.relaxation else None)
     start = None
     if args.warm_start is not None:  # a fit's nearby parameter set, solved outside the timing
@@ -80,7 +85,7 @@ def _bench_solver(args) -> dict:
             raise RuntimeError(f"the warm start's solve failed: {start.message}")
     started = time.perf_counter()
     solutions = solve_batch(model, variants, device=device, relaxation=relaxation,
-                            steady_state_mm=args.steady_state_mm,
+                            steady_state_mm=args.steady_state_mm, cpu_workers=workers,
                             warm_start=None if start is None else WarmStart.from_solution(start))
     wall = time.perf_counter() - started
     s = solutions[0]
@@ -106,6 +111,7 @@ def _bench_solver(args) -> dict:
         "plate_force_N": float(np.linalg.norm(s.plate_forces[0])),
         "max_displacement_mm": float(np.abs(s.displacement).max()),
         "device_memory_in_use_mb": memory_mb,
+        "cpu_workers": workers, "models_per_s": round(args.batch / wall, 4),
     }
 
 
@@ -560,6 +566,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--warm-starts", action="store_true",
                    help="optimise: each batch of solves starts at the best evaluation's equilibrium (see "
                         "docs/benchmarks.md: not yet faster on this benchmark)")
+    p.add_argument("--cpu-workers", type=positive_int, default=None, metavar="N",
+                   help="solver on a CPU device: the batch's variants split over N worker processes (default "
+                        "BREASTBIOMECH_CPU_WORKERS, else the cores; 1: this process alone)")
     p.add_argument("--warm-start", type=positive, default=None, metavar="FACTOR",
                    help="solver, dynamic relaxation: start at the equilibrium of the same breast with its shear "
                         "modulus times FACTOR (a fit's nearby parameter set; solved first, outside the timing)")

@@ -23,6 +23,7 @@ from typing import Callable
 import numpy as np
 import warp as wp
 
+from BreastBiomechLib.solver import cpu_pool
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.batch_run import BatchOptions, BatchRun
 from BreastBiomechLib.solver.geometry import MeshGeometry
@@ -99,7 +100,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                 relaxation: DynamicRelaxation | None = None, warm_start: WarmStart | None = None,
                 progress: Callable[[float], bool | None] | None = None,
                 steady_state_mm: float | None = None, mass_scaling: bool = False,
-                plates: list[list[Plate]] | None = None, memory_limit_bytes: int | None = None) -> list[Solution]:
+                plates: list[list[Plate]] | None = None, memory_limit_bytes: int | None = None,
+                cpu_workers: int | None = None) -> list[Solution]:
     """Solve B variants of ``model`` that share its mesh and constraints in one batched launch:
     ``materials[b]`` per variant and optionally ``plate_displacements[b]`` (P, 3) mm, or whole
     plate sets ``plates[b]`` (pose, travel, edge and friction per variant; the same P plates in
@@ -137,7 +139,11 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     ValueError) with the estimate and the largest batch that fits.
 
     On the CPU a mesh numbered scattered (as TetGen leaves it) is solved in a local order and its
-    results given back in the mesh's numbering (:mod:`~BreastBiomechLib.solver.ordering`)."""
+    results given back in the mesh's numbering (:mod:`~BreastBiomechLib.solver.ordering`), and a
+    batch of several variants is split over ``cpu_workers`` processes (default
+    :func:`~BreastBiomechLib.solver.cpu_pool.cpu_workers`: the cores, or BREASTBIOMECH_CPU_WORKERS),
+    each chunk at the smallest critical step of its own variants
+    (:mod:`~BreastBiomechLib.solver.cpu_pool`)."""
     wp.init()
     device = _device(device)
     options = BatchOptions(relaxation=relaxation, warm_start=warm_start, initial_displacement=initial_displacement,
@@ -145,6 +151,15 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                            mass_scaling=mass_scaling, progress=progress, memory_limit_bytes=memory_limit_bytes)
     if initial_displacement is not None and model.prestate is not None:
         raise ValueError("the model starts from its pre-stressed reference state; give no initial_displacement")
+    if device.is_cpu and len(materials) > 1:
+        workers = cpu_pool.cpu_workers(len(materials)) if cpu_workers is None else min(cpu_workers, len(materials))
+        solutions = None if workers < 2 else cpu_pool.solve_on_cores(
+            model, materials, plate_displacements, plates, workers, progress, relaxation=relaxation,
+            warm_start=warm_start, initial_displacement=initial_displacement, sample_every=sample_every,
+            ke_ie_limit=ke_ie_limit, steady_state_mm=steady_state_mm, mass_scaling=mass_scaling,
+            memory_limit_bytes=memory_limit_bytes)
+        if solutions is not None:
+            return solutions
     order = SolverOrder.for_mesh(model.mesh, len(materials)) if device.is_cpu else None
     if order is None:
         return BatchRun(model, materials, device, options, plate_displacements, plates).run()
