@@ -13,11 +13,13 @@ whitened residual sum of squares rises by less than the chi-square 95 % quantile
 freedom (3.84) above its least value; a saturating parameter's interval reaches the end of its
 range ("open"), which says that the data bound it from one side only.
 
-Each side of each parameter is walked outwards in at most :data:`STEPS` solves (batched over the
-parameters and sides): at 2 and 8 linearised sd from the estimate (at least 2 % and 8 % of the
-range), then the range's end, stopping at the first value the data reject; the bound is
+Each side of each parameter is walked in at most :data:`STEPS` solves (batched over the
+parameters and sides): 2 linearised sd from the estimate (at least 2 % of the range), where the
+data reject it the side is done; else the range's end, where they do not the side is open; else
+four times as far as the first value (or halfway to the end) to bracket the bound, which is
 interpolated between the last value inside and the first outside linearly in the root deviance
-(linear in the parameter for a Gaussian likelihood). Values whose solve fails are left out
+(linear in the parameter for a Gaussian likelihood). A well-determined parameter takes one solve
+a side, a saturating one two on its open side. Values whose solve fails are left out
 (counted in ``failed``)."""
 
 from __future__ import annotations
@@ -60,8 +62,10 @@ class ProfiledParameter:
 @dataclass
 class _Side:
     """One side of one parameter's walk: the parameter's ``index`` in its effect and ``column``
-    in the design, the ``direction`` (-1 down, +1 up), the ``values`` to try, those ``walked``
-    [(value, rss)], the ``failed`` solves and whether a value was rejected (``done``)."""
+    in the design, the ``direction`` (-1 down, +1 up), the ``values`` to try (:func:`side_values`'
+    order), those ``walked`` [(value, rss)], the ``failed`` solves and whether the side is
+    ``done``: its first value rejected, its range's end not rejected (nothing between can be, for
+    a profile that rises away from its least value), or every value tried."""
 
     index: int
     column: int
@@ -81,39 +85,48 @@ class _Side:
 
     def record(self, rss: float | None, rss_at_estimate: float) -> None:
         """The next value's profiled residual sum of squares (None: its solve failed)."""
+        tried = len(self.walked) + self.failed
         if rss is None:
             self.failed += 1
             return
         self.walked.append((self.next_value, rss))
-        self.done = rss - rss_at_estimate > CHI2_95
+        rejected = rss - rss_at_estimate > CHI2_95
+        if len(self.values) == 1 or tried == 2:  # the end alone, or the bracketing value
+            self.done = True
+        elif tried == 0:  # the first step
+            self.done = rejected
+        else:  # the range's end
+            self.done = not rejected
 
 
 def side_values(estimate: float, sd: float, lower: float, upper: float, direction: int) -> list[float]:
-    """The values a side is walked through (:data:`STEPS` at most), outwards from ``estimate``
-    towards ``lower`` (``direction`` -1) or ``upper`` (+1): at the first step, four times as far,
-    then the range's end; none beyond the end, none where the estimate is at it."""
+    """The values a side is walked through (:data:`STEPS` at most) from ``estimate`` towards
+    ``lower`` (``direction`` -1) or ``upper`` (+1), in the order they are tried: the first step,
+    the range's end, then (tried only where the end is rejected) four times as far as the first
+    step, or halfway to the end where that is not short of it; [the end] alone where the first
+    step would reach it, [] where the estimate is at it."""
     end = upper if direction > 0 else lower
     span = upper - lower
+    if abs(end - estimate) <= 1e-12 * max(span, 1.0):
+        return []
     first = max(FIRST_STEP[0] * (sd if np.isfinite(sd) else 0.0), FIRST_STEP[1] * span)
-    values = []
-    for distance in (first, SECOND_STEP * first):
-        value = estimate + direction * distance
-        if (value - end) * direction >= 0.0:
-            break
-        values.append(float(value))
-    if abs(end - estimate) > 1e-12 * max(span, 1.0):
-        values.append(float(end))
-    return values[:STEPS]
+    near = estimate + direction * first
+    if (near - end) * direction >= 0.0:
+        return [float(end)]
+    inner = estimate + direction * SECOND_STEP * first
+    if (inner - end) * direction >= 0.0:
+        inner = 0.5 * (near + end)
+    return [float(near), float(end), float(inner)]
 
 
 def bound(estimate: float, walked: list[tuple[float, float]], end: float) -> tuple[float, bool]:
-    """One end of the interval from a side's walk ``walked`` [(value, deviance), ...] outwards
-    from ``estimate`` (deviance 0): where the root deviance reaches sqrt(:data:`CHI2_95`),
+    """One end of the interval from a side's walk ``walked`` [(value, deviance), ...] (any
+    order) from ``estimate`` (deviance 0): going outwards, where the root deviance reaches sqrt(:data:`CHI2_95`),
     interpolated linearly between the last value inside and the first outside; the range's
     ``end`` when no value is outside (open: True)."""
     threshold = np.sqrt(CHI2_95)
     inside_value, inside_root = estimate, 0.0
-    for value, deviance in walked:
+    for value, deviance in sorted(walked, key=lambda point: abs(point[0] - estimate)):
         root = np.sqrt(max(deviance, 0.0))
         if root > threshold:
             t = (threshold - inside_root) / (root - inside_root)

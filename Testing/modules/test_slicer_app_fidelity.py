@@ -248,7 +248,7 @@ def test_the_discrepancy_self_test_makes_the_headless_tests_case():
     assert "small_friction_case(" in test and 'device="cpu"' in test
     assert 'p["effects"], p["refineIterations"], p["device"] = "friction skin", 1, "cpu"' in test
     conftest = (ROOT / "Testing" / "conftest.py").read_text()
-    assert "small_friction_case(root)" in conftest
+    assert '"friction-case", small_friction_case)' in conftest
     module_test = (ROOT / "Testing" / "modules" / "test_module_breastdiscrepancy.py").read_text()
     assert 'EFFECTS = "friction skin"' in module_test and '= EFFECTS, 1, "cpu"' in module_test
 

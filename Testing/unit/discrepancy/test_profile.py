@@ -7,17 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from BreastBiomechLib.discrepancy.profile import CHI2_95, STEPS, bound, side_values
+from BreastBiomechLib.discrepancy.profile import STEPS, _Side, bound, side_values
 
 
 def _walk(estimate, sd, lower, upper, direction, deviance):
-    """A side walked as profile_intervals walks it: values in turn until one is rejected."""
-    walked = []
-    for value in side_values(estimate, sd, lower, upper, direction):
-        walked.append((value, deviance(value)))
-        if walked[-1][1] > CHI2_95:
-            break
-    return walked
+    """A side walked as profile_intervals walks it (one value a step), on a known deviance."""
+    side = _Side(0, 0, direction, side_values(estimate, sd, lower, upper, direction))
+    while side.pending:
+        side.record(deviance(side.next_value), 0.0)
+    return side.walked
 
 
 def test_a_gaussian_profile_gives_the_linearised_interval():
@@ -41,15 +39,24 @@ def test_a_saturating_parameter_is_bounded_from_below_only():
     assert estimate + 1.96 * sd < 1.0  # which the linearised interval would miss
 
 
-def test_the_walk_goes_outwards_within_the_range_and_ends_at_its_end():
+def test_the_walk_tries_the_first_step_then_the_end_then_between():
     values = side_values(0.3, 0.01, 0.0, 1.5, 1)
-    assert values == pytest.approx([0.33, 0.42, 1.5])  # 2 % of the range, four times as far, the end
-    assert len(values) <= STEPS and np.all(np.diff(values) > 0)
-    assert side_values(0.3, 0.01, 0.0, 1.5, -1) == pytest.approx([0.27, 0.18, 0.0])
+    assert values == pytest.approx([0.33, 1.5, 0.42])  # 2 % of the range, the end, four times as far
+    assert len(values) <= STEPS
+    assert side_values(0.3, 0.01, 0.0, 1.5, -1) == pytest.approx([0.27, 0.0, 0.18])
+    assert side_values(0.3, 0.1, 0.0, 1.5, -1) == pytest.approx([0.1, 0.0, 0.05])  # 4x past the end: halfway
     assert side_values(1.5, 0.01, 0.0, 1.5, 1) == []  # at the end: nothing to walk, the end is the bound
     assert side_values(1.45, 0.2, 0.0, 1.5, 1) == [1.5]  # the first step would leave the range
-    assert side_values(0.0, float("nan"), -5.0, 5.0, 1) == pytest.approx([0.2, 0.8, 5.0])
+    assert side_values(0.0, float("nan"), -5.0, 5.0, 1) == pytest.approx([0.2, 5.0, 0.8])
     assert bound(1.5, [], 1.5) == (1.5, True)
+
+
+def test_a_side_takes_only_the_solves_it_needs():
+    # rejected at the first step: one solve; the end inside: two; the end rejected: three
+    assert len(_walk(0.6, 0.05, 0.0, 1.5, 1, lambda v: ((v - 0.6) / 0.05) ** 2)) == 1
+    assert len(_walk(0.32, 0.01, 0.0, 1.5, 1, lambda v: 0.0)) == 2
+    walked = _walk(0.32, 0.01, 0.0, 1.5, -1, lambda v: 0.0 if v >= 0.25 else (40.0 * (0.25 - v)) ** 2)
+    assert [v for v, _ in walked] == pytest.approx([0.29, 0.0, 0.2])
 
 
 def test_a_value_outside_then_none_is_the_first_crossing():
