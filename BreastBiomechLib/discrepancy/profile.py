@@ -145,6 +145,9 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
     effect, values = state.added[effect_name]
     nuisance = state.nuisance()
     keys = [key for key, *_ in nuisance]
+    if design.shape != (len(observations.measured), len(keys)):
+        raise ValueError(f"the profile's design has shape {design.shape}; it needs one row per feature and one "
+                         f"column per parameter of the refit ({len(observations.measured)}, {len(keys)})")
     current = np.array([v for _, v, _, _ in nuisance])
     lower = np.array([lo for _, _, lo, _ in nuisance])
     upper = np.array([hi for _, _, _, hi in nuisance])

@@ -103,8 +103,10 @@ def _solve_chunk(slot: int, model, materials, plate_displacements, plates, optio
 
 
 def _pool_of(size: int) -> ProcessPoolExecutor:
+    """The pool, with at least ``size`` workers: a larger one is kept for a smaller batch (a fit's
+    population of 5 after a round of 16 variants does not start new processes)."""
     global _pool, _pool_size, _shared
-    if _pool is None or _pool_size != size:
+    if _pool is None or _pool_size < size:
         if _pool is not None:
             _pool.shutdown(wait=True)
         context = multiprocessing.get_context("spawn")
@@ -139,7 +141,7 @@ def solve_on_cores(model, materials: list, plate_displacements: list | None, pla
         pool = _pool_of(workers)
         fractions, cancel = _shared
         cancel.value = 0
-        parts = chunks(len(materials), workers)
+        parts = chunks(len(materials), workers)  # at most the pool's size: one worker each
         for slot in range(len(fractions)):
             fractions[slot] = 0.0
 

@@ -39,6 +39,17 @@ def test_a_batch_on_two_processes_is_the_batch_in_one():
         np.testing.assert_array_equal(one.displacement, other.displacement)
 
 
+def test_a_smaller_batch_keeps_the_larger_pool():
+    """Worker processes are started once: a batch split over fewer of them (a fit's population
+    after a larger round) uses the pool as it is."""
+    model, materials, relaxation = _batch()
+    solve_batch(model, materials, device="cpu", relaxation=relaxation, cpu_workers=3)
+    pool = cpu_pool._pool
+    split = solve_batch(model, materials[:2], device="cpu", relaxation=relaxation, cpu_workers=2)
+    assert cpu_pool._pool is pool and cpu_pool._pool_size == 3
+    assert [s.status for s in split] == ["completed"] * 2
+
+
 def test_a_cancelled_split_batch_stops_every_chunk():
     model, materials, relaxation = _batch()
     split = solve_batch(model, materials, device="cpu", relaxation=relaxation, cpu_workers=2,
