@@ -250,7 +250,7 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
             raise RuntimeError(f"{candidate.title}: no refit with it solves ({made[0].status if made else 'not built'}); "
                                "it cannot be added to this model")
         chosen = refits[candidate.name] = made[0]
-    design = (np.hstack([sens.nuisance, sens.effects[candidate.name]]) if candidate.name in sens.effects else None)
+    design = None  # the features' change per unit of each of the refit's parameters, for its profile
     if iterations > 0:
         say(f"refining the refit with {candidate.name}")
         refined = refine(chosen.state, observations, iterations, say)
@@ -264,9 +264,12 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
                          sd=np.array([sd[k] for k in keys]) if all(k in sd for k in keys) else chosen.sd)
         if refined.sensitivities is not None:
             design = refined.sensitivities.nuisance
-    if profile and chosen.profile is None and design is not None:
-        profiled = profile_intervals(chosen.state, observations, candidate.name, design, chosen.rss_after, say)
-        chosen = replace(chosen, profile=[p.to_dict() for p in profiled])
+    if profile and chosen.profile is None:
+        if design is None and candidate.name in sens.effects:  # not refined: the round's sensitivities
+            design = np.hstack([sens.nuisance, sens.effects[candidate.name]])
+        if design is not None:
+            profiled = profile_intervals(chosen.state, observations, candidate.name, design, chosen.rss_after, say)
+            chosen = replace(chosen, profile=[p.to_dict() for p in profiled])
     candidate.refit = candidate.refit or {"status": chosen.status, "values": chosen.values.tolist(),
                                           "sd": chosen.sd.tolist(), "described": chosen.effect.describe(chosen.values),
                                           "rss_before": chosen.rss_before, "rss_after": chosen.rss_after}

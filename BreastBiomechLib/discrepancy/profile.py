@@ -164,9 +164,9 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
         step = lsq_linear(a, whitened, bounds=(lower[others] - current[others], upper[others] - current[others])).x
         return float(np.sum((whitened - a @ step) ** 2))
 
-    sides = [_Side(j, keys.index(f"{effect_name}:{j}"), direction,
-                   side_values(values[j], sd[keys.index(f"{effect_name}:{j}")], parameter.lower, parameter.upper,
-                               direction))
+    columns = [keys.index(f"{effect_name}:{j}") for j in range(len(effect.parameters))]
+    sides = [_Side(j, columns[j], direction,
+                   side_values(values[j], sd[columns[j]], parameter.lower, parameter.upper, direction))
              for j, parameter in enumerate(effect.parameters) for direction in (-1, 1)]
     for step in range(STEPS):
         active = [side for side in sides if side.pending]
