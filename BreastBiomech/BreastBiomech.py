@@ -41,16 +41,15 @@ class BreastBiomech(ModuleBase):
     def __init__(self, parent):
         ModuleBase.__init__(self, parent, ("SampleData",))
         self.parent.title = _("BreastBiomech")
-        self.parent.helpText = _(
-            "Patient-specific biomechanical breast models from MR. This home module generates the "
-            "built-in breast phantom (MR, tissue labels, partial-volume fractions, 17 landmarks) "
-            "and is the starting point of the pipeline. See the "
-            "<a href='https://github.com/BreastBiomech/BreastBiomech'>project page</a>."
-        )
-        self.parent.acknowledgementText = _(
-            "Method after Han et al. 2012, Phys. Med. Biol. 57:455 (patient-specific breast "
-            "biomechanics with a GPU TLED solver and image-based material optimisation)."
-        )
+        self.parent.helpText = _("""
+Patient-specific biomechanical breast models from MR. This home module generates the built-in breast
+phantom (MR, tissue labels, partial-volume fractions, 17 landmarks) and is the starting point of the
+pipeline. See the <a href='https://github.com/BreastBiomech/BreastBiomech'>project page</a>.
+""")
+        self.parent.acknowledgementText = _("""
+Method after Han et al. 2012, Phys. Med. Biol. 57:455 (patient-specific breast biomechanics with a GPU
+TLED solver and image-based material optimisation).
+""")
         slicer.app.connect("startupCompleted()", registerSampleData)
 
 
@@ -81,54 +80,19 @@ def registerSampleData():
 
 
 class BreastBiomechWidget(ModuleWidgetBase):
-    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
-
-    UI_FILE = "UI/BreastBiomech.ui"
-
-    def createLogic(self):
-        return BreastBiomechLogic()
-
     def connectGUI(self):
-        self.ui.caseComboBox.currentIndexChanged.connect(self.onCaseChanged)
-        for spinBox in (self.ui.seedSpinBox,):
-            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        for slider in self._sliders():
-            slider.valueChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.skinSeparateCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
-        self.ui.generateButton.clicked.connect(self.onGenerateButton)
-        self.ui.loadFolderButton.clicked.connect(self.onLoadFolderButton)
-
-    def _sliders(self):
-        return (self.ui.volumeSliderWidget, self.ui.densitySliderWidget, self.ui.tumourSliderWidget,
-                self.ui.snrSliderWidget, self.ui.biasSliderWidget)
+        self.connectLogic(self.ui.caseComboBox.currentIndexChanged, self.logic.applyCasePreset)
 
     def showParameters(self, p):
+        # the case is an index (choosing one applies its preset: connectGUI), stored below
         self.ui.caseComboBox.currentIndex = p["case"]
-        self.ui.seedSpinBox.value = p["seed"]
-        self.ui.volumeSliderWidget.value = p["volumeCm3"]
-        self.ui.densitySliderWidget.value = p["density"] * 100.0
-        self.ui.tumourSliderWidget.value = p["tumourMm"]
-        self.ui.snrSliderWidget.value = p["snr"]
-        self.ui.biasSliderWidget.value = p["bias"] * 100.0
-        self.ui.skinSeparateCheckBox.checked = p["skinSeparate"]
         custom = p["case"] == 0
-        for widget in (self.ui.seedSpinBox, *self._sliders()):
+        for widget in (self.ui.seedSpinBox, self.ui.volumeSliderWidget, self.ui.densitySliderWidget,
+                       self.ui.tumourSliderWidget, self.ui.snrSliderWidget, self.ui.biasSliderWidget):
             widget.enabled = custom
 
     def storeParameters(self, p):
         p["case"] = self.ui.caseComboBox.currentIndex
-        p["seed"] = self.ui.seedSpinBox.value
-        p["volumeCm3"] = self.ui.volumeSliderWidget.value
-        p["density"] = self.ui.densitySliderWidget.value / 100.0
-        p["tumourMm"] = self.ui.tumourSliderWidget.value
-        p["snr"] = self.ui.snrSliderWidget.value
-        p["bias"] = self.ui.biasSliderWidget.value / 100.0
-        p["skinSeparate"] = self.ui.skinSeparateCheckBox.checked
-
-    def onCaseChanged(self, index):
-        if self._parameterNode is None or self._updatingGUI:
-            return
-        self.logic.applyCasePreset(self._parameterNode, index)
 
     def onGenerateButton(self):
         if not dependencies_ready(DEPENDENCIES, _("BreastBiomech")):

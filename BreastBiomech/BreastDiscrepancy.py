@@ -27,7 +27,7 @@ import numpy as np
 import slicer
 from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
                                  ModuleWidgetBase, ScriptedLoadableModuleTest, _, chosen_folder,
-                                 dependencies_ready, ensure_library_importable, resolve_device, show_path)
+                                 dependencies_ready, ensure_library_importable, resolve_device)
 
 ensure_library_importable()
 
@@ -42,61 +42,30 @@ class BreastDiscrepancy(ModuleBase):
     def __init__(self, parent):
         ModuleBase.__init__(self, parent, ("SubjectHierarchy", "ScreenCapture"))
         self.parent.title = _("Breast Discrepancy")
-        self.parent.helpText = _(
-            "Find where a fitted breast model and the measured compressed scan disagree, which physical effect "
-            "(plate friction, gravity and the unloaded state, the chest wall holding the breast, skin, anisotropy, "
-            "heterogeneity, tumour stiffness, plate tilt or offset) is missing, with the evidence on the images; accept it, refit "
-            "and see the gap shrink. Each round stays in the scene. From the Python console: "
-            "logic = slicer.util.getModuleLogic('BreastDiscrepancy'), then logic.diagnose(p), "
-            "logic.showCandidate(p, name), logic.accept(p, name), logic.reject(p, name), logic.saveReport(p). "
-            "See docs/discrepancy.md of the <a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
-        )
-        self.parent.acknowledgementText = _("Builds on the method of Han et al. 2012, Phys. Med. Biol. 57:455.")
+        self.parent.helpText = _("""
+Find where a fitted breast model and the measured compressed scan disagree, which physical effect (plate
+friction, gravity and the unloaded state, the chest wall holding the breast, skin, anisotropy,
+heterogeneity, tumour stiffness, plate tilt or offset) is missing, with the evidence on the images;
+accept it, refit and see the gap shrink. Each round stays in the scene. From the Python console: logic =
+slicer.util.getModuleLogic('BreastDiscrepancy'), then logic.diagnose(p), logic.showCandidate(p, name),
+logic.accept(p, name), logic.reject(p, name), logic.saveReport(p). See docs/discrepancy.md of the
+<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>.
+""")
+        self.parent.acknowledgementText = _("""
+Builds on the method of Han et al. 2012, Phys. Med. Biol. 57:455.
+""")
 
 
 class BreastDiscrepancyWidget(ModuleWidgetBase):
-    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
-
-    UI_FILE = "UI/BreastDiscrepancy.ui"
-
-    def createLogic(self):
-        return BreastDiscrepancyLogic()
-
     def connectGUI(self):
-        for pathLineEdit in (self.ui.casePathLineEdit, self.ui.fitPathLineEdit, self.ui.outputPathLineEdit):
-            pathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.effectsLineEdit.editingFinished.connect(self.updateParameterNodeFromGUI)
-        for spinBox in (self.ui.iterationsSpinBox, self.ui.roundsSpinBox, self.ui.landmarkSdSpinBox,
-                        self.ui.modelSdSpinBox, self.ui.alphaSpinBox):
-            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.deviceComboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.residualFieldCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
-        self.ui.measuredFloorCheckBox.toggled.connect(self.updateParameterNodeFromGUI)
-        self.ui.glyphsCheckBox.toggled.connect(self.onGlyphsToggled)
-        self.ui.regionsCheckBox.toggled.connect(self.onRegionsToggled)
-        self.ui.roundComboBox.currentIndexChanged.connect(self.onRoundChosen)
-        self.ui.useOptimizationButton.clicked.connect(self.onUseOptimizationButton)
-        self.ui.diagnoseButton.clicked.connect(self.onDiagnoseButton)
-        self.ui.acceptButton.clicked.connect(self.onAcceptButton)
-        self.ui.rejectButton.clicked.connect(self.onRejectButton)
-        self.ui.cancelButton.clicked.connect(self.onCancelButton)
-        self.ui.saveReportButton.clicked.connect(self.onSaveReportButton)
+        self.connectLogic(self.ui.glyphsCheckBox.toggled, self.logic.setGlyphsVisible)
+        self.connectLogic(self.ui.regionsCheckBox.toggled, self.logic.setRegionsVisible)
+        self.connectLogic(self.ui.roundComboBox.currentIndexChanged, self.showChosenRound)
         self.ui.candidatesTableView.selectionModel().selectionChanged.connect(self.onCandidateSelected)
         self._setRunning(False)
 
     def showParameters(self, p):
-        show_path(self.ui.casePathLineEdit, p["caseDirectory"])
-        show_path(self.ui.fitPathLineEdit, p["fitDirectory"])
-        show_path(self.ui.outputPathLineEdit, p["outputDirectory"])
-        self.ui.effectsLineEdit.text = p["effects"]
-        self.ui.iterationsSpinBox.value = p["refineIterations"]
-        self.ui.roundsSpinBox.value = p["maxRounds"]
-        self.ui.landmarkSdSpinBox.value = p["landmarkSdMm"]
-        self.ui.modelSdSpinBox.value = p["modelSdMm"]
-        self.ui.alphaSpinBox.value = p["alpha"]
-        self.ui.deviceComboBox.currentIndex = max(self.ui.deviceComboBox.findText(p["device"]), 0)
-        self.ui.residualFieldCheckBox.checked = p["residualField"]
-        self.ui.measuredFloorCheckBox.checked = p["measuredFloor"]
+        # the view options act on the scene when toggled (not stored from the panel)
         self.ui.glyphsCheckBox.checked = p["fieldGlyphs"]
         self.ui.regionsCheckBox.checked = p["showRegions"]
         self.ui.candidatesTableView.setMRMLTableNode(p.reference("candidatesTable"))
@@ -109,20 +78,6 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         self.ui.verdictLabel.text = self.logic.verdictText(p)
         self.ui.candidateLabel.text = p["candidate"] or _("none: select a row of the table")
 
-    def storeParameters(self, p):
-        p["caseDirectory"] = self.ui.casePathLineEdit.currentPath
-        p["fitDirectory"] = self.ui.fitPathLineEdit.currentPath
-        p["outputDirectory"] = self.ui.outputPathLineEdit.currentPath
-        p["effects"] = self.ui.effectsLineEdit.text.strip()
-        p["refineIterations"] = int(self.ui.iterationsSpinBox.value)
-        p["maxRounds"] = int(self.ui.roundsSpinBox.value)
-        p["landmarkSdMm"] = self.ui.landmarkSdSpinBox.value
-        p["modelSdMm"] = self.ui.modelSdSpinBox.value
-        p["alpha"] = self.ui.alphaSpinBox.value
-        p["device"] = self.ui.deviceComboBox.currentText
-        p["residualField"] = self.ui.residualFieldCheckBox.checked
-        p["measuredFloor"] = self.ui.measuredFloorCheckBox.checked
-
     def _setRunning(self, running):
         """While a step runs (in its own process) only Cancel is live: the buttons, the folders and
         settings, the round selector, the table and the view options would change what the step
@@ -134,10 +89,7 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         self.ui.cancelButton.enabled = running
 
     def onUseOptimizationButton(self):
-        if not dependencies_ready(["numpy"], _("Breast Discrepancy")):
-            return
-        with slicer.util.tryWithErrorDisplay(_("No Breast Optimization fit to use."), waitCursor=True):
-            self.logic.useOptimizationFit(self._parameterNode)
+        self.runAction(["numpy"], _("No Breast Optimization fit to use."), self.logic.useOptimizationFit)
 
     def onDiagnoseButton(self):
         if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
@@ -175,10 +127,9 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
             self.startWorker(worker, ended, statusLabel=self.ui.statusLabel)
 
     def onRejectButton(self):
-        if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
-            return
-        with slicer.util.tryWithErrorDisplay(_("Could not reject the candidate."), waitCursor=True):
-            name = self.logic.reject(self._parameterNode, self._parameterNode["candidate"] or None)
+        name = self.runAction(DEPENDENCIES, _("Could not reject the candidate."),
+                              lambda p: self.logic.reject(p, p["candidate"] or None))
+        if name is not None:
             self.ui.statusLabel.text = _("{name} rejected: Diagnose runs the next round without it").format(name=name)
 
     def onCancelButton(self):
@@ -192,27 +143,16 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
             name = self.logic.candidateAtRow(self._parameterNode, rows[0].row())
             self.logic.showCandidate(self._parameterNode, name)
 
-    def onRoundChosen(self, index):
-        if self._updatingGUI or self._parameterNode is None:
-            return
+    def showChosenRound(self, parameterNode, index):
         number = self.ui.roundComboBox.itemData(index)
         if number is not None:
             with slicer.util.tryWithErrorDisplay(_("Could not show the round."), waitCursor=True):
-                self.logic.showRound(self._parameterNode, int(number))
-
-    def onGlyphsToggled(self, checked):
-        if not self._updatingGUI and self._parameterNode is not None:
-            self.logic.setGlyphsVisible(self._parameterNode, checked)
-
-    def onRegionsToggled(self, checked):
-        if not self._updatingGUI and self._parameterNode is not None:
-            self.logic.setRegionsVisible(self._parameterNode, checked)
+                self.logic.showRound(parameterNode, int(number))
 
     def onSaveReportButton(self):
-        if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
-            return
-        with slicer.util.tryWithErrorDisplay(_("Could not save the report."), waitCursor=True):
-            path = self.logic.saveReport(self._parameterNode, capture=captureSliceViews)
+        path = self.runAction(DEPENDENCIES, _("Could not save the report."),
+                              lambda p: self.logic.saveReport(p, capture=captureSliceViews))
+        if path is not None:
             self.ui.statusLabel.text = _("report: {path}").format(path=path)
 
 

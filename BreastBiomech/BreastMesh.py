@@ -31,72 +31,31 @@ class BreastMesh(ModuleBase):
     def __init__(self, parent):
         ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Mesh")
-        self.parent.helpText = _(
-            "Tetrahedral finite-element mesh of the breast from a tissue segmentation: body surface, "
-            "TetGen mesh refined by points of each tissue surface, tissue per element by voxel majority, "
-            "the seed's ABAQUS quality criteria and the loading node sets (chest wall, skin, nipple). "
-            "See docs/meshing.md of the <a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
-            "<p><b>Licence of TetGen</b>: meshing uses TetGen through the tetgen Python package, which is "
-            "licensed under the GNU Affero General Public License (AGPL v3). The first <i>Apply</i> offers to "
-            "install it into Slicer's Python; by installing it you accept its licence. BreastBiomech itself "
-            "is BSD-licensed and does not bundle TetGen.</p>"
-        )
-        self.parent.acknowledgementText = _(
-            "Method after Han et al. 2012, Phys. Med. Biol. 57:455; meshing by TetGen (Si 2015) through the "
-            "tetgen Python package; surfaces by VTK."
-        )
+        self.parent.helpText = _("""
+Tetrahedral finite-element mesh of the breast from a tissue segmentation: body surface, TetGen mesh
+refined by points of each tissue surface, tissue per element by voxel majority, the seed's ABAQUS
+quality criteria and the loading node sets (chest wall, skin, nipple). See docs/meshing.md of the
+<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>.<p><b>Licence of TetGen</b>: meshing
+uses TetGen through the tetgen Python package, which is licensed under the GNU Affero General Public
+License (AGPL v3). The first <i>Apply</i> offers to install it into Slicer's Python; by installing it
+you accept its licence. BreastBiomech itself is BSD-licensed and does not bundle TetGen.</p>
+""")
+        self.parent.acknowledgementText = _("""
+Method after Han et al. 2012, Phys. Med. Biol. 57:455; meshing by TetGen (Si 2015) through the tetgen
+Python package; surfaces by VTK.
+""")
 
 
 class BreastMeshWidget(ModuleWidgetBase):
-    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
-
-    UI_FILE = "UI/BreastMesh.ui"
-
-    def createLogic(self):
-        return BreastMeshLogic()
-
     def connectGUI(self):
-        for selector in (self.ui.inputSegmentationSelector, self.ui.nippleSelector, self.ui.outputMeshSelector):
-            selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
-        for spinBox in (self.ui.edgeSpinBox, self.ui.interfaceEdgeSpinBox, self.ui.blurSpinBox,
-                        self.ui.radiusEdgeSpinBox, self.ui.dihedralSpinBox):
-            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        for checkBox in (self.ui.refineCheckBox, self.ui.clipCheckBox):
-            checkBox.toggled.connect(self.updateParameterNodeFromGUI)
-        self.ui.clipCheckBox.toggled.connect(self.onClipToggled)
-        self.ui.applyButton.clicked.connect(self.onApplyButton)
+        self.connectLogic(self.ui.clipCheckBox.toggled,
+                          lambda parameterNode, checked: self.logic.applyClipping(parameterNode))
 
     def showParameters(self, p):
-        self.ui.inputSegmentationSelector.setCurrentNode(p.reference("inputSegmentation"))
-        self.ui.nippleSelector.setCurrentNode(p.reference("nipple"))
-        self.ui.outputMeshSelector.setCurrentNode(p.reference("outputMesh"))
-        self.ui.edgeSpinBox.value = p["edgeMm"]
-        self.ui.interfaceEdgeSpinBox.value = p["interfaceEdgeMm"]
-        self.ui.refineCheckBox.checked = p["refineInterfaces"]
         self.ui.interfaceEdgeSpinBox.enabled = p["refineInterfaces"]
-        self.ui.blurSpinBox.value = p["blurMm"]
-        self.ui.radiusEdgeSpinBox.value = p["minRadiusEdge"]
-        self.ui.dihedralSpinBox.value = p["minDihedralDeg"]
-        self.ui.clipCheckBox.checked = p["clip"]
         self.ui.qualityTableView.setMRMLTableNode(p.reference("qualityTable"))
         self.ui.tissueTableView.setMRMLTableNode(p.reference("tissueTable"))
         self.ui.applyButton.enabled = p.reference("inputSegmentation") is not None
-
-    def storeParameters(self, p):
-        p.set_reference("inputSegmentation", self.ui.inputSegmentationSelector.currentNode())
-        p.set_reference("nipple", self.ui.nippleSelector.currentNode())
-        p.set_reference("outputMesh", self.ui.outputMeshSelector.currentNode())
-        p["edgeMm"] = self.ui.edgeSpinBox.value
-        p["interfaceEdgeMm"] = self.ui.interfaceEdgeSpinBox.value
-        p["refineInterfaces"] = self.ui.refineCheckBox.checked
-        p["blurMm"] = self.ui.blurSpinBox.value
-        p["minRadiusEdge"] = self.ui.radiusEdgeSpinBox.value
-        p["minDihedralDeg"] = self.ui.dihedralSpinBox.value
-        p["clip"] = self.ui.clipCheckBox.checked
-
-    def onClipToggled(self, checked):
-        if self._parameterNode is not None and not self._updatingGUI:
-            self.logic.applyClipping(self._parameterNode)
 
     def onApplyButton(self):
         if not dependencies_ready(DEPENDENCIES, _("Breast Mesh")):

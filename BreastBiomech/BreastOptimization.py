@@ -25,7 +25,7 @@ import numpy as np
 import slicer
 from BreastBiomechCommon import (IN_SLICER_APPLICATION, ModuleBase, ModuleLogicBase, ModuleTestMixin,
                                  ModuleWidgetBase, ScriptedLoadableModuleTest, _, chosen_folder, dependencies_ready,
-                                 ensure_library_importable, resolve_device, show_path)
+                                 ensure_library_importable, resolve_device)
 
 ensure_library_importable()
 
@@ -39,56 +39,29 @@ class BreastOptimization(ModuleBase):
     def __init__(self, parent):
         ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Optimization")
-        self.parent.helpText = _(
-            "Fit the tissues' Young's moduli, Poisson's ratios and fibre stiffness so that the FE-predicted "
-            "compressed MR image matches the measured one (maximum NMI), with the seed's hybrid search or "
-            "CMA-ES, batched on the GPU. Pause and resume lose nothing. Cohort study: the model variants fitted to "
-            "every case of a folder, in Slicer or on a Dask cluster given by its scheduler address (docs/cohorts.md). "
-            "See docs/optimisation.md of the "
-            "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
-        )
-        self.parent.acknowledgementText = _("Method after Han et al. 2012, Phys. Med. Biol. 57:455, section 2.4.")
+        self.parent.helpText = _("""
+Fit the tissues' Young's moduli, Poisson's ratios and fibre stiffness so that the FE-predicted
+compressed MR image matches the measured one (maximum NMI), with the seed's hybrid search or CMA-ES,
+batched on the GPU. Pause and resume lose nothing. Cohort study: the model variants fitted to every case
+of a folder, in Slicer or on a Dask cluster given by its scheduler address (docs/cohorts.md). See
+docs/optimisation.md of the <a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>.
+""")
+        self.parent.acknowledgementText = _("""
+Method after Han et al. 2012, Phys. Med. Biol. 57:455, section 2.4.
+""")
 
 
 class BreastOptimizationWidget(ModuleWidgetBase):
-    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
-
-    UI_FILE = "UI/BreastOptimization.ui"
-
     def __init__(self, parent=None):
         ModuleWidgetBase.__init__(self, parent)
         self._stopRequest = None  # the study's: None or "cancel"
 
-    def createLogic(self):
-        return BreastOptimizationLogic()
-
     def connectGUI(self):
-        for selector in (self.ui.undeformedVolumeSelector, self.ui.measuredVolumeSelector, self.ui.inputMeshSelector,
-                         self.ui.referenceLandmarksSelector, self.ui.measuredLandmarksSelector):
-            selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
-        for comboBox in (self.ui.modelComboBox, self.ui.optimiserComboBox, self.ui.objectiveComboBox,
-                         self.ui.deviceComboBox):
-            comboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
-        for checkBox in (self.ui.freeECheckBox, self.ui.freeNuCheckBox, self.ui.freeEtaCheckBox,
-                         self.ui.freeFibreCheckBox, self.ui.freeOffsetCheckBox):
-            checkBox.toggled.connect(self.updateParameterNodeFromGUI)
-        for spinBox in (self.ui.budgetSpinBox, self.ui.secondsSpinBox, self.ui.seedSpinBox,
-                        self.ui.populationSpinBox, self.ui.binsSpinBox, self.ui.toleranceSpinBox,
-                        self.ui.fibreRSpinBox, self.ui.fibreASpinBox, self.ui.fibreSSpinBox):
-            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.outputPathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.studyCasesPathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.studyOutputPathLineEdit.currentPathChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.schedulerLineEdit.editingFinished.connect(self.updateParameterNodeFromGUI)
-        self.ui.studyBudgetsLineEdit.editingFinished.connect(self.updateParameterNodeFromGUI)
-        self.ui.studyEdgeSpinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
         for checkBox in self._studyModelCheckBoxes().values():
             checkBox.toggled.connect(self.updateParameterNodeFromGUI)
-        self.ui.runStudyButton.clicked.connect(self.onRunStudyButton)
         self.ui.cancelStudyButton.clicked.connect(lambda: self._requestStop("cancel"))
-        self.ui.loadCaseButton.clicked.connect(self.onLoadCaseButton)
-        self.ui.runButton.clicked.connect(lambda: self.onRunButton(resume=False))
-        self.ui.resumeButton.clicked.connect(lambda: self.onRunButton(resume=True))
+        self.ui.runButton.clicked.connect(lambda: self.startFit(resume=False))
+        self.ui.resumeButton.clicked.connect(lambda: self.startFit(resume=True))
         self.ui.pauseButton.clicked.connect(self.onStopFit)
         self.ui.cancelButton.clicked.connect(self.onStopFit)
         self._setRunning(False)
@@ -97,39 +70,9 @@ class BreastOptimizationWidget(ModuleWidgetBase):
         return {"iso-homo": self.ui.studyIsoHomoCheckBox, "aniso-homo": self.ui.studyAnisoHomoCheckBox,
                 "iso-hetero": self.ui.studyIsoHeteroCheckBox, "aniso-hetero": self.ui.studyAnisoHeteroCheckBox}
 
-    @staticmethod
-    def _setComboText(comboBox, text):
-        comboBox.currentIndex = max(comboBox.findText(text), 0)
-
     def showParameters(self, p):
-        for selector, role in ((self.ui.undeformedVolumeSelector, "undeformedVolume"),
-                               (self.ui.measuredVolumeSelector, "measuredVolume"),
-                               (self.ui.inputMeshSelector, "inputMesh"),
-                               (self.ui.referenceLandmarksSelector, "referenceLandmarks"),
-                               (self.ui.measuredLandmarksSelector, "measuredLandmarks")):
-            selector.setCurrentNode(p.reference(role))
-        for comboBox, name in ((self.ui.modelComboBox, "model"), (self.ui.optimiserComboBox, "optimiser"),
-                               (self.ui.objectiveComboBox, "objective"), (self.ui.deviceComboBox, "device")):
-            self._setComboText(comboBox, p[name])
-        self.ui.freeECheckBox.checked = p["freeE"]
-        self.ui.freeNuCheckBox.checked = p["freeNu"]
-        self.ui.freeEtaCheckBox.checked = p["freeEta"]
         self.ui.freeEtaCheckBox.enabled = p["model"].startswith("aniso")
-        self.ui.freeFibreCheckBox.checked = p["freeFibre"]
         self.ui.freeFibreCheckBox.enabled = p["model"].startswith("aniso")
-        self.ui.freeOffsetCheckBox.checked = p["freeOffset"]
-        for spinBox, name in ((self.ui.budgetSpinBox, "budget"), (self.ui.secondsSpinBox, "seconds"),
-                              (self.ui.seedSpinBox, "seed"), (self.ui.populationSpinBox, "population"),
-                              (self.ui.binsSpinBox, "bins"), (self.ui.toleranceSpinBox, "toleranceMm"),
-                              (self.ui.fibreRSpinBox, "fibreR"), (self.ui.fibreASpinBox, "fibreA"),
-                              (self.ui.fibreSSpinBox, "fibreS")):
-            spinBox.value = p[name]
-        show_path(self.ui.outputPathLineEdit, p["outputDirectory"])
-        show_path(self.ui.studyCasesPathLineEdit, p["studyCasesDirectory"])
-        show_path(self.ui.studyOutputPathLineEdit, p["studyOutputDirectory"])
-        self.ui.schedulerLineEdit.text = p["scheduler"]
-        self.ui.studyBudgetsLineEdit.text = p["studyBudgets"]
-        self.ui.studyEdgeSpinBox.value = p["studyEdgeMm"]
         chosen = {m.strip() for m in p["studyModels"].split(",")}
         for model, checkBox in self._studyModelCheckBoxes().items():
             checkBox.checked = model in chosen
@@ -140,35 +83,6 @@ class BreastOptimizationWidget(ModuleWidgetBase):
         self.ui.parametersTableView.setMRMLTableNode(p.reference("parametersTable"))
 
     def storeParameters(self, p):
-        p.set_reference("undeformedVolume", self.ui.undeformedVolumeSelector.currentNode())
-        p.set_reference("measuredVolume", self.ui.measuredVolumeSelector.currentNode())
-        p.set_reference("inputMesh", self.ui.inputMeshSelector.currentNode())
-        p.set_reference("referenceLandmarks", self.ui.referenceLandmarksSelector.currentNode())
-        p.set_reference("measuredLandmarks", self.ui.measuredLandmarksSelector.currentNode())
-        p["model"] = self.ui.modelComboBox.currentText
-        p["optimiser"] = self.ui.optimiserComboBox.currentText
-        p["objective"] = self.ui.objectiveComboBox.currentText
-        p["device"] = self.ui.deviceComboBox.currentText
-        p["freeE"] = self.ui.freeECheckBox.checked
-        p["freeNu"] = self.ui.freeNuCheckBox.checked
-        p["freeEta"] = self.ui.freeEtaCheckBox.checked
-        p["freeFibre"] = self.ui.freeFibreCheckBox.checked
-        p["freeOffset"] = self.ui.freeOffsetCheckBox.checked
-        p["budget"] = int(self.ui.budgetSpinBox.value)
-        p["seconds"] = self.ui.secondsSpinBox.value
-        p["seed"] = int(self.ui.seedSpinBox.value)
-        p["population"] = int(self.ui.populationSpinBox.value)
-        p["bins"] = int(self.ui.binsSpinBox.value)
-        p["toleranceMm"] = self.ui.toleranceSpinBox.value
-        p["fibreR"] = self.ui.fibreRSpinBox.value
-        p["fibreA"] = self.ui.fibreASpinBox.value
-        p["fibreS"] = self.ui.fibreSSpinBox.value
-        p["outputDirectory"] = self.ui.outputPathLineEdit.currentPath
-        p["studyCasesDirectory"] = self.ui.studyCasesPathLineEdit.currentPath
-        p["studyOutputDirectory"] = self.ui.studyOutputPathLineEdit.currentPath
-        p["scheduler"] = self.ui.schedulerLineEdit.text.strip()
-        p["studyBudgets"] = self.ui.studyBudgetsLineEdit.text.strip()
-        p["studyEdgeMm"] = self.ui.studyEdgeSpinBox.value
         p["studyModels"] = ",".join(m for m, box in self._studyModelCheckBoxes().items() if box.checked)
 
     def onLoadCaseButton(self):
@@ -218,7 +132,7 @@ class BreastOptimizationWidget(ModuleWidgetBase):
         self.ui.runStudyButton.enabled = not running
         self.ui.cancelStudyButton.enabled = running
 
-    def onRunButton(self, resume):
+    def startFit(self, resume):
         if not dependencies_ready(DEPENDENCIES, _("Breast Optimization")):
             return
         with slicer.util.tryWithErrorDisplay(_("Optimisation failed to start."), waitCursor=True):

@@ -34,60 +34,32 @@ class BreastSegmentation(ModuleBase):
     def __init__(self, parent):
         ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Segmentation")
-        self.parent.helpText = _(
-            "Tissue classification of a breast MR volume: pectoral muscle and tumour grown from seed points, "
-            "fat and fibroglandular tissue by expectation-maximisation with a Markov-random-field prior, "
-            "bias-field correction and a partial-volume class; probabilities per tissue. Edit the segments "
-            "in the Segment Editor between steps. See docs/segmentation.md of the "
-            "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
-        )
-        self.parent.acknowledgementText = _(
-            "Method after Han et al. 2012, Phys. Med. Biol. 57:455, whose fat/glandular step used NiftySeg's EM "
-            "(Cardoso et al. 2011); partial-volume and bias models after Van Leemput et al. 1999 and 2003."
-        )
+        self.parent.helpText = _("""
+Tissue classification of a breast MR volume: pectoral muscle and tumour grown from seed points, fat and
+fibroglandular tissue by expectation-maximisation with a Markov-random-field prior, bias-field
+correction and a partial-volume class; probabilities per tissue. Edit the segments in the Segment Editor
+between steps. See docs/segmentation.md of the
+<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>.
+""")
+        self.parent.acknowledgementText = _("""
+Method after Han et al. 2012, Phys. Med. Biol. 57:455, whose fat/glandular step used NiftySeg's EM
+(Cardoso et al. 2011); partial-volume and bias models after Van Leemput et al. 1999 and 2003.
+""")
 
 
 class BreastSegmentationWidget(ModuleWidgetBase):
-    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
-
-    UI_FILE = "UI/BreastSegmentation.ui"
-
     def __init__(self, parent=None):
         ModuleWidgetBase.__init__(self, parent)
         self._running = False
         self._cancelRequested = False
 
-    def createLogic(self):
-        return BreastSegmentationLogic()
-
     def connectGUI(self):
-        for selector in (self.ui.inputVolumeSelector, self.ui.muscleSeedsSelector, self.ui.tumourSeedsSelector,
-                         self.ui.outputSegmentationSelector):
-            selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
-        for spinBox in (self.ui.mrfSpinBox, self.ui.biasOrderSpinBox, self.ui.iterationsSpinBox,
-                        self.ui.fractionSmoothingSpinBox, self.ui.skinSpinBox):
-            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        for checkBox in (self.ui.partialVolumeCheckBox, self.ui.keepSkinCheckBox, self.ui.fasciaCheckBox):
-            checkBox.toggled.connect(self.updateParameterNodeFromGUI)
         self.ui.muscleButton.clicked.connect(lambda: self.onStep(self.logic.segmentMuscle, "Muscle segmentation failed."))
         self.ui.tumourButton.clicked.connect(lambda: self.onStep(self.logic.segmentTumour, "Tumour segmentation failed."))
         self.ui.tissuesButton.clicked.connect(lambda: self.onStep(self.logic.classifyTissues, "Classification failed."))
         self.ui.allButton.clicked.connect(lambda: self.onStep(self.logic.runAll, "Segmentation failed."))
-        self.ui.cancelButton.clicked.connect(self.onCancelButton)
 
     def showParameters(self, p):
-        self.ui.inputVolumeSelector.setCurrentNode(p.reference("inputVolume"))
-        self.ui.muscleSeedsSelector.setCurrentNode(p.reference("muscleSeeds"))
-        self.ui.tumourSeedsSelector.setCurrentNode(p.reference("tumourSeeds"))
-        self.ui.outputSegmentationSelector.setCurrentNode(p.reference("outputSegmentation"))
-        self.ui.mrfSpinBox.value = p["mrfStrength"]
-        self.ui.biasOrderSpinBox.value = p["biasOrder"]
-        self.ui.iterationsSpinBox.value = p["maxIterations"]
-        self.ui.partialVolumeCheckBox.checked = p["partialVolume"]
-        self.ui.fractionSmoothingSpinBox.value = p["fractionSmoothing"]
-        self.ui.skinSpinBox.value = p["skinMm"]
-        self.ui.keepSkinCheckBox.checked = p["keepSkin"]
-        self.ui.fasciaCheckBox.checked = p["tissueOnFascia"]
         self.ui.volumesTableView.setMRMLTableNode(p.reference("volumesTable"))
         # a step runs alone: while one runs (it processes events) the others wait, Cancel stops it
         ready = p.reference("inputVolume") is not None and not self._running
@@ -97,20 +69,6 @@ class BreastSegmentationWidget(ModuleWidgetBase):
         self.ui.tissuesButton.enabled = ready and p.reference("outputSegmentation") is not None
         self.ui.allButton.enabled = ready and haveMuscleSeeds
         self.ui.cancelButton.enabled = self._running
-
-    def storeParameters(self, p):
-        p.set_reference("inputVolume", self.ui.inputVolumeSelector.currentNode())
-        p.set_reference("muscleSeeds", self.ui.muscleSeedsSelector.currentNode())
-        p.set_reference("tumourSeeds", self.ui.tumourSeedsSelector.currentNode())
-        p.set_reference("outputSegmentation", self.ui.outputSegmentationSelector.currentNode())
-        p["mrfStrength"] = self.ui.mrfSpinBox.value
-        p["biasOrder"] = self.ui.biasOrderSpinBox.value
-        p["maxIterations"] = self.ui.iterationsSpinBox.value
-        p["partialVolume"] = self.ui.partialVolumeCheckBox.checked
-        p["fractionSmoothing"] = self.ui.fractionSmoothingSpinBox.value
-        p["skinMm"] = self.ui.skinSpinBox.value
-        p["keepSkin"] = self.ui.keepSkinCheckBox.checked
-        p["tissueOnFascia"] = self.ui.fasciaCheckBox.checked
 
     def onCancelButton(self):
         self._cancelRequested = True

@@ -30,98 +30,36 @@ class BreastSimulation(ModuleBase):
     def __init__(self, parent):
         ModuleBase.__init__(self, parent)
         self.parent.title = _("Breast Simulation")
-        self.parent.helpText = _(
-            "Nonlinear finite-element simulation of breast compression between rigid plates (TLED: "
-            "explicit dynamics on the GPU with NVIDIA warp, or dynamic relaxation to the static "
-            "solution). Choose the tetrahedral mesh, the tissue materials, the plates and the fixed "
-            "chest-wall nodes, then Run. See docs/solver.md of the "
-            "<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>."
-        )
-        self.parent.acknowledgementText = _(
-            "Solver after NiftySim (Taylor et al. 2008) and Han et al. 2012, Phys. Med. Biol. 57:455; "
-            "dynamic relaxation after Joldes, Wittek and Miller."
-        )
+        self.parent.helpText = _("""
+Nonlinear finite-element simulation of breast compression between rigid plates (TLED: explicit dynamics
+on the GPU with NVIDIA warp, or dynamic relaxation to the static solution). Choose the tetrahedral mesh,
+the tissue materials, the plates and the fixed chest-wall nodes, then Run. See docs/solver.md of the
+<a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>.
+""")
+        self.parent.acknowledgementText = _("""
+Solver after NiftySim (Taylor et al. 2008) and Han et al. 2012, Phys. Med. Biol. 57:455; dynamic
+relaxation after Joldes, Wittek and Miller.
+""")
 
 
 class BreastSimulationWidget(ModuleWidgetBase):
-    """Thin GUI: reads and writes the parameter node, calls the Logic, shows the result."""
-
-    UI_FILE = "UI/BreastSimulation.ui"
-
-    def createLogic(self):
-        return BreastSimulationLogic()
-
     def connectGUI(self):
-        for selector in (self.ui.inputMeshSelector, self.ui.materialsSelector, self.ui.outputMeshSelector):
-            selector.currentNodeChanged.connect(self.updateParameterNodeFromGUI)
-        for comboBox in (self.ui.compressionAxisComboBox, self.ui.movingPlatesComboBox, self.ui.methodComboBox,
-                         self.ui.formulationComboBox, self.ui.deviceComboBox, self.ui.fixedNodeSetComboBox,
-                         self.ui.contactNodeSetComboBox, self.ui.chestWallModeComboBox, self.ui.gravityComboBox):
-            comboBox.currentIndexChanged.connect(self.updateParameterNodeFromGUI)
-        for checkBox in (self.ui.fixLRCheckBox, self.ui.fixAPCheckBox, self.ui.fixSICheckBox, self.ui.anchorCheckBox,
-                         self.ui.stopWhenSettledCheckBox, self.ui.startUnloadedCheckBox):
-            checkBox.toggled.connect(self.updateParameterNodeFromGUI)
-        for spinBox in (self.ui.compressionSliderWidget, self.ui.chestClearanceSpinBox, self.ui.dampingSpinBox,
-                        self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox, self.ui.toleranceSpinBox,
-                        self.ui.plateFriction1SpinBox, self.ui.plateFriction2SpinBox,
-                        self.ui.chestWallNormalStiffnessSpinBox, self.ui.chestWallTangentialStiffnessSpinBox,
-                        self.ui.skinModulusSpinBox, self.ui.skinThicknessSpinBox):
-            spinBox.valueChanged.connect(self.updateParameterNodeFromGUI)
-        self.ui.inputMeshSelector.currentNodeChanged.connect(self.onInputMeshChanged)
-        self.ui.defaultMaterialsButton.clicked.connect(self.onDefaultMaterialsButton)
-        self.ui.placePlatesButton.clicked.connect(self.onPlacePlatesButton)
-        self.ui.runButton.clicked.connect(self.onRunButton)
-        self.ui.cancelButton.clicked.connect(self.onCancelButton)
+        self.connectLogic(self.ui.inputMeshSelector.currentNodeChanged,
+                          lambda parameterNode, node: self.logic.chooseDefaultNodeSets(parameterNode))
         self.ui.cancelButton.enabled = False
         # Nothing is installed or initialised when the panel opens (warp's start looks for CUDA
         # and loads its kernels' cache: seconds): the device is looked up at the first Run
         self.ui.deviceLabel.text = (_("warp is not installed yet: the first Run offers to install it")
                                     if unmet_requirements(["warp"]) else self.logic.deviceAtOpen())
 
-    @staticmethod
-    def _setComboText(comboBox, text):
-        index = comboBox.findText(text)
-        if index < 0 and text:
-            comboBox.addItem(text)
-            index = comboBox.findText(text)
-        comboBox.currentIndex = max(index, 0)
-
     def showParameters(self, p):
-        self.ui.inputMeshSelector.setCurrentNode(p.reference("inputMesh"))
-        self.ui.materialsSelector.setCurrentNode(p.reference("materials"))
         self.ui.materialsTableView.setMRMLTableNode(p.reference("materials"))
-        self.ui.outputMeshSelector.setCurrentNode(p.reference("outputMesh"))
-        self._fillNodeSetComboBoxes()
-        for comboBox, name in ((self.ui.compressionAxisComboBox, "compressionAxis"),
-                               (self.ui.movingPlatesComboBox, "movingPlates"),
-                               (self.ui.methodComboBox, "method"), (self.ui.formulationComboBox, "formulation"),
-                               (self.ui.deviceComboBox, "device"), (self.ui.fixedNodeSetComboBox, "fixedNodeSet"),
-                               (self.ui.contactNodeSetComboBox, "contactNodeSet"),
-                               (self.ui.chestWallModeComboBox, "chestWallMode"), (self.ui.gravityComboBox, "gravity")):
-            self._setComboText(comboBox, p[name])
-        self.ui.plateFriction1SpinBox.value = p["plateFriction1"]
-        self.ui.plateFriction2SpinBox.value = p["plateFriction2"]
-        self.ui.chestWallNormalStiffnessSpinBox.value = p["chestWallNormalStiffness"]
-        self.ui.chestWallTangentialStiffnessSpinBox.value = p["chestWallTangentialStiffness"]
-        self.ui.startUnloadedCheckBox.checked = p["startUnloaded"]
-        self.ui.skinModulusSpinBox.value = p["skinModulusKPa"]
-        self.ui.skinThicknessSpinBox.value = p["skinThicknessMm"]
+        self._fillNodeSetComboBoxes()  # the node sets of the chosen mesh, before the bindings choose among them
         self.ui.skinThicknessSpinBox.enabled = p["skinModulusKPa"] > 0
         self.ui.chestWallNormalStiffnessSpinBox.enabled = p["chestWallMode"] == "elastic"
         self.ui.chestWallTangentialStiffnessSpinBox.enabled = p["chestWallMode"] != "fixed"
         self.ui.fixedDirectionsWidget.enabled = p["chestWallMode"] == "fixed"
         self.ui.startUnloadedCheckBox.enabled = p["gravity"] != "none"
-        self.ui.compressionSliderWidget.value = p["compressionPercent"]
-        self.ui.chestClearanceSpinBox.value = p["chestClearanceMm"]
-        self.ui.fixLRCheckBox.checked = p["fixLR"]
-        self.ui.fixAPCheckBox.checked = p["fixAP"]
-        self.ui.fixSICheckBox.checked = p["fixSI"]
-        self.ui.anchorCheckBox.checked = p["anchor"]
-        self.ui.dampingSpinBox.value = p["damping"]
-        self.ui.totalTimeSpinBox.value = p["totalTime"]
-        self.ui.settleTimeSpinBox.value = p["settleTime"]
-        self.ui.toleranceSpinBox.value = p["tolerance"]
-        self.ui.stopWhenSettledCheckBox.checked = p["stopWhenSettled"]
         physical = p["method"] == "physical"
         for widget in (self.ui.dampingSpinBox, self.ui.totalTimeSpinBox, self.ui.settleTimeSpinBox,
                        self.ui.stopWhenSettledCheckBox):
@@ -145,53 +83,11 @@ class BreastSimulationWidget(ModuleWidgetBase):
             for name in first + names:
                 comboBox.addItem(name)
 
-    def storeParameters(self, p):
-        p.set_reference("inputMesh", self.ui.inputMeshSelector.currentNode())
-        p.set_reference("materials", self.ui.materialsSelector.currentNode())
-        p.set_reference("outputMesh", self.ui.outputMeshSelector.currentNode())
-        p["compressionAxis"] = self.ui.compressionAxisComboBox.currentText
-        p["movingPlates"] = self.ui.movingPlatesComboBox.currentText
-        p["method"] = self.ui.methodComboBox.currentText
-        p["formulation"] = self.ui.formulationComboBox.currentText
-        p["device"] = self.ui.deviceComboBox.currentText
-        p["fixedNodeSet"] = self.ui.fixedNodeSetComboBox.currentText
-        p["contactNodeSet"] = self.ui.contactNodeSetComboBox.currentText
-        p["compressionPercent"] = self.ui.compressionSliderWidget.value
-        p["chestClearanceMm"] = self.ui.chestClearanceSpinBox.value
-        p["fixLR"] = self.ui.fixLRCheckBox.checked
-        p["fixAP"] = self.ui.fixAPCheckBox.checked
-        p["fixSI"] = self.ui.fixSICheckBox.checked
-        p["anchor"] = self.ui.anchorCheckBox.checked
-        p["damping"] = self.ui.dampingSpinBox.value
-        p["totalTime"] = self.ui.totalTimeSpinBox.value
-        p["settleTime"] = self.ui.settleTimeSpinBox.value
-        p["tolerance"] = self.ui.toleranceSpinBox.value
-        p["stopWhenSettled"] = self.ui.stopWhenSettledCheckBox.checked
-        p["plateFriction1"] = self.ui.plateFriction1SpinBox.value
-        p["plateFriction2"] = self.ui.plateFriction2SpinBox.value
-        p["chestWallMode"] = self.ui.chestWallModeComboBox.currentText
-        p["chestWallNormalStiffness"] = self.ui.chestWallNormalStiffnessSpinBox.value
-        p["chestWallTangentialStiffness"] = self.ui.chestWallTangentialStiffnessSpinBox.value
-        p["gravity"] = self.ui.gravityComboBox.currentText
-        p["startUnloaded"] = self.ui.startUnloadedCheckBox.checked
-        p["skinModulusKPa"] = self.ui.skinModulusSpinBox.value
-        p["skinThicknessMm"] = self.ui.skinThicknessSpinBox.value
-
-    def onInputMeshChanged(self, node):
-        if self._parameterNode is not None and not self._updatingGUI:
-            self.logic.chooseDefaultNodeSets(self._parameterNode)
-
     def onDefaultMaterialsButton(self):
-        if not dependencies_ready(MODEL_DEPENDENCIES, _("Breast Simulation")):
-            return
-        with slicer.util.tryWithErrorDisplay(_("Failed to make the materials table."), waitCursor=True):
-            self.logic.createDefaultMaterials(self._parameterNode)
+        self.runAction(MODEL_DEPENDENCIES, _("Failed to make the materials table."), self.logic.createDefaultMaterials)
 
     def onPlacePlatesButton(self):
-        if not dependencies_ready(MODEL_DEPENDENCIES, _("Breast Simulation")):
-            return
-        with slicer.util.tryWithErrorDisplay(_("Failed to place the plates."), waitCursor=True):
-            self.logic.createCompressionPlates(self._parameterNode)
+        self.runAction(MODEL_DEPENDENCIES, _("Failed to place the plates."), self.logic.createCompressionPlates)
 
     def onCancelButton(self):
         seconds = self.cancelWorker()

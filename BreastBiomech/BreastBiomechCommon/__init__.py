@@ -6,8 +6,9 @@ the ``*.py`` files directly in this folder as modules).
 - Slicer's translation functions (``_``, ``translate``), identity functions headless;
 - finding ``BreastBiomechLib`` (copied beside the module scripts in a built extension, one folder
   up in a source checkout) and the modules' ``Resources/`` (beside the module scripts in both);
-- the parameter-node lifecycle shared by the module Widgets, the Logic base that owns the scene
-  and the module's parameter node, and the self-test base that skips without its packages;
+- the parameter-node lifecycle shared by the module Widgets (their widgets bound to parameters by
+  ``bindings``), the Logic base that owns the scene and the module's parameter node, and the
+  self-test base that skips without its packages;
 - (``dependencies``) checking and installing the Python packages on the first action that needs them.
 """
 
@@ -61,6 +62,7 @@ except ImportError:  # no slicer package at all (the library tests on Slicer's o
         its only users, are never made without Slicer (see ``_ApplicationOnly``)."""
 
 
+from BreastBiomechCommon import bindings  # noqa: E402
 from BreastBiomechCommon.dependencies import (  # noqa: E402,F401  (re-exported for the modules)
     MissingDependencies,
     dependencies_ready,
@@ -89,16 +91,17 @@ class ModuleBase(ScriptedLoadableModule):
 
 class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
     """Base of the module Widgets (Slicer's scripted-module template): :meth:`setup` loads the
-    panel ``UI_FILE`` (relative to ``Resources/``), makes the Logic (:meth:`createLogic`),
-    observes the scene's close events, calls :meth:`connectGUI` (the module's signals and slots)
-    and observes the Logic's parameter node while the module is shown, dropping it on scene
-    close. A subclass sets ``UI_FILE`` and defines ``createLogic()`` (its Logic),
-    ``connectGUI()`` (its widgets' signals: values to ``updateParameterNodeFromGUI``, buttons to
-    its actions), ``showParameters(parameterNode)`` (the node shown on the panel) and
-    ``storeParameters(parameterNode)`` (the panel stored in the node);
-    Testing/modules/test_slicer_app_fidelity.py checks that every module defines all four."""
-
-    UI_FILE = ""
+    panel ``Resources/UI/<Module>.ui``, makes the Logic ``<Module>Logic`` of the module's file (the
+    names Slicer itself finds ``<Module>Widget`` by) and observes the scene's close events. It
+    connects the panel's bound widgets (those the file gives a parameter name:
+    :mod:`BreastBiomechCommon.bindings`) and each push button ``<name>`` to the Widget's
+    ``on<Name>`` where it has one, then calls :meth:`connectGUI` for the module's other signals
+    (:meth:`connectLogic` for those that act on the scene). While the module is shown it observes
+    the Logic's parameter node, dropping it on scene close: the node is shown on the panel through
+    the bindings after :meth:`showParameters` (what they do not cover: enabled states, tables,
+    labels, lists a bound combo box chooses from), and the panel stored in it through the bindings,
+    then :meth:`storeParameters`. Testing/modules/test_ui_bindings.py checks the bindings against
+    the Logic's parameters and the buttons against their handlers."""
 
     def __init__(self, parent=None):
         ScriptedLoadableModuleWidget.__init__(self, parent)
@@ -106,6 +109,7 @@ class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.logic = None
         self._parameterNode = None
         self._updatingGUI = False
+        self._bound = []  # (widget, kind, binding) of each bound widget of the panel, once set up
         self._worker = None  # the long step's process while it runs (startWorker)
         self._workerTimer = None
 
@@ -113,36 +117,92 @@ class ModuleWidgetBase(ScriptedLoadableModuleWidget, VTKObservationMixin):
         import slicer
 
         ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(resource_path(self.UI_FILE))
+        uiWidget = slicer.util.loadUI(resource_path(self.uiFile()))
         self.layout.addWidget(uiWidget)
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
         self.logic = self.createLogic()
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+        declared = bindings.read_bindings(resource_path(self.uiFile()))
+        self._bound = [(getattr(self.ui, binding.widget), kind, binding) for binding, kind in declared]
+        for widget, kind, _binding in self._bound:
+            getattr(widget, bindings.SIGNAL_OF_KIND[kind]).connect(self.updateParameterNodeFromGUI)
+        for button in bindings.button_names(resource_path(self.uiFile())):
+            handler = getattr(self, bindings.handler_name(button), None)
+            if handler is not None:
+                getattr(self.ui, button).clicked.connect(handler)
         self.connectGUI()
         self.initializeParameterNode()
 
+    @classmethod
+    def moduleName(cls) -> str:
+        return cls.__name__.removesuffix("Widget")
+
+    @classmethod
+    def uiFile(cls) -> str:
+        """The panel's Qt Designer file, relative to ``Resources/``."""
+        return f"UI/{cls.moduleName()}.ui"
+
+    def createLogic(self):
+        """The module's Logic: the class ``<Module>Logic`` of the module's file."""
+        return getattr(sys.modules[type(self).__module__], self.moduleName() + "Logic")()
+
+    def runAction(self, packages, failure: str, step):
+        """A button's action: the Python ``packages`` it needs checked (offered for install; None
+        when one is missing), then ``step(parameterNode)`` with any error shown in a dialog titled
+        ``failure``; returns the step's result."""
+        import slicer
+
+        if not dependencies_ready(packages, slicer.util.getModule(self.moduleName()).title):
+            return None
+        with slicer.util.tryWithErrorDisplay(failure, waitCursor=True):
+            return step(self._parameterNode)
+
+    def connectLogic(self, signal, act) -> None:
+        """A widget's ``signal`` calls ``act(parameterNode, *the signal's arguments)`` (a Logic step
+        on the scene), neither while the panel is being updated from the parameter node nor
+        without one."""
+        def acted(*args):
+            if self._parameterNode is not None and not self._updatingGUI:
+                act(self._parameterNode, *args)
+
+        signal.connect(acted)
+
     def updateGUIFromParameterNode(self, caller=None, event=None):
-        """The parameter node shown on the panel (:meth:`showParameters`); the panel's own
-        signals are not stored back meanwhile."""
+        """The parameter node shown on the panel (:meth:`showParameters`, then the bindings); the
+        panel's own signals are not stored back meanwhile."""
         if self._parameterNode is None or self._updatingGUI:
             return
         self._updatingGUI = True
         try:
             self.showParameters(self._parameterNode)
+            for widget, kind, binding in self._bound:
+                bindings.show(widget, kind, binding, self._parameterNode)
         finally:
             self._updatingGUI = False
 
     def updateParameterNodeFromGUI(self, *args):
-        """The panel stored in the parameter node (:meth:`storeParameters`) as one modification."""
+        """The panel stored in the parameter node (the bindings, then :meth:`storeParameters`) as
+        one modification."""
         if self._parameterNode is None or self._updatingGUI:
             return
         wasModifying = self._parameterNode.node.StartModify()
         try:
+            for widget, kind, binding in self._bound:
+                bindings.store(widget, kind, binding, self._parameterNode)
             self.storeParameters(self._parameterNode)
         finally:
             self._parameterNode.node.EndModify(wasModifying)
+
+    def connectGUI(self):
+        """The module's signals beyond the bindings and the buttons' ``on<Name>`` (none here)."""
+
+    def showParameters(self, parameterNode):
+        """What the bindings do not show (enabled states, tables, labels); called before them."""
+
+    def storeParameters(self, parameterNode):
+        """What the bindings do not store; called after them."""
 
     def cleanup(self):
         """Leaving for good (module closed, application quit): a running step's process is stopped
@@ -284,14 +344,6 @@ def resolve_device(choice: str) -> str:
     if choice == "cuda" and not cuda:
         raise ValueError("no CUDA GPU was found; choose the device 'auto' or 'cpu'")
     return ("cuda" if cuda else "cpu") if choice == "auto" else choice
-
-
-def show_path(path_line_edit, path: str) -> None:
-    """Show ``path`` in a ``ctkPathLineEdit`` unless it shows it already: the panel's update after
-    each keystroke (the field's change stored in the parameter node, which updates the panel)
-    would otherwise set the text again and move the cursor to its end while the user types."""
-    if path_line_edit.currentPath != path:
-        path_line_edit.currentPath = path
 
 
 def chosen_folder(path: str, what: str) -> str:
