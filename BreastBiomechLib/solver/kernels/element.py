@@ -130,7 +130,7 @@ def model_volume_change(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: in
                         materials: MaterialTable, anp: int, anp_sums: wp.array(dtype=float)):
     """:func:`nodal_pressure`'s work for element e of model b, given the element's nodes, slots,
     shape derivatives and volume (for :func:`nodal_pressure_shared`; :func:`nodal_pressure` keeps
-    its own copy of these lines, see :func:`model_element_forces`)."""
+    its own copy of these lines, see :func:`model_element_stress`)."""
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     change = (wp.determinant(F) - 1.0) * v0
     if anp == ANP_ACROSS_MATERIALS:
@@ -211,34 +211,31 @@ def add_element_forces(forces: wp.array2d(dtype=float), n_models: int, b: int, n
 
 
 @wp.func
-def model_element_forces(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: int, n0: int, n1: int, n2: int,
-                         n3: int, d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3, v0: float,
+def model_element_stress(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: int, n0: int, n1: int, n2: int,
+                         n3: int, d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3, v0: float, frozen: int,
                          materials: MaterialTable, anp: int, tets: wp.array2d(dtype=int),
                          slots: wp.array2d(dtype=int), slots_are_nodes: int, slot_volume: wp.array(dtype=float),
                          anp_sums: wp.array(dtype=float), n_terms: int, prony_g: wp.array(dtype=float),
                          prony_decay: wp.array(dtype=float), visco_state: wp.array(dtype=wp.mat33),
-                         update_state: int, clock: wp.array(dtype=int), forces: wp.array2d(dtype=float),
-                         inverted: wp.array(dtype=int)):
-    """The element forces of element e of model b, given the element's nodes, shape derivatives
-    ``d0``-``d3`` and volume ``v0``, for :func:`element_forces_shared`: its ANP slots and their
-    volumes are read here, for each model from the cache (held in registers across a thread's
-    models they cost the kernel occupancy). :func:`element_forces`, a thread per element and
-    model, makes its own reads (the element's with the model's, in one round): built on this
-    function its lone 2M-tet step took 170-173 us against 163-165 (H200, 2026-12-01,
-    docs/benchmarks.md). Both take the stress from :func:`element_first_piola`."""
-    # every read that does not depend on another first, so that they are in flight together (a
-    # frozen model's flag too: tested once the element's reads are on their way)
-    frozen = inverted[4 * b + 3]
+                         update_state: int, step: int, inverted: wp.array(dtype=int)) -> wp.mat33:
+    """V0 P (N m) of element e of model b (:func:`element_first_piola`), given the element's nodes,
+    shape derivatives ``d0``-``d3``, volume ``v0`` and its model's ``frozen`` flag (read by the
+    caller first, with the element's reads, so that they are in flight together): the element's
+    material and ANP mean are read here, and a frozen model's element gives zero and touches no
+    state (the caller adds no forces for it). The element force of both element kernels: the lone
+    :func:`element_forces` reads the element itself, a thread per element and model (built on a
+    per-model function of the whole force its lone 2M-tet step took 170-173 us against 163-165;
+    H200, 2026-12-01, docs/benchmarks.md); :func:`element_forces_shared` reads it once for a
+    thread's models."""
     m = material_of(materials, e, n_models, b)
     mean = float(0.0)  # of the slots' sums per volume
     if anp != ANP_OFF:
         mean = mean_slot_change(anp_sums, slot_volume, element_slots(tets, slots, slots_are_nodes, e), b, n_models)
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     if frozen != 0:
-        return
-    P = element_first_piola(F, m, mean, anp, v0, e, b, n_models, n_terms, prony_g, prony_decay, visco_state,
-                            update_state, clock[0], inverted)
-    add_element_forces(forces, n_models, b, n0, n1, n2, n3, P, d0, d1, d2, d3)
+        return wp.mat33(0.0)
+    return element_first_piola(F, m, mean, anp, v0, e, b, n_models, n_terms, prony_g, prony_decay, visco_state,
+                               update_state, step, inverted)
 
 
 ElementKernels = collections.namedtuple("ElementKernels", "nodal_pressure nodal_pressure_shared element_forces "
@@ -338,21 +335,14 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         e, b = at[0], at[1]
         if e < 0 or e >= tets.shape[0]:
             return
-        # every read that does not depend on another first, so that they are in flight together (a
-        # frozen model's flag too: tested once the element's reads are on their way)
-        frozen = inverted[4 * b + 3]
+        frozen = inverted[4 * b + 3]  # first: in flight with the element's reads (see model_element_stress)
         n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
         d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-        m = material_of(materials, e, n_models, b)
-        v0 = vol0[e]
-        mean = float(0.0)  # of the slots' sums per volume
-        if anp != ANP_OFF:
-            mean = mean_slot_change(anp_sums, slot_volume, element_slots(tets, slots, slots_are_nodes, e), b, n_models)
-        F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
+        P = model_element_stress(u, e, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3, vol0[e], frozen, materials, anp,
+                                 tets, slots, slots_are_nodes, slot_volume, anp_sums, terms, prony_g, prony_decay,
+                                 visco_state, update_state, clock[0], inverted)
         if frozen != 0:
             return
-        P = element_first_piola(F, m, mean, anp, v0, e, b, n_models, terms, prony_g, prony_decay, visco_state,
-                                update_state, clock[0], inverted)
         # the element's nodes and derivatives read again (from the cache) for the forces: held in
         # registers through the stress they cost the lone 160k step 2 % (H100, 2026-12-05)
         add_element_forces(forces, n_models, b, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3], P, dhdx[e, 0],
@@ -387,10 +377,13 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         d0, d1, d2, d3, v0 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3], vol0[e]
         entry = at[1]
         while entry < n_listed:
-            model_element_forces(u, e, model_at(models, n_listed, n_models, entry), n_models, n0, n1, n2, n3,
-                                 d0, d1, d2, d3, v0, materials, anp, tets, slots, slots_are_nodes, slot_volume,
-                                 anp_sums, terms, prony_g, prony_decay, visco_state, update_state, clock, forces,
-                                 inverted)
+            b = model_at(models, n_listed, n_models, entry)
+            frozen = inverted[4 * b + 3]
+            P = model_element_stress(u, e, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3, v0, frozen, materials, anp,
+                                     tets, slots, slots_are_nodes, slot_volume, anp_sums, terms, prony_g,
+                                     prony_decay, visco_state, update_state, clock[0], inverted)
+            if frozen == 0:
+                add_element_forces(forces, n_models, b, n0, n1, n2, n3, P, d0, d1, d2, d3)
             entry += lanes
 
     return ElementKernels(nodal_pressure, nodal_pressure_shared, element_forces, element_forces_shared)
