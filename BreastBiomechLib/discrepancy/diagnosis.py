@@ -409,7 +409,7 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     chosen_refit = adopt(state, observations, sens, best, by_name[best.name], refits, settings.refine_iterations, say,
                          settings.profile)
     return Diagnosis(verdicts.MISSING, best.name, [],
-                     verdicts.missing_effect_sentence(best.to_dict(), _bound_note(chosen_refit)),
+                     verdicts.missing_effect_sentence(best.to_dict(), _bound_note(chosen_refit), evidence, settings),
                      refitted=chosen_refit, **base)
 
 

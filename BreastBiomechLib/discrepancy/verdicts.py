@@ -219,10 +219,12 @@ def ambiguous_sentence(evidence: Evidence, best: dict, rivals: list[dict]) -> st
             "the data cannot tell them apart.")
 
 
-def interval_phrase(refit: dict) -> str:
+def interval_phrase(refit: dict, unsettled: bool = False) -> str:
     """"; 95 % interval 0.152 to 1.5 (...)" for a refit's record (its "interval", "interval_kind"
     and "interval_open"; "" without an interval): an end that reaches the parameter's range is
-    said to be unbounded by the data there."""
+    said to be unbounded by the data there. Where the fit has not ``unsettled`` on the features
+    (the fitted parameters alone remove a share of the residual), the interval is said to hold
+    for the fitted materials as they are: it leaves out how far they are from their own best."""
     bounds = refit.get("interval")
     if not bounds:
         return ""
@@ -234,17 +236,22 @@ def interval_phrase(refit: dict) -> str:
                 "bounded by the data from above only" if open_low else "")
         parts.append(f"{lo:.3g} to {hi:.3g}" + (f", {side}" if side else ""))
     kind = refit.get("interval_kind", "linearised")
-    return f"; 95 % {kind} interval {'; '.join(parts)}"
+    given = ", given the fitted materials, which have not settled" if unsettled else ""
+    return f"; 95 % {kind} interval {'; '.join(parts)}{given}"
 
 
-def missing_effect_sentence(best: dict, bound_note: str = "") -> str:
+def missing_effect_sentence(best: dict, bound_note: str = "", evidence: Evidence | None = None,
+                            settings=None) -> str:
     """A confirmed candidate explaining enough, after its refinement (``best["refit"]`` holds
-    "refined_described")."""
+    "refined_described"). With the round's ``evidence`` and ``settings``: where the refit of the
+    fitted parameters alone removed ``min_explained`` of the residual or more, the estimate's
+    interval is said to be conditional on that unsettled fit, and the sentence ends saying so."""
     refit = best["refit"]
-    within = interval_phrase(refit)
+    unconverged = _unconverged(evidence, settings) if evidence is not None and settings is not None else ""
+    within = interval_phrase(refit, unsettled=bool(unconverged))
     return (f"Missing effect: {best['title']} ({refit.get('refined_described', refit['described'])}{within}). "
             f"Score test p = "
             f"{best['p_adjusted']:.2g} (corrected), refit dBIC {refit['delta_bic']:.1f}, removing "
             f"{refit['removed']:.0%} of the residual beyond the fitted parameters alone and moving the features by "
             f"{refit['effect_mm']:.2f} mm where it acts; its signature and the residual overlap "
-            f"{best['localisation']:.0%} over the regions ({best['acts_in']}).{bound_note}")
+            f"{best['localisation']:.0%} over the regions ({best['acts_in']}).{bound_note}{unconverged}")

@@ -191,3 +191,16 @@ def test_an_effect_is_sized_where_it_acts():
     assert effect_size_mm(change) == pytest.approx(1.0)
     assert effect_size_mm([-2.0] * 100) == pytest.approx(2.0)
     assert effect_size_mm([]) == 0.0
+
+
+def test_a_named_effects_interval_is_conditional_on_a_fit_that_has_not_settled():
+    """Where the fitted parameters alone remove ``min_explained`` of the residual or more, the
+    named effect's interval holds only for the fitted materials as they are: the sentence says
+    so, and says the fit has not converged; below that share it says neither."""
+    candidate = _candidate()
+    candidate["refit"].update(interval=[[0.294, 0.356]], interval_kind="profile", interval_open=[[False, False]])
+    for alone, unsettled in ((SETTINGS.min_explained - 0.01, False), (SETTINGS.min_explained, True), (None, False)):
+        sentence = verdicts.missing_effect_sentence(candidate, "", _evidence(alone=alone), SETTINGS)
+        assert ("0.294 to 0.356, given the fitted materials, which have not settled)" in sentence) is unsettled
+        assert ("the fit has not converged on these features" in sentence) is unsettled, alone
+    assert "not settled" not in verdicts.missing_effect_sentence(candidate)  # no evidence given: nothing said
