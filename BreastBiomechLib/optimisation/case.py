@@ -74,8 +74,10 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     """Fit ``settings.model`` to the compressed case in ``case_dir`` (a phantom case folder with
     its ``compressed/`` part, :mod:`BreastBiomechLib.phantom.compressed_files`) and write the
     results to ``out_dir``. The fitting mesh is ``mesh_path`` (a ``breastbiomech mesh`` .vtu), or
-    made from ``labels`` (default: the case's labels.nrrd; a segmentation's label map fits the
-    real workflow) at ``settings.edge_mm``."""
+    made from ``labels`` (a segmentation's label map) at ``settings.edge_mm``; one of the two is
+    required (a resumed fit takes its own). There is no default: a phantom case's labels.nrrd is
+    its ground truth, which a fit meant to be realistic must not mesh; pass it as ``labels`` only on
+    purpose (a fit on the truth, to tell the segmentation's share of an error from the model's)."""
     from BreastBiomechLib.io.images import read_image, read_label_map
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
     from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
@@ -83,6 +85,11 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     settings = settings or FitSettings()
     case = Path(case_dir)
     out = Path(out_dir)
+    if mesh_path is None and labels is None and not (resume and (out / "fitting_mesh.vtu").is_file()):
+        raise ValueError("no fitting mesh: pass --mesh MESH.vtu (`breastbiomech mesh` of your segmentation) or "
+                         "--labels SEG.nrrd (a segmentation's label map, meshed at --edge-mm). A phantom case's "
+                         f"{case / 'labels.nrrd'} is its ground truth: a fit does not mesh it unless --labels names "
+                         "it on purpose")
     measured = read_compressed(case)
     undeformed = read_image(case / "mr.nrrd")
     reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
@@ -101,8 +108,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
             from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
             nipple = reference.position("nipple") if reference is not None and "nipple" in reference.labels else None
-            mesh = mesh_labels(read_label_map(labels or case / "labels.nrrd"), MeshSettings(edge_mm=settings.edge_mm),
-                               nipple_mm=nipple).mesh
+            mesh = mesh_labels(read_label_map(labels), MeshSettings(edge_mm=settings.edge_mm), nipple_mm=nipple).mesh
         write_vtu(mesh_file, mesh)
         space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
                                          free=settings.free, fibre=settings.fibre,

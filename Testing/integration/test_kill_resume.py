@@ -33,7 +33,9 @@ def fit_outputs(out) -> dict:
 @pytest.mark.slow
 def test_a_fit_killed_anywhere_resumes_to_the_uninterrupted_result(compressed_case_dir, tmp_path):
     def fit(out, resume=False):
+        # the phantom's truth labels meshed on purpose: this test is of the fit's kill and resume
         return ["optimise", str(compressed_case_dir), "--out", str(out), "--model", "iso-homo", "--budget", "4",
+                "--labels", str(compressed_case_dir / "labels.nrrd"),
                 "--population", "2", "--edge-mm", "12", "--tolerance-mm", "0.05", "--device", "cpu", "--seed", "4",
                 "--quiet", *(["--resume"] if resume else [])]
 

@@ -331,3 +331,15 @@ def test_a_fit_still_improving_at_its_end_is_told_from_a_settled_one():
     done = evaluate(np.array([[0.3, 0.3]]))[0]
     assert OptimisationResult(done, {}, [failed] * 7 + [done] * 3, "budget", 0, 0.0).recent_gain() == np.inf
     assert np.isnan(OptimisationResult(done, {}, [done], "budget", 0, 0.0).recent_gain())
+
+
+def test_a_fit_without_a_mesh_or_labels_is_refused_not_made_on_the_truth(compressed_case_dir, tmp_path, capsys):
+    """No silent default to a phantom case's labels.nrrd, its ground truth: the fit names the two
+    ways to give it a segmentation, and writes nothing."""
+    from BreastBiomechLib.cli import main
+
+    assert main(["optimise", str(compressed_case_dir), "--out", str(tmp_path / "fit"), "--budget", "2",
+                 "--device", "cpu"]) == 2
+    error = capsys.readouterr().err
+    assert "no fitting mesh: pass --mesh" in error and "--labels" in error and "ground truth" in error
+    assert not (tmp_path / "fit").exists()
