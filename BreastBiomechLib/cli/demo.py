@@ -202,6 +202,9 @@ def _write_demo_report(out: Path, case, compressed, truth, dice, mesh_summary, f
     materials = "\n".join(
         f"| {name} | {values['E'] / 1e3:.1f} | {truth.materials.get(name, {}).get('E', float('nan')) / 1e3:.1f} |"
         for name, values in fit.result.materials.items())
+    budget_note = ("The demo's budget on a CPU is small: `breastbiomech optimise` and `breastbiomech study` "
+                   "(docs/optimisation.md, docs/validation.md) fit with hundreds of solves on a GPU."
+                   if device == "CPU" else f"A GPU fit of {len(fit.result.evaluations)} solves.")
     text = f"""# BreastBiomech demo report
 
 Made by `breastbiomech demo` on the {device} in {seconds:.0f} s. Everything below is in this folder.
@@ -237,8 +240,7 @@ for landmark displacements of {d['mean']:.1f} ± {d['sd']:.1f} mm (max {d['max']
 |---|---|---|
 {materials}
 
-Fat's E is the reference (10 kPa). The demo's budget is small (a CPU run); `breastbiomech optimise`
-and `breastbiomech study` (docs/optimisation.md, docs/validation.md) fit with hundreds of solves on a GPU.
+Fat's E is the reference (10 kPa). {budget_note}
 
 ![FE-predicted](fit/predicted_overview.png)
 
