@@ -9,7 +9,7 @@ import json
 import re
 
 import pytest
-from kill_resume import assert_resumes_from_checkpoints, run
+from kill_resume import assert_resumes_through_checkpoints, run
 
 
 def without_wall_times(value):
@@ -46,8 +46,9 @@ CHECKPOINTS = ["round 1: residual displacement field (deformable registration)",
 def test_a_diagnosis_killed_at_each_checkpoint_resumes_to_the_uninterrupted_result(friction_case, tmp_path):
     """The hidden-friction case (conftest's small one): one round that names friction (its one
     candidate: the other effects' solves would only lengthen every trial), adds it and refits
-    (the confirmation refit, not refined); a kill before the round is written repeats it, one
-    during the refit diagnoses the open round again. The fixed floor and the linearised interval: the
+    (the confirmation refit, not refined); one run is killed before the round is written (its
+    resume repeats the round), then, resumed, during the refit (its resume diagnoses the open
+    round again). The fixed floor and the linearised interval: the
     measured floor's solve and the profile's (tested in test_discrepancy.py and
     test_discrepancy_friction.py) would lengthen every killed run."""
     case, fit = friction_case
@@ -61,4 +62,4 @@ def test_a_diagnosis_killed_at_each_checkpoint_resumes_to_the_uninterrupted_resu
     run(diagnosis(tmp_path / "reference"))
     reference = diagnosis_outputs(tmp_path / "reference")
     assert "round-1-residual-after.nrrd" in reference["files"], "the reference run added no effect"
-    assert_resumes_from_checkpoints(reference, diagnosis, diagnosis_outputs, tmp_path, CHECKPOINTS)
+    assert_resumes_through_checkpoints(reference, diagnosis, diagnosis_outputs, tmp_path, CHECKPOINTS)

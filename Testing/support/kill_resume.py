@@ -89,18 +89,22 @@ def kill_at(argv: list[str], message: str) -> bool:
         process.wait()
 
 
-def assert_resumes_from_checkpoints(reference: dict, command, outputs, tmp_path, messages: list[str]) -> None:
-    """For each progress message of ``messages``, kill ``command(out, progress=True)`` as soon as it
-    reports it, run ``command(out, resume=True)`` to its end and require ``outputs(out)`` to equal
-    ``reference`` key by key, with no temporary file left behind."""
+def assert_resumes_through_checkpoints(reference: dict, command, outputs, tmp_path, messages: list[str]) -> None:
+    """One run killed at each progress message of ``messages`` in turn: ``command(out,
+    progress=True)`` killed as soon as it reports the first, then ``command(out, resume=True,
+    progress=True)`` killed at each next one (a resumed run killed again), then resumed to its end;
+    ``outputs(out)`` must equal ``reference`` key by key, with no temporary file left behind. One
+    run through every checkpoint, not a fresh run per checkpoint: the solves before a later
+    checkpoint are not made again from the start for it."""
+    out = tmp_path / "killed"
     for k, message in enumerate(messages):
-        out = tmp_path / f"checkpoint{k}"
-        assert kill_at(command(out, progress=True), message), f"the command never reported {message!r}"
-        run(command(out, resume=True))
-        resumed = outputs(out)
-        for key, value in reference.items():
-            assert resumed[key] == value, f"killed at {message!r}: {key} differs after the resume"
-        assert_no_partial_files(out)
+        assert kill_at(command(out, resume=k > 0, progress=True), message), \
+            f"the {'resumed ' if k else ''}command never reported {message!r}"
+    run(command(out, resume=True))
+    resumed = outputs(out)
+    for key, value in reference.items():
+        assert resumed[key] == value, f"killed at {messages}: {key} differs after the resume"
+    assert_no_partial_files(out)
 
 
 def assert_no_partial_files(out) -> None:
