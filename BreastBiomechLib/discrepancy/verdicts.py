@@ -110,7 +110,7 @@ def decide(evidence: Evidence, settings) -> Decision:
     alpha = settings.alpha
     directed = significant_candidates(evidence, alpha)
     if not overall_significant(evidence, alpha) and not directed:
-        return Decision(NONE, sentence=quiet_sentence(evidence))
+        return Decision(NONE, sentence=quiet_sentence(evidence, alpha))
     refitted = [c for c in directed if c.get("refit")]
     confirmed = sorted((c for c in refitted if not confirmation(c, settings, evidence.floor_mm)),
                        key=lambda c: c["refit"]["delta_bic"])
@@ -152,12 +152,31 @@ def strongest_phrase(overall: dict) -> str:
     return text + f", combined p = {overall.get('p_combined', overall['p_value']):.3g}"
 
 
-def quiet_sentence(evidence: Evidence) -> str:
-    """No test significant."""
+def quiet_sentence(evidence: Evidence, alpha: float = 0.01) -> str:
+    """No test significant; where a channel's residual is far below what the noise model expects
+    (:func:`undersized_phrase`), said too."""
     ps = [c["p_adjusted"] for c in tested(evidence)]
     smallest = f" (smallest corrected p = {min(ps):.3g})" if ps else ""
-    return (f"No significant discrepancy: the residual is what the noise model expects ({overall_phrase(evidence.overall)}) "
-            f"and no candidate's score test is significant{smallest}.")
+    return (f"No significant discrepancy: the residual is within what the noise model allows "
+            f"({overall_phrase(evidence.overall)}) and no candidate's score test is significant{smallest}."
+            f"{undersized_phrase(evidence.overall, alpha)}")
+
+
+def undersized_phrase(overall: dict, alpha: float = 0.01) -> str:
+    """A sentence naming each channel (the pooled test where there are none) whose T is so far
+    below its dof that noise of the assumed size would give a smaller T with probability under
+    ``alpha`` (the lower tail of chi-square): the assumed noise and model floor are larger than
+    this case's, so the tests could not see effects of about that size ("" where none is)."""
+    from scipy.stats import chi2
+
+    tests = overall.get("channels") or {"all features": overall}
+    low = [(name, t) for name, t in tests.items() if t["dof"] > 0 and chi2.cdf(t["statistic"], t["dof"]) < alpha]
+    if not low:
+        return ""
+    parts = ", ".join(f"{name} T/dof {t['statistic'] / t['dof']:.2g} "
+                      f"(lower-tail p {chi2.cdf(t['statistic'], t['dof']):.1g})" for name, t in low)
+    return (f" The residual is far smaller than the noise model assumes ({parts}): the assumed noise and model floor "
+            "exceed this case's, so an effect smaller than they are could go unseen here.")
 
 
 def _refit_phrase(candidate: dict, settings, floor_mm: float) -> str:

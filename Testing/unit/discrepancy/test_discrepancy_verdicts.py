@@ -204,3 +204,21 @@ def test_a_named_effects_interval_is_conditional_on_a_fit_that_has_not_settled()
         assert ("0.294 to 0.356, given the fitted materials, which have not settled)" in sentence) is unsettled
         assert ("the fit has not converged on these features" in sentence) is unsettled, alone
     assert "not settled" not in verdicts.missing_effect_sentence(candidate)  # no evidence given: nothing said
+
+
+def test_a_residual_far_below_the_noise_model_is_said_to_be_so():
+    """A quiet verdict whose landmark channel has T far below its dof (the demo's second round: T
+    = 0.6 on 49 dof) says the noise model is larger than this case's noise, naming the channel;
+    one near its dof says nothing of the kind. The threshold is chi-square's lower tail at alpha."""
+    from scipy.stats import chi2
+
+    evidence = _evidence(0.9)
+    evidence.overall["channels"]["surface"]["statistic"] = 290.0  # at its dof: nothing to say of it
+    for statistic, said in ((0.6, True), (chi2.ppf(SETTINGS.alpha / 2, 57), True),
+                            (chi2.ppf(2 * SETTINGS.alpha, 57), False), (57.0, False)):
+        evidence.overall["channels"]["landmarks"].update(statistic=statistic, p_value=0.99)
+        decision = verdicts.decide(evidence, SETTINGS)
+        assert decision.verdict == verdicts.NONE
+        assert decision.sentence.startswith("No significant discrepancy: the residual is within what the noise model")
+        assert ("far smaller than the noise model assumes (landmarks T/dof" in decision.sentence) is said, statistic
+        assert "surface T/dof" not in decision.sentence
