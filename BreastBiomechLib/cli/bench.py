@@ -592,7 +592,8 @@ def add_parsers(sub) -> None:
                    help="optimise: leave the synthetic mesh's stair corners protruding from its ellipsoid (the "
                         "bench's mesh before 2026-12-01: most of its failed solves were those corners inverting "
                         "under the plates' rounded edges; by default they are moved onto the ellipsoid)")
-    p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="cmaes", help="optimise: the optimiser")
+    p.add_argument("--optimiser", choices=("hybrid", "cmaes", "cmaes-local"), default="cmaes",
+                   help="optimise: the optimiser")
     p.add_argument("--budget", type=positive_int, default=500, help="optimise: forward solves; cohort: per fit")
     p.add_argument("--population", type=positive_int, default=None, help="optimise: CMA-ES population (batch size)")
     p.add_argument("--tolerance-mm", type=positive, default=None,

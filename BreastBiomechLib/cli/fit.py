@@ -118,8 +118,9 @@ def add_parsers(sub) -> None:
                         "fibre: the fibre direction's angles (aniso models); offset: each plate's position")
     p.add_argument("--fibre", type=finite, nargs=3, default=[0.0, 0.0, 1.0], metavar=("X", "Y", "Z"),
                    help="fibre direction of the anisotropic models (LPS unit vector; default SI)")
-    p.add_argument("--optimiser", choices=("hybrid", "cmaes"), default="hybrid",
-                   help="hybrid: annealing then L-BFGS-B (the seed's); cmaes: CMA-ES, one batch per generation")
+    p.add_argument("--optimiser", choices=("hybrid", "cmaes", "cmaes-local"), default="hybrid",
+                   help="hybrid: annealing then L-BFGS-B (the seed's); cmaes: CMA-ES, one batch per generation; "
+                        "cmaes-local: CMA-ES on 60 %% of the budget, then L-BFGS-B (for budgets of tens of solves)")
     p.add_argument("--budget", type=positive_int, default=500, help="forward solves in all (default 500)")
     p.add_argument("--seconds", type=positive, help="wall-time limit of this run (s)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (same seed, same run)")
@@ -143,7 +144,7 @@ def add_parsers(sub) -> None:
     p.add_argument("case_dirs", nargs="+", help="compressed case folders (`make table1-cases`: out/table1/case*)")
     p.add_argument("--out", required=True, help="results folder (rerun to resume)")
     p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=list(MODEL_CHOICES))
-    p.add_argument("--optimisers", nargs="+", choices=("hybrid", "cmaes"), default=["cmaes"])
+    p.add_argument("--optimisers", nargs="+", choices=("hybrid", "cmaes", "cmaes-local"), default=["cmaes"])
     p.add_argument("--budget", nargs="+", metavar="MODEL=SOLVES",
                    help="forward solves per fit of a model (default iso-homo=24 aniso-homo=48 iso-hetero=160 "
                         "aniso-hetero=240)")

@@ -82,8 +82,8 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
              seed: int = 0, out_dir: str | Path | None = None, resume: bool = False,
              progress: Callable[[int, int, float, str], bool | None] | None = None,
              start: dict[str, float] | None = None, population: int | None = None) -> OptimisationResult:
-    """Minimise ``problem``'s objective over its parameter space with ``optimiser`` ("hybrid"
-    or "cmaes") from ``start`` ({"tissue.name": value}; default :meth:`ParameterSpace.start`:
+    """Minimise ``problem``'s objective over its parameter space with ``optimiser`` ("hybrid",
+    "cmaes" or "cmaes-local", :mod:`~BreastBiomechLib.optimisation.search`) from ``start`` ({"tissue.name": value}; default :meth:`ParameterSpace.start`:
     the middle of the material parameters' ranges, the given fibre and plates),
     within ``budget`` evaluations and ``seconds`` of wall time. With ``out_dir`` every
     evaluation is written as it is made, and ``resume`` continues a run interrupted there (the
@@ -117,6 +117,8 @@ def optimise(problem: FittingProblem, optimiser: str = "hybrid", budget: int = 5
                           read_evaluations(path) if resume and path is not None and path.exists() else [])
         if optimiser == "hybrid":
             search.hybrid(log, z0, seed)
+        elif optimiser == "cmaes-local":
+            search.cmaes_local(log, z0, seed, population=population)
         else:
             search.cmaes(log, z0, seed, population=population)
         if log.best is None:

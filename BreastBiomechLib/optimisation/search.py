@@ -6,6 +6,9 @@ minimising the objective through an :class:`~BreastBiomechLib.optimisation.recor
   quasi-Newton local search from the best point (L-BFGS-B, as ``fmincon``) whose forward-difference
   gradient is evaluated in one batched solve of d + 1 models.
 - ``cmaes``: CMA-ES (the ``cma`` package) whose whole population is one batched solve.
+- ``cmaes-local``: CMA-ES on whole generations within ``global_fraction`` of the budget, then
+  the hybrid's local stage from the best point: for a budget of tens of solves (a CPU), where a
+  few generations of CMA-ES are a best-of-random-draws and leave the fit unsettled.
 
 Both are deterministic for a given ``seed``, which resume relies on.
 """
@@ -16,17 +19,16 @@ import numpy as np
 
 from BreastBiomechLib.optimisation.record import BudgetExhausted, EvaluationLog
 
-OPTIMISERS = ("hybrid", "cmaes")
+OPTIMISERS = ("hybrid", "cmaes", "cmaes-local")
 GRADIENT_STEP = 0.01  # forward-difference step in the unit cube (a 10 % change of E over 4 decades)
 
 
 def hybrid(log: EvaluationLog, start: np.ndarray, seed: int = 0, global_fraction: float = 0.6) -> None:
     """Simulated annealing on ``global_fraction`` of the budget from ``start``, then L-BFGS-B
     from the best point found on the rest."""
-    from scipy.optimize import dual_annealing, minimize
+    from scipy.optimize import dual_annealing
 
-    d = len(start)
-    bounds = [(0.0, 1.0)] * d
+    bounds = [(0.0, 1.0)] * len(start)
     log.phase = "global"
     log.limit(max(1, int(round(global_fraction * log.remaining))))
     try:
@@ -35,6 +37,16 @@ def hybrid(log: EvaluationLog, start: np.ndarray, seed: int = 0, global_fraction
     except BudgetExhausted:
         if log.stopped:
             return
+    local(log, log.best.z if log.best else start)
+
+
+def local(log: EvaluationLog, start: np.ndarray) -> None:
+    """The local stage, on the rest of the budget: L-BFGS-B from ``start`` in the unit cube, its
+    forward-difference gradient evaluated in one batched solve of d + 1 models."""
+    from scipy.optimize import minimize
+
+    d = len(start)
+    bounds = [(0.0, 1.0)] * d
     log.phase = "local"
     log.limit(None)
 
@@ -47,10 +59,23 @@ def hybrid(log: EvaluationLog, start: np.ndarray, seed: int = 0, global_fraction
         return float(values[0]), (values[1:] - values[0]) / step
 
     try:
-        minimize(value_and_gradient, log.best.z if log.best else start, jac=True, method="L-BFGS-B",
+        minimize(value_and_gradient, start, jac=True, method="L-BFGS-B",
                  bounds=bounds, options={"maxfun": 10**9, "maxiter": 10**9, "ftol": 1e-9, "gtol": 1e-7})
     except BudgetExhausted:
         return
+
+
+def cmaes_local(log: EvaluationLog, start: np.ndarray, seed: int = 0, population: int | None = None,
+                global_fraction: float = 0.6) -> None:
+    """:func:`cmaes` on whole generations of ``population`` (default 4 + 3 ln d) within
+    ``global_fraction`` of the budget (one generation at least), then :func:`local` from its best
+    point on the rest."""
+    generation = population or 4 + int(3 * np.log(len(start)))
+    log.limit(generation * max(1, int(global_fraction * log.remaining) // generation))
+    cmaes(log, start, seed, population=population)
+    if log.stopped or log.best is None:
+        return
+    local(log, np.asarray(log.best.z))
 
 
 def cmaes(log: EvaluationLog, start: np.ndarray, seed: int = 0, sigma: float = 0.25,

@@ -343,3 +343,31 @@ def test_a_fit_without_a_mesh_or_labels_is_refused_not_made_on_the_truth(compres
     error = capsys.readouterr().err
     assert "no fitting mesh: pass --mesh" in error and "--labels" in error and "ground truth" in error
     assert not (tmp_path / "fit").exists()
+
+
+def test_cmaes_then_its_local_stage_settles_where_cmaes_alone_does_not():
+    """The CPU demo's fit (19 solves): two whole generations of CMA-ES (population 5), then the
+    local stage's batched gradients (d + 1 = 3 solves each; the first 2, its centre being the best
+    point, answered from the log). On a quadratic it ends closer to the minimum than CMA-ES alone
+    on the same budget (5e-5 against 2e-4 here), and no batch is a cut generation."""
+    from BreastBiomechLib.optimisation.forward import Evaluation
+    from BreastBiomechLib.optimisation.record import EvaluationLog
+    from BreastBiomechLib.optimisation.search import cmaes, cmaes_local
+
+    minimum = np.array([0.3137, 0.6421])
+    batches = []
+
+    def evaluate(positions):
+        batches.append(len(positions))
+        return [Evaluation([float(v) for v in z], {}, float(np.sum((z - minimum) ** 2)), 1.0, 1.0, np.nan, np.nan,
+                           "completed", 1, 0.0) for z in positions]
+
+    alone = EvaluationLog(evaluate, budget=19)
+    cmaes(alone, np.array([0.5, 0.5]), seed=0, population=5)
+    batches.clear()
+    local = EvaluationLog(evaluate, budget=19)
+    cmaes_local(local, np.array([0.5, 0.5]), seed=0, population=5)
+    assert batches == [5, 5, 2, 3, 3] and len(local.evaluations) == 19
+    assert [e.z for e in local.evaluations[:10]] == [e.z for e in alone.evaluations[:10]]  # the same generations
+    assert local.best.objective < 0.5 * alone.best.objective
+    assert np.allclose(local.best.z, minimum, atol=0.01)
