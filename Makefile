@@ -1,7 +1,7 @@
 # BreastBiomech: the two set-up commands and the benchmarks.
 #   make demo   create .venv, install, run the whole pipeline on the built-in phantom: compressed
 #               scan (plate friction hidden in its truth), segmentation, mesh, fit, the diagnosis
-#               that names the missing friction, out/demo/report.md (about 5 min on 2 CPU cores)
+#               that names the missing friction, out/demo/report.md (about 7 min on 2 CPU cores)
 #   make test   create .venv if missing, install, run the whole test suite (the slowest ten tests listed), then the library tests
 #               again on Slicer 5.10's own versions of numpy, scipy, SimpleITK and VTK (test-slicer-stack)
 #   make bench  print benchmark figures (see docs/benchmarks.md)
