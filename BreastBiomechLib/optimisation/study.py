@@ -189,7 +189,10 @@ def study_tasks(case_dirs, out_dir: str | Path, settings: StudySettings) -> list
 
 def make_fitting_mesh(case_dir: str, mesh_file: str, edge_mm: float, device=None, progress=None) -> dict:
     """A study task: the fitting mesh of the case's labels at ``edge_mm`` (nipple-aware), written
-    to ``mesh_file`` (atomically). Returns its size."""
+    to ``mesh_file`` (atomically). Returns its size. A phantom case's labels are its ground truth:
+    the study meshes them on purpose, to compare the model families (the seed's Table 2) without
+    the segmentation's error; a fit meant to be realistic meshes a segmentation (``optimise
+    --labels``, the demo, the discrepancy suite)."""
     from BreastBiomechLib.io.images import read_label_map
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
