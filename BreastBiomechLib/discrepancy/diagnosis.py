@@ -83,8 +83,11 @@ class Candidate:
     model, stepped the same way), the share of that refit's residual it removed and the values it
     refitted to; ``absorbed`` the share of its signature the fitted parameters reproduce
     (:func:`~BreastBiomechLib.discrepancy.statistics.absorbed_share`) and ``absorbed_by`` the
-    fitted parameter that alone reproduces most of it ({"name", "correlation"}); or the reason
-    it was ``skipped``."""
+    fitted parameter that alone reproduces most of it ({"name", "correlation"}); ``detectable``
+    the smallest size of each of its parameters (its units, away from the off value; None: none)
+    its score test would see at this case's noise with 80 % power at the verdict's level
+    (:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable`, along its secant); or
+    the reason it was ``skipped``."""
 
     name: str
     title: str
@@ -103,6 +106,7 @@ class Candidate:
     absorbed_by: dict = field(default_factory=dict)
     channels: dict = field(default_factory=dict)
     linear_delta_bic: float = float("nan")
+    detectable: list = field(default_factory=list)
     skipped: str = ""
 
     def to_dict(self) -> dict:
@@ -182,16 +186,47 @@ def edges_sentence(edges: list[dict]) -> str:
             f"pectoral muscle) - check the range before trusting the verdict.{pushed}")
 
 
-def absorbed_sentence(candidates: list[Candidate]) -> str:
-    """The tested candidates whose signature the fitted parameters reproduce (at least
-    :data:`ABSORBED` of it), as what this case could not have shown ("" when none)."""
-    hidden = [c for c in candidates if not c.skipped and c.absorbed >= ABSORBED]
-    if not hidden:
-        return ""
-    listed = "; ".join(f"{c.title} ({c.absorbed:.0%} of its signature, chiefly by {c.absorbed_by['name']}, "
-                       f"correlation {c.absorbed_by['correlation']:.2f})" for c in hidden)
-    return (f"What this case could not have shown, since the fitted parameters reproduce what it would change: "
-            f"{listed}; such an effect, if present, has been fitted as those parameters.")
+def _detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float) -> list:
+    """:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable` at 80 % power as a
+    record's list (None where nothing is)."""
+    sizes = statistics.minimum_detectable(sensitivity, q_theta, alpha, power=0.8)
+    return [float(v) if np.isfinite(v) else None for v in sizes]
+
+
+def beyond_range(candidate: Candidate, effects: dict) -> list[str]:
+    """The parameters of ``candidate`` whose smallest detectable size reaches past both ends of
+    their range from the off value ("mu 2.1, its range 0-1.5"): no value the effect may take
+    could have been seen here. ``effects`` maps names to :class:`Effect`."""
+    effect = effects.get(candidate.name)
+    if effect is None or not candidate.detectable:
+        return []
+    out = []
+    for parameter, size in zip(effect.parameters, candidate.detectable):
+        reach = max(parameter.upper - parameter.off, parameter.off - parameter.lower)
+        if size is None or size > reach:
+            shown = "none" if size is None else f"{size:.3g} {parameter.unit}".strip()
+            out.append(f"{parameter.name} {shown}, its range {parameter.lower:g} to {parameter.upper:g}")
+    return out
+
+
+def absorbed_sentence(candidates: list[Candidate], effects: dict | None = None) -> str:
+    """The tested candidates this case could not have shown ("" when none): those whose signature
+    the fitted parameters reproduce (at least :data:`ABSORBED` of it), and those (with
+    ``effects``, name -> :class:`Effect`) whose smallest detectable size lies beyond their range."""
+    tested = [c for c in candidates if not c.skipped]
+    hidden = [c for c in tested if c.absorbed >= ABSORBED]
+    parts = []
+    if hidden:
+        listed = "; ".join(f"{c.title} ({c.absorbed:.0%} of its signature, chiefly by {c.absorbed_by['name']}, "
+                           f"correlation {c.absorbed_by['correlation']:.2f})" for c in hidden)
+        parts.append(f"What this case could not have shown, since the fitted parameters reproduce what it would "
+                     f"change: {listed}; such an effect, if present, has been fitted as those parameters.")
+    small = [(c, beyond_range(c, effects or {})) for c in tested if c not in hidden]
+    small = [(c, ends) for c, ends in small if ends]
+    if small:
+        listed = "; ".join(f"{c.title} (smallest size its test would see: {'; '.join(ends)})" for c, ends in small)
+        parts.append(f"Too small to see at this case's noise, whatever its size within its range: {listed}.")
+    return " ".join(parts)
 
 
 def _shares(values: np.ndarray, regions: np.ndarray) -> dict[str, float]:
@@ -293,7 +328,8 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     range are listed in ``edges`` and said after the verdict's sentence."""
     result = _decide(state, observations, candidates, settings, progress, excluded)
     result.edges = parameters_at_edges(state, result.held)
-    hidden = absorbed_sentence(result.candidates) if result.verdict == verdicts.NONE else ""
+    by_name = {effect.name: effect for effect in candidates}
+    hidden = absorbed_sentence(result.candidates, by_name) if result.verdict == verdicts.NONE else ""
     if hidden:
         result.sentence = f"{result.sentence} {hidden}"
     if result.edges:
@@ -345,7 +381,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                                 signature, overlap, absorbed=statistics.absorbed_share(b, q_theta),
                                 absorbed_by=_absorbed_by(b, nuisance, held, sens.nuisance_keys),
                                 channels=test["channels"],
-                                linear_delta_bic=-test["statistic"] + test["dof"] * np.log(n)))
+                                linear_delta_bic=-test["statistic"] + test["dof"] * np.log(n),
+                                detectable=_detectable(b, q_theta, settings.alpha / (m * (1 + len(test["channels"]))))))
     ranked.sort(key=lambda c: (c.linear_delta_bic, c.p_adjusted))
     for name, reason in sens.skipped.items():
         effect = next((e for e in candidates if e.name == name), None)

@@ -29,10 +29,20 @@ def _absorbed(candidate: dict) -> str:
     return f"{share:.0%}" + (f" ({by['name']} {by['correlation']:.2f})" if by else "")
 
 
+def _detectable(candidate: dict) -> str:
+    """The smallest sizes of a candidate's parameters its test would see ("-" in a record made
+    before they were computed; "none" where the fit takes the effect up whole)."""
+    sizes = candidate.get("detectable")
+    if not sizes:
+        return "-"
+    return ", ".join("none" if v is None else _number(v, 2) for v in sizes)
+
+
 def _candidates_table(candidates: list[dict]) -> str:
     rows = ["| rank | effect | score S (dof) | S per dof | by channel | linearised dBIC | p (corrected) | "
-            "could explain | localisation | absorbed by the fit | refit | dBIC | residual removed | change where it acts (mm) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "could explain | localisation | absorbed by the fit | smallest size seen | refit | dBIC | residual removed | "
+            "change where it acts (mm) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     rank = 0
     for c in candidates:
         if c["skipped"]:
@@ -44,7 +54,7 @@ def _candidates_table(candidates: list[dict]) -> str:
         per_dof = _number(c["statistic"] / c["dof"], 3) if c["dof"] else "-"
         rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {per_dof} | {channels} | "
                     f"{_number(c.get('linear_delta_bic'), 3)} | {_number(c['p_adjusted'], 2)} | "
-                    f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {_absorbed(c)} | "
+                    f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {_absorbed(c)} | {_detectable(c)} | "
                     f"{refit.get('described', '-')} | "
                     f"{_number(refit.get('delta_bic'), 3)} | "
                     + (f"{refit['removed']:.0%}" if "removed" in refit else "-") + " | "
@@ -63,7 +73,10 @@ def _candidates_table(candidates: list[dict]) -> str:
              "model-error floor before an effect is named.")
     note += ("\n\n*Absorbed by the fit*: the share of the candidate's signature that the fitted parameters "
              "reproduce (in brackets the one that alone reproduces most, and its correlation); near 100 % the fit has "
-             "taken the effect up and no test of the residual can see it.")
+             "taken the effect up and no test of the residual can see it. *Smallest size seen*: the size of each "
+             "of the candidate's parameters (its units, from its off value, along its secant) at which its score "
+             "test would reach the verdict's level in four cases of five at this case's noise; beyond the "
+             "parameter's range the case could not have shown the effect at all.")
     return "\n".join(rows) + note + ("\n\nNot tested: " + "; ".join(skipped) + "." if skipped else "")
 
 

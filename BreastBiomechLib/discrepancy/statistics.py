@@ -23,6 +23,10 @@ effect's parameters (0 in the current model, the nested case).
 - How much of a candidate's signature the fitted parameters reproduce (``absorbed_share``): the
   share of its squared norm inside span(J_theta). Near 1 the fit has taken the effect up (a
   held chest wall fitted as a stiffer pectoral muscle) and no test of the residual can see it.
+- The smallest size of an effect its score test would see (``minimum_detectable``): with the
+  effect present at phi the statistic is a noncentral chi-square with noncentrality |B phi|^2,
+  so the size along each parameter at which the test reaches its level with a given power is
+  sqrt(lambda*) / |B e_j|, lambda* the noncentrality of that power.
 - A fitted parameter held at a bound of its range, where the data push it further out (its
   residual gradient points out of the range), cannot move to absorb anything: it is fixed
   (an active constraint) and left out of J_theta (``pushed_out``).
@@ -136,6 +140,36 @@ def canonical_correlation(a: np.ndarray, b: np.ndarray, q_theta: np.ndarray) -> 
     if qa.shape[1] == 0 or qb.shape[1] == 0:
         return 0.0
     return float(min(np.linalg.svd(qa.T @ qb, compute_uv=False).max(), 1.0))
+
+
+def detectable_noncentrality(dof: int, alpha: float, power: float = 0.8) -> float:
+    """The noncentrality lambda at which a chi-square test of ``dof`` degrees of freedom at level
+    ``alpha`` rejects with probability ``power`` (inf without degrees of freedom)."""
+    from scipy.optimize import brentq
+
+    if dof < 1:
+        return float("inf")
+    critical = stats.chi2.isf(alpha, dof)
+    reach = lambda lam: stats.ncx2.sf(critical, dof, lam) - power  # noqa: E731
+    high = 1.0
+    while reach(high) < 0:
+        high *= 2.0
+    return float(brentq(reach, 0.0, high, xtol=1e-10))
+
+
+def minimum_detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float, power: float = 0.8) -> np.ndarray:
+    """The smallest size (k,) of each of a candidate's parameters, in the units of its whitened
+    ``sensitivity`` (n, k) (per unit of the parameter), at which its score test - the signature
+    projected off span(``q_theta``), the fitted parameters profiled out - reaches level ``alpha``
+    with ``power``, the other parameters at their off values (inf where the projected signature
+    is zero: the fitted parameters take the effect up whole)."""
+    b = project_off(np.atleast_2d(sensitivity.T).T, q_theta)
+    original = np.atleast_2d(sensitivity.T).T
+    dof = basis(b, np.linalg.norm(original, 2)).shape[1]
+    lam = detectable_noncentrality(dof, alpha, power)
+    norms = np.linalg.norm(b, axis=0)
+    with np.errstate(divide="ignore"):
+        return np.where(norms > RANK_TOLERANCE * max(np.linalg.norm(original), 1e-300), np.sqrt(lam) / norms, np.inf)
 
 
 def absorbed_share(sensitivity: np.ndarray, q_theta: np.ndarray) -> float:

@@ -222,3 +222,26 @@ def test_a_residual_far_below_the_noise_model_is_said_to_be_so():
         assert decision.sentence.startswith("No significant discrepancy: the residual is within what the noise model")
         assert ("far smaller than the noise model assumes (landmarks T/dof" in decision.sentence) is said, statistic
         assert "surface T/dof" not in decision.sentence
+
+
+def test_what_this_case_could_not_have_shown_names_absorbed_and_too_small_effects():
+    """A quiet round says which candidates it could not have shown: one the fitted parameters
+    absorb, and one whose smallest detectable size lies beyond its whole range (friction whose
+    test would need mu 2.1 where mu ends at 1.5); one detectable inside its range is not named."""
+    from BreastBiomechLib.discrepancy.diagnosis import Candidate, absorbed_sentence, beyond_range
+    from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
+
+    friction = PlateFriction()
+    absorbed = Candidate("chest-wall", "chest-wall hold", "", absorbed=0.85,
+                         absorbed_by={"name": "muscle.E", "correlation": 0.9}, detectable=[0.01])
+    small = Candidate("friction", "plate friction", "", absorbed=0.1, detectable=[2.1])
+    seen = Candidate("friction", "plate friction", "", absorbed=0.1, detectable=[0.2])
+    assert beyond_range(small, {"friction": friction}) == ["mu 2.1, its range 0 to 1.5"]
+    assert beyond_range(seen, {"friction": friction}) == []
+    assert beyond_range(Candidate("friction", "", "", detectable=[None]), {"friction": friction}) == [
+        "mu none, its range 0 to 1.5"]
+    sentence = absorbed_sentence([absorbed, small], {"friction": friction})
+    assert "chest-wall hold (85% of its signature, chiefly by muscle.E" in sentence
+    assert "Too small to see at this case's noise, whatever its size within its range: plate friction (smallest " \
+           "size its test would see: mu 2.1, its range 0 to 1.5)" in sentence
+    assert absorbed_sentence([seen], {"friction": friction}) == ""
