@@ -664,8 +664,8 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
     def _candidatesTable(self, parameterNode, record, folder_item):
         """The round's candidates as a table: rank, effect name and title, score statistic (dof),
         corrected p, share of the residual it could explain, localisation, share of its signature
-        the fitted parameters reproduce, refit dBIC and share removed, where it acts, and its part
-        in the verdict."""
+        the fitted parameters reproduce, the smallest size of its parameters its test would see,
+        refit dBIC and share removed, where it acts, and its part in the verdict."""
         from BreastBiomechLib.mrml import columns_to_table_node
 
         d = record["diagnosis"]
@@ -690,6 +690,10 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
             value = (c.get("refit") or {}).get(key)
             return float("nan") if value is None else float(value)
 
+        def detectable(c):  # per parameter, its units ("-": not computed; "none": the fit takes it up whole)
+            sizes = c.get("detectable") or []
+            return ", ".join("none" if v is None else f"{v:.2g}" for v in sizes) or "-"
+
         columns = {"rank": np.array([str(i + 1) if not c["skipped"] else "-" for i, c in enumerate(rows)], dtype=object),
                    "effect": np.array([c["name"] for c in rows], dtype=object),
                    "title": np.array([c["title"] for c in rows], dtype=object),
@@ -700,6 +704,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                    "could explain": np.array([c["explained_fraction"] for c in rows], float),
                    "localisation": np.array([c["localisation"] for c in rows], float),
                    "absorbed by fit": np.array([c.get("absorbed", float("nan")) for c in rows], float),
+                   "smallest size seen": np.array([detectable(c) for c in rows], dtype=object),
                    "dBIC": np.array([refit(c, "delta_bic") for c in rows], float),
                    "removed": np.array([refit(c, "removed") for c in rows], float),
                    "change (mm)": np.array([refit(c, "effect_mm") for c in rows], float),

@@ -66,6 +66,10 @@ def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_
     ranked = [c["name"] for c in d["candidates"]]
     assert _column(table, "effect") == ranked
     assert _column(table, "verdict")[0] == "missing effect"
+    # each candidate's smallest detectable size, as the record has it (friction's: a finite mu)
+    sizes = dict(zip(_column(table, "effect"), _column(table, "smallest size seen")))
+    recorded = next(c for c in d["candidates"] if c["name"] == "friction")["detectable"]
+    assert 0.0 < float(sizes["friction"]) == pytest.approx(recorded[0], rel=0.05)
     assert p.reference("candidatesTable") is table and p["candidate"] == "friction"
     # the landmark residual lines: from predicted to measured, their lengths the reported errors
     lines = p.reference("landmarkLines")
