@@ -33,8 +33,10 @@ from __future__ import annotations
 
 import argparse
 import collections
+import importlib
 import json
 import os
+import pkgutil
 import re
 import shutil
 import subprocess
@@ -103,6 +105,16 @@ def registers(resources: str) -> dict[str, int]:
     return {kernel_name(mangled): int(count) for mangled, count in found}
 
 
+def kernel_modules(kernels) -> list:
+    """The Python modules of the solver's fixed kernels: the kernels package's submodules (since
+    687432f), or the one ``kernels`` module of an older version (compared with ``PYTHONPATH=FOLDER``)."""
+    if not hasattr(kernels, "__path__"):
+        return [kernels]
+    names = [info.name for info in pkgutil.iter_modules(kernels.__path__)]
+    found = [importlib.import_module(f"{kernels.__name__}.{name}") for name in names]
+    return [module for module in found if any(isinstance(value, wp.Kernel) for value in vars(module).values())]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", type=int, default=90, help="GPU architecture (90: sm_90, the H100 and H200)")
@@ -124,7 +136,7 @@ def main() -> None:
 
     built = list(kernels.element_kernels(args.anp, args.visco, not args.slot_table))
     built.append(kernels.node_kernel(args.gravity, args.friction, args.sliding))
-    modules = [kernels] + list(dict.fromkeys(kernel.module for kernel in built))
+    modules = [*kernel_modules(kernels), *dict.fromkeys(kernel.module for kernel in built)]
     sass, usage = "", ""
     with tempfile.TemporaryDirectory() as folder:
         for module in modules:

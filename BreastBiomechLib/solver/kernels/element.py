@@ -141,12 +141,12 @@ def model_volume_change(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: in
     wp.atomic_add(anp_sums, s[3] * n_models + b, change)
 
 
-@wp.func(inline=False)
+@wp.func
 def record_inversion(inverted: wp.array(dtype=int), b: int, e: int, step: int):
-    """Count an inverted element of model b, keeping the first one found and its step. Out of line
-    (CUDA ``__noinline__``): the path is cold, and inlined into :func:`element_first_piola` its
-    atomic and stores cost the lone model's step 4-6 % (160k and 2M tets; H100, 2026-12-05,
-    docs/benchmarks.md)."""
+    """Count an inverted element of model b, keeping the first one found and its step. Called by
+    the force kernels in their own bodies, not by :func:`element_first_piola`: inlined there its
+    atomic and stores cost the lone model's step 6-9 %, out of line (a call) 2-3 % (160k and 2M
+    tets, H100 and H200, 2026-12-05; docs/benchmarks.md)."""
     if wp.atomic_add(inverted, 4 * b, 1) == 0:
         inverted[4 * b + 1] = e
         inverted[4 * b + 2] = step
@@ -167,7 +167,7 @@ def mean_slot_change(anp_sums: wp.array(dtype=float), slot_volume: wp.array(dtyp
 def element_first_piola(F: wp.mat33, m: ElementMaterial, mean: float, anp: int, v0: float, e: int, b: int,
                         n_models: int, n_terms: int, prony_g: wp.array(dtype=float),
                         prony_decay: wp.array(dtype=float), visco_state: wp.array(dtype=wp.mat33),
-                        update_state: int, step: int, inverted: wp.array(dtype=int)) -> wp.mat33:
+                        update_state: int):
     """The element force's stress, V0 P (N m), of element e of model b at deformation gradient
     ``F``: with ANP (``anp`` not :data:`ANP_OFF`) F is scaled to the dilatation Jm of ``mean``,
     the mean of the averaged pressures at the element's slots, as NiftySim's T4ANP (Jm - 1 the mean
@@ -175,28 +175,26 @@ def element_first_piola(F: wp.mat33, m: ElementMaterial, mean: float, anp: int, 
     kappa_e). Visco terms (``n_terms`` per element): S = S_vol + S_iso - sum_i g_i Q_i with
     dQ_i/dt = (S_iso - Q_i) / tau_i, integrated exactly for a stress constant over the step
     (Q_i <- d_i Q_i + (1 - d_i) S_iso, d_i = exp(-dt / tau_i)) when ``update_state`` is set. An
-    element with J <= 0 (or Jm <= 0) is recorded at ``step`` (:func:`record_inversion`) and gives
-    zero: its model is frozen from then on. The one body of the element force, for both element
+    element with J <= 0 (or Jm <= 0) gives (0, 0), any other (V0 P, 1): the caller records the
+    inversion (:func:`record_inversion`) and its model is frozen from then on. The one body of the element force, for both element
     kernels."""
     cof = cofactor(F)
     J = F[0, 0] * cof[0, 0] + F[0, 1] * cof[0, 1] + F[0, 2] * cof[0, 2]
     if J <= 0.0:
-        record_inversion(inverted, b, e, step)
-        return wp.mat33(0.0)
+        return wp.mat33(0.0), 0
     Jm = J
     scale = float(1.0)
     if anp != ANP_OFF:
         # across materials the sums are pressures; within, volume changes (divided by 1, exactly)
         Jm = mean / wp.where(anp == ANP_ACROSS_MATERIALS, m.kappa, 1.0) + 1.0
         if Jm <= 0.0:
-            record_inversion(inverted, b, e, step)
-            return wp.mat33(0.0)
+            return wp.mat33(0.0), 0
         scale = wp.pow(Jm / J, 1.0 / 3.0)
     if n_terms > 0:
         j = e * n_models + b  # the element's entry of model b (visco state)
         return visco_first_piola(scale * F, Jm, m.mu, m.kappa, m.eta, m.fibre, v0, j * n_terms, n_terms, prony_g,
-                                 prony_decay, visco_state, update_state)
-    return scaled_first_piola(F, cof, J, Jm, scale, m.mu, m.kappa, m.eta, m.fibre, v0)
+                                 prony_decay, visco_state, update_state), 1
+    return scaled_first_piola(F, cof, J, Jm, scale, m.mu, m.kappa, m.eta, m.fibre, v0), 1
 
 
 @wp.func
@@ -217,12 +215,13 @@ def model_element_stress(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: i
                          slots: wp.array2d(dtype=int), slots_are_nodes: int, slot_volume: wp.array(dtype=float),
                          anp_sums: wp.array(dtype=float), n_terms: int, prony_g: wp.array(dtype=float),
                          prony_decay: wp.array(dtype=float), visco_state: wp.array(dtype=wp.mat33),
-                         update_state: int, step: int, inverted: wp.array(dtype=int)) -> wp.mat33:
-    """V0 P (N m) of element e of model b (:func:`element_first_piola`), given the element's nodes,
+                         update_state: int):
+    """(V0 P (N m), whole) of element e of model b (:func:`element_first_piola`; whole 0: the
+    element is inverted, the caller records it), given the element's nodes,
     shape derivatives ``d0``-``d3``, volume ``v0`` and its model's ``frozen`` flag (read by the
     caller first, with the element's reads, so that they are in flight together): the element's
     material and ANP mean are read here, and a frozen model's element gives zero and touches no
-    state (the caller adds no forces for it). The element force of both element kernels: the lone
+    state (whole 1; the caller adds no forces for it). The element force of both element kernels: the lone
     :func:`element_forces` reads the element itself, a thread per element and model (built on a
     per-model function of the whole force its lone 2M-tet step took 170-173 us against 163-165;
     H200, 2026-12-01, docs/benchmarks.md); :func:`element_forces_shared` reads it once for a
@@ -233,9 +232,9 @@ def model_element_stress(u: wp.array(dtype=wp.vec3), e: int, b: int, n_models: i
         mean = mean_slot_change(anp_sums, slot_volume, element_slots(tets, slots, slots_are_nodes, e), b, n_models)
     F = deformation_gradient(u, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3)
     if frozen != 0:
-        return wp.mat33(0.0)
+        return wp.mat33(0.0), 1
     return element_first_piola(F, m, mean, anp, v0, e, b, n_models, n_terms, prony_g, prony_decay, visco_state,
-                               update_state, step, inverted)
+                               update_state)
 
 
 ElementKernels = collections.namedtuple("ElementKernels", "nodal_pressure nodal_pressure_shared element_forces "
@@ -338,15 +337,15 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         frozen = inverted[4 * b + 3]  # first: in flight with the element's reads (see model_element_stress)
         n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
         d0, d1, d2, d3 = dhdx[e, 0], dhdx[e, 1], dhdx[e, 2], dhdx[e, 3]
-        P = model_element_stress(u, e, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3, vol0[e], frozen, materials, anp,
-                                 tets, slots, slots_are_nodes, slot_volume, anp_sums, terms, prony_g, prony_decay,
-                                 visco_state, update_state, clock[0], inverted)
+        P, whole = model_element_stress(u, e, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3, vol0[e], frozen,
+                                        materials, anp, tets, slots, slots_are_nodes, slot_volume, anp_sums, terms,
+                                        prony_g, prony_decay, visco_state, update_state)
         if frozen != 0:
             return
-        # the element's nodes and derivatives read again (from the cache) for the forces: held in
-        # registers through the stress they cost the lone 160k step 2 % (H100, 2026-12-05)
-        add_element_forces(forces, n_models, b, tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3], P, dhdx[e, 0],
-                           dhdx[e, 1], dhdx[e, 2], dhdx[e, 3])
+        if whole == 0:
+            record_inversion(inverted, b, e, clock[0])
+            return
+        add_element_forces(forces, n_models, b, n0, n1, n2, n3, P, d0, d1, d2, d3)
 
     @wp.kernel(name="element_forces_shared", **SPECIALISED)
     def element_forces_shared(u: wp.array(dtype=wp.vec3), tets: wp.array2d(dtype=int),
@@ -379,11 +378,14 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         while entry < n_listed:
             b = model_at(models, n_listed, n_models, entry)
             frozen = inverted[4 * b + 3]
-            P = model_element_stress(u, e, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3, v0, frozen, materials, anp,
-                                     tets, slots, slots_are_nodes, slot_volume, anp_sums, terms, prony_g,
-                                     prony_decay, visco_state, update_state, clock[0], inverted)
+            P, whole = model_element_stress(u, e, b, n_models, n0, n1, n2, n3, d0, d1, d2, d3, v0, frozen,
+                                            materials, anp, tets, slots, slots_are_nodes, slot_volume, anp_sums,
+                                            terms, prony_g, prony_decay, visco_state, update_state)
             if frozen == 0:
-                add_element_forces(forces, n_models, b, n0, n1, n2, n3, P, d0, d1, d2, d3)
+                if whole == 0:
+                    record_inversion(inverted, b, e, clock[0])
+                else:
+                    add_element_forces(forces, n_models, b, n0, n1, n2, n3, P, d0, d1, d2, d3)
             entry += lanes
 
     return ElementKernels(nodal_pressure, nodal_pressure_shared, element_forces, element_forces_shared)
