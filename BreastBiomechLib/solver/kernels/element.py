@@ -198,6 +198,14 @@ def element_first_piola(F: wp.mat33, m: ElementMaterial, mean: float, anp: int, 
 
 
 @wp.func
+def hand_on_step(clock: wp.array(dtype=int), tid: int):
+    """The step's number ``clock[0]`` copied to ``clock[1]`` by thread 0 of a force kernel, for
+    :func:`advance_nodes`, which advances it."""
+    if tid == 0:
+        clock[1] = clock[0]
+
+
+@wp.func
 def add_element_forces(forces: wp.array2d(dtype=float), n_models: int, b: int, n0: int, n1: int, n2: int, n3: int,
                        P: wp.mat33, d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3):
     """Element forces f_a = V0 P dN_a/dX (``P`` from :func:`element_first_piola`) added at the
@@ -324,12 +332,9 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         ``clock[1]`` for :func:`advance_nodes`, which advances it."""
         anp = wp.static(anp_mode)  # constants of this specialisation (see element_kernels)
         slots_are_nodes = wp.static(int(node_slots))
-        terms = n_terms
-        if wp.static(not visco):
-            terms = 0
+        terms = n_terms * wp.static(int(visco))  # no Prony terms: 0, a constant
         tid = wp.tid()
-        if tid == 0:
-            clock[1] = clock[0]
+        hand_on_step(clock, tid)
         at = listed(models, n_listed, n_models, tid)
         e, b = at[0], at[1]
         if e < 0 or e >= tets.shape[0]:
@@ -362,12 +367,9 @@ def element_kernels(anp_mode: int, visco: bool, node_slots: bool) -> ElementKern
         step took 173-180 us against 163-165 (H200, 2026-12-01, docs/benchmarks.md)."""
         anp = wp.static(anp_mode)  # constants of this specialisation (see element_kernels)
         slots_are_nodes = wp.static(int(node_slots))
-        terms = n_terms
-        if wp.static(not visco):
-            terms = 0
+        terms = n_terms * wp.static(int(visco))  # no Prony terms: 0, a constant
         tid = wp.tid()
-        if tid == 0:
-            clock[1] = clock[0]
+        hand_on_step(clock, tid)
         at = element_and_lane(lanes, tid)
         e = at[0]
         if e >= tets.shape[0]:
