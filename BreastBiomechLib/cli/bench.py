@@ -500,6 +500,8 @@ def cmd_bench(args) -> int:
             for key, value in figures.items():
                 print(f"{key:32s} {value}")
         return 0
+    if args.family is not None and not args.sweep:
+        raise ValueError("--family applies to --sweep only")
     if args.sweep:
         if args.what not in ("segment", "mesh"):
             raise ValueError(f"--sweep applies to segment and mesh only, not to {args.what}")
@@ -508,7 +510,7 @@ def cmd_bench(args) -> int:
         if args.compression is not None and args.what != "mesh":
             raise ValueError("--compression applies to the mesh sweep only")
         figures = run_sweep(args.what, args.variants, args.processes, args.out, args.edges or MESH_EDGES_MM,
-                            args.compression, args.device)
+                            args.compression, args.device, args.family or "anatomy")
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items() if k != "rows"))
         return 0
     if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "diagnose", "cohort"):
@@ -614,6 +616,9 @@ def add_parsers(sub) -> None:
                    help="segment, mesh: the robustness sweep over phantom variants (anatomy options x image quality; "
                         "mesh: truth and segmentation meshed at every --edges size)")
     p.add_argument("--variants", type=positive_int, default=24, help="sweep: how many variants (default 24)")
+    p.add_argument("--family", choices=("anatomy", "tumour"), default=None,
+                   help="sweep: the variant family (anatomy: every anatomy option x image quality; tumour: lobulated "
+                        "and spiculated tumours in dense gland, their signal up to near the gland's; default anatomy)")
     p.add_argument("--processes", type=positive_int, default=1, help="sweep: variants run side by side")
     p.add_argument("--edges", type=positive, nargs="+", help="mesh sweep: element edges in mm (default 3 4 6 8 10 12 15)")
     p.add_argument("--compression", type=fraction, default=None,

@@ -109,11 +109,12 @@ def mesh_variant(index: int, params, edges=MESH_EDGES_MM, compression: float | N
 
 
 def run_sweep(what: str, count: int, processes: int, out: str | None = None,
-              edges=MESH_EDGES_MM, compression: float | None = None, device=None) -> dict:
-    """Run the ``what`` ("segment" or "mesh") sweep over the first ``count`` variants; figures
-    as one dict (per-variant rows under ``variants``). ``compression``, ``device``: the mesh
-    sweep's :func:`compression_check` (None: none)."""
-    variants = sweep_variants(count)
+              edges=MESH_EDGES_MM, compression: float | None = None, device=None, family: str = "anatomy") -> dict:
+    """Run the ``what`` ("segment" or "mesh") sweep over the first ``count`` variants of
+    ``family`` (:func:`~BreastBiomechLib.phantom.variants.sweep_variants`); figures as one dict
+    (per-variant rows under ``variants``). ``compression``, ``device``: the mesh sweep's
+    :func:`compression_check` (None: none)."""
+    variants = sweep_variants(count, family)
     done = {}
     path = Path(out) if out else None
     if path and path.exists():
@@ -123,6 +124,10 @@ def run_sweep(what: str, count: int, processes: int, out: str | None = None,
             except json.JSONDecodeError:
                 continue  # a line cut by a kill: that variant runs again
             done[row["variant"]] = row
+    foreign = sorted(i for i, row in done.items() if i >= count or row.get("seed") != variants[i].seed)
+    if foreign:
+        raise ValueError(f"{path} holds rows of another sweep (variants {foreign[:5]} do not match the {family} "
+                         f"family's first {count}): write this sweep to another --out file")
     todo = [i for i in range(count) if i not in done]
     started = time.perf_counter()
     work = segment_variant if what == "segment" else mesh_variant
@@ -136,7 +141,7 @@ def run_sweep(what: str, count: int, processes: int, out: str | None = None,
                 with path.open("a") as stream:
                     stream.write(json.dumps(row) + "\n")
     rows = [done[i] for i in range(count)]
-    figures = {"benchmark": f"{what}-sweep", "version": __version__, "machine": platform.machine(),
+    figures = {"benchmark": f"{what}-sweep", "family": family, "version": __version__, "machine": platform.machine(),
                "cores": os.cpu_count(), "processes": processes, "variants": count,
                "wall_s": round(time.perf_counter() - started, 1)}
     if what == "mesh":

@@ -193,7 +193,8 @@ def generate_phantom(params: PhantomParameters | None = None,
         depth_frac = rng.uniform(0.35, 0.55)
         tumour_centre = np.array([rng.uniform(-0.25, 0.25) * anatomy.a, -depth_frac * anatomy.d,
                                   rng.uniform(-0.2, 0.2) * anatomy.b - anatomy.droop * depth_frac**2])
-        _paint_tumour(material, breast & ~skin, fine, (x, y, z), tumour_centre, params.tumour_diameter_mm, rng)
+        _paint_tumour(material, breast & ~skin, fine, (x, y, z), tumour_centre, params.tumour_diameter_mm, rng,
+                      params.tumour_shape)
 
     report(0.4, "fibroglandular tissue")
     # --- fibroglandular tissue: duct tree + lobules, blurred, thresholded to the density -------
@@ -246,7 +247,7 @@ def generate_phantom(params: PhantomParameters | None = None,
     if params.tumour_diameter_mm > 0 and params.tumour_site == "border":
         tumour_centre = _border_site(material, grid, factors, params.tumour_diameter_mm, variant_rng)
         _paint_tumour(material, breast & ~skin, fine, (x, y, z), tumour_centre, params.tumour_diameter_mm,
-                      variant_rng)
+                      variant_rng, params.tumour_shape)
 
     report(0.7, "partial-volume truth images")
     # --- truth images ----------------------------------------------------------------------------
@@ -262,7 +263,9 @@ def generate_phantom(params: PhantomParameters | None = None,
     report(0.8, "MR signal, bias field and noise")
     # --- MR signal: partial-volume mix, texture, bias, Rician noise ----------------------------
     texture = _upsample2(_smooth_noise(rng, half.size[::-1], sig(1.5)), phi.shape)
-    signal = _block_mean(_MATERIAL_INTENSITY[material] * (1.0 + 0.035 * texture), factors)
+    levels = _MATERIAL_INTENSITY.copy()
+    levels[4] = params.tumour_signal
+    signal = _block_mean(levels[material] * (1.0 + 0.035 * texture), factors)
     del texture, phi, depth
     bias = _bias_field(grid, labels > 0, params.bias_strength, rng)
     sigma = INTENSITY["fat"] / params.snr
@@ -335,11 +338,13 @@ def _phantom_case(params: PhantomParameters, grid, fractions: dict, labels, nois
 
 
 def _paint_tumour(material: np.ndarray, allowed: np.ndarray, fine: _Grid, xyz, centre: np.ndarray,
-                  diameter_mm: float, rng) -> None:
-    """Mark (code 4) the fine voxels of ``allowed`` inside a lobulated tumour around ``centre``
-    (LPS mm) whose equivalent-sphere diameter is ``diameter_mm`` (calibrated on a 0.25 mm grid)."""
-    base_phi = tumour_phi_factory(centre, diameter_mm / 2, rng)
-    ax = np.arange(-diameter_mm, diameter_mm, 0.25)
+                  diameter_mm: float, rng, shape: str = "lobulated") -> None:
+    """Mark (code 4) the fine voxels of ``allowed`` inside a lobulated (or spiculated: ``shape``)
+    tumour around ``centre`` (LPS mm) whose equivalent-sphere diameter is ``diameter_mm``
+    (calibrated on a 0.25 mm grid, spicules included)."""
+    base_phi = tumour_phi_factory(centre, diameter_mm / 2, rng, spicules=shape == "spiculated")
+    reach = diameter_mm * (1.25 if shape == "spiculated" else 1.0)
+    ax = np.arange(-reach, reach, 0.25)
     vol = (base_phi(centre[0] + ax[None, None, :], centre[1] + ax[None, :, None],
                     centre[2] + ax[:, None, None]) < 0).sum() * 0.25**3
     shrink = (np.pi / 6 * diameter_mm**3 / vol) ** (1 / 3)
@@ -349,7 +354,7 @@ def _paint_tumour(material: np.ndarray, allowed: np.ndarray, fine: _Grid, xyz, c
                         centre[2] + (z_ - centre[2]) / shrink) * shrink
 
     x, y, z = xyz
-    box = fine.box(centre, diameter_mm * 1.5)
+    box = fine.box(centre, diameter_mm * (2.0 if shape == "spiculated" else 1.5))
     zs, ys, xs = box
     inside = allowed[box] & (phi(x[..., xs], y[:, ys, :], z[zs]) < 0)
     material[box][inside] = 4

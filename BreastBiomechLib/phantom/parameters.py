@@ -19,6 +19,7 @@ INTENSITY = {  # T1-weighted, non-fat-suppressed: fat bright, fibroglandular and
 }
 
 TUMOUR_SITES = ("central", "border")
+TUMOUR_SHAPES = ("lobulated", "spiculated")
 
 
 @dataclass
@@ -47,6 +48,8 @@ class PhantomParameters:
                                        # (Cooper's ligaments) crossing the subcutaneous fat
     gland_on_muscle: bool = False      # glandular tissue lying on the pectoral fascia with no fat plane between
     tumour_site: str = "central"       # "central": inside the gland; "border": in mixed tissue, touching fat
+    tumour_shape: str = "lobulated"    # "lobulated": smooth lobes; "spiculated": lobes with thin radiating spikes
+    tumour_signal: float = 250.0       # the tumour's T1 signal (fat 1000, glandular 420): nearer the gland's, harder to see
     thorax: bool = True                # False: air behind the pectoral muscle, field of view ending just behind it
     extra: dict = field(default_factory=dict)  # free-form notes carried into parameters.json
 
@@ -66,6 +69,9 @@ class PhantomParameters:
             (0.2 <= self.subvoxel_mm <= 1.0, "subvoxel_mm must lie in 0.2-1 mm"),
             (0.0 <= self.gland_texture <= 1.0, "gland_texture must lie in 0-1"),
             (self.tumour_site in TUMOUR_SITES, f"tumour_site must be one of {', '.join(TUMOUR_SITES)}"),
+            (self.tumour_shape in TUMOUR_SHAPES, f"tumour_shape must be one of {', '.join(TUMOUR_SHAPES)}"),
+            (100.0 <= self.tumour_signal <= 400.0,
+             "tumour_signal must lie in 100-400 (fat 1000; the glandular tissue's 420 is the upper limit of a visible tumour)"),
             (isinstance(self.gland_on_muscle, bool) and isinstance(self.thorax, bool),
              "gland_on_muscle and thorax are true or false"),
         ]

@@ -309,6 +309,38 @@ def test_the_breast_surface_lies_where_a_voxel_is_half_tissue_with_or_without_sk
         assert dice_per_tissue(result.labels, case.labels)["fat"] >= 0.985
 
 
+def _tumour_reach(case) -> float:
+    """The largest distance (mm) of a truth tumour voxel from the tumour's centroid."""
+    labels = _array(case.labels)
+    spacing = np.array(case.labels.GetSpacing())[::-1]
+    points = np.argwhere(labels == 4) * spacing
+    return float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
+
+
+def test_a_spiculated_tumour_reaches_further_at_the_same_size():
+    """Spicules (8-14 thin spikes to 0.9-1.6 radii) on the same lobes: the same equivalent
+    diameter, calibrated with them, but tissue further from the centre."""
+    shapes = {shape: generate_phantom(PhantomParameters(**SMALL, density=0.5, tumour_shape=shape, subvoxel_mm=0.5))
+              for shape in ("lobulated", "spiculated")}
+    for case in shapes.values():
+        assert case.summary["tumour_equivalent_diameter_mm"] == pytest.approx(12.0, rel=0.1)
+    assert _tumour_reach(shapes["spiculated"]) > 1.15 * _tumour_reach(shapes["lobulated"])
+
+
+def test_the_tumour_signal_is_the_tumours_and_checked(default):
+    """``tumour_signal`` sets the tumour's T1 level (fat 1000) and nothing else; a tumour
+    brighter than the gland, or a shape the phantom does not make, is refused by name."""
+    brighter = generate_phantom(PhantomParameters(**SMALL, tumour_signal=350.0))
+    core = ndimage.binary_erosion(_array(default.labels) == 4)
+    ratio = _array(brighter.image)[core].mean() / _array(default.image)[core].mean()
+    assert ratio == pytest.approx(350.0 / 250.0, rel=0.05)
+    fat = _array(default.labels) == 1
+    assert np.array_equal(_array(brighter.image)[fat], _array(default.image)[fat])
+    for bad, message in [(dict(tumour_signal=450.0), "tumour_signal"), (dict(tumour_shape="star"), "tumour_shape")]:
+        with pytest.raises(ValueError, match=message):
+            PhantomParameters(**bad)
+
+
 # --- the robustness sweeps --------------------------------------------------------------------
 
 def test_the_sweep_covers_every_option_value():
@@ -320,6 +352,29 @@ def test_the_sweep_covers_every_option_value():
         assert {repr(getattr(p, name)) for p in variants} == {repr(v) for v in values}, name
     assert min(p.snr for p in variants) == 15 and max(p.snr for p in variants) == 40
     assert max(p.bias_strength for p in variants) == 0.35
+
+
+def test_the_tumour_family_covers_its_options_and_keeps_its_rows_apart(tmp_path):
+    """The tumour family: every option value within its first 14 variants (each signal with each
+    shape), central tumours in dense gland; a sweep file of another family is refused, not mixed."""
+    import json
+
+    from BreastBiomechLib.cli.sweeps import run_sweep
+    from BreastBiomechLib.phantom.variants import _TUMOUR_OPTIONS, describe, sweep_variants
+
+    variants = sweep_variants(14, "tumour")
+    for name, values in _TUMOUR_OPTIONS.items():
+        assert {repr(getattr(p, name)) for p in variants} == {repr(v) for v in values}, name
+    assert {(p.tumour_shape, p.tumour_signal) for p in variants} == {
+        (shape, signal) for shape in _TUMOUR_OPTIONS["tumour_shape"] for signal in _TUMOUR_OPTIONS["tumour_signal"]}
+    assert all(p.tumour_site == "central" and p.density >= 0.4 for p in variants)
+    assert "spiculated 15 mm tumour, signal 250" in describe(variants[0])
+    with pytest.raises(ValueError, match="unknown variant family"):
+        sweep_variants(2, "lesion")
+    out = tmp_path / "sweep.jsonl"
+    out.write_text(json.dumps({"variant": 0, "seed": sweep_variants(1)[0].seed}) + "\n")
+    with pytest.raises(ValueError, match="another sweep"):
+        run_sweep("segment", 1, 1, str(out), family="tumour")
 
 
 def test_mesh_sweep_resumes_and_reports(tmp_path, capsys):
