@@ -9,13 +9,18 @@ from pathlib import Path
 from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, fraction, non_negative,
                                          positive, positive_int, report_failures)
 from BreastBiomechLib.cohort import place
-from BreastBiomechLib.discrepancy.suite import SuiteSettings, run_suite, scores_markdown, suite_cases, suite_scores
+from BreastBiomechLib.discrepancy.suite import (ANATOMIES, SuiteSettings, run_suite, scores_markdown, suite_cases,
+                                                suite_scores)
+from BreastBiomechLib.discrepancy.suite.varied import VARIED_ANATOMIES, varied_cases
 from BreastBiomechLib.io.atomic import write_text_atomically
 
 
 def cmd_suite(args) -> int:
     out = Path(args.out)
-    cases = suite_cases(args.anatomies, args.hidden)
+    if args.varied:
+        cases = varied_cases(args.varied, args.varied_seed, args.anatomies or VARIED_ANATOMIES, args.hidden)
+    else:
+        cases = suite_cases(args.anatomies or ANATOMIES, args.hidden)
     settings = SuiteSettings(compression=args.compression,
                              spacing_mm=None if args.spacing is None else tuple(args.spacing),
                              truth_edge_mm=args.truth_edge_mm, fit_edge_mm=args.fit_edge_mm,
@@ -52,16 +57,22 @@ def cmd_suite(args) -> int:
 
 def add_parsers(sub) -> None:
     """Register the ``discrepancy-suite`` command on ``sub`` (argparse sub-parsers)."""
-    from BreastBiomechLib.discrepancy.suite import ANATOMIES, HIDDEN_EFFECTS, SuiteSettings
+    from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings
 
     d = SuiteSettings()
     p = sub.add_parser("discrepancy-suite", help="hidden-effect suite: make, fit and diagnose phantom cases "
                                                  "hiding known, unknown or no effects; score the verdicts")
     p.add_argument("--out", required=True, help="suite folder (a run resumes in it)")
-    p.add_argument("--anatomies", nargs="+", type=int, default=list(ANATOMIES), choices=ANATOMIES,
-                   help="Table 1 presets used as anatomies (default all five)")
+    p.add_argument("--anatomies", nargs="+", type=int, choices=VARIED_ANATOMIES,
+                   help="anatomies: the Table 1 presets 1-5 (default all five); with --varied also the sweep "
+                        "variants 6-11 (default all eleven)")
     p.add_argument("--hidden", nargs="+", choices=list(HIDDEN_EFFECTS),
                    help="hidden effects (default all: " + ", ".join(HIDDEN_EFFECTS) + ")")
+    p.add_argument("--varied", type=positive_int, metavar="N",
+                   help="the varied suite's first N cases instead: each draws its anatomy, compression, rig, "
+                        "landmark noise, fit budget, fitting and truth mesh sizes and its effect's size (a third "
+                        "null cases); the options below are then the run's defaults, which the draws replace")
+    p.add_argument("--varied-seed", type=int, default=0, help="the varied suite's draws (default 0)")
     p.add_argument("--compression", type=fraction, default=d.compression,
                    help=f"fraction of the breast thickness the plates close (default {d.compression})")
     p.add_argument("--spacing", type=positive, nargs=3, metavar=("L", "P", "S"),

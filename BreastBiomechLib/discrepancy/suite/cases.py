@@ -82,19 +82,36 @@ ANATOMIES = (1, 2, 3, 4, 5)
 
 @dataclass(frozen=True)
 class SuiteCase:
-    """One case: the Table 1 ``anatomy`` (1-5) and the ``hidden`` effect; ``name`` its folder."""
+    """One case: the ``anatomy`` (1-5 the Table 1 presets; the varied suite's also 6-11) and the
+    ``hidden`` effect; ``name`` its folder. A case of the varied suite
+    (:mod:`~BreastBiomechLib.discrepancy.suite.varied`) has its ``index`` in the run of seed
+    ``varied_seed`` and the settings it drew (``draw``: (name, value) pairs of
+    :class:`~BreastBiomechLib.discrepancy.suite.runner.SuiteSettings` fields); a fixed suite's
+    case has index -1 and draws nothing."""
 
     anatomy: int
     hidden: HiddenEffect
+    index: int = -1
+    varied_seed: int = 0
+    draw: tuple = ()
 
     @property
     def name(self) -> str:
+        if self.index >= 0:
+            return f"varied{self.varied_seed}-{self.index:03d}-anatomy{self.anatomy}-{self.hidden.name}"
         return f"anatomy{self.anatomy}-{self.hidden.name}"
 
     @property
     def seed(self) -> int:
         """The measured image's noise seed: its own per case."""
+        if self.index >= 0:
+            return 900_000 + 1000 * self.varied_seed + self.index
         return 5000 + 100 * self.anatomy + list(HIDDEN_EFFECTS).index(self.hidden.name)
+
+    @property
+    def drawn(self) -> dict:
+        """The settings this case drew ({} for a fixed suite's case)."""
+        return dict(self.draw)
 
 
 def suite_cases(anatomies=ANATOMIES, effects=None) -> list[SuiteCase]:
@@ -107,5 +124,5 @@ def suite_cases(anatomies=ANATOMIES, effects=None) -> list[SuiteCase]:
         raise ValueError(f"unknown hidden effects {unknown}; the suite has {list(HIDDEN_EFFECTS)}")
     bad = sorted(set(anatomies) - set(ANATOMIES))
     if bad:
-        raise ValueError(f"anatomies {bad}: the suite's anatomies are the Table 1 presets {list(ANATOMIES)}")
+        raise ValueError(f"anatomies {bad}: the suite's anatomies are the Table 1 presets {list(ANATOMIES)} (6-11: the varied suite's)")
     return [SuiteCase(a, HIDDEN_EFFECTS[n]) for n in names for a in anatomies]

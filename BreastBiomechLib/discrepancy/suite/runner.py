@@ -10,6 +10,7 @@ skipped when its output exists, so a run resumes)::
     anatomy<N>/truth_mesh.vtu    the truth mesh (of the truth labels; finer than the fitting mesh)
     anatomy<N>/segmentation/     the segmentation of the MR from its seed points
     anatomy<N>/fitting_mesh.vtu  the fitting mesh of the segmentation (never of the truth labels)
+    anatomy<N>/<kind>_mesh-<E>mm.vtu  a varied case's truth or fitting mesh at another element size
     anatomy<N>/prepared.json     the anatomy's figures (Dice, mesh sizes, seconds)
     <case>/truth/compressed/     the truth simulation's case with its truth files
     <case>/measured/             what the fit and the diagnosis read: mr.nrrd, landmarks, seed
@@ -30,7 +31,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,7 @@ from BreastBiomechLib.cohort import Task, place, run_tasks
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
 from BreastBiomechLib.discrepancy.suite.scores import case_result
+from BreastBiomechLib.discrepancy.suite.varied import anatomy_parameters
 from BreastBiomechLib.discrepancy.variants import solve_variants
 from BreastBiomechLib.io.atomic import write_json_atomically
 from BreastBiomechLib.io.markups import read_markups
@@ -138,13 +140,13 @@ class _Lock:
 
 def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None,
                     say: Callable[[str], None] = lambda m: None) -> dict:
-    """The phantom of Table 1 preset ``number``, its truth mesh, the segmentation of its MR and
-    the fitting mesh of the segmentation, in ``out/anatomy<number>`` (made once; see the module)."""
+    """The phantom of suite anatomy ``number`` (:func:`~BreastBiomechLib.discrepancy.suite.varied.anatomy_parameters`),
+    its truth mesh, the segmentation of its MR and the fitting mesh of the segmentation, in
+    ``out/anatomy<number>`` (made once; see the module)."""
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.io.segmentation import write_segmentation
-    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-    from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
+    from BreastBiomechLib.phantom import generate_phantom, write_phantom
     from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
 
     folder = out / f"anatomy{number}"
@@ -155,7 +157,7 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
             return json.loads(done.read_text())
         figures, started = {}, time.perf_counter()
         say(f"anatomy {number}: phantom")
-        params = table1_case(number)
+        params = anatomy_parameters(number)
         if settings.spacing_mm is not None:
             params.spacing_mm = tuple(settings.spacing_mm)
         case = generate_phantom(params)
@@ -164,8 +166,7 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
                               "density": case.summary["glandular_density"], "seconds": time.perf_counter() - started}
         say(f"anatomy {number}: truth mesh ({settings.truth_edge_mm:g} mm)")
         t = time.perf_counter()
-        truth_mesh = mesh_labels(case.labels, MeshSettings(edge_mm=settings.truth_edge_mm),
-                                 nipple_mm=case.landmarks.position("nipple")).mesh
+        truth_mesh = _truth_mesh(case.labels, case.landmarks.position("nipple"), settings.truth_edge_mm)
         write_vtu(folder / "truth_mesh.vtu", truth_mesh)
         figures["truth_mesh"] = {"tets": len(truth_mesh.tets), "seconds": time.perf_counter() - t}
         say(f"anatomy {number}: segmentation of the MR")
@@ -179,16 +180,57 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
         figures["segmentation"] = {"dice": dice, "seconds": time.perf_counter() - t}
         say(f"anatomy {number}: fitting mesh of the segmentation ({settings.fit_edge_mm:g} mm)")
         t = time.perf_counter()
-        mesh = mesh_labels(result.labels, MeshSettings(edge_mm=settings.fit_edge_mm,
-                                                       surface_edge_mm=settings.fit_surface_edge_mm,
-                                                       refine_interfaces=settings.refine_interfaces,
-                                                       blur_mm=settings.fit_blur_mm),
-                           nipple_mm=read_markups(scan / "landmarks.mrk.json").position("nipple"))
-        write_vtu(folder / "fitting_mesh.vtu", mesh.mesh)
-        figures["fitting_mesh"] = {"nodes": len(mesh.mesh.nodes), "tets": len(mesh.mesh.tets),
+        mesh = _fitting_mesh(result.labels, read_markups(scan / "landmarks.mrk.json").position("nipple"), settings)
+        write_vtu(folder / "fitting_mesh.vtu", mesh)
+        figures["fitting_mesh"] = {"nodes": len(mesh.nodes), "tets": len(mesh.tets),
                                    "seconds": time.perf_counter() - t}
         write_json(done, figures)
         return figures
+
+
+def _truth_mesh(labels, nipple_mm, edge_mm: float):
+    """The truth mesh of a phantom's truth ``labels`` at ``edge_mm``."""
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+
+    return mesh_labels(labels, MeshSettings(edge_mm=edge_mm), nipple_mm=nipple_mm).mesh
+
+
+def _fitting_mesh(segmentation_labels, nipple_mm, settings: SuiteSettings):
+    """The fitting mesh of a segmentation's labels under ``settings`` (never of the truth labels)."""
+    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+
+    return mesh_labels(segmentation_labels, MeshSettings(edge_mm=settings.fit_edge_mm,
+                                                         surface_edge_mm=settings.fit_surface_edge_mm,
+                                                         refine_interfaces=settings.refine_interfaces,
+                                                         blur_mm=settings.fit_blur_mm), nipple_mm=nipple_mm).mesh
+
+
+def case_settings(case: SuiteCase, settings: SuiteSettings) -> SuiteSettings:
+    """``settings`` with what ``case`` drew (a varied suite's case) in place of the run's."""
+    return replace(settings, **case.drawn) if case.drawn else settings
+
+
+def anatomy_mesh(anatomy: Path, kind: str, mine: SuiteSettings, run: SuiteSettings) -> Path:
+    """The path of anatomy folder ``anatomy``'s ``kind`` ("truth" or "fitting") mesh at the element
+    size of a case's settings ``mine``: the prepared one where it is the run's (``run``), else
+    ``<kind>_mesh-<edge>mm.vtu``, made once (under the anatomy's lock) from the phantom's truth
+    labels or the segmentation's labels."""
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.io.meshes import write_vtu
+
+    edge = mine.truth_edge_mm if kind == "truth" else mine.fit_edge_mm
+    if edge == (run.truth_edge_mm if kind == "truth" else run.fit_edge_mm):
+        return anatomy / f"{kind}_mesh.vtu"
+    path = anatomy / f"{kind}_mesh-{edge:g}mm.vtu"
+    with _Lock(anatomy / ".lock"):
+        if not path.is_file():
+            nipple = read_markups(anatomy / "phantom" / "landmarks.mrk.json").position("nipple")
+            if kind == "truth":
+                mesh = _truth_mesh(read_image(anatomy / "phantom" / "labels.nrrd"), nipple, edge)
+            else:
+                mesh = _fitting_mesh(read_image(anatomy / "segmentation" / "labels.nrrd"), nipple, mine)
+            write_vtu(path, mesh)
+    return path
 
 
 def hidden_truth(case: SuiteCase, settings: SuiteSettings) -> dict:
@@ -302,6 +344,7 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
     folder = out / case.name
     anatomy = out / f"anatomy{case.anatomy}"
     prepared = prepare_anatomy(case.anatomy, out, settings, device, say)
+    run_settings, settings = settings, case_settings(case, settings)
     seconds = {}
     truth_dir = folder / "truth"
     if not (truth_dir / "compressed" / "truth.json").is_file():
@@ -311,7 +354,8 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
         truth = TruthModel(compression=settings.compression, edge_mm=settings.truth_edge_mm, seed=case.seed,
                            chest_clearance_mm=settings.chest_clearance_mm, moving_plate=settings.moving_plate,
                            **hidden_truth(case, settings))
-        compressed = compress_phantom(phantom, truth, device=device, mesh=read_vtu(anatomy / "truth_mesh.vtu"))
+        compressed = compress_phantom(phantom, truth, device=device,
+                                      mesh=read_vtu(anatomy_mesh(anatomy, "truth", settings, run_settings)))
         for name in ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json"):
             if (anatomy / "phantom" / name).is_file():
                 truth_dir.mkdir(parents=True, exist_ok=True)
@@ -329,7 +373,8 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
             shutil.rmtree(fit_dir)
         fit = FitSettings(model="iso-hetero", free=("E",), edge_mm=settings.fit_edge_mm, optimiser="cmaes",
                           budget=settings.fit_budget, population=settings.fit_population)
-        fit_compressed_case(measured, fit_dir, fit, mesh_path=anatomy / "fitting_mesh.vtu", device=device)
+        fit_compressed_case(measured, fit_dir, fit, mesh_path=anatomy_mesh(anatomy, "fitting", settings, run_settings),
+                            device=device)
         seconds["fit"] = time.perf_counter() - t
     diagnosis_dir = folder / "diagnosis"
     say(f"{case.name}: diagnosis")
@@ -342,7 +387,7 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
     seconds["diagnosis"] = time.perf_counter() - t
     say(f"{case.name}: scoring against the truth")
     ceiling, true_errors = scored_against_truth(folder, fit_dir, run.rounds, device)
-    return case_result(case, run.rounds, ceiling, prepared, seconds, true_errors)
+    return case_result(case, run.rounds, ceiling, prepared, seconds, true_errors, truth_parameters=case.hidden.truth)
 
 
 def suite_tasks(out: Path, cases: list[SuiteCase], settings: SuiteSettings) -> list:

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from BreastBiomechLib.discrepancy.suite.cases import HIDDEN_EFFECTS, MISSING, NONE, UNEXPLAINED, SuiteCase
+from BreastBiomechLib.discrepancy.effects import NAMES as EFFECT_NAMES
+from BreastBiomechLib.discrepancy.suite.cases import ANATOMIES, HIDDEN_EFFECTS, MISSING, NONE, UNEXPLAINED, SuiteCase
+from BreastBiomechLib.discrepancy.suite.varied import SETTING_BINS, setting_bin
 
 TARGETS = {"right_verdicts": 0.9, "false_alarms": 0.05, "false_unexplained_after_right": 0.05,
            "truth_in_interval": 0.8, "friction_within_0.2": 0.8, "landmark_error_fall": 0.5, "nmi_gap_closed": 0.5,
@@ -81,11 +83,12 @@ def estimates(case: SuiteCase, rounds: list[dict]) -> dict:
 
 
 def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared: dict, seconds: dict,
-                true_errors: dict | None = None) -> dict:
+                true_errors: dict | None = None, truth_parameters: dict | None = None) -> dict:
     """One case's record: its answers round by round, the effects added, whether it is right,
     the landmark error (mm; ``true_errors`` {"before", "after"}: against the truth's exact
     landmarks, else against the measured ones) and NMI before the first round and after the last
-    refit, the truth parameters' NMI, and the anatomy's and the case's figures."""
+    refit, the truth parameters' NMI, and the anatomy's and the case's figures; a varied case's
+    drawn settings (``draw``) and the truth's hidden-effect fields (``truth_parameters``)."""
     true_errors = true_errors or {}
     added = [r["added"] for r in rounds if r.get("added")]
     verdicts = [r["diagnosis"]["verdict"] for r in rounds]
@@ -113,7 +116,8 @@ def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared:
            "overall_statistic": rounds[0]["diagnosis"]["overall"]["statistic"],
            "overall_dof": rounds[0]["diagnosis"]["overall"]["dof"],
            "overall_p": rounds[0]["diagnosis"]["overall"]["p_value"],
-           "anatomy_figures": prepared, "seconds": {k: round(v, 1) for k, v in seconds.items()}}
+           "anatomy_figures": prepared, "seconds": {k: round(v, 1) for k, v in seconds.items()},
+           "draw": case.drawn, "truth_parameters": dict(truth_parameters or {})}
     if last is not None:
         out["landmark_error_after_mm"] = true_errors.get("after", last.get("landmark_error_mm", {}).get("mean"))
         out["measured_landmark_error_after_mm"] = last.get("landmark_error_mm", {}).get("mean")
@@ -164,7 +168,34 @@ def suite_scores(results: list[dict]) -> dict:
         "landmark_error_after_mm": mean("landmark_error_after_mm", named),
         "seconds_per_case": mean("total_seconds", [r | {"total_seconds": sum(r["seconds"].values())} for r in done]),
         "confusion": confusion, "answers": answers, "targets": TARGETS,
+        "by_setting": by_setting(done), "false_naming": false_naming(done),
     }
+
+
+def by_setting(results: list[dict]) -> dict:
+    """The varied suite's scores per drawn setting and bin (:data:`~BreastBiomechLib.discrepancy.suite.varied.SETTING_BINS`,
+    and the anatomy: a Table 1 preset or beyond): {setting: {bin: {"right": [right, hidden-effect
+    cases], "false_alarms": [false alarms, null cases]}}}; cases that drew nothing are left out."""
+    out: dict = {}
+    for r in results:
+        if "error" in r or not r.get("draw"):
+            continue
+        cells = [(name, setting_bin(name, value)) for name, value in r["draw"].items() if name in SETTING_BINS]
+        cells.append(("anatomy", "Table 1 (1-5)" if r["anatomy"] in ANATOMIES else "beyond (6-11)"))
+        for name, where in cells:
+            cell = out.setdefault(name, {}).setdefault(where, {"right": [0, 0], "false_alarms": [0, 0]})
+            key, hit = ("false_alarms", not r["correct"]) if r["kind"] == "null" else ("right", r["correct"])
+            cell[key][0] += int(hit)
+            cell[key][1] += 1
+    return {name: dict(sorted(bins.items())) for name, bins in out.items()}
+
+
+def false_naming(results: list[dict]) -> dict:
+    """Per library effect (:data:`~BreastBiomechLib.discrepancy.effects.NAMES`): in how many of the
+    finished cases whose truth does not hide it some round added it ({name: [named, such cases]})."""
+    done = [r for r in results if "error" not in r]
+    return {name: [sum(name in r["added"] for r in done if name not in r["expected"]),
+                   sum(name not in r["expected"] for r in done)] for name in EFFECT_NAMES}
 
 
 def wilson_interval(successes: int, trials: int, z: float = Z95) -> tuple[float, float]:
@@ -189,6 +220,27 @@ def _rate(value, trials: int) -> str:
         return "–"
     low, high = wilson_interval(round(value * trials), trials)
     return f"{value:.0%} of {trials} (95 % CI {low:.0%}-{high:.0%})"
+
+
+def _count(pair) -> str:
+    """"k of n (95 % CI lo-hi)" of a [k, n] pair ("–" with n = 0)."""
+    k, n = pair
+    return _rate(k / n, n) if n else "–"
+
+
+def _varied_markdown(scores: dict) -> list[str]:
+    """The varied suite's tables (none when no case drew its settings): right verdicts and false
+    alarms per setting's bin, and each library effect's false-naming rate."""
+    if not scores.get("by_setting"):
+        return []
+    lines = ["", "| setting | bin | right final verdicts (hidden-effect cases) | false alarms (null cases) |",
+             "|---|---|---|---|"]
+    for name, bins in scores["by_setting"].items():
+        for where, cell in bins.items():
+            lines.append(f"| {name} | {where} | {_count(cell['right'])} | {_count(cell['false_alarms'])} |")
+    lines += ["", "| library effect | named where the truth does not hide it |", "|---|---|"]
+    lines += [f"| {name} | {_count(pair)} |" for name, pair in scores.get("false_naming", {}).items()]
+    return lines
 
 
 def scores_markdown(scores: dict, results: list[dict]) -> str:
@@ -222,6 +274,7 @@ def scores_markdown(scores: dict, results: list[dict]) -> str:
              "", "| hidden effect | " + " | ".join(answers) + " |", "|---|" + "---|" * len(answers)]
     for name, row in scores["confusion"].items():
         lines.append(f"| {name} | " + " | ".join(str(row.get(a, 0)) for a in answers) + " |")
+    lines += _varied_markdown(scores)
     lines += ["", "| case | first → final answer | rounds | right | landmark error before → after (mm) | "
               "NMI before → after (truth) |", "|---|---|---|---|---|---|"]
     for r in results:
