@@ -129,9 +129,11 @@ def add_parsers(sub) -> None:
                    help="nmi (the seed's), landmarks (mean error), surface (mean distance of the predicted breast "
                         "skin to the measured body surface) or a weighted sum with NMI (default nmi)")
     p.add_argument("--bins", type=positive_int, default=64, help="NMI histogram bins (default 64)")
-    p.add_argument("--mesh", help="fitting mesh (.vtu from `breastbiomech mesh` of a segmentation); this or --labels")
-    p.add_argument("--labels", help="a segmentation's label map, meshed at --edge-mm; this or --mesh (a phantom "
-                                    "case's own labels.nrrd is its ground truth: name it only on purpose)")
+    p.add_argument("--mesh", help="fitting mesh (.vtu from `breastbiomech mesh` of a segmentation); default: the "
+                                  "case's MR segmented from its seed points (seeds_muscle/seeds_tumour.mrk.json), "
+                                  "meshed at --edge-mm")
+    p.add_argument("--labels", help="a segmentation's label map, meshed at --edge-mm, instead (a phantom case's own "
+                                    "labels.nrrd is its ground truth: name it only on purpose)")
     p.add_argument("--edge-mm", type=positive, default=4.0, help="fitting mesh element size (default 4 mm)")
     p.add_argument("--tolerance-mm", type=positive, default=0.01, help="forward solves' relaxation tolerance (mm)")
     p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, fraction, non_negative,
-                                         positive, positive_int, report_failures)
+                                         non_negative_int, positive, positive_int, report_failures)
 from BreastBiomechLib.cohort import place
 from BreastBiomechLib.discrepancy.suite import (ANATOMIES, SuiteSettings, run_suite, scores_markdown, suite_cases,
                                                 suite_scores)
@@ -72,7 +72,7 @@ def add_parsers(sub) -> None:
                    help="the varied suite's first N cases instead: each draws its anatomy, compression, rig, "
                         "landmark noise, fit budget, fitting and truth mesh sizes and its effect's size (a third "
                         "null cases); the options below are then the run's defaults, which the draws replace")
-    p.add_argument("--varied-seed", type=int, default=0, help="the varied suite's draws (default 0)")
+    p.add_argument("--varied-seed", type=non_negative_int, default=0, help="the varied suite's draws (default 0)")
     p.add_argument("--compression", type=fraction, default=d.compression,
                    help=f"fraction of the breast thickness the plates close (default {d.compression})")
     p.add_argument("--spacing", type=positive, nargs=3, metavar=("L", "P", "S"),

@@ -6,6 +6,8 @@ module run.
 Output folder (besides the optimisation's settings.json, evaluations.jsonl, result.json)::
 
     fitting_mesh.vtu              the fitting mesh (reused on resume)
+    segmentation/                 the MR's segmentation from the case's seed points, where the fitting
+                                  mesh was made of it (no --mesh or --labels given)
     predicted.nrrd                the FE-predicted compressed MR at the best parameters
     predicted_landmarks.mrk.json  the landmarks moved by the best solution (LPS)
     deformed_mesh.vtu             the fitting mesh with the best solution's ``displacement`` (mm)
@@ -33,6 +35,10 @@ from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.solver import DynamicRelaxation
 
 LANDMARK_ERRORS = "landmark_errors.json"  # per landmark and summarised (mm)
+
+
+SEEDS_MUSCLE = "seeds_muscle.mrk.json"  # a case's seed points on the pectoral muscle (LPS mm)
+SEEDS_TUMOUR = "seeds_tumour.mrk.json"  # and in the tumour, where it has one
 
 
 @dataclass
@@ -74,9 +80,12 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     """Fit ``settings.model`` to the compressed case in ``case_dir`` (a phantom case folder with
     its ``compressed/`` part, :mod:`BreastBiomechLib.phantom.compressed_files`) and write the
     results to ``out_dir``. The fitting mesh is ``mesh_path`` (a ``breastbiomech mesh`` .vtu), or
-    made from ``labels`` (a segmentation's label map) at ``settings.edge_mm``; one of the two is
-    required (a resumed fit takes its own). There is no default: a phantom case's labels.nrrd is
-    its ground truth, which a fit meant to be realistic must not mesh; pass it as ``labels`` only on
+    made from ``labels`` (a segmentation's label map) at ``settings.edge_mm``, or, with neither,
+    from the segmentation of the case's MR from its seed points (``seeds_muscle.mrk.json``, and
+    ``seeds_tumour.mrk.json`` where it has a tumour; :func:`~BreastBiomechLib.segmentation.segment_tissues`,
+    written to ``out_dir/segmentation``), as a clinic's case would be; a case without seed points
+    is refused (a resumed fit takes its own mesh). A phantom case's labels.nrrd is its ground
+    truth, which a fit meant to be realistic never meshes by default; pass it as ``labels`` only on
     purpose (a fit on the truth, to tell the segmentation's share of an error from the model's)."""
     from BreastBiomechLib.io.images import read_image, read_label_map
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
@@ -85,8 +94,11 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     settings = settings or FitSettings()
     case = Path(case_dir)
     out = Path(out_dir)
-    if mesh_path is None and labels is None and not (resume and (out / "fitting_mesh.vtu").is_file()):
-        raise ValueError("no fitting mesh: pass --mesh MESH.vtu (`breastbiomech mesh` of your segmentation) or "
+    segment = mesh_path is None and labels is None and not (resume and (out / "fitting_mesh.vtu").is_file())
+    if segment and not (case / SEEDS_MUSCLE).is_file():
+        raise ValueError(f"no fitting mesh: {case} has no seed points on the pectoral muscle ({SEEDS_MUSCLE}) to "
+                         "segment its MR from; add them (Breast Segmentation module, or `breastbiomech phantom` "
+                         "writes them), or pass --mesh MESH.vtu (`breastbiomech mesh` of your segmentation) or "
                          "--labels SEG.nrrd (a segmentation's label map, meshed at --edge-mm). A phantom case's "
                          f"{case / 'labels.nrrd'} is its ground truth: a fit does not mesh it unless --labels names "
                          "it on purpose")
@@ -108,7 +120,8 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
             from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
 
             nipple = reference.position("nipple") if reference is not None and "nipple" in reference.labels else None
-            mesh = mesh_labels(read_label_map(labels), MeshSettings(edge_mm=settings.edge_mm), nipple_mm=nipple).mesh
+            label_map = segmented_labels(case, undeformed, out / "segmentation") if segment else read_label_map(labels)
+            mesh = mesh_labels(label_map, MeshSettings(edge_mm=settings.edge_mm), nipple_mm=nipple).mesh
         write_vtu(mesh_file, mesh)
         space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
                                          free=settings.free, fibre=settings.fibre,
@@ -122,6 +135,19 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
 
         result, errors = write_fit_outputs(out, problem, result)
         return CaseFit(result, errors, out)
+
+
+def segmented_labels(case: Path, image, out: Path):
+    """The label map of ``image`` (the case's undeformed MR) segmented from the case's seed points
+    (:data:`SEEDS_MUSCLE`, and :data:`SEEDS_TUMOUR` where present), the segmentation written to
+    ``out`` (labels, probabilities, bias field)."""
+    from BreastBiomechLib.io.segmentation import write_segmentation
+    from BreastBiomechLib.segmentation import segment_tissues
+
+    tumour = read_markups(case / SEEDS_TUMOUR).positions if (case / SEEDS_TUMOUR).is_file() else None
+    result = segment_tissues(image, read_markups(case / SEEDS_MUSCLE).positions, tumour)
+    write_segmentation(result, out, {"segmented_for": "the fitting mesh (seed points of the case)"})
+    return result.labels
 
 
 def write_fit_outputs(out: str | Path, problem: FittingProblem, result: OptimisationResult) -> tuple:

@@ -333,16 +333,28 @@ def test_a_fit_still_improving_at_its_end_is_told_from_a_settled_one():
     assert np.isnan(OptimisationResult(done, {}, [done], "budget", 0, 0.0).recent_gain())
 
 
-def test_a_fit_without_a_mesh_or_labels_is_refused_not_made_on_the_truth(compressed_case_dir, tmp_path, capsys):
-    """No silent default to a phantom case's labels.nrrd, its ground truth: the fit names the two
-    ways to give it a segmentation, and writes nothing."""
+def test_a_fit_without_a_mesh_segments_the_case_s_mr_never_its_truth(compressed_case_dir, tmp_path, capsys):
+    """With neither --mesh nor --labels the fit segments the case's MR from its seed points, as a
+    clinic's case would be, and meshes that segmentation: the case here holds no truth at all
+    (labels.nrrd and the truth files removed). A case without seed points is refused with the three
+    ways to give a mesh named, and nothing is written."""
+    import shutil
+
     from BreastBiomechLib.cli import main
 
-    assert main(["optimise", str(compressed_case_dir), "--out", str(tmp_path / "fit"), "--budget", "2",
-                 "--device", "cpu"]) == 2
+    case = Path(shutil.copytree(compressed_case_dir, tmp_path / "case"))
+    for truth in ("labels.nrrd", "compressed/truth.json", "compressed/truth_mesh.vtu"):
+        (case / truth).unlink()
+    arguments = ["optimise", str(case), "--model", "iso-homo", "--budget", "2", "--edge-mm", "10", "--device", "cpu",
+                 "--tolerance-mm", "0.05", "--quiet"]
+    assert main(arguments + ["--out", str(tmp_path / "fit")]) == 0
+    for made in ("segmentation/labels.nrrd", "segmentation/segmentation.json", "fitting_mesh.vtu", "result.json"):
+        assert (tmp_path / "fit" / made).is_file(), made
+    (case / "seeds_muscle.mrk.json").unlink()
+    assert main(arguments + ["--out", str(tmp_path / "unseeded")]) == 2
     error = capsys.readouterr().err
-    assert "no fitting mesh: pass --mesh" in error and "--labels" in error and "ground truth" in error
-    assert not (tmp_path / "fit").exists()
+    assert "no seed points on the pectoral muscle" in error and "--mesh" in error and "--labels" in error
+    assert "ground truth" in error and not (tmp_path / "unseeded").exists()
 
 
 def test_cmaes_then_its_local_stage_settles_where_cmaes_alone_does_not():
