@@ -666,6 +666,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         corrected p, share of the residual it could explain, localisation, share of its signature
         the fitted parameters reproduce, the smallest size of its parameters its test would see,
         refit dBIC and share removed, where it acts, and its part in the verdict."""
+        from BreastBiomechLib.discrepancy.diagnosis import closest_rivals
         from BreastBiomechLib.mrml import columns_to_table_node
 
         d = record["diagnosis"]
@@ -690,6 +691,12 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
             value = (c.get("refit") or {}).get(key)
             return float("nan") if value is None else float(value)
 
+        rivals = closest_rivals(d["candidates"], d.get("correlations") or {})
+
+        def rival(c):  # the tested candidate it is least told apart from, and their correlation
+            found = rivals.get(c["name"])
+            return "-" if found is None else f"{found[0]} {found[1]:.2f}"
+
         def detectable(c):  # per parameter, its units ("-": not computed; "none": the fit takes it up whole)
             sizes = c.get("detectable") or []
             return ", ".join("none" if v is None else f"{v:.2g}" for v in sizes) or "-"
@@ -704,6 +711,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                    "could explain": np.array([c["explained_fraction"] for c in rows], float),
                    "localisation": np.array([c["localisation"] for c in rows], float),
                    "absorbed by fit": np.array([c.get("absorbed", float("nan")) for c in rows], float),
+                   "closest rival": np.array([rival(c) for c in rows], dtype=object),
                    "smallest size seen": np.array([detectable(c) for c in rows], dtype=object),
                    "dBIC": np.array([refit(c, "delta_bic") for c in rows], float),
                    "removed": np.array([refit(c, "removed") for c in rows], float),

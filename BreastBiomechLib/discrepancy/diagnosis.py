@@ -43,6 +43,10 @@ from BreastBiomechLib.discrepancy.state import ModelState
 VERDICTS = verdicts.VERDICTS
 EDGE = 0.005  # a fitted parameter this close to an end of its range (unit coordinates) is at it
 ABSORBED = 0.8  # a candidate this much of whose signature the fitted parameters reproduce is hard to see
+# two candidates whose signatures correlate this much once the fitted parameters are accounted for
+# cannot be told apart by this case: the part of one the other cannot reproduce is sqrt(1 - 0.8^2),
+# 0.6 of it
+INSEPARABLE = 0.8
 
 
 @dataclass
@@ -227,6 +231,38 @@ def absorbed_sentence(candidates: list[Candidate], effects: dict | None = None) 
         listed = "; ".join(f"{c.title} (smallest size its test would see: {'; '.join(ends)})" for c, ends in small)
         parts.append(f"Too small to see at this case's noise, whatever its size within its range: {listed}.")
     return " ".join(parts)
+
+
+def closest_rivals(candidates: list[dict], correlations: dict) -> dict[str, tuple[str, float]]:
+    """For each tested candidate (records of :meth:`Candidate.to_dict`) the other tested one whose
+    signature correlates most with its own once the fitted parameters are accounted for
+    (``correlations``, "a|b" -> the largest canonical correlation), and that correlation."""
+    tested = [c["name"] for c in candidates if not c.get("skipped")]
+    out = {}
+    for name in tested:
+        pairs = [(correlations.get(f"{name}|{other}", correlations.get(f"{other}|{name}")), other)
+                 for other in tested if other != name]
+        pairs = [(value, other) for value, other in pairs if value is not None]
+        if pairs:
+            value, other = max(pairs)
+            out[name] = (other, float(value))
+    return out
+
+
+def inseparable_sentence(candidates: list[dict], correlations: dict, threshold: float = INSEPARABLE) -> str:
+    """What this case cannot tell apart: the pairs of tested candidates whose signatures correlate
+    at ``threshold`` or more once the fitted parameters are accounted for, strongest first, or that
+    there are none."""
+    titles = {c["name"]: c.get("title", c["name"]) for c in candidates if not c.get("skipped")}
+    pairs = sorted(((value, *key.split("|")) for key, value in correlations.items()
+                    if value >= threshold and all(name in titles for name in key.split("|"))), reverse=True)
+    if not pairs:
+        return (f"No two tested candidates' signatures correlate at {threshold:.2f} or more once the fitted "
+                "parameters are accounted for: the case tells each from the others.")
+    listed = "; ".join(f"{titles[a]} and {titles[b]} ({value:.2f})" for value, a, b in pairs)
+    return (f"This case cannot tell apart (their signatures correlate at {threshold:.2f} or more once the fitted "
+            f"parameters are accounted for): {listed}; either of a pair may stand for the other, and a second "
+            "measured state is what would separate them.")
 
 
 def _shares(values: np.ndarray, regions: np.ndarray) -> dict[str, float]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from BreastBiomechLib.discrepancy.diagnosis import closest_rivals, inseparable_sentence
 from BreastBiomechLib.discrepancy.verdicts import overall_phrase
 from BreastBiomechLib.io.atomic import write_text_atomically
 
@@ -38,11 +39,17 @@ def _detectable(candidate: dict) -> str:
     return ", ".join("none" if v is None else _number(v, 2) for v in sizes)
 
 
-def _candidates_table(candidates: list[dict]) -> str:
+def _rival(rival: tuple[str, float] | None, titles: dict) -> str:
+    return "-" if rival is None else f"{titles.get(rival[0], rival[0])} {rival[1]:.2f}"
+
+
+def _candidates_table(candidates: list[dict], correlations: dict | None = None) -> str:
+    rivals = closest_rivals(candidates, correlations or {})
     rows = ["| rank | effect | score S (dof) | S per dof | by channel | linearised dBIC | p (corrected) | "
-            "could explain | localisation | absorbed by the fit | smallest size seen | refit | dBIC | residual removed | "
-            "change where it acts (mm) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "could explain | localisation | absorbed by the fit | closest rival | smallest size seen | refit | dBIC | "
+            "residual removed | change where it acts (mm) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    titles = {c["name"]: c["title"] for c in candidates}
     rank = 0
     for c in candidates:
         if c["skipped"]:
@@ -54,7 +61,8 @@ def _candidates_table(candidates: list[dict]) -> str:
         per_dof = _number(c["statistic"] / c["dof"], 3) if c["dof"] else "-"
         rows.append(f"| {rank} | {c['title']} | {c['statistic']:.1f} ({c['dof']}) | {per_dof} | {channels} | "
                     f"{_number(c.get('linear_delta_bic'), 3)} | {_number(c['p_adjusted'], 2)} | "
-                    f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {_absorbed(c)} | {_detectable(c)} | "
+                    f"{c['explained_fraction']:.0%} | {c['localisation']:.0%} | {_absorbed(c)} | "
+                    f"{_rival(rivals.get(c['name']), titles)} | {_detectable(c)} | "
                     f"{refit.get('described', '-')} | "
                     f"{_number(refit.get('delta_bic'), 3)} | "
                     + (f"{refit['removed']:.0%}" if "removed" in refit else "-") + " | "
@@ -76,7 +84,11 @@ def _candidates_table(candidates: list[dict]) -> str:
              "taken the effect up and no test of the residual can see it. *Smallest size seen*: the size of each "
              "of the candidate's parameters (its units, from its off value, along its secant) at which its score "
              "test would reach the verdict's level in four cases of five at this case's noise; beyond the "
-             "parameter's range the case could not have shown the effect at all.")
+             "parameter's range the case could not have shown the effect at all. *Closest rival*: the tested "
+             "candidate whose signature correlates most with this one's once the fitted parameters are accounted "
+             "for (the largest canonical correlation).")
+    if correlations is not None:
+        note += "\n\n" + inseparable_sentence(candidates, correlations)
     return "\n".join(rows) + note + ("\n\nNot tested: " + "; ".join(skipped) + "." if skipped else "")
 
 
@@ -164,7 +176,7 @@ def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
                   f"noise: landmarks {noise['landmark_sd_mm']:g} mm, {_floor_phrase(record)}. "
                   f"Overall test ({overall_phrase(o)}; T/dof of all features {o['per_dof']:.2f}); "
                   f"{d['solves']} forward solves; {record['seconds']:.0f} s.", "",
-                  "### Candidates", "", _candidates_table(d["candidates"]), "",
+                  "### Candidates", "", _candidates_table(d["candidates"], d.get("correlations")), "",
                   "### Residual by region", "", _regions_table(record["before"], record.get("after")), "",
                   *_field_section(record),
                   _measures_line("Before", record["before"])]

@@ -70,6 +70,11 @@ def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_
     sizes = dict(zip(_column(table, "effect"), _column(table, "smallest size seen")))
     recorded = next(c for c in d["candidates"] if c["name"] == "friction")["detectable"]
     assert 0.0 < float(sizes["friction"]) == pytest.approx(recorded[0], rel=0.05)
+    # friction's closest rival: the tested candidate whose signature correlates most with its own
+    tested = [c["name"] for c in d["candidates"] if not c["skipped"] and c["name"] != "friction"]
+    pairs = {o: d["correlations"].get(f"friction|{o}", d["correlations"].get(f"{o}|friction")) for o in tested}
+    best = max(pairs, key=pairs.get)
+    assert dict(zip(_column(table, "effect"), _column(table, "closest rival")))["friction"] == f"{best} {pairs[best]:.2f}"
     assert p.reference("candidatesTable") is table and p["candidate"] == "friction"
     # the landmark residual lines: from predicted to measured, their lengths the reported errors
     lines = p.reference("landmarkLines")

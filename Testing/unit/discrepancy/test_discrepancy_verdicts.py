@@ -245,3 +245,25 @@ def test_what_this_case_could_not_have_shown_names_absorbed_and_too_small_effect
     assert "Too small to see at this case's noise, whatever its size within its range: plate friction (smallest " \
            "size its test would see: mu 2.1, its range 0 to 1.5)" in sentence
     assert absorbed_sentence([seen], {"friction": friction}) == ""
+
+
+def test_the_pairs_a_case_cannot_tell_apart_follow_from_their_correlations():
+    """Each tested candidate's closest rival is the one whose signature correlates most with its
+    own after the fitted parameters (a skipped one is never a rival); the sentence names every
+    pair at or above the threshold, strongest first, and says so when there is none."""
+    from BreastBiomechLib.discrepancy.diagnosis import INSEPARABLE, closest_rivals, inseparable_sentence
+
+    candidates = [{"name": "friction", "title": "plate friction"}, {"name": "skin", "title": "skin layer"},
+                  {"name": "plate-tilt", "title": "plate pose"}, {"name": "gravity", "title": "gravity",
+                                                                 "skipped": "no posture"}]
+    correlations = {"friction|skin": 0.93, "friction|plate-tilt": 0.41, "skin|plate-tilt": 0.85,
+                    "friction|gravity": 0.99}
+    assert closest_rivals(candidates, correlations) == {"friction": ("skin", 0.93), "skin": ("friction", 0.93),
+                                                        "plate-tilt": ("skin", 0.85)}
+    sentence = inseparable_sentence(candidates, correlations)
+    assert "plate friction and skin layer (0.93); skin layer and plate pose (0.85)" in sentence
+    assert "gravity" not in sentence and "0.41" not in sentence
+    just_below = {key: min(value, INSEPARABLE - 1e-6) for key, value in correlations.items()}
+    assert inseparable_sentence(candidates, just_below).startswith("No two tested candidates")
+    at_threshold = inseparable_sentence(candidates, {**just_below, "skin|plate-tilt": INSEPARABLE})
+    assert "skin layer and plate pose (0.80)" in at_threshold and "plate friction and" not in at_threshold

@@ -106,34 +106,38 @@ def test_scores_are_tabled_per_setting_and_per_library_effect():
     assert setting_bin("landmark_noise_mm", 0.1) == "<0.2"
 
 
-def test_a_case_at_another_element_size_gets_its_own_meshes_the_fitting_one_of_the_segmentation(tmp_path):
+def test_a_case_at_another_element_size_gets_its_own_meshes_the_fitting_one_of_the_segmentation(compressed_case_dir,
+                                                                                                  tmp_path):
     """A varied case's fitting mesh at its own size is made (once) from the anatomy's
     segmentation, never from the phantom's truth labels; its truth mesh from the truth labels;
     at the run's sizes the prepared meshes are used."""
+    import shutil
+
     import SimpleITK as sitk
 
     from BreastBiomechLib.discrepancy.suite.runner import anatomy_mesh
     from BreastBiomechLib.io.meshes import read_vtu
-    from BreastBiomechLib.phantom import PhantomParameters, generate_phantom, write_phantom
 
     anatomy = tmp_path / "anatomy1"
-    case = generate_phantom(PhantomParameters(seed=3, volume_cm3=420.0, tumour_diameter_mm=15.0,
-                                              spacing_mm=(1.5, 1.5, 2.5)))
-    write_phantom(case, anatomy / "phantom", overview=False)
-    segmented = sitk.GetArrayFromImage(case.labels)
-    segmented[segmented == 4] = 2  # a segmentation that missed the tumour: told apart from the truth by it
+    (anatomy / "phantom").mkdir(parents=True)
+    for name in ("labels.nrrd", "landmarks.mrk.json"):
+        shutil.copy2(compressed_case_dir / name, anatomy / "phantom" / name)
+    truth_labels = sitk.ReadImage(str(compressed_case_dir / "labels.nrrd"))
+    segmented = sitk.GetArrayFromImage(truth_labels)
+    segmented[segmented == 2] = 1  # a segmentation that saw no gland: told apart from the truth by it
     (anatomy / "segmentation").mkdir()
     image = sitk.GetImageFromArray(segmented)
-    image.CopyInformation(case.labels)
+    image.CopyInformation(truth_labels)
     sitk.WriteImage(image, str(anatomy / "segmentation" / "labels.nrrd"))
     run = SuiteSettings()
     mine = case_settings(varied_cases(1)[0], run)
     assert anatomy_mesh(anatomy, "fitting", run, run) == anatomy / "fitting_mesh.vtu"
-    fitting = anatomy_mesh(anatomy, "fitting", replace(mine, fit_edge_mm=10.0), run)
-    truth = anatomy_mesh(anatomy, "truth", replace(mine, truth_edge_mm=8.0), run)
-    assert fitting.name == "fitting_mesh-10mm.vtu" and truth.name == "truth_mesh-8mm.vtu"
-    tumour = 4
-    assert tumour not in set(read_vtu(fitting).cell_data["tissue"]) and tumour in set(read_vtu(truth).cell_data["tissue"])
+    fitting = anatomy_mesh(anatomy, "fitting", replace(mine, fit_edge_mm=12.0), run)
+    truth = anatomy_mesh(anatomy, "truth", replace(mine, truth_edge_mm=12.0), run)
+    assert fitting.name == "fitting_mesh-12mm.vtu" and truth.name == "truth_mesh-12mm.vtu"
+    glandular = 2
+    assert glandular not in set(read_vtu(fitting).cell_data["tissue"])
+    assert glandular in set(read_vtu(truth).cell_data["tissue"])
     made = fitting.stat().st_mtime_ns
-    anatomy_mesh(anatomy, "fitting", replace(mine, fit_edge_mm=10.0), run)
+    anatomy_mesh(anatomy, "fitting", replace(mine, fit_edge_mm=12.0), run)
     assert fitting.stat().st_mtime_ns == made  # made once

@@ -320,7 +320,8 @@ def _tumour_reach(case) -> float:
 def test_a_spiculated_tumour_reaches_further_at_the_same_size():
     """Spicules (8-14 thin spikes to 0.9-1.6 radii) on the same lobes: the same equivalent
     diameter, calibrated with them, but tissue further from the centre."""
-    shapes = {shape: generate_phantom(PhantomParameters(**SMALL, density=0.5, tumour_shape=shape))
+    shapes = {shape: generate_phantom(PhantomParameters(**SMALL, density=0.5, tumour_shape=shape,
+                                                        spacing_mm=(1.5, 1.5, 2.5)))
               for shape in ("lobulated", "spiculated")}
     for case in shapes.values():
         assert case.summary["tumour_equivalent_diameter_mm"] == pytest.approx(12.0, rel=0.1)
