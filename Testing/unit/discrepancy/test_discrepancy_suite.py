@@ -268,6 +268,14 @@ def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
     run_case = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "_make_fit_and_diagnose")
     lines = {n.func.id: n.lineno for n in ast.walk(run_case) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
     assert lines["fit_compressed_case"] < lines["run_diagnosis"] < lines["scored_against_truth"]
+    # every fitting mesh, the prepared one and a varied case's own size, is made of the segmentation
+    fitting = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+               and n.func.id == "_fitting_mesh"]
+    assert len(fitting) == 2
+    for call in fitting:
+        labels = ast.unparse(call.args[0])
+        assert "segmentation" in labels or labels == "result.labels", labels
+        assert "phantom" not in labels and "case.labels" not in labels, labels
 
 
 def test_a_case_another_run_is_making_is_waited_for_not_made_twice(tmp_path):
