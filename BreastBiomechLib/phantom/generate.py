@@ -18,7 +18,7 @@ from scipy import ndimage
 
 from BreastBiomechLib import labels as lt
 from BreastBiomechLib.landmarks import Landmarks
-from BreastBiomechLib.phantom.anatomy import BreastAnatomy, DuctTree, tumour_phi_factory
+from BreastBiomechLib.phantom.anatomy import NIPPLE_RADIUS_MM, BreastAnatomy, DuctTree, tumour_phi_factory
 from BreastBiomechLib.phantom.parameters import INTENSITY, PhantomParameters
 from BreastBiomechLib.phantom.seeds import farthest_points
 
@@ -30,6 +30,10 @@ for _code, _name in [(1, "fat"), (2, "glandular"), (3, "muscle"), (4, "tumour"),
     _MATERIAL_INTENSITY[_code] = INTENSITY[_name]
 _FINE_MM = 0.6  # target fine-grid spacing
 _SUBPECTORAL_FAT_MM = 2.0  # the thin fat plane between the pectoral muscle and the chest wall
+# the body's implicit function is evaluated exactly within this distance (mm) of the surface: twice
+# the deepest depth below the skin the phantom tests (8 mm), which covers gradients of the
+# approximate distance up to 2 (1 for a true distance)
+_EXACT_BAND_MM = 16.0
 
 
 @dataclass
@@ -101,6 +105,21 @@ def _upsample2(coarse: np.ndarray, shape) -> np.ndarray:
     return out
 
 
+def _body_phi_near_surface(anatomy: BreastAnatomy, xyz) -> np.ndarray:
+    """The body's implicit function (float32, mm) on a fine grid given as broadcast coordinate
+    arrays ``xyz`` (x, y, z; LPS mm): exact within :data:`_EXACT_BAND_MM` of the surface, elsewhere
+    linearly interpolated from every second fine voxel per axis. Beyond the band the phantom reads
+    only its sign (inside or not) and that the depth below the skin exceeds the deepest depth it
+    tests (the gland's taper, 8 mm), so the result is the full evaluation's at a quarter of its
+    cost on a Table 1 breast."""
+    x, y, z = xyz
+    coarse = anatomy.body_phi(x[..., ::2], y[:, ::2], z[::2]).astype(np.float32)
+    phi = _upsample2(coarse, (z.shape[0], y.shape[1], x.shape[2]))
+    k, j, i = np.nonzero(np.abs(phi) < _EXACT_BAND_MM)
+    phi[k, j, i] = anatomy.body_phi(x[0, 0, i], y[0, j, 0], z[k, 0, 0])
+    return phi
+
+
 def _calibrated_anatomy(params: PhantomParameters, rng_state: int) -> BreastAnatomy:
     """Find the base radius whose breast tissue volume (anterior to the muscle) is the requested
     one, measured on a 1.5 mm grid; four fixed-point updates on volume ~ scale^3."""
@@ -159,7 +178,7 @@ def generate_phantom(params: PhantomParameters | None = None,
 
     report(0.1, "body, skin, pectoral muscle and chest wall")
     # --- body, skin, muscle, thorax ------------------------------------------------------------
-    phi = anatomy.body_phi(x, y, z).astype(np.float32)
+    phi = _body_phi_near_surface(anatomy, (x, y, z))
     gz, gy, gx = np.gradient(phi, *fine.spacing[::-1])
     depth = -phi / np.maximum(np.sqrt(gx**2 + gy**2 + gz**2), 0.3)  # mm below the skin surface
     del gx, gy, gz
@@ -184,7 +203,10 @@ def generate_phantom(params: PhantomParameters | None = None,
     skin = body & (depth < params.skin_thickness_mm) & (y < back)
     material[skin] = 5
     nip_base, nip_tip = anatomy.nipple_axis()
-    nipple = body & (anatomy.nipple_phi(x, y, z) < 0.5) & (y < nip_base[1])
+    nipple = np.zeros_like(body)
+    around = fine.box((nip_base + nip_tip) / 2, np.linalg.norm(nip_tip - nip_base) / 2 + NIPPLE_RADIUS_MM + 1.0)
+    nipple[around] = anatomy.nipple_phi(x[..., around[2]], y[:, around[1]], z[around[0]]) < 0.5  # none beyond
+    nipple &= body & (y < nip_base[1])
     material[nipple] = 5
 
     # --- tumour in the gland (a tumour at a fat/gland border is placed once the gland exists) ---

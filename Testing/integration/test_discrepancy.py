@@ -101,12 +101,30 @@ def test_inputs_the_diagnosis_cannot_use_are_refused(null_case, tmp_path, capsys
 def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     from BreastBiomechLib.cli import main
 
+    from BreastBiomechLib.discrepancy import DiagnosisCancelled, DiagnosisSession
+
     case, fit = null_case
     out = tmp_path / "diagnosis"
-    # the whole library and the measured floor; no residual displacement field (the verdict does
-    # not use it; the hidden-friction tests check it)
+    # a Cancel at the first message after the floor is measured (as the panel's, which stops at
+    # the next progress call): no round is written and the floor is kept ...
+    heard = []
+
+    def cancel_once_measured(message):
+        heard.append(message)
+        return not any(m.startswith("measuring the model-error floor") for m in heard[:-1])
+
+    with pytest.raises(DiagnosisCancelled):
+        DiagnosisSession(case, fit, out, device="cpu", registration=None,
+                         progress=cancel_once_measured).diagnose(progress=cancel_once_measured)
+    assert (out / "floor.json").is_file() and not (out / "round-1.json").exists()
+    measured = (out / "floor.json").stat()
+    # ... and the run that takes the folder up reads it, not measures it again: the whole library
+    # against the measured floor; no residual displacement field (the verdict does not use it; the
+    # hidden-friction tests check it)
     assert main(["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--device", "cpu", "--quiet",
-                 "--json", "--no-residual-field"]) == 0
+                 "--json", "--no-residual-field", "--resume"]) == 0
+    again = (out / "floor.json").stat()
+    assert (again.st_ino, again.st_mtime_ns) == (measured.st_ino, measured.st_mtime_ns)
     summary = json.loads(capsys.readouterr().out)
     assert summary["final"] == "no significant discrepancy", summary["sentence"]
     assert summary["added"] == []

@@ -237,16 +237,21 @@ def test_bad_inputs_are_refused_and_leave_the_scene_as_it_was(scene, friction_ca
     assert scene.GetNumberOfNodes() == nodes + 1  # the parameter node only
     with pytest.raises(ValueError, match="diagnose first"):
         logic.accept(p)
-    # cancelling a diagnosis writes no round and adds no round node
-    p["caseDirectory"] = str(case)
+    # cancelling a diagnosis writes no round and adds no round node (the fixed floor: that a
+    # Cancel keeps a measured floor is the null case's test, test_discrepancy.py)
+    p["caseDirectory"], p["measuredFloor"] = str(case), False
     with pytest.raises(DiagnosisCancelled):
         logic.diagnose(p, progress=lambda message: "building" not in message)
     assert not (tmp_path / "out" / "round-1.json").exists()
     assert logic.roundNumbers(p) == []
-    # the floor measured before the Cancel is kept: the folder is taken up again, not refused as
-    # "not empty", and the floor is read, not measured again
-    assert (tmp_path / "out" / "floor.json").is_file()
+    # a folder holding the floor a cancelled session measured (here one of the session's size) is
+    # taken up again, not refused as "not empty", and the floor is read, not measured again
+    features = len(logic.session.observations)
+    (tmp_path / "out" / "floor.json").write_text(json.dumps({
+        "discretisation": [0.1] * features, "feature_groups": ["everywhere (landmarks)"] * features, "tets": [1, 8],
+        "seconds": 0.0, "case_dir": str(case), "fit_dir": str(fit)}))
     again, q = _logic(scene, case, fit, tmp_path / "out")
+    q["measuredFloor"] = True  # the module's one parameter node: set back
     said = []
     again.openSession(q, progress=said.append)
     assert said and not any("measuring the model-error floor" in m for m in said)

@@ -3,6 +3,8 @@ MR signal model (noise and bias), landmarks, files, determinism."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -109,16 +111,17 @@ def test_seventeen_landmarks_at_their_features(small_case):
     assert d[np.triu_indices(12, 1)].min() > 5.0
 
 
-def test_deterministic_in_the_seed():
-    params = dict(volume_cm3=420.0, density=0.2, spacing_mm=(2.0, 2.0, 3.0))
-    a = generate_phantom(PhantomParameters(seed=3, **params))
-    b = generate_phantom(PhantomParameters(seed=3, **params))
-    c = generate_phantom(PhantomParameters(seed=4, **params))
+@pytest.mark.slow
+def test_deterministic_in_the_seed(small_case):
+    a = small_case
+    b = generate_phantom(a.parameters)
+    c = generate_phantom(replace(a.parameters, seed=a.parameters.seed + 1))
     np.testing.assert_array_equal(_array(a.image), _array(b.image))
     np.testing.assert_array_equal(a.landmarks.positions, b.landmarks.positions)
     assert not np.array_equal(_array(a.labels), _array(c.labels))
 
 
+@pytest.mark.slow
 def test_finer_subvoxels_leave_fewer_truth_voxels_tied_at_half():
     """1.5 mm voxels drawn on 2 sub-voxels per axis (the default, as every earlier case) tie two
     tissues at exactly half in many border voxels; at most 0.7 mm (4 per axis) far fewer, and the
