@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from BreastBiomechLib.discrepancy import statistics, verdicts
+from BreastBiomechLib.discrepancy import priors, statistics, verdicts
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.profile import profile_intervals
@@ -125,7 +125,9 @@ class Diagnosis:
     ``correlations``, the chosen :class:`~BreastBiomechLib.discrepancy.refit.Refit` (``refitted``)
     and the ``sensitivities`` (with the solution of the current model); ``held`` the nuisance
     parameters held at a bound of their range in the tests (the residual pushes them out of
-    it) and ``edges`` the fit's parameters at an end of their range."""
+    it), ``edges`` the fit's parameters at an end of their range and ``conflicts`` its moduli
+    beyond their published range, each with the tests held inside it
+    (:mod:`~BreastBiomechLib.discrepancy.priors`)."""
 
     verdict: str
     effect: str | None
@@ -141,10 +143,12 @@ class Diagnosis:
     refits: dict = field(default_factory=dict)
     held: list = field(default_factory=list)
     edges: list = field(default_factory=list)
+    conflicts: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "effect": self.effect, "alternatives": self.alternatives,
                 "sentence": self.sentence, "overall": self.overall, "held": self.held, "edges": self.edges,
+                "prior_conflicts": self.conflicts,
                 "candidates": [c.to_dict() for c in self.candidates], "regions": self.regions,
                 "correlations": self.correlations, "solves": self.sensitivities.solves,
                 "skipped": self.sensitivities.skipped}
@@ -361,7 +365,8 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     """One round of the diagnosis of ``state`` against ``observations`` over ``candidates``
     (the library's effects; those already added, unavailable or ``excluded`` ({name: reason},
     e.g. rejected by the user) are reported as skipped). The fit's parameters at an end of their
-    range are listed in ``edges`` and said after the verdict's sentence."""
+    range are listed in ``edges``, its moduli beyond their published range in ``conflicts`` (each
+    with the candidates tested again with it held inside), both said after the verdict's sentence."""
     result = _decide(state, observations, candidates, settings, progress, excluded)
     result.edges = parameters_at_edges(state, result.held)
     by_name = {effect.name: effect for effect in candidates}
@@ -370,6 +375,9 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
         result.sentence = f"{result.sentence} {hidden}"
     if result.edges:
         result.sentence = f"{result.sentence} {edges_sentence(result.edges)}"
+    if result.conflicts:
+        titles = {effect.name: effect.title for effect in candidates}
+        result.sentence = f"{result.sentence} {priors.conflict_sentence(result.conflicts, result.effect, titles)}"
     return result
 
 
@@ -429,10 +437,18 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
         for b in tested[i + 1:]:
             correlations[f"{a.name}|{b.name}"] = statistics.canonical_correlation(
                 weights[:, None] * sens.effects[a.name], weights[:, None] * sens.effects[b.name], q_theta)
+    # fitted moduli beyond their published range: the tests again with each held at its range's end
+    conflicts = [c for c in priors.prior_conflicts(fitted.space, state.z) if c["name"] in sens.nuisance_keys]
+    signatures = {e.name: weights[:, None] * sens.effects[e.name] for e in tested}
+    for conflict in conflicts:
+        conflict["retest"] = priors.held_in_range(whitened, nuisance, ~held, sens.nuisance_keys.index(conflict["name"]),
+                                                  conflict["z_bound"] - state.z[conflict["index"]], signatures,
+                                                  observations.channel, settings.alpha,
+                                                  {c.name: c.p_adjusted for c in ranked})
     regions = region_summary(observations, residual, feature_regions)
     base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
                 sensitivities=sens, feature_regions=feature_regions, refits={},
-                held=[key for key, h in zip(sens.nuisance_keys, held) if h])
+                held=[key for key, h in zip(sens.nuisance_keys, held) if h], conflicts=conflicts)
     evidence = verdicts.Evidence(overall, [], correlations, _rms(residual), _largest(regions),
                                  _rms(observations.feature_floor))
     evidence.candidates = [c.to_dict() for c in ranked]

@@ -116,4 +116,5 @@ def load_diagnosis(path: str | Path, base: ModelState, effects) -> Diagnosis:
     d = meta["diagnosis"]
     return Diagnosis(d["verdict"], d["effect"], list(d["alternatives"]), d["sentence"], d["overall"],
                      [Candidate(**c) for c in d["candidates"]], d["regions"], d["correlations"], refitted,
-                     sensitivities, arrays["feature_regions"], refits, list(d["held"]), list(d["edges"]))
+                     sensitivities, arrays["feature_regions"], refits, list(d["held"]), list(d["edges"]),
+                     list(d.get("prior_conflicts", [])))
