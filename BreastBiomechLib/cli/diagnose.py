@@ -16,6 +16,7 @@ from BreastBiomechLib.discrepancy.observations import CHANNELS, FLOORS
 def cmd_diagnose(args) -> int:
     from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
     from BreastBiomechLib.discrepancy.registration import RegistrationSettings
+    from BreastBiomechLib.io.case_layout import CaseLayout
 
     noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
                        surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor=args.floor)
@@ -29,6 +30,10 @@ def cmd_diagnose(args) -> int:
             print(f"  {message}", file=sys.stderr, flush=True)
         events.progress(message)
 
+    unused = CaseLayout(args.case_dir).unused_states_note()
+    if unused:
+        print(f"breastbiomech diagnose: note: {unused}", file=sys.stderr)
+        events.progress(unused)
     run = run_diagnosis(args.case_dir, args.fit, args.out, effects=args.effects, rounds=args.rounds, noise=noise,
                         settings=settings, device=args.device, resume=args.resume, progress=progress,
                         registration=None if args.no_residual_field else RegistrationSettings(),

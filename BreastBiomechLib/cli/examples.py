@@ -22,9 +22,11 @@ FIT = ["--model", "iso-hetero", "--free", "E", "--optimiser", "cmaes", "--budget
 def without_truth(case: Path, into: Path) -> Path:
     """A copy of the compressed case ``case`` in ``into`` without its truth files (what a
     diagnosis may read)."""
+    from BreastBiomechLib.phantom.truth_files import TRUTH_MESH, TRUTH_RECORD, truth_folder
+
     copy = Path(shutil.copytree(case, into))
-    for name in ("truth.json", "truth_mesh.vtu"):
-        (copy / "compressed" / name).unlink()
+    for name in (TRUTH_RECORD, TRUTH_MESH):
+        (truth_folder(copy) / name).unlink()
     return copy
 
 

@@ -18,6 +18,7 @@ from BreastBiomechLib.cohort import place
 
 def cmd_optimise(args) -> int:
     """Fit material parameters to a compressed case (seed section 2.4)."""
+    from BreastBiomechLib.io.case_layout import CaseLayout
     from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
 
     settings = FitSettings(model=args.model, free=tuple(args.free), fibre=tuple(args.fibre), edge_mm=args.edge_mm,
@@ -36,6 +37,10 @@ def cmd_optimise(args) -> int:
         events.progress(f"{done}/{budget} forward solves ({phase}), best objective {best:.5f}", done / budget)
 
     events.progress(f"{settings.model} fit: preparing the case and the fitting mesh", 0.0)
+    unused = CaseLayout(args.case_dir).unused_states_note()
+    if unused:
+        print(f"breastbiomech optimise: note: {unused}", file=sys.stderr)
+        events.progress(unused, 0.0)
     fit = fit_compressed_case(args.case_dir, args.out, settings, labels=args.labels, mesh_path=args.mesh,
                               resume=args.resume, device=args.device, progress=progress)
     events.output("fit", fit.folder)

@@ -16,6 +16,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from BreastBiomechLib.errors import InputError, reading
+from BreastBiomechLib.io.case_layout import FIRST_STATE, CaseLayout
 from BreastBiomechLib.io.markups import read_markups
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
@@ -91,11 +92,14 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
     from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
 
     case, fit = Path(case_dir), Path(fit_dir)
-    if not (case / "compressed" / "mr.nrrd").is_file():
-        raise FileNotFoundError(f"{case}: no measured compressed image (compressed/mr.nrrd); the diagnosis compares "
-                                "the fit with it")
-    if not (case / "mr.nrrd").is_file():
-        raise FileNotFoundError(f"{case}: no undeformed image (mr.nrrd)")
+    layout = CaseLayout(case)
+    measured_mr = layout.state(FIRST_STATE).mr
+    if not measured_mr.is_file():
+        raise FileNotFoundError(f"{case}: no measured compressed image ({measured_mr.relative_to(case)}); the "
+                                "diagnosis compares the fit with it")
+    if not layout.mr.is_file():
+        raise FileNotFoundError(f"{case}: no undeformed image ({layout.mr.name})")
+    layout.check()
     missing = [name for name in FIT_FILES if not (fit / name).is_file()]
     if missing:
         raise FileNotFoundError(f"{fit}: not a finished fit (no {', '.join(missing)}); run `breastbiomech optimise` "
@@ -123,7 +127,7 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
             raise ValueError(f"{fit}: its predicted image lies on another grid than {case}'s measured one; the fit "
                              "was made on another case")
     mesh = read_vtu(fit / "fitting_mesh.vtu")
-    reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
+    reference = read_markups(layout.landmarks) if layout.landmarks.is_file() else None
     if measured.landmarks is None:  # landmarks count where both images have them
         reference = None
     landmarks = (reference, measured.landmarks) if reference is not None else None
@@ -132,7 +136,7 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
                          "the fit was made on another case")
     relaxation = DynamicRelaxation(tolerance_mm=tolerance_mm)
     try:
-        problem = FittingProblem(space, mesh, read_image(case / "mr.nrrd"), measured.image, measured.plates,
+        problem = FittingProblem(space, mesh, read_image(layout.mr), measured.image, measured.plates,
                                  landmarks=landmarks, bins=int(settings.get("bins", 64)), relaxation=relaxation,
                                  device=device)
     except ValueError as error:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib.io.atomic import write_json_atomically
+from BreastBiomechLib.io.case_layout import FIRST_STATE, REFERENCE_LANDMARKS, STATE_LANDMARKS, CaseLayout
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
@@ -37,8 +38,6 @@ from BreastBiomechLib.solver import DynamicRelaxation
 LANDMARK_ERRORS = "landmark_errors.json"  # per landmark and summarised (mm)
 
 
-SEEDS_MUSCLE = "seeds_muscle.mrk.json"  # a case's seed points on the pectoral muscle (LPS mm)
-SEEDS_TUMOUR = "seeds_tumour.mrk.json"  # and in the tumour, where it has one
 
 
 @dataclass
@@ -93,21 +92,23 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
 
     settings = settings or FitSettings()
     case = Path(case_dir)
+    layout = CaseLayout(case)
     out = Path(out_dir)
     segment = mesh_path is None and labels is None and not (resume and (out / "fitting_mesh.vtu").is_file())
-    if segment and not (case / SEEDS_MUSCLE).is_file():
-        raise ValueError(f"no fitting mesh: {case} has no seed points on the pectoral muscle ({SEEDS_MUSCLE}) to "
+    if segment and not layout.seeds_muscle.is_file():
+        raise ValueError(f"no fitting mesh: {case} has no seed points on the pectoral muscle ({layout.seeds_muscle.name}) to "
                          "segment its MR from; add them (Breast Segmentation module, or `breastbiomech phantom` "
                          "writes them), or pass --mesh MESH.vtu (`breastbiomech mesh` of your segmentation) or "
                          "--labels SEG.nrrd (a segmentation's label map, meshed at --edge-mm). A phantom case's "
-                         f"{case / 'labels.nrrd'} is its ground truth: a fit does not mesh it unless --labels names "
+                         f"{layout.truth_labels} is its ground truth: a fit does not mesh it unless --labels names "
                          "it on purpose")
     measured = read_compressed(case)
-    undeformed = read_image(case / "mr.nrrd")
-    reference = read_markups(case / "landmarks.mrk.json") if (case / "landmarks.mrk.json").is_file() else None
+    layout.check()
+    undeformed = read_image(layout.mr)
+    reference = read_markups(layout.landmarks) if layout.landmarks.is_file() else None
     if reference is not None and measured.landmarks is None:
-        raise ValueError(f"{case}: the reference landmarks (landmarks.mrk.json) have no measured counterpart in "
-                         "compressed/landmarks.mrk.json; add it, or remove both to fit without landmarks")
+        raise ValueError(f"{case}: the reference landmarks ({REFERENCE_LANDMARKS}) have no measured counterpart in "
+                         f"{FIRST_STATE}/{STATE_LANDMARKS}; add it, or remove both to fit without landmarks")
     with claimed(out, "a fit of a compressed case"):
         out.mkdir(parents=True, exist_ok=True)
         write_json_atomically(out / "case.json", {"case_dir": str(case.resolve()), "fingerprint": case_fingerprint(case)})
@@ -139,13 +140,14 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
 
 def segmented_labels(case: Path, image, out: Path):
     """The label map of ``image`` (the case's undeformed MR) segmented from the case's seed points
-    (:data:`SEEDS_MUSCLE`, and :data:`SEEDS_TUMOUR` where present), the segmentation written to
+    (:attr:`~BreastBiomechLib.io.case_layout.CaseLayout.seeds_muscle`, and ``seeds_tumour`` where present), the segmentation written to
     ``out`` (labels, probabilities, bias field)."""
     from BreastBiomechLib.io.segmentation import write_segmentation
     from BreastBiomechLib.segmentation import segment_tissues
 
-    tumour = read_markups(case / SEEDS_TUMOUR).positions if (case / SEEDS_TUMOUR).is_file() else None
-    result = segment_tissues(image, read_markups(case / SEEDS_MUSCLE).positions, tumour)
+    layout = CaseLayout(case)
+    tumour = read_markups(layout.seeds_tumour).positions if layout.seeds_tumour.is_file() else None
+    result = segment_tissues(image, read_markups(layout.seeds_muscle).positions, tumour)
     write_segmentation(result, out, {"segmented_for": "the fitting mesh (seed points of the case)"})
     return result.labels
 

@@ -211,7 +211,7 @@ def fit_study_case(case_dir: str, folder: str, mesh_file: str, settings: StudySe
     (resuming a fit interrupted in ``folder``) and write its row (:data:`ROW_FILE`, atomically).
     ``progress(message)`` returning False stops the fit after its batch (the row then says
     "cancelled" and a rerun continues). Returns the row."""
-    from BreastBiomechLib.phantom.compressed_files import read_compressed
+    from BreastBiomechLib.phantom.truth_files import read_truth  # scoring only: the truth columns
 
     case, folder = Path(case_dir), Path(folder)
     earlier = _read_row(folder)
@@ -222,7 +222,7 @@ def fit_study_case(case_dir: str, folder: str, mesh_file: str, settings: StudySe
                               resume=(folder / "evaluations.jsonl").exists(), device=device, progress=report)
     summary = fit.result.summary()
     # scoring only, after the fit has answered: the truth columns of the report's tables
-    truth = read_compressed(case).truth()["truth"]["materials"]
+    truth = read_truth(case)["truth"]["materials"]
     row = StudyFit(case.name, model, optimiser, fit.result.best.nmi, fit.result.best.objective,
                    summary["evaluations"], summary["failed"], (earlier.seconds if earlier else 0.0) + summary["seconds"],
                    summary["stopped"], fit.landmark_errors, fit.result.materials, truth,

@@ -27,29 +27,32 @@ import numpy as np
 import SimpleITK as sitk
 
 from BreastBiomechLib.io.atomic import write_text_atomically
+from BreastBiomechLib.io.case_layout import FIRST_STATE, STATE_LANDMARKS, STATE_MR, STATE_PLATES, UNDEFORMED_MR
+from BreastBiomechLib.io.case_layout import REFERENCE_LANDMARKS
 from BreastBiomechLib.io.images import read_image, write_image
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.phantom.compressed import CompressedCase
 from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 
-FOLDER = "compressed"
+FOLDER = FIRST_STATE
 
 
 def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview: bool = True) -> dict[str, Path]:
     """Write ``compressed`` into ``case_dir``/compressed (created if needed; the undeformed case
     is written by :func:`~BreastBiomechLib.phantom.files.write_phantom`); returns the paths by role."""
     from BreastBiomechLib.io.meshes import write_vtu
+    from BreastBiomechLib.phantom.truth_files import TRUTH_MESH, TRUTH_RECORD
 
     out = Path(case_dir) / FOLDER
     out.mkdir(parents=True, exist_ok=True)
     truth = compressed.truth
     paths = {
-        "measured": write_image(out / "mr.nrrd", compressed.image),
-        "landmarks": write_markups(out / "landmarks.mrk.json", compressed.landmarks, name="Compressed landmarks"),
-        "plates": out / "plates.json",
-        "truth": out / "truth.json",
-        "truth_mesh": write_vtu(out / "truth_mesh.vtu", compressed.mesh),
+        "measured": write_image(out / STATE_MR, compressed.image),
+        "landmarks": write_markups(out / STATE_LANDMARKS, compressed.landmarks, name="Compressed landmarks"),
+        "plates": out / STATE_PLATES,
+        "truth": out / TRUTH_RECORD,
+        "truth_mesh": write_vtu(out / TRUTH_MESH, compressed.mesh),
     }
     write_text_atomically(paths["plates"], json.dumps({"axis": truth.axis, "compression": truth.compression,
                                            "plates": compressed.plates,
@@ -79,15 +82,15 @@ def write_measured_case(case_dir: str | Path, undeformed: sitk.Image, measured: 
     for plate in plates:
         if np.linalg.norm(plate["normal"]) == 0:
             raise ValueError(f"plate {plate.get('name')!r} has a zero normal")
-    write_image(folder / "mr.nrrd", undeformed)
-    write_image(folder / FOLDER / "mr.nrrd", measured)
+    write_image(folder / UNDEFORMED_MR, undeformed)
+    write_image(folder / FOLDER / STATE_MR, measured)
     if landmarks is not None:
         reference, moved = landmarks
         if reference.labels != moved.labels:
             raise ValueError("the reference and measured landmarks must carry the same labels in the same order")
-        write_markups(folder / "landmarks.mrk.json", reference, name="Reference landmarks")
-        write_markups(folder / FOLDER / "landmarks.mrk.json", moved, name="Compressed landmarks")
-    write_text_atomically(folder / FOLDER / "plates.json", json.dumps(
+        write_markups(folder / REFERENCE_LANDMARKS, reference, name="Reference landmarks")
+        write_markups(folder / FOLDER / STATE_LANDMARKS, moved, name="Compressed landmarks")
+    write_text_atomically(folder / FOLDER / STATE_PLATES, json.dumps(
         {"axis": None, "compression": None, "plates": plates, "gravity": [float(g) for g in gravity]},
         indent=2) + "\n")
     return folder
@@ -109,10 +112,6 @@ class MeasuredCompression:
     folder: Path
     gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE_GRAVITY))
 
-    def truth(self) -> dict:
-        """The hidden truth (truth.json: the truth model and its solve's figures), for validation."""
-        return json.loads((self.folder / "truth.json").read_text())
-
 
 def compressed_folder(case_dir: str | Path) -> Path:
     """The ``compressed/`` folder of a compressed case (``case_dir`` is the undeformed case's
@@ -120,7 +119,7 @@ def compressed_folder(case_dir: str | Path) -> Path:
     folder = Path(case_dir)
     if (folder / FOLDER).is_dir():
         folder = folder / FOLDER
-    if not (folder / "plates.json").is_file():
+    if not (folder / STATE_PLATES).is_file():
         raise FileNotFoundError(f"{folder}: not a compressed case (no plates.json); make one with "
                                 "`breastbiomech phantom --case N --compressed --out DIR`")
     return folder
@@ -130,17 +129,17 @@ def read_compressed(case_dir: str | Path) -> MeasuredCompression:
     """Read the measured part of a compressed case written by :func:`write_compressed`
     (``case_dir`` is the undeformed case's folder, or its ``compressed/`` folder)."""
     folder = compressed_folder(case_dir)
-    document = json.loads((folder / "plates.json").read_text())
+    document = json.loads((folder / STATE_PLATES).read_text())
     for plate in document["plates"]:
         if np.linalg.norm(plate["normal"]) == 0:
-            raise ValueError(f"{folder / 'plates.json'}: plate {plate.get('name')!r} has a zero normal")
+            raise ValueError(f"{folder / STATE_PLATES}: plate {plate.get('name')!r} has a zero normal")
     gravity = np.asarray(document.get("gravity", PRONE_GRAVITY), float)
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
-        raise ValueError(f"{folder / 'plates.json'}: gravity is the scan's posture as three finite numbers "
+        raise ValueError(f"{folder / STATE_PLATES}: gravity is the scan's posture as three finite numbers "
                          f"(m/s^2, LPS; prone: [0, -9.81, 0]), not {document.get('gravity')!r}")
-    landmarks = read_markups(folder / "landmarks.mrk.json") if (folder / "landmarks.mrk.json").is_file() else None
+    landmarks = read_markups(folder / STATE_LANDMARKS) if (folder / STATE_LANDMARKS).is_file() else None
     compression = document.get("compression")
-    return MeasuredCompression(read_image(folder / "mr.nrrd"), landmarks, document["plates"], document.get("axis"),
+    return MeasuredCompression(read_image(folder / STATE_MR), landmarks, document["plates"], document.get("axis"),
                                float("nan") if compression is None else float(compression), folder, gravity)
 
 
@@ -152,6 +151,6 @@ def case_fingerprint(case_dir: str | Path) -> str:
     if (folder / FOLDER).is_dir():
         folder = folder / FOLDER
     digest = hashlib.sha256()
-    for name in ("mr.nrrd", "plates.json"):
+    for name in (STATE_MR, STATE_PLATES):
         digest.update((folder / name).read_bytes())
     return digest.hexdigest()

@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 
 from BreastBiomechLib.io.atomic import write_text_atomically
+from BreastBiomechLib.io.case_layout import CaseLayout
 from BreastBiomechLib.io.images import read_image, write_image
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.phantom.generate import PhantomCase
@@ -33,19 +34,21 @@ def write_phantom(case: PhantomCase, out_dir: str | Path, overview: bool = True)
     """Write ``case`` into ``out_dir`` (created if needed); returns the written paths by role."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    layout = CaseLayout(out)
     paths = {
-        "mr": write_image(out / "mr.nrrd", case.image),
-        "labels": write_image(out / "labels.nrrd", case.labels),
+        "mr": write_image(layout.mr, case.image),
+        "labels": write_image(layout.truth_labels, case.labels),
         "bias_field": write_image(out / "bias_field.nrrd", case.bias_field),
         **({"signal": write_image(out / "signal.nrrd", case.signal)} if case.signal is not None else {}),
-        "landmarks": write_markups(out / "landmarks.mrk.json", case.landmarks, name="Landmarks"),
+        "landmarks": write_markups(layout.landmarks, case.landmarks, name="Landmarks"),
     }
     for name, image in case.fractions.items():
         paths[f"fraction_{name}"] = write_image(out / f"fraction_{name}.nrrd", image)
     for tissue, count in SEED_COUNTS.items():
         if case.summary["tissue_volumes_cm3"].get(tissue, 0.0) > 0:
             seeds = seed_points(case.labels, tissue, count)
-            paths[f"seeds_{tissue}"] = write_markups(out / f"seeds_{tissue}.mrk.json", seeds, name=f"Seeds {tissue}")
+            where = {"muscle": layout.seeds_muscle, "tumour": layout.seeds_tumour}[tissue]
+            paths[f"seeds_{tissue}"] = write_markups(where, seeds, name=f"Seeds {tissue}")
     document = {"parameters": case.parameters.to_dict(), "summary": case.summary}
     paths["parameters"] = out / "parameters.json"
     write_text_atomically(paths["parameters"], json.dumps(document, indent=2) + "\n")
@@ -64,6 +67,7 @@ def write_phantom(case: PhantomCase, out_dir: str | Path, overview: bool = True)
 def read_phantom(case_dir: str | Path) -> PhantomCase:
     """Read a case folder written by :func:`write_phantom`."""
     folder = Path(case_dir)
+    layout = CaseLayout(folder)
     if not (folder / "parameters.json").is_file():
         raise FileNotFoundError(f"{folder}: not a phantom case folder (no parameters.json); "
                                 "make one with `breastbiomech phantom --out DIR`")
@@ -72,11 +76,11 @@ def read_phantom(case_dir: str | Path) -> PhantomCase:
     fractions = {p.name[len("fraction_"):-len(".nrrd")]: read_image(p) for p in sorted(folder.glob("fraction_*.nrrd"))}
     return PhantomCase(
         parameters=params,
-        image=read_image(folder / "mr.nrrd"),
-        labels=read_image(folder / "labels.nrrd"),
+        image=read_image(layout.mr),
+        labels=read_image(layout.truth_labels),
         fractions=fractions,
         bias_field=read_image(folder / "bias_field.nrrd"),
-        landmarks=read_markups(folder / "landmarks.mrk.json"),
+        landmarks=read_markups(layout.landmarks),
         summary=document["summary"],
         signal=read_image(folder / "signal.nrrd") if (folder / "signal.nrrd").is_file() else None,
     )

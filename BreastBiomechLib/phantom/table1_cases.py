@@ -18,7 +18,9 @@ def case_folder(out_dir: str | Path, number: int) -> Path:
 
 
 def case_done(folder: Path) -> bool:
-    return (folder / "compressed" / "truth.json").is_file()
+    from BreastBiomechLib.phantom.truth_files import has_truth
+
+    return has_truth(folder)
 
 
 def table1_tasks(out_dir: str | Path, numbers, truth_edge_mm: float = 2.0, overview: bool = True) -> list:
