@@ -28,7 +28,7 @@ from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
 
 SUFFIX = "-kept.npz"
-FORMAT = 1
+FORMAT = 2  # 2: the prior-data conflicts kept with the diagnosis
 
 
 def _state_record(state: ModelState) -> dict:
@@ -77,6 +77,7 @@ def save_diagnosis(path: str | Path, diagnosis: Diagnosis) -> Path:
                           "alternatives": diagnosis.alternatives, "sentence": diagnosis.sentence,
                           "overall": diagnosis.overall, "regions": diagnosis.regions,
                           "correlations": diagnosis.correlations, "held": diagnosis.held, "edges": diagnosis.edges,
+                          "prior_conflicts": diagnosis.conflicts,
                           "candidates": [c.to_dict() for c in diagnosis.candidates]},
             "sensitivities": {"nuisance_keys": s.nuisance_keys, "skipped": s.skipped, "solves": s.solves,
                               "effects": list(s.effects), "fields": list(s.fields), "steps": list(s.steps)},
@@ -117,4 +118,4 @@ def load_diagnosis(path: str | Path, base: ModelState, effects) -> Diagnosis:
     return Diagnosis(d["verdict"], d["effect"], list(d["alternatives"]), d["sentence"], d["overall"],
                      [Candidate(**c) for c in d["candidates"]], d["regions"], d["correlations"], refitted,
                      sensitivities, arrays["feature_regions"], refits, list(d["held"]), list(d["edges"]),
-                     list(d.get("prior_conflicts", [])))
+                     list(d["prior_conflicts"]))

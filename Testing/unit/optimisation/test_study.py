@@ -160,4 +160,4 @@ def test_a_study_fit_reads_the_truth_only_after_the_fit():
         if isinstance(node, ast.Call):
             name = node.func.id if isinstance(node.func, ast.Name) else getattr(node.func, "attr", "")
             calls.setdefault(name, node.lineno)
-    assert calls["truth"] > calls["fit_compressed_case"]
+    assert calls["read_truth"] > calls["fit_compressed_case"]
