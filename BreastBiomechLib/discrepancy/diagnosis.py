@@ -439,7 +439,7 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                 weights[:, None] * sens.effects[a.name], weights[:, None] * sens.effects[b.name], q_theta)
     # fitted moduli beyond their published range: the tests again with each held at its range's end
     conflicts = [c for c in priors.prior_conflicts(fitted.space, state.z) if c["name"] in sens.nuisance_keys]
-    signatures = {e.name: weights[:, None] * sens.effects[e.name] for e in tested}
+    signatures = {e.name: weights[:, None] * sens.effects[e.name] for e in tested} if conflicts else {}
     for conflict in conflicts:
         conflict["retest"] = priors.held_in_range(whitened, nuisance, ~held, sens.nuisance_keys.index(conflict["name"]),
                                                   conflict["z_bound"] - state.z[conflict["index"]], signatures,

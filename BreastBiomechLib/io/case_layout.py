@@ -206,6 +206,6 @@ def read_force(state: StateFiles) -> PlateForce:
         except (OSError, json.JSONDecodeError, KeyError, TypeError, AttributeError):
             names = []
         if not isinstance(plate, str) or plate not in names:
-            raise CaseLayoutError(f"{state.force}: plate names one of the state's plates ({names or 'none readable in '}"
-                                  f"{'' if names else state.plates}), not {plate!r}")
+            known = ", ".join(map(str, names)) if names else f"none readable in {state.plates}"
+            raise CaseLayoutError(f"{state.force}: plate names one of the state's plates ({known}), not {plate!r}")
     return PlateForce(values["newtons"], values["sd"], plate)
