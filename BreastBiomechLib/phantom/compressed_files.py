@@ -35,8 +35,6 @@ from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.phantom.compressed import CompressedCase
 from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 
-FOLDER = FIRST_STATE
-
 
 def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview: bool = True) -> dict[str, Path]:
     """Write ``compressed`` into ``case_dir``/compressed (created if needed; the undeformed case
@@ -44,7 +42,7 @@ def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview:
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.phantom.truth_files import TRUTH_MESH, TRUTH_RECORD
 
-    out = Path(case_dir) / FOLDER
+    out = Path(case_dir) / FIRST_STATE
     out.mkdir(parents=True, exist_ok=True)
     truth = compressed.truth
     paths = {
@@ -78,19 +76,19 @@ def write_measured_case(case_dir: str | Path, undeformed: sitk.Image, measured: 
     measured; the same labels in the same order), ``landmarks.mrk.json`` and
     ``compressed/landmarks.mrk.json``. Returns ``case_dir``."""
     folder = Path(case_dir)
-    (folder / FOLDER).mkdir(parents=True, exist_ok=True)
+    (folder / FIRST_STATE).mkdir(parents=True, exist_ok=True)
     for plate in plates:
         if np.linalg.norm(plate["normal"]) == 0:
             raise ValueError(f"plate {plate.get('name')!r} has a zero normal")
     write_image(folder / UNDEFORMED_MR, undeformed)
-    write_image(folder / FOLDER / STATE_MR, measured)
+    write_image(folder / FIRST_STATE / STATE_MR, measured)
     if landmarks is not None:
         reference, moved = landmarks
         if reference.labels != moved.labels:
             raise ValueError("the reference and measured landmarks must carry the same labels in the same order")
         write_markups(folder / REFERENCE_LANDMARKS, reference, name="Reference landmarks")
-        write_markups(folder / FOLDER / STATE_LANDMARKS, moved, name="Compressed landmarks")
-    write_text_atomically(folder / FOLDER / STATE_PLATES, json.dumps(
+        write_markups(folder / FIRST_STATE / STATE_LANDMARKS, moved, name="Compressed landmarks")
+    write_text_atomically(folder / FIRST_STATE / STATE_PLATES, json.dumps(
         {"axis": None, "compression": None, "plates": plates, "gravity": [float(g) for g in gravity]},
         indent=2) + "\n")
     return folder
@@ -117,8 +115,8 @@ def compressed_folder(case_dir: str | Path) -> Path:
     """The ``compressed/`` folder of a compressed case (``case_dir`` is the undeformed case's
     folder, or that folder itself); a FileNotFoundError that says how to make one otherwise."""
     folder = Path(case_dir)
-    if (folder / FOLDER).is_dir():
-        folder = folder / FOLDER
+    if (folder / FIRST_STATE).is_dir():
+        folder = folder / FIRST_STATE
     if not (folder / STATE_PLATES).is_file():
         raise FileNotFoundError(f"{folder}: not a compressed case (no plates.json); make one with "
                                 "`breastbiomech phantom --case N --compressed --out DIR`")
@@ -148,8 +146,8 @@ def case_fingerprint(case_dir: str | Path) -> str:
     and plates): a fit records it (case.json), and a diagnosis refuses a fit whose fingerprint
     differs from the case's."""
     folder = Path(case_dir)
-    if (folder / FOLDER).is_dir():
-        folder = folder / FOLDER
+    if (folder / FIRST_STATE).is_dir():
+        folder = folder / FIRST_STATE
     digest = hashlib.sha256()
     for name in (STATE_MR, STATE_PLATES):
         digest.update((folder / name).read_bytes())
