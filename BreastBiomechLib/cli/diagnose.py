@@ -30,7 +30,8 @@ def cmd_diagnose(args) -> int:
             print(f"  {message}", file=sys.stderr, flush=True)
         events.progress(message)
 
-    unused = CaseLayout(args.case_dir).unused_states_note()
+    unused = CaseLayout(args.case_dir).unused_states_note(
+        why="the diagnosis stacks no further states yet (a joint fit of them is read at its first state)")
     if unused:
         print(f"breastbiomech diagnose: note: {unused}", file=sys.stderr)
         events.progress(unused)

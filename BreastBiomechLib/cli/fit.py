@@ -37,12 +37,14 @@ def cmd_optimise(args) -> int:
         events.progress(f"{done}/{budget} forward solves ({phase}), best objective {best:.5f}", done / budget)
 
     events.progress(f"{settings.model} fit: preparing the case and the fitting mesh", 0.0)
-    unused = CaseLayout(args.case_dir).unused_states_note()
-    if unused:
-        print(f"breastbiomech optimise: note: {unused}", file=sys.stderr)
-        events.progress(unused, 0.0)
+    layout = CaseLayout(args.case_dir)
+    if args.states is not None:
+        unused = layout.unused_states_note(args.states, why="--states chose them")
+        if unused:
+            print(f"breastbiomech optimise: note: {unused}", file=sys.stderr)
+            events.progress(unused, 0.0)
     fit = fit_compressed_case(args.case_dir, args.out, settings, labels=args.labels, mesh_path=args.mesh,
-                              resume=args.resume, device=args.device, progress=progress)
+                              resume=args.resume, device=args.device, progress=progress, states=args.states)
     events.output("fit", fit.folder)
     if bar:
         print(file=sys.stderr)
@@ -66,9 +68,13 @@ def cmd_optimise(args) -> int:
         print("  fibre direction (LPS) " + " ".join(f"{v:.3f}" for v in fit.result.geometry["fibre"]))
     if "plate_offsets_mm" in fit.result.geometry:
         print("  plate offsets (mm, towards the tissue) " + " ".join(f"{v:.2f}" for v in fit.result.geometry["plate_offsets_mm"]))
+    for name, figures in best.states.items():
+        print(f"  state {name}: objective {figures['objective']:.5f}, NMI {figures['nmi']:.4f}"
+              + (f", landmark error {figures['landmark_mean_mm']:.2f} mm (mean)"
+                 if figures["landmark_mean_mm"] == figures["landmark_mean_mm"] else ""))
     if fit.landmark_errors:
         e = fit.landmark_errors
-        print(f"  landmarks: displacement {e['displacement_mm']['mean']:.2f} ± {e['displacement_mm']['sd']:.2f} mm, "
+        print(f"  landmarks{' (first state)' if best.states else ''}: displacement {e['displacement_mm']['mean']:.2f} ± {e['displacement_mm']['sd']:.2f} mm, "
               f"error {e['error_mm']['mean']:.2f} ± {e['error_mm']['sd']:.2f} mm (max {e['error_mm']['max']:.2f})")
     print(f"  results in {fit.folder}")
     return 0
@@ -142,6 +148,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--edge-mm", type=positive, default=4.0, help="fitting mesh element size (default 4 mm)")
     p.add_argument("--tolerance-mm", type=positive, default=0.01, help="forward solves' relaxation tolerance (mm)")
     p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--states", nargs="+", metavar="NAME",
+                   help="the measured states fitted (compressed, and names under the case's states/); default: every "
+                        "state of the case, jointly (one set of materials, each state its own plates)")
     p.add_argument("--resume", action="store_true", help="continue a fit interrupted in --out")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     add_progress_option(p)

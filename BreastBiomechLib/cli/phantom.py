@@ -73,6 +73,7 @@ def cmd_phantom(args) -> int:
     given = [name for name, value in effects.items() if value]
     if given and not args.compressed:
         raise ValueError(f"{', '.join(given)} change the truth simulation of a compressed case: add --compressed")
+    states = _states(args, truth)
     case = generate_phantom(_phantom_parameters(args))
     paths = write_phantom(case, args.out, overview=not args.no_overview)
     s = case.summary
@@ -96,7 +97,44 @@ def cmd_phantom(args) -> int:
               f"{forces}; largest displacement {c['max_displacement_mm']:.1f} mm; {c['seconds']:.0f} s")
         for role, path in paths.items():
             print(f"  {role:20s} {path}")
+        for spec, state_truth in states:
+            _write_state(case, spec, state_truth, compressed.mesh, args)
     return 0
+
+
+def _states(args, truth) -> list:
+    """The further measured states of ``--state`` (each a
+    :class:`~BreastBiomechLib.phantom.states.StateSpec` and its truth), checked before anything is made."""
+    from BreastBiomechLib.phantom.states import check_states, parse_state
+
+    if not args.state:
+        return []
+    if truth is None:
+        raise ValueError("--state adds a measured state to a compressed case: add --compressed")
+    specs = [parse_state(words) for words in args.state]
+    check_states(specs)
+    return [(spec, spec.truth(truth, k)) for k, spec in enumerate(specs, start=1)]
+
+
+def _write_state(case, spec, truth, mesh, args) -> None:
+    """Simulate and image the further state ``spec`` (its ``truth``) on the first state's truth
+    mesh, and write it under states/<name>/."""
+    from BreastBiomechLib.mesh.tetmesh import TetMesh
+    from BreastBiomechLib.phantom.compressed import compress_phantom
+    from BreastBiomechLib.phantom.compressed_files import write_compressed
+    from BreastBiomechLib.phantom.states import measured_force
+
+    bare = TetMesh(mesh.nodes, mesh.tets, {k: v for k, v in mesh.point_data.items() if k != "displacement"},
+                   dict(mesh.cell_data))
+    compressed = compress_phantom(case, truth, device=args.device, mesh=bare,
+                                  progress=lambda fraction, message: print(f"  [{fraction:4.0%}] state {spec.name}: "
+                                                                            f"{message}", flush=True))
+    force = None if spec.force_sd is None else measured_force(compressed, spec.force_sd, truth.seed)
+    paths = write_compressed(compressed, args.out, overview=not args.no_overview, state=spec.name, force=force)
+    c = compressed.summary
+    print(f"state {spec.name} written to {paths['measured'].parent}: {truth.compression:.1%} {truth.axis}, "
+          f"moving {truth.moving_plate}, {c['solve_message']}; largest displacement {c['max_displacement_mm']:.1f} mm"
+          + (f"; measured force {force['newtons']:.2f} +- {force['sd']:.2f} N on {force['plate']}" if force else ""))
 
 
 def cmd_table1_cases(args) -> int:
@@ -137,6 +175,11 @@ def add_parsers(sub) -> None:
                    help="which plate closes on the breast: both (half the travel each; default), or only the first "
                         "or second (lower or higher LPS coordinate) towards the other, held one, as the seed's rig "
                         "(its lateral movable plate is the second of LR for the phantom's left breast)")
+    p.add_argument("--state", action="append", nargs="+", metavar=("NAME", "KEY=VALUE"),
+                   help="a further measured state (OUT/states/NAME) of the compressed case: the same breast and "
+                        "hidden effects compressed again with these settings (compression=F, axis=LR|SI, "
+                        "moving-plate=both|first|second, compression-gravity=GX,GY,GZ, force-sd=N to record the "
+                        "measured plate force); repeat for several")
     p.add_argument("--device", type=device_argument, help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
     effects.add_argument("--friction", type=non_negative, default=0.0, help="the plates' Coulomb friction mu")

@@ -19,9 +19,9 @@
                                    orientation, another posture): the same files as compressed/
 
 A state's name is letters, digits, "-" and "_". :meth:`CaseLayout.check` validates a folder and
-names what is wrong and what to do. The fit and the diagnosis use the first state
-(``compressed/``) only; :meth:`CaseLayout.unused_states_note` says so where a case holds more
-(joint fits of several states are not built yet).
+names what is wrong and what to do. A fit uses every state, jointly
+(:mod:`BreastBiomechLib.optimisation.states`), or those it is told; the diagnosis uses the first
+state (``compressed/``) only: :meth:`CaseLayout.unused_states_note` says so where a case holds more.
 """
 
 from __future__ import annotations
@@ -168,15 +168,16 @@ class CaseLayout:
                 read_force(state)
         return states
 
-    def unused_states_note(self) -> str:
-        """A sentence naming the measured states beyond the first that a fit or a diagnosis does
-        not use ("" where the case holds one state)."""
-        extra = [name for name in self.state_names() if name != FIRST_STATE]
+    def unused_states_note(self, used=(FIRST_STATE,), why: str = "") -> str:
+        """A sentence naming the measured states of the case beyond ``used`` (names) that a run
+        does not use, and ``why`` ("" where it uses them all)."""
+        extra = [name for name in self.state_names() if name not in used]
         if not extra:
             return ""
         listed = ", ".join(f"{STATES}/{name}" for name in extra)
-        return (f"{self.root} holds further measured states ({listed}): this run uses the first ({FIRST_STATE}/) "
-                "only; joint fits of several states are not built yet")
+        using = ", ".join(f"{name}/" if name == FIRST_STATE else f"{STATES}/{name}" for name in used)
+        return (f"{self.root} holds measured states this run does not use ({listed}): it uses {using} only"
+                + (f"; {why}" if why else ""))
 
 
 def read_force(state: StateFiles) -> PlateForce:

@@ -13,7 +13,14 @@ Output folder (besides the optimisation's settings.json, evaluations.jsonl, resu
     deformed_mesh.vtu             the fitting mesh with the best solution's ``displacement`` (mm)
     landmark_errors.json          per landmark and summarised as the seed's Table 2 (mm)
     case.json                     the case folder and the fingerprint of its measured image and plates
+                                  (with several states, each state's under "states")
     convergence.png               objective and best-so-far against evaluations
+    states/<name>/                a joint fit's further measured states: each its predicted.nrrd,
+                                  predicted_landmarks.mrk.json, deformed_mesh.vtu and landmark_errors.json
+
+A case with several measured states (:mod:`BreastBiomechLib.io.case_layout`) is fitted jointly by
+default (:mod:`~BreastBiomechLib.optimisation.states`: one set of materials, each state its own
+plates); the files above without a state's folder are the first state's.
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib.io.atomic import write_json_atomically
-from BreastBiomechLib.io.case_layout import FIRST_STATE, REFERENCE_LANDMARKS, STATE_LANDMARKS, CaseLayout
+from BreastBiomechLib.io.case_layout import FIRST_STATE, REFERENCE_LANDMARKS, STATE_LANDMARKS, STATES, CaseLayout
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
@@ -33,11 +40,10 @@ from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.optimisation.forward import FittingProblem
 from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solve_best
 from BreastBiomechLib.optimisation.space import ParameterSpace
+from BreastBiomechLib.optimisation.states import JointProblem
 from BreastBiomechLib.solver import DynamicRelaxation
 
 LANDMARK_ERRORS = "landmark_errors.json"  # per landmark and summarised (mm)
-
-
 
 
 @dataclass
@@ -75,7 +81,8 @@ class CaseFit:
 def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: FitSettings | None = None,
                         labels: str | Path | None = None, mesh_path: str | Path | None = None,
                         resume: bool = False, device=None,
-                        progress: Callable[[int, int, float, str], bool | None] | None = None) -> CaseFit:
+                        progress: Callable[[int, int, float, str], bool | None] | None = None,
+                        states: list[str] | None = None) -> CaseFit:
     """Fit ``settings.model`` to the compressed case in ``case_dir`` (a phantom case folder with
     its ``compressed/`` part, :mod:`BreastBiomechLib.phantom.compressed_files`) and write the
     results to ``out_dir``. The fitting mesh is ``mesh_path`` (a ``breastbiomech mesh`` .vtu), or
@@ -85,7 +92,9 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     written to ``out_dir/segmentation``), as a clinic's case would be; a case without seed points
     is refused (a resumed fit takes its own mesh). A phantom case's labels.nrrd is its ground
     truth, which a fit meant to be realistic never meshes by default; pass it as ``labels`` only on
-    purpose (a fit on the truth, to tell the segmentation's share of an error from the model's)."""
+    purpose (a fit on the truth, to tell the segmentation's share of an error from the model's).
+    ``states``: the measured states fitted (names; default every state of the case, jointly
+    where there are several: :mod:`~BreastBiomechLib.optimisation.states`)."""
     from BreastBiomechLib.io.images import read_image, read_label_map
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
     from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
@@ -102,16 +111,24 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
                          "--labels SEG.nrrd (a segmentation's label map, meshed at --edge-mm). A phantom case's "
                          f"{layout.truth_labels} is its ground truth: a fit does not mesh it unless --labels names "
                          "it on purpose")
-    measured = read_compressed(case)
+    first = read_compressed(case)
     layout.check()
+    names = fitted_states(layout, states)
+    measured = {name: first if name == FIRST_STATE else read_compressed(case, name) for name in names}
     undeformed = read_image(layout.mr)
     reference = read_markups(layout.landmarks) if layout.landmarks.is_file() else None
-    if reference is not None and measured.landmarks is None:
+    if reference is not None and measured[names[0]].landmarks is None:
         raise ValueError(f"{case}: the reference landmarks ({REFERENCE_LANDMARKS}) have no measured counterpart in "
                          f"{FIRST_STATE}/{STATE_LANDMARKS}; add it, or remove both to fit without landmarks")
+    if len(names) > 1 and "offset" in settings.free:
+        raise ValueError(f"{case}: the plates' offsets are fitted for one state's plates; fit the states "
+                         f"{', '.join(names)} jointly without 'offset' free, or one state (--states NAME) with it")
     with claimed(out, "a fit of a compressed case"):
         out.mkdir(parents=True, exist_ok=True)
-        write_json_atomically(out / "case.json", {"case_dir": str(case.resolve()), "fingerprint": case_fingerprint(case)})
+        record = {"case_dir": str(case.resolve()), "fingerprint": case_fingerprint(case, names[0])}
+        if names != [FIRST_STATE]:
+            record["states"] = {name: case_fingerprint(case, name) for name in names}
+        write_json_atomically(out / "case.json", record)
         mesh_file = out / "fitting_mesh.vtu"
         if mesh_path is not None:
             mesh = read_vtu(mesh_path)
@@ -126,11 +143,14 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
         write_vtu(mesh_file, mesh)
         space = ParameterSpace.for_model(settings.model, np.unique(np.asarray(mesh.cell_data["tissue"]).astype(int)),
                                          free=settings.free, fibre=settings.fibre,
-                                         plates=len(measured.plates) if "offset" in settings.free else 0)
-        problem = FittingProblem(space, mesh, undeformed, measured.image, measured.plates,
-                                 landmarks=(reference, measured.landmarks) if reference is not None else None,
-                                 objective=settings.objective, bins=settings.bins,
-                                 relaxation=DynamicRelaxation(tolerance_mm=settings.tolerance_mm), device=device)
+                                         plates=len(measured[names[0]].plates) if "offset" in settings.free else 0)
+        relaxation = DynamicRelaxation(tolerance_mm=settings.tolerance_mm)
+        problems = {name: FittingProblem(space, mesh, undeformed, m.image, m.plates,
+                                         landmarks=(reference, m.landmarks) if reference is not None else None,
+                                         objective=settings.objective, bins=settings.bins, relaxation=relaxation,
+                                         device=device)
+                    for name, m in measured.items()}
+        problem = problems[names[0]] if len(names) == 1 else JointProblem(problems)
         result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
                           progress, population=settings.population)
 
@@ -152,35 +172,71 @@ def segmented_labels(case: Path, image, out: Path):
     return result.labels
 
 
-def write_fit_outputs(out: str | Path, problem: FittingProblem, result: OptimisationResult) -> tuple:
+def fitted_states(layout: CaseLayout, chosen: list[str] | None) -> list[str]:
+    """The measured states a fit of the case ``layout`` uses: ``chosen`` (names, in the case's
+    order, the first state among them) or, with None, every state of the case. A ValueError
+    names a state the case does not hold."""
+    present = layout.state_names()
+    if chosen is None:
+        return present
+    unknown = [name for name in chosen if name not in present]
+    if unknown:
+        raise ValueError(f"{layout.root}: no measured state {', '.join(map(repr, unknown))}; the case holds "
+                         f"{', '.join(present)}")
+    if FIRST_STATE not in chosen:
+        raise ValueError(f"the fit's states include the first ({FIRST_STATE}): the fit's files, and the diagnosis "
+                         "that reads them, are that state's")
+    return [name for name in present if name in chosen]
+
+
+def write_fit_outputs(out: str | Path, problem: FittingProblem | JointProblem, result: OptimisationResult) -> tuple:
     """The files a user looks at of an ended optimisation of ``problem`` in its folder ``out``
     (the module's list; not case.json): the best parameters solved alone (a stand-in where they no
     longer solve, :func:`~BreastBiomechLib.optimisation.run.solve_best`), the fitting mesh and its
     solution, the predicted image, with landmarks the moved landmarks and their errors, the
-    convergence picture. Returns the (possibly stood-in) result and the landmark-error summary
-    (None without landmarks)."""
+    convergence picture; for a joint fit the first state's in ``out`` and each further state's
+    in ``out``/states/<name>. Returns the (possibly stood-in) result and the first state's
+    landmark-error summary (None without landmarks)."""
+    from BreastBiomechLib.io.meshes import write_vtu
+
+    out = Path(out)
+    result, best = solve_best(problem, result, out)
+    write_vtu(out / "fitting_mesh.vtu", problem.mesh)
+    if isinstance(problem, JointProblem):
+        errors = None
+        for k, (name, state) in enumerate(problem.problems.items()):
+            folder = out if k == 0 else out / STATES / name
+            folder.mkdir(parents=True, exist_ok=True)
+            summary = _write_state_outputs(folder, state, best.solutions[name].displacement)
+            errors = summary if k == 0 else errors
+    else:
+        errors = _write_state_outputs(out, problem, best.displacement)
+    save_convergence(out / "convergence.png", result)
+    return result, errors
+
+
+def _write_state_outputs(out: Path, problem: FittingProblem, displacement: np.ndarray) -> dict | None:
+    """One measured state's predicted image, deformed mesh and, with landmarks, the moved
+    landmarks and their errors, in ``out``; the landmark-error summary (None without landmarks)."""
     from BreastBiomechLib.io.images import write_image
     from BreastBiomechLib.io.meshes import write_vtu
 
-    out, mesh = Path(out), problem.mesh
-    result, best = solve_best(problem, result, out)
-    write_vtu(out / "fitting_mesh.vtu", mesh)
-    write_image(out / "predicted.nrrd", problem.predict(best.displacement).image)
+    mesh = problem.mesh
+    write_image(out / "predicted.nrrd", problem.predict(displacement).image)
     write_vtu(out / "deformed_mesh.vtu", TetMesh(mesh.nodes, mesh.tets, {**mesh.point_data,
-                                                                          "displacement": best.displacement},
+                                                                          "displacement": displacement},
                                                  dict(mesh.cell_data)))
-    errors = None
-    if problem.landmarks is not None:
-        reference, measured = problem.landmarks
-        moved = map_landmarks(mesh, best.displacement, reference)
-        write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
-        table = landmark_errors(reference, moved, measured)
-        errors = table.summary()
-        write_json_atomically(out / LANDMARK_ERRORS, {**errors, "per_landmark": {
-            label: {"displacement_mm": float(d), "error_mm": float(e)}
-            for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}})
-    save_convergence(out / "convergence.png", result)
-    return result, errors
+    if problem.landmarks is None:
+        return None
+    reference, measured = problem.landmarks
+    moved = map_landmarks(mesh, displacement, reference)
+    write_markups(out / "predicted_landmarks.mrk.json", moved, name="Predicted landmarks")
+    table = landmark_errors(reference, moved, measured)
+    errors = table.summary()
+    write_json_atomically(out / LANDMARK_ERRORS, {**errors, "per_landmark": {
+        label: {"displacement_mm": float(d), "error_mm": float(e)}
+        for label, d, e in zip(table.labels, table.displacement_mm, table.error_mm)}})
+    return errors
 
 
 def save_convergence(path: str | Path, result: OptimisationResult) -> Path:

@@ -9,7 +9,7 @@ plates are the measured final planes (a compressed case's plates.json).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +37,9 @@ class Evaluation:
     and the batch's wall time (s); the mean distance (mm) of the predicted breast skin to the
     measured body surface (NaN unless the objective uses it); for a failed solve the solver's
     ``message`` (what failed and where: the step and first element of an inversion, the error
-    estimate of a relaxation that ran out of iterations), empty for a completed one."""
+    estimate of a relaxation that ran out of iterations), empty for a completed one; in a joint
+    fit of several measured states (:mod:`~BreastBiomechLib.optimisation.states`) each state's
+    objective, NMI, mean landmark error and status by name in ``states``."""
 
     z: list[float]
     values: dict[str, float]
@@ -51,6 +53,7 @@ class Evaluation:
     seconds: float
     surface_mm: float = float("nan")
     message: str = ""
+    states: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)

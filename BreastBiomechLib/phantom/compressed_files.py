@@ -12,8 +12,11 @@ phantom case (:mod:`BreastBiomechLib.phantom.files`)::
     compressed/truth_mesh.vtu       the truth mesh with its ``displacement`` (mm): validation only
     compressed/overview.png         three slices of the measured image with its landmarks
 
-What a fit may use: the undeformed case, ``mr.nrrd``, ``landmarks.mrk.json`` and ``plates.json``
-(in the seed the plates are seen in the compressed image).
+Further measured states (:mod:`BreastBiomechLib.phantom.states`) hold the same files in
+``states/<name>/``, with ``force.json`` (the measured plate force and its sd) where recorded.
+
+What a fit may use: the undeformed case, ``mr.nrrd``, ``landmarks.mrk.json``, ``plates.json`` and
+``force.json`` of each state (in the seed the plates are seen in the compressed image).
 """
 
 from __future__ import annotations
@@ -27,7 +30,8 @@ import numpy as np
 import SimpleITK as sitk
 
 from BreastBiomechLib.io.atomic import write_text_atomically
-from BreastBiomechLib.io.case_layout import FIRST_STATE, STATE_LANDMARKS, STATE_MR, STATE_PLATES, UNDEFORMED_MR
+from BreastBiomechLib.io.case_layout import (FIRST_STATE, STATE_FORCE, STATE_LANDMARKS, STATE_MR, STATE_PLATES,
+                                             UNDEFORMED_MR, CaseLayout)
 from BreastBiomechLib.io.case_layout import REFERENCE_LANDMARKS
 from BreastBiomechLib.io.images import read_image, write_image
 from BreastBiomechLib.io.markups import read_markups, write_markups
@@ -36,13 +40,16 @@ from BreastBiomechLib.phantom.compressed import CompressedCase
 from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 
 
-def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview: bool = True) -> dict[str, Path]:
-    """Write ``compressed`` into ``case_dir``/compressed (created if needed; the undeformed case
-    is written by :func:`~BreastBiomechLib.phantom.files.write_phantom`); returns the paths by role."""
+def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview: bool = True,
+                     state: str = FIRST_STATE, force: dict | None = None) -> dict[str, Path]:
+    """Write ``compressed`` into the folder of measured ``state`` of ``case_dir`` (the first,
+    ``compressed/``, or ``states/<name>/``; created if needed; the undeformed case is written by
+    :func:`~BreastBiomechLib.phantom.files.write_phantom`), with the measured plate ``force``
+    record where given (force.json); returns the paths by role."""
     from BreastBiomechLib.io.meshes import write_vtu
     from BreastBiomechLib.phantom.truth_files import TRUTH_MESH, TRUTH_RECORD
 
-    out = Path(case_dir) / FIRST_STATE
+    out = CaseLayout(case_dir).state(state).folder
     out.mkdir(parents=True, exist_ok=True)
     truth = compressed.truth
     paths = {
@@ -56,12 +63,16 @@ def write_compressed(compressed: CompressedCase, case_dir: str | Path, overview:
                                            "plates": compressed.plates,
                                            "gravity": [float(g) for g in compressed.gravity]}, indent=2) + "\n")
     write_text_atomically(paths["truth"], json.dumps({"truth": truth.to_dict(), "summary": compressed.summary}, indent=2) + "\n")
+    if force is not None:
+        paths["force"] = out / STATE_FORCE
+        write_text_atomically(paths["force"], json.dumps(force, indent=2) + "\n")
     if overview:
         from BreastBiomechLib.visualisation import save_overview
 
         paths["overview"] = save_overview(
             out / "overview.png", compressed.image, None, compressed.landmarks,
-            title=f"Compressed {truth.compression:.1%} {truth.axis}: measured image and landmarks")
+            title=f"{'' if state == FIRST_STATE else f'State {state}: '}Compressed {truth.compression:.1%} "
+                  f"{truth.axis}: measured image and landmarks")
     return paths
 
 
@@ -111,10 +122,17 @@ class MeasuredCompression:
     gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE_GRAVITY))
 
 
-def compressed_folder(case_dir: str | Path) -> Path:
-    """The ``compressed/`` folder of a compressed case (``case_dir`` is the undeformed case's
-    folder, or that folder itself); a FileNotFoundError that says how to make one otherwise."""
+def compressed_folder(case_dir: str | Path, state: str = FIRST_STATE) -> Path:
+    """The folder of measured ``state`` of a compressed case (``compressed/``, or
+    ``states/<name>/``; ``case_dir`` is the undeformed case's folder, or for the first state that
+    folder itself); a FileNotFoundError that says how to make one otherwise."""
     folder = Path(case_dir)
+    if state != FIRST_STATE:
+        folder = CaseLayout(folder).state(state).folder
+        if not (folder / STATE_PLATES).is_file():
+            raise FileNotFoundError(f"{case_dir}: no measured state {state!r} ({folder} with {STATE_PLATES}); the "
+                                    f"case holds {', '.join(CaseLayout(case_dir).state_names()) or 'none'}")
+        return folder
     if (folder / FIRST_STATE).is_dir():
         folder = folder / FIRST_STATE
     if not (folder / STATE_PLATES).is_file():
@@ -123,10 +141,11 @@ def compressed_folder(case_dir: str | Path) -> Path:
     return folder
 
 
-def read_compressed(case_dir: str | Path) -> MeasuredCompression:
-    """Read the measured part of a compressed case written by :func:`write_compressed`
-    (``case_dir`` is the undeformed case's folder, or its ``compressed/`` folder)."""
-    folder = compressed_folder(case_dir)
+def read_compressed(case_dir: str | Path, state: str = FIRST_STATE) -> MeasuredCompression:
+    """Read measured ``state`` of a compressed case written by :func:`write_compressed`
+    (``case_dir`` is the undeformed case's folder, or for the first state its ``compressed/``
+    folder)."""
+    folder = compressed_folder(case_dir, state)
     document = json.loads((folder / STATE_PLATES).read_text())
     for plate in document["plates"]:
         if np.linalg.norm(plate["normal"]) == 0:
@@ -141,12 +160,14 @@ def read_compressed(case_dir: str | Path) -> MeasuredCompression:
                                float("nan") if compression is None else float(compression), folder, gravity)
 
 
-def case_fingerprint(case_dir: str | Path) -> str:
-    """A SHA-256 of what a fit reads of the compressed case in ``case_dir`` (its measured image
-    and plates): a fit records it (case.json), and a diagnosis refuses a fit whose fingerprint
-    differs from the case's."""
+def case_fingerprint(case_dir: str | Path, state: str = FIRST_STATE) -> str:
+    """A SHA-256 of what a fit reads of measured ``state`` of the compressed case in ``case_dir``
+    (its measured image and plates): a fit records it (case.json), and a diagnosis refuses a fit
+    whose fingerprint differs from the case's."""
     folder = Path(case_dir)
-    if (folder / FIRST_STATE).is_dir():
+    if state != FIRST_STATE:
+        folder = compressed_folder(folder, state)
+    elif (folder / FIRST_STATE).is_dir():
         folder = folder / FIRST_STATE
     digest = hashlib.sha256()
     for name in (STATE_MR, STATE_PLATES):

@@ -47,8 +47,11 @@ def test_a_single_scan_case_is_one_state_and_further_states_are_found_in_name_or
     states = layout.check()
     assert [s.name for s in states] == ["compressed", "cc-20pc", "mlo"]
     assert states[2].plates == tmp_path / "case" / "states" / "mlo" / "plates.json"
-    note = layout.unused_states_note()
-    assert "states/cc-20pc, states/mlo" in note and "first (compressed/) only" in note
+    note = layout.unused_states_note(why="the diagnosis stacks no further states yet")
+    assert "states/cc-20pc, states/mlo" in note and "it uses compressed/ only; the diagnosis stacks" in note
+    assert layout.unused_states_note(["compressed", "mlo"]).startswith(f"{layout.root} holds measured states this "
+                                                                        "run does not use (states/cc-20pc)")
+    assert layout.unused_states_note(["compressed", "cc-20pc", "mlo"]) == ""
 
 
 @pytest.mark.parametrize("damage, message", [
