@@ -1,8 +1,10 @@
 """A round's diagnosis kept on disk beside its record, so that another process (or a later
 session) decides on it: adds a candidate and refits from the round's sensitivities and refits,
 or shows a candidate's predicted residual, without diagnosing the round again. The Breast
-Discrepancy panel diagnoses in one process (`breastbiomech diagnose --propose-only`) and adds
-the effect the user accepts in another (`--add NAME`).
+Discrepancy panel diagnoses in one process (`breastbiomech diagnose --one-round`) and adds
+the effect the user accepts in another (`--add NAME`). Kept also as a round's checkpoint, before
+its first write, with the ``key`` of what it was diagnosed from: a run interrupted before the
+round is written takes its solves and statistics up again instead of making them anew.
 
 ``round-<N>-kept.npz`` holds the arrays (the sensitivities, the refits' values, displacements
 and residuals, each feature's region) and one JSON document (``meta``) with the rest: the
@@ -28,7 +30,7 @@ from BreastBiomechLib.discrepancy.sensitivity import Sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
 
 SUFFIX = "-kept.npz"
-FORMAT = 2  # 2: the prior-data conflicts kept with the diagnosis
+FORMAT = 3  # 2: the prior-data conflicts kept with the diagnosis; 3: the checkpoint's key
 
 
 def _state_record(state: ModelState) -> dict:
@@ -61,8 +63,10 @@ def _refit(key: str, record: dict, arrays, base: ModelState, effects: dict) -> R
                  record["note"], record.get("profile"))
 
 
-def save_diagnosis(path: str | Path, diagnosis: Diagnosis) -> Path:
-    """Keep ``diagnosis`` in ``path`` (a round-<N>-kept.npz), atomically."""
+def save_diagnosis(path: str | Path, diagnosis: Diagnosis, key: dict | None = None) -> Path:
+    """Keep ``diagnosis`` in ``path`` (a round-<N>-kept.npz), atomically; ``key``: what the round
+    was diagnosed from (:meth:`~BreastBiomechLib.discrepancy.session.DiagnosisSession` writes it
+    with a checkpoint, and takes the checkpoint up only where its own key is the same)."""
     path = Path(path)
     s = diagnosis.sensitivities
     arrays = {"feature_regions": np.asarray(diagnosis.feature_regions).astype(str),
@@ -81,7 +85,7 @@ def save_diagnosis(path: str | Path, diagnosis: Diagnosis) -> Path:
                           "candidates": [c.to_dict() for c in diagnosis.candidates]},
             "sensitivities": {"nuisance_keys": s.nuisance_keys, "skipped": s.skipped, "solves": s.solves,
                               "effects": list(s.effects), "fields": list(s.fields), "steps": list(s.steps)},
-            "refits": refits, "refitted": refitted}
+            "refits": refits, "refitted": refitted, "key": key}
     arrays["meta"] = np.array(json.dumps(meta, default=float))
     handle, temporary = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
     try:
@@ -94,17 +98,20 @@ def save_diagnosis(path: str | Path, diagnosis: Diagnosis) -> Path:
     return path
 
 
-def load_diagnosis(path: str | Path, base: ModelState, effects) -> Diagnosis:
+def load_diagnosis(path: str | Path, base: ModelState, effects, key: dict | None = None) -> Diagnosis:
     """The diagnosis kept in ``path`` by :func:`save_diagnosis`, for the round whose model was
     ``base`` (its state before) with the library's ``effects``. Raises ValueError where it was
-    kept by another library version or names an effect the library does not hold."""
+    kept by another library version, names an effect the library does not hold, or (with
+    ``key``) was diagnosed from anything else than ``key`` says."""
     path = Path(path)
     with np.load(path, allow_pickle=False) as data:
-        arrays = {key: data[key] for key in data.files}
+        arrays = {name: data[name] for name in data.files}
     meta = json.loads(str(arrays.pop("meta")))
     if meta.get("format") != FORMAT or meta.get("version") != __version__:
         raise ValueError(f"{path} was kept by BreastBiomech {meta.get('version')}, this is {__version__}: "
                          "diagnose the round again")
+    if key is not None and meta.get("key") != json.loads(json.dumps(key, default=float)):
+        raise ValueError(f"{path} was diagnosed from another model, candidates, settings or features")
     by_name = {e.name: e for e in effects}
     s = meta["sensitivities"]
     sensitivities = Sensitivities(

@@ -23,7 +23,10 @@ Output folder::
                      a round that waited for a decision: its diagnosis kept (sensitivities, refits and,
                      once decided, the refit with the added effect; :mod:`BreastBiomechLib.discrepancy.kept`),
                      so that a later session (another process) decides and shows it without
-                     diagnosing the round again
+                     diagnosing the round again; also a round's checkpoint, kept after its solves
+                     and statistics and before the registration and its first write, which a
+                     resumed run takes up where it was made from the same model, candidates,
+                     settings and features (removed when the round is written and waits for no decision)
     report.md        the report (:mod:`BreastBiomechLib.discrepancy.report`)
 
 A round is *open* while its verdict asks for a decision (a missing effect or an ambiguous
@@ -45,6 +48,8 @@ from BreastBiomechLib.discrepancy.diagnosis import Diagnosis, DiagnosisSettings,
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
 from BreastBiomechLib.discrepancy.floor import MeasuredFloor, measure_floor
+from BreastBiomechLib.discrepancy.kept import SUFFIX as KEPT
+from BreastBiomechLib.discrepancy.kept import load_diagnosis, save_diagnosis
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
 from BreastBiomechLib.discrepancy.regions import regions_of
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
@@ -278,10 +283,19 @@ class DiagnosisSession:
                 self.last["diagnosis"]["verdict"] == "no significant discrepancy" and not self.last.get("added"):
             raise ValueError(f"round {self.last['round']} found no significant discrepancy: nothing is left to diagnose")
         started = time.perf_counter()
-        say(f"round {number}: diagnosing")
-        diagnosis = diagnose(self.state, self.observations, self.candidates, self.settings,
-                             lambda m: say(f"round {number}: {m}"),
-                             excluded={name: "rejected in an earlier round" for name in self.rejected})
+        key = self._round_key(number)
+        diagnosis = self._checkpoint(number, key) if number > len(self.rounds) else None
+        kept = diagnosis is not None  # round-<N>-kept.npz holds this round's diagnosis
+        if kept:
+            say(f"round {number}: its solves and statistics taken from the interrupted run's checkpoint")
+        else:
+            say(f"round {number}: diagnosing")
+            diagnosis = diagnose(self.state, self.observations, self.candidates, self.settings,
+                                 lambda m: say(f"round {number}: {m}"),
+                                 excluded={name: "rejected in an earlier round" for name in self.rejected})
+            if self.recorder is not None:  # the registration follows before the first write: a checkpoint
+                self._keep(number, diagnosis, key)
+                kept = True
         regions = diagnosis.feature_regions
         fitted, observations = self.fitted, self.observations
         record = {"round": number, "diagnosis": diagnosis.to_dict(), "state_before": self.state.to_dict(),
@@ -303,7 +317,10 @@ class DiagnosisSession:
         self.rounds[number - 1:] = [record]
         self.diagnosis = diagnosis
         if is_open(record):  # it waits for a decision, maybe in another process: kept before the record is written
-            self._keep(record, diagnosis)
+            if not kept:
+                self._keep(number, diagnosis)
+        else:  # a checkpoint only: gone before the record is written (a kill between costs a diagnosis, no more)
+            self.path(number, KEPT).unlink(missing_ok=True)
         self._write(record)
         self._told(progress)(f"round {number}: {diagnosis.sentence}")
         return record
@@ -347,10 +364,8 @@ class DiagnosisSession:
         record["state_after"] = self.state.to_dict()
         record["seconds"] = round(record.get("seconds", 0.0) + time.perf_counter() - started, 1)
         self.diagnosis = replace(diagnosis, refitted=chosen, effect=name)
-        from BreastBiomechLib.discrepancy.kept import SUFFIX
-
-        if self.path(record["round"], SUFFIX).is_file():  # kept with the refit: a later session shows it
-            self._keep(record, self.diagnosis)
+        if self.path(record["round"], KEPT).is_file():  # kept with the refit: a later session shows it
+            self._keep(record["round"], self.diagnosis)
         self._write(record)
         self._told(progress)(f"round {record['round']}: added {effect.title} ({effect.describe(chosen.values)})")
         return record
@@ -369,21 +384,42 @@ class DiagnosisSession:
         """The kept diagnosis of round ``record`` (:mod:`~BreastBiomechLib.discrepancy.kept`: a round
         that waited for a decision, with its refit once decided) where its file is there and
         readable by this library; else None."""
-        from BreastBiomechLib.discrepancy.kept import SUFFIX, load_diagnosis
-
-        if record is None or not self.path(record["round"], SUFFIX).is_file():
+        if record is None or not self.path(record["round"], KEPT).is_file():
             return None
         try:
             before = state_from_record(self.fitted, record, self.candidates, "before")
-            return load_diagnosis(self.path(record["round"], SUFFIX), before, self.candidates)
+            return load_diagnosis(self.path(record["round"], KEPT), before, self.candidates)
         except (ValueError, KeyError) as error:
             self._say(f"round {record['round']}: its kept diagnosis is not used ({error}); diagnose it again")
             return None
 
-    def _keep(self, record: dict, diagnosis: Diagnosis) -> None:
-        from BreastBiomechLib.discrepancy.kept import SUFFIX, save_diagnosis
+    def _round_key(self, number: int) -> dict:
+        """What round ``number`` is diagnosed from, as its checkpoint records it: the model (fit
+        parameters, effects added), the candidates and those rejected, the settings, and a
+        digest of the features (measured values and each one's sd, so the noise model and the
+        floor)."""
+        import hashlib
 
-        save_diagnosis(self.path(record["round"], SUFFIX), diagnosis)
+        digest = hashlib.sha256(np.ascontiguousarray(self.observations.measured, float).tobytes()
+                                + np.ascontiguousarray(self.observations.sigma, float).tobytes()).hexdigest()
+        return {"round": number, "state": self.state.to_dict(), "candidates": [e.name for e in self.candidates],
+                "rejected": sorted(self.rejected), "settings": self.settings.__dict__, "features": digest}
+
+    def _checkpoint(self, number: int, key: dict) -> Diagnosis | None:
+        """Round ``number``'s checkpoint (kept before its first write by a run that was then
+        interrupted) where it was diagnosed from ``key``; else None (and any other one removed)."""
+        path = self.path(number, KEPT)
+        if not path.is_file():
+            return None
+        try:
+            return load_diagnosis(path, self.state, self.candidates, key)
+        except (ValueError, KeyError) as error:
+            self._say(f"round {number}: the interrupted run's checkpoint is not used ({error})")
+            path.unlink(missing_ok=True)
+            return None
+
+    def _keep(self, number: int, diagnosis: Diagnosis, key: dict | None = None) -> None:
+        save_diagnosis(self.path(number, KEPT), diagnosis, key)
 
     def _decidable(self, need_memory: bool = True) -> tuple[dict, Diagnosis | None]:
         record = self.last

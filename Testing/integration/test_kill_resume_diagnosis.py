@@ -40,6 +40,9 @@ def diagnosis_outputs(out) -> dict:
 # after the refit). Atomic writes themselves: Testing/integration/test_kill_resume.py.
 CHECKPOINTS = ["round 1: residual displacement field (deformable registration)",
                "round 1: residual displacement field after adding friction"]
+# what the run resumed after the first kill says: it takes the round's solves and statistics from
+# the checkpoint the killed run kept, rather than making them again
+TAKEN_UP = ["round 1: its solves and statistics taken from the interrupted run's checkpoint"]
 
 
 @pytest.mark.slow
@@ -47,8 +50,9 @@ def test_a_diagnosis_killed_at_each_checkpoint_resumes_to_the_uninterrupted_resu
     """The hidden-friction case (conftest's small one): one round that names friction (its one
     candidate: the other effects' solves would only lengthen every trial), adds it and refits
     (the confirmation refit, not refined); one run is killed before the round is written (its
-    resume repeats the round), then, resumed, during the refit (its resume diagnoses the open
-    round again). The fixed floor and the linearised interval: the
+    resume takes the round's solves up from the checkpoint kept before the registration), then,
+    resumed, after the refit (its resume adds the effect to the open round from the round's kept
+    diagnosis). The fixed floor and the linearised interval: the
     measured floor's solve and the profile's (tested in test_discrepancy.py and
     test_discrepancy_friction.py) would lengthen every killed run."""
     case, fit = friction_case
@@ -62,4 +66,4 @@ def test_a_diagnosis_killed_at_each_checkpoint_resumes_to_the_uninterrupted_resu
     run(diagnosis(tmp_path / "reference"))
     reference = diagnosis_outputs(tmp_path / "reference")
     assert "round-1-residual-after.nrrd" in reference["files"], "the reference run added no effect"
-    assert_resumes_through_checkpoints(reference, diagnosis, diagnosis_outputs, tmp_path, CHECKPOINTS)
+    assert_resumes_through_checkpoints(reference, diagnosis, diagnosis_outputs, tmp_path, CHECKPOINTS, TAKEN_UP)

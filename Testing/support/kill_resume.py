@@ -73,33 +73,40 @@ def assert_resumes_to(reference: dict, seconds: float, command, outputs, tmp_pat
         assert_no_partial_files(out)
 
 
-def kill_at(argv: list[str], message: str) -> bool:
+def kill_at(argv: list[str], message: str) -> list[str] | None:
     """Start the command (with its progress on standard error) and SIGKILL it as soon as a line of
-    its progress holds ``message``; whether it was killed (False: it ended without saying it)."""
+    its progress holds ``message``; the lines it said up to then (None: it ended without saying it)."""
     process = subprocess.Popen(CLI + argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                start_new_session=True)
+    heard = []
     try:
         for line in process.stderr:
+            heard.append(line)
             if message in line:
                 os.killpg(process.pid, signal.SIGKILL)
-                return True
-        return False
+                return heard
+        return None
     finally:
         process.stderr.close()
         process.wait()
 
 
-def assert_resumes_through_checkpoints(reference: dict, command, outputs, tmp_path, messages: list[str]) -> None:
+def assert_resumes_through_checkpoints(reference: dict, command, outputs, tmp_path, messages: list[str],
+                                       resumed_says: list[str] = ()) -> None:
     """One run killed at each progress message of ``messages`` in turn: ``command(out,
     progress=True)`` killed as soon as it reports the first, then ``command(out, resume=True,
-    progress=True)`` killed at each next one (a resumed run killed again), then resumed to its end;
-    ``outputs(out)`` must equal ``reference`` key by key, with no temporary file left behind. One
-    run through every checkpoint, not a fresh run per checkpoint: the solves before a later
-    checkpoint are not made again from the start for it."""
+    progress=True)`` killed at each next one (a resumed run killed again; the k-th of them must
+    have said ``resumed_says[k - 1]`` where given: how it took up what the killed run left), then
+    resumed to its end; ``outputs(out)`` must equal ``reference`` key by key, with no temporary
+    file left behind. One run through every checkpoint, not a fresh run per checkpoint: the
+    solves before a later checkpoint are not made again from the start for it."""
     out = tmp_path / "killed"
     for k, message in enumerate(messages):
-        assert kill_at(command(out, resume=k > 0, progress=True), message), \
-            f"the {'resumed ' if k else ''}command never reported {message!r}"
+        heard = kill_at(command(out, resume=k > 0, progress=True), message)
+        assert heard is not None, f"the {'resumed ' if k else ''}command never reported {message!r}"
+        if 0 < k <= len(resumed_says):
+            assert any(resumed_says[k - 1] in line for line in heard), \
+                f"the resumed command did not say {resumed_says[k - 1]!r}: {''.join(heard)[-1500:]}"
     run(command(out, resume=True))
     resumed = outputs(out)
     for key, value in reference.items():
