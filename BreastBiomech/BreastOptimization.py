@@ -33,6 +33,7 @@ CASE_DEPENDENCIES = ["numpy", "scipy", "SimpleITK"]  # reading a compressed case
 DEPENDENCIES = ["numpy", "scipy", "SimpleITK", "matplotlib", "warp", "cma"]  # fitting
 EDGE_ATTRIBUTE = "BreastBiomech.PlateEdge"  # a measured plate's rounded edge (JSON, LPS mm), as in plates.json
 NAME_ATTRIBUTE = "BreastBiomech.PlateName"  # its name in plates.json
+STATE_ATTRIBUTE = "BreastOptimization.State"  # a further measured state's name (the case folder's states/<name>)
 
 
 class BreastOptimization(ModuleBase):
@@ -175,7 +176,8 @@ class BreastOptimizationLogic(ModuleLogicBase):
                 "scheduler": ""}
     ROLES = ("undeformedVolume", "measuredVolume", "inputMesh", "referenceLandmarks", "measuredLandmarks", "plates",
              "predictedVolume", "predictedLandmarks", "errorLines", "landmarkErrorsTable", "parametersTable",
-             "convergenceTable", "convergenceChart", "studyTable")
+             "convergenceTable", "convergenceChart", "studyTable", "stateVolumes", "statePredictedVolumes",
+             "statesTable")
 
     # -- inputs ----------------------------------------------------------------------------------
 
@@ -185,6 +187,7 @@ class BreastOptimizationLogic(ModuleLogicBase):
         choose its nodes; ``meshPath``: a fitting mesh (.vtu) to load too."""
         from pathlib import Path
 
+        from BreastBiomechLib.io.case_layout import FIRST_STATE, CaseLayout
         from BreastBiomechLib.io.images import read_image
         from BreastBiomechLib.io.markups import read_markups
         from BreastBiomechLib.mrml import image_to_volume_node, landmarks_to_markups_node
@@ -205,12 +208,54 @@ class BreastOptimizationLogic(ModuleLogicBase):
             p.set_reference("measuredLandmarks", landmarks_to_markups_node(measured.landmarks, self.scene,
                                                                            "Measured landmarks"))
         p.set_references("plates", [self._planeNode(plate) for plate in measured.plates])
+        p.set_references("stateVolumes", [self._stateVolume(folder, name) for name in CaseLayout(folder).state_names()
+                                          if name != FIRST_STATE])
         p["caseDirectory"] = str(folder)
         if meshPath:
             from BreastBiomechLib.io.meshes import read_vtu
             from BreastBiomechLib.mrml import tetmesh_to_model_node
 
             p.set_reference("inputMesh", tetmesh_to_model_node(read_vtu(meshPath), self.scene, "Fitting mesh"))
+
+    def _stateVolume(self, folder, name: str):
+        """A volume node of the measured image of the case folder's further state ``name``,
+        tagged with its name (:data:`STATE_ATTRIBUTE`)."""
+        from BreastBiomechLib.mrml import image_to_volume_node
+        from BreastBiomechLib.phantom.compressed_files import read_compressed
+
+        node = image_to_volume_node(read_compressed(folder, name).image, self.scene, f"Measured {name} MR")
+        node.SetAttribute(STATE_ATTRIBUTE, name)
+        return node
+
+    def states(self, parameterNode) -> list[dict]:
+        """The further measured states loaded with the case (:meth:`loadCompressedCase`), fitted
+        jointly with the chosen nodes: each {"name", "measured" (image, from its volume node),
+        "plates" and, where reference landmarks are chosen, "landmarks" (from the case folder's
+        ``states/<name>/``), "folder"}. Refuses a state whose volume node lost its name or whose
+        case folder is gone."""
+        from pathlib import Path
+
+        from BreastBiomechLib.io.case_layout import CaseLayout
+        from BreastBiomechLib.mrml import image_from_volume_node
+        from BreastBiomechLib.phantom.compressed_files import read_compressed
+
+        p = parameterNode
+        nodes = p.references("stateVolumes")
+        if not nodes:
+            return []
+        if not p["caseDirectory"] or not Path(p["caseDirectory"]).is_dir():
+            raise ValueError(f"the further measured states were loaded from {p['caseDirectory'] or 'a case folder'}, "
+                             "which is gone: load the case again")
+        out = []
+        for node in nodes:
+            name = node.GetAttribute(STATE_ATTRIBUTE)
+            if not name:
+                raise ValueError(f"{node.GetName()}: not a measured state's volume; load the case again")
+            stored = read_compressed(p["caseDirectory"], name)
+            landmarks = stored.landmarks if p.reference("referenceLandmarks") is not None else None
+            out.append({"name": name, "measured": image_from_volume_node(node), "plates": stored.plates,
+                        "landmarks": landmarks, "folder": CaseLayout(p["caseDirectory"]).state(name).folder})
+        return out
 
     def _planeNode(self, plate: dict):
         """A markups plane at a measured final plate (plates.json dict: name, point, normal LPS)."""
@@ -304,16 +349,31 @@ class BreastOptimizationLogic(ModuleLogicBase):
                 "plates": self.finalPlates(p, mesh)}
 
     def problem(self, parameterNode):
-        """The :class:`~BreastBiomechLib.optimisation.FittingProblem` of the chosen nodes."""
+        """The :class:`~BreastBiomechLib.optimisation.FittingProblem` of the chosen nodes, or with
+        further measured states loaded with the case the
+        :class:`~BreastBiomechLib.optimisation.states.JointProblem` of them all."""
+        from BreastBiomechLib.io.case_layout import FIRST_STATE
         from BreastBiomechLib.optimisation import FittingProblem
+        from BreastBiomechLib.optimisation.states import JointProblem
         from BreastBiomechLib.solver import DynamicRelaxation
 
         p = parameterNode
         i = self.inputs(p)
-        return FittingProblem(self.space(p, i["mesh"]), i["mesh"], i["undeformed"], i["measured"], i["plates"],
-                              landmarks=i["landmarks"], objective=p["objective"], bins=p["bins"],
-                              relaxation=DynamicRelaxation(tolerance_mm=p["toleranceMm"]),
-                              device=self.resolveDevice(p["device"]))
+        space, relaxation, device = (self.space(p, i["mesh"]), DynamicRelaxation(tolerance_mm=p["toleranceMm"]),
+                                     self.resolveDevice(p["device"]))
+
+        def state(measured, plates, landmarks):
+            return FittingProblem(space, i["mesh"], i["undeformed"], measured, plates, landmarks=landmarks,
+                                  objective=p["objective"], bins=p["bins"], relaxation=relaxation, device=device)
+
+        first = state(i["measured"], i["plates"], i["landmarks"])
+        further = self.states(p)
+        if not further:
+            return first
+        reference = None if i["landmarks"] is None else i["landmarks"][0]
+        return JointProblem({FIRST_STATE: first, **{
+            s["name"]: state(s["measured"], s["plates"], None if reference is None else (reference, s["landmarks"]))
+            for s in further}})
 
     @staticmethod
     def resolveDevice(choice: str) -> str:
@@ -361,14 +421,19 @@ class BreastOptimizationLogic(ModuleLogicBase):
     def writeInputs(self, parameterNode, folder) -> str:
         """The chosen nodes as a case folder (``folder``: mr.nrrd, compressed/ with the measured
         image and final plates, the landmarks where chosen;
-        :func:`~BreastBiomechLib.phantom.compressed_files.write_measured_case`) with the fitting
-        mesh beside them (fitting_mesh.vtu): what `breastbiomech optimise` reads. Returns the folder."""
+        :func:`~BreastBiomechLib.phantom.compressed_files.write_measured_case`; the further
+        measured states loaded with the case under states/) with the fitting mesh beside them
+        (fitting_mesh.vtu): what `breastbiomech optimise` reads. Returns the folder."""
         from BreastBiomechLib.io.meshes import write_vtu
-        from BreastBiomechLib.phantom.compressed_files import write_measured_case
+        from BreastBiomechLib.phantom.compressed_files import write_measured_case, write_measured_state
 
         i = self.inputs(parameterNode)
         self.space(parameterNode, i["mesh"])  # refuses bad choices before anything is written
+        states = self.states(parameterNode)
         write_measured_case(folder, i["undeformed"], i["measured"], i["plates"], i["landmarks"])
+        for state in states:
+            write_measured_state(folder, state["name"], state["measured"],
+                                 state["landmarks"] if i["landmarks"] is not None else None, state["folder"])
         write_vtu(os.path.join(str(folder), "fitting_mesh.vtu"), i["mesh"])
         return str(folder)
 
@@ -478,7 +543,6 @@ class BreastOptimizationLogic(ModuleLogicBase):
         optimise`` writes them (a complete fit folder, which Breast Discrepancy diagnoses; with
         the case folder's record when the case was loaded with :meth:`loadCompressedCase`), then
         shown (:meth:`showFit`). Returns a line summarising the landmark errors."""
-        import json
         from pathlib import Path
 
         from BreastBiomechLib.optimisation.case import write_fit_outputs
@@ -487,11 +551,10 @@ class BreastOptimizationLogic(ModuleLogicBase):
         out = Path(p["outputDirectory"])
         write_fit_outputs(out, problem, result)
         if p["caseDirectory"]:
-            from BreastBiomechLib.phantom.compressed_files import case_fingerprint
+            from BreastBiomechLib.optimisation.case import case_record
 
-            (out / "case.json").write_text(json.dumps({"case_dir": p["caseDirectory"],
-                                                       "fingerprint": case_fingerprint(p["caseDirectory"])}, indent=2)
-                                           + "\n")
+            names = getattr(problem, "states", None) or None
+            (out / "case.json").write_text(json.dumps(case_record(p["caseDirectory"], names), indent=2) + "\n")
         return self.showFit(p, out)
 
     def showFit(self, parameterNode, folder) -> str:
@@ -525,6 +588,7 @@ class BreastOptimizationLogic(ModuleLogicBase):
              "eta (Pa)": np.array([materials[n]["eta"] for n in names])},
             self.scene, "Fitted parameters", node=p.reference("parametersTable")))
         self._showEvaluations(p, folder)
+        self._showStates(p, folder, record)
         errors_path = folder / "landmark_errors.json"
         if not errors_path.is_file():
             return "no landmarks chosen: no landmark errors"
@@ -553,6 +617,34 @@ class BreastOptimizationLogic(ModuleLogicBase):
             p.set_reference("errorLines", self._errorLines(p, predicted, measured, errors))
         s = table["error_mm"]
         return f"landmark error {s['mean']:.2f} ± {s['sd']:.2f} mm (max {s['max']:.2f}) over {len(labels)} landmarks"
+
+    def _showStates(self, parameterNode, folder, record: dict) -> None:
+        """A joint fit's further measured states: each one's predicted volume (on its measured
+        grid) and the states table (each state's objective, NMI and mean landmark error at the
+        best parameters); both emptied for a fit of one state."""
+        from BreastBiomechLib.io.case_layout import STATES
+        from BreastBiomechLib.io.images import read_image
+        from BreastBiomechLib.mrml import columns_to_table_node, image_to_volume_node
+
+        p = parameterNode
+        figures = record["best"].get("states") or {}
+        old = {node.GetAttribute(STATE_ATTRIBUTE): node for node in p.references("statePredictedVolumes")}
+        nodes = []
+        for name in list(figures)[1:]:
+            node = image_to_volume_node(read_image(folder / STATES / name / "predicted.nrrd"), self.scene,
+                                        f"Predicted {name} MR", node=old.get(name))
+            node.SetAttribute(STATE_ATTRIBUTE, name)
+            nodes.append(node)
+        p.set_references("statePredictedVolumes", nodes)
+        if not figures:
+            p.set_reference("statesTable", None)
+            return
+        names = list(figures)
+        p.set_reference("statesTable", columns_to_table_node(
+            {"state": np.array(names), "objective": np.array([figures[n]["objective"] for n in names]),
+             "NMI": np.array([figures[n]["nmi"] for n in names]),
+             "landmark error (mm)": np.array([figures[n]["landmark_mean_mm"] for n in names])},
+            self.scene, "Fitted states", node=p.reference("statesTable")))
 
     def _errorLines(self, parameterNode, predicted, measured, errors):
         """A model of one line per landmark from its predicted to its measured position, with the

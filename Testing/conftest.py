@@ -66,6 +66,24 @@ def compressed_case_dir(tmp_path_factory, worker_id):
 
 
 @pytest.fixture(scope="session")
+def two_state_case(compressed_case_dir, tmp_path_factory, worker_id):
+    """``compressed_case_dir`` (25 % LR by both plates) with a further measured state "lateral"
+    (35 % by the second plate alone, its plate force recorded with an sd of 0.5 N) added by
+    `breastbiomech phantom-state`: the case folder (made once for the run, :func:`made_once`;
+    tests only read it)."""
+    import shutil
+
+    from BreastBiomechLib.cli import main
+
+    def make(root):
+        shutil.copytree(compressed_case_dir, root / "case")
+        assert main(["phantom-state", str(root / "case"), "--device", "cpu", "--no-overview", "--state", "lateral",
+                     "moving-plate=second", "compression=0.35", "force-sd=0.5"]) == 0
+
+    return made_once(tmp_path_factory, worker_id, "two-state-case", make) / "case"
+
+
+@pytest.fixture(scope="session")
 def friction_case(tmp_path_factory, worker_id):
     """(case, fit): the library's small hidden-friction case (``small_friction_case``: a 400 cm^3
     phantom compressed 40 % with plate friction mu = 1 hidden in its truth, copied without its

@@ -97,14 +97,13 @@ def cmd_phantom(args) -> int:
               f"{forces}; largest displacement {c['max_displacement_mm']:.1f} mm; {c['seconds']:.0f} s")
         for role, path in paths.items():
             print(f"  {role:20s} {path}")
-        for spec, state_truth in states:
-            _write_state(case, spec, state_truth, compressed.mesh, args)
+        _add_states(args.out, states, args)
     return 0
 
 
 def _states(args, truth) -> list:
-    """The further measured states of ``--state`` (each a
-    :class:`~BreastBiomechLib.phantom.states.StateSpec` and its truth), checked before anything is made."""
+    """The further measured states of ``--state`` (:class:`~BreastBiomechLib.phantom.states.StateSpec`),
+    checked (each one's truth made from ``truth``, the first state's) before anything is made."""
     from BreastBiomechLib.phantom.states import check_states, parse_state
 
     if not args.state:
@@ -113,28 +112,37 @@ def _states(args, truth) -> list:
         raise ValueError("--state adds a measured state to a compressed case: add --compressed")
     specs = [parse_state(words) for words in args.state]
     check_states(specs)
-    return [(spec, spec.truth(truth, k)) for k, spec in enumerate(specs, start=1)]
+    for k, spec in enumerate(specs, start=1):
+        spec.truth(truth, k)
+    return specs
 
 
-def _write_state(case, spec, truth, mesh, args) -> None:
-    """Simulate and image the further state ``spec`` (its ``truth``) on the first state's truth
-    mesh, and write it under states/<name>/."""
-    from BreastBiomechLib.mesh.tetmesh import TetMesh
-    from BreastBiomechLib.phantom.compressed import compress_phantom
-    from BreastBiomechLib.phantom.compressed_files import write_compressed
-    from BreastBiomechLib.phantom.states import measured_force
+def _add_states(case_dir, specs, args) -> None:
+    """Make the further states ``specs`` of the compressed phantom case ``case_dir`` and say what each is."""
+    from BreastBiomechLib.phantom.states import add_states
 
-    bare = TetMesh(mesh.nodes, mesh.tets, {k: v for k, v in mesh.point_data.items() if k != "displacement"},
-                   dict(mesh.cell_data))
-    compressed = compress_phantom(case, truth, device=args.device, mesh=bare,
-                                  progress=lambda fraction, message: print(f"  [{fraction:4.0%}] state {spec.name}: "
-                                                                            f"{message}", flush=True))
-    force = None if spec.force_sd is None else measured_force(compressed, spec.force_sd, truth.seed)
-    paths = write_compressed(compressed, args.out, overview=not args.no_overview, state=spec.name, force=force)
-    c = compressed.summary
-    print(f"state {spec.name} written to {paths['measured'].parent}: {truth.compression:.1%} {truth.axis}, "
-          f"moving {truth.moving_plate}, {c['solve_message']}; largest displacement {c['max_displacement_mm']:.1f} mm"
-          + (f"; measured force {force['newtons']:.2f} +- {force['sd']:.2f} N on {force['plate']}" if force else ""))
+    for made in add_states(case_dir, specs, device=args.device, overview=not args.no_overview,
+                           progress=lambda message: print(f"  {message}", flush=True)):
+        truth, c, force = made["truth"], made["summary"], made["force"]
+        print(f"state {made['name']} written to {made['folder']}: {truth.compression:.1%} {truth.axis}, moving "
+              f"{truth.moving_plate}, {c['solve_message']}; largest displacement {c['max_displacement_mm']:.1f} mm"
+              + (f"; measured force {force['newtons']:.2f} +- {force['sd']:.2f} N on {force['plate']}" if force else ""))
+
+
+def cmd_phantom_state(args) -> int:
+    """Further measured states added to a compressed phantom case made earlier."""
+    from BreastBiomechLib.phantom.states import parse_state
+
+    _add_states(args.case_dir, [parse_state(words) for words in args.state], args)
+    return 0
+
+
+def _state_option(p: argparse.ArgumentParser, required: bool = False) -> None:
+    p.add_argument("--state", action="append", nargs="+", metavar=("NAME", "KEY=VALUE"), required=required,
+                   help="a further measured state (CASE/states/NAME) of the compressed case: the same breast and "
+                        "hidden effects compressed again with these settings (compression=F, axis=LR|SI, "
+                        "moving-plate=both|first|second, compression-gravity=GX,GY,GZ, force-sd=N to record the "
+                        "measured plate force); repeat for several")
 
 
 def cmd_table1_cases(args) -> int:
@@ -175,11 +183,7 @@ def add_parsers(sub) -> None:
                    help="which plate closes on the breast: both (half the travel each; default), or only the first "
                         "or second (lower or higher LPS coordinate) towards the other, held one, as the seed's rig "
                         "(its lateral movable plate is the second of LR for the phantom's left breast)")
-    p.add_argument("--state", action="append", nargs="+", metavar=("NAME", "KEY=VALUE"),
-                   help="a further measured state (OUT/states/NAME) of the compressed case: the same breast and "
-                        "hidden effects compressed again with these settings (compression=F, axis=LR|SI, "
-                        "moving-plate=both|first|second, compression-gravity=GX,GY,GZ, force-sd=N to record the "
-                        "measured plate force); repeat for several")
+    _state_option(p)
     p.add_argument("--device", type=device_argument, help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
     effects.add_argument("--friction", type=non_negative, default=0.0, help="the plates' Coulomb friction mu")
@@ -203,6 +207,14 @@ def add_parsers(sub) -> None:
                          help="the thorax moved by this (mm, LPS) between the scans (not in the discrepancy "
                               "library)")
     p.set_defaults(func=cmd_phantom)
+
+    p = sub.add_parser("phantom-state", help="add further measured states to a compressed phantom case: the same "
+                                             "breast and hidden effects compressed again another way")
+    p.add_argument("case_dir", help="a compressed phantom case (`breastbiomech phantom --compressed --out DIR`)")
+    _state_option(p, required=True)
+    p.add_argument("--no-overview", action="store_true", help="skip the PNG overviews")
+    p.add_argument("--device", type=device_argument, help="warp device of the truth simulations (cuda, cpu; default: warp's)")
+    p.set_defaults(func=cmd_phantom_state)
 
     p = sub.add_parser("table1-cases", help="the compressed phantom cases of the seed's Table 1, as cohort tasks "
                                             "(OUT/case<N>; a rerun makes only the missing ones)")

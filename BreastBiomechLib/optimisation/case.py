@@ -97,7 +97,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     where there are several: :mod:`~BreastBiomechLib.optimisation.states`)."""
     from BreastBiomechLib.io.images import read_image, read_label_map
     from BreastBiomechLib.io.meshes import read_vtu, write_vtu
-    from BreastBiomechLib.phantom.compressed_files import case_fingerprint, read_compressed
+    from BreastBiomechLib.phantom.compressed_files import read_compressed
 
     settings = settings or FitSettings()
     case = Path(case_dir)
@@ -125,10 +125,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
                          f"{', '.join(names)} jointly without 'offset' free, or one state (--states NAME) with it")
     with claimed(out, "a fit of a compressed case"):
         out.mkdir(parents=True, exist_ok=True)
-        record = {"case_dir": str(case.resolve()), "fingerprint": case_fingerprint(case, names[0])}
-        if names != [FIRST_STATE]:
-            record["states"] = {name: case_fingerprint(case, name) for name in names}
-        write_json_atomically(out / "case.json", record)
+        write_json_atomically(out / "case.json", case_record(case, names))
         mesh_file = out / "fitting_mesh.vtu"
         if mesh_path is not None:
             mesh = read_vtu(mesh_path)
@@ -170,6 +167,19 @@ def segmented_labels(case: Path, image, out: Path):
     result = segment_tissues(image, read_markups(layout.seeds_muscle).positions, tumour)
     write_segmentation(result, out, {"segmented_for": "the fitting mesh (seed points of the case)"})
     return result.labels
+
+
+def case_record(case_dir: str | Path, states: list[str] | None = None) -> dict:
+    """What a fit folder's case.json records of the case it fitted: the case folder and the
+    fingerprint of its first state's measured image and plates, and with several ``states``
+    (names) each one's fingerprint."""
+    from BreastBiomechLib.phantom.compressed_files import case_fingerprint
+
+    case = Path(case_dir)
+    record = {"case_dir": str(case.resolve()), "fingerprint": case_fingerprint(case)}
+    if states and list(states) != [FIRST_STATE]:
+        record["states"] = {name: case_fingerprint(case, name) for name in states}
+    return record
 
 
 def fitted_states(layout: CaseLayout, chosen: list[str] | None) -> list[str]:

@@ -105,6 +105,24 @@ def write_measured_case(case_dir: str | Path, undeformed: sitk.Image, measured: 
     return folder
 
 
+def write_measured_state(case_dir: str | Path, name: str, measured: sitk.Image, landmarks: Landmarks | None,
+                         records_from: str | Path) -> Path:
+    """A further measured state ``name`` of the case folder ``case_dir`` (``states/<name>/``): its
+    ``measured`` MR, its ``landmarks`` (None: none; present exactly where the case's reference
+    landmarks are) and, copied from the state folder ``records_from`` (the state as it was
+    loaded), its plates.json and, where recorded, force.json. Returns the state's folder."""
+    source = Path(records_from)
+    folder = CaseLayout(case_dir).state(name).folder
+    folder.mkdir(parents=True, exist_ok=True)
+    write_image(folder / STATE_MR, measured)
+    if landmarks is not None:
+        write_markups(folder / STATE_LANDMARKS, landmarks, name=f"{name} landmarks")
+    for record in (STATE_PLATES, STATE_FORCE):
+        if (source / record).is_file():
+            write_text_atomically(folder / record, (source / record).read_text())
+    return folder
+
+
 @dataclass
 class MeasuredCompression:
     """What a fit may use of a compressed case: the measured ``image``, the compressed

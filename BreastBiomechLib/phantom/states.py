@@ -5,7 +5,8 @@ at another orientation, another posture) and imaged as a further scan, written u
 force a load cell would measure (``force.json``: the truth's force with a measurement error).
 
 A state is given as its name and settings, ``NAME KEY=VALUE ...`` (``breastbiomech phantom
---compressed --state ...``)::
+--compressed --state ...`` makes them with the case, ``breastbiomech phantom-state CASE --state
+...`` adds them to a compressed phantom case made earlier)::
 
     compression=0.3             the fraction of the breast's thickness the plates close
     axis=SI                     the compression axis (LR or SI)
@@ -21,11 +22,13 @@ Settings left out are the first state's.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
-from BreastBiomechLib.io.case_layout import FIRST_STATE, STATE_NAME, CaseLayoutError
+from BreastBiomechLib.io.case_layout import FIRST_STATE, STATE_NAME, CaseLayout, CaseLayoutError
 from BreastBiomechLib.phantom.compressed import MOVING_PLATES, CompressedCase, TruthModel
 
 AXES = ("LR", "SI")
@@ -105,8 +108,8 @@ def _value(name: str, key: str, text: str):
         number = float(text)
     except ValueError:
         number = float("nan")
-    if key == "compression" and not 0.0 < number < 1.0:
-        raise ValueError(f"{where}: the fraction of the breast's thickness the plates close, between 0 and 1")
+    if key == "compression" and not 0.0 < number < 0.7:
+        raise ValueError(f"{where}: the fraction of the breast's thickness the plates close, between 0 and 0.7")
     if key == "force-sd" and not (math.isfinite(number) and number > 0.0):
         raise ValueError(f"{where}: the force's standard deviation, a positive number of newtons")
     return number
@@ -130,3 +133,42 @@ def measured_force(compressed: CompressedCase, sd: float, seed: int) -> dict:
     truth = float(forces[plate])
     newtons = truth + sd * float(np.random.default_rng(seed).standard_normal())
     return {"newtons": max(newtons, 0.1 * truth), "sd": float(sd), "plate": plate}
+
+
+def add_states(case_dir: str | Path, specs: list[StateSpec], device=None, overview: bool = True,
+               progress: Callable[[str], None] | None = None) -> list[dict]:
+    """Simulate and image each further state of ``specs`` on the compressed phantom case in
+    ``case_dir`` (its phantom, its first state's truth model and truth mesh, read back) and write
+    it under ``states/<name>/``; a state the case holds already is refused. Returns each
+    state's figures: {"name", "truth" (:class:`TruthModel`), "summary", "force" (or None),
+    "folder"}."""
+    from BreastBiomechLib.io.meshes import read_vtu
+    from BreastBiomechLib.mesh.tetmesh import TetMesh
+    from BreastBiomechLib.phantom.compressed import compress_phantom
+    from BreastBiomechLib.phantom.compressed_files import write_compressed
+    from BreastBiomechLib.phantom.files import read_phantom
+    from BreastBiomechLib.phantom.truth_files import read_truth, truth_mesh_path
+
+    say = progress or (lambda message: None)
+    layout = CaseLayout(case_dir)
+    check_states(specs)
+    present = layout.state_names()
+    taken = [s.name for s in specs if s.name in present]
+    if taken:
+        raise CaseLayoutError(f"{case_dir} holds the state {', '.join(taken)} already: choose another name, or "
+                              f"remove {layout.state(taken[0]).folder} first")
+    first = TruthModel(**read_truth(case_dir)["truth"])
+    case = read_phantom(case_dir)
+    made = read_vtu(truth_mesh_path(case_dir))
+    mesh = TetMesh(made.nodes, made.tets, {k: v for k, v in made.point_data.items() if k != "displacement"},
+                   dict(made.cell_data))
+    out = []
+    for k, spec in enumerate(specs, start=len(present)):
+        truth = spec.truth(first, k)
+        compressed = compress_phantom(case, truth, device=device, mesh=mesh,
+                                      progress=lambda fraction, message: say(f"state {spec.name}: {message}"))
+        force = None if spec.force_sd is None else measured_force(compressed, spec.force_sd, truth.seed)
+        paths = write_compressed(compressed, case_dir, overview=overview, state=spec.name, force=force)
+        out.append({"name": spec.name, "truth": truth, "summary": compressed.summary, "force": force,
+                    "folder": paths["measured"].parent})
+    return out

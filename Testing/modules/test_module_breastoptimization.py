@@ -82,6 +82,36 @@ def test_refusals_name_what_is_missing(scene, compressed_case_dir, fitting_mesh,
         logic.run(p)
 
 
+def test_a_case_with_further_states_is_fitted_jointly_and_each_state_shown(scene, two_state_case, compressed_case_dir,
+                                                                           fitting_mesh, tmp_path):
+    """conftest's two-state case (its phantom is the compressed test phantom, so the same fitting
+    mesh): loading it shows the further state's measured volume; the fit is joint (in this
+    process, and as the inputs an out-of-process fit reads), and each state's prediction and
+    figures come back as nodes."""
+    logic, p = _set_up(scene, two_state_case, fitting_mesh, tmp_path / "fit", budget=2)
+    states = p.references("stateVolumes")
+    assert [n.GetAttribute(BreastOptimization.STATE_ATTRIBUTE) for n in states] == ["lateral"]
+    assert states[0].GetName() == "Measured lateral MR"
+    np.testing.assert_allclose(image_from_volume_node(states[0]).GetOrigin(),
+                               read_image(two_state_case / "states" / "lateral" / "mr.nrrd").GetOrigin(), atol=1e-6)
+    inputs = tmp_path / "inputs"
+    logic.writeInputs(p, inputs)
+    for name in ("mr.nrrd", "plates.json", "landmarks.mrk.json", "force.json"):
+        assert (inputs / "states" / "lateral" / name).is_file(), name
+    result = logic.run(p)["result"]
+    assert set(result.best.states) == {"compressed", "lateral"}
+    table = p.reference("statesTable").GetTable()
+    assert [table.GetValue(i, 0).ToString() for i in range(table.GetNumberOfRows())] == ["compressed", "lateral"]
+    assert table.GetValue(1, 2).ToDouble() == pytest.approx(result.best.states["lateral"]["nmi"])
+    predicted = p.references("statePredictedVolumes")
+    assert [n.GetName() for n in predicted] == ["Predicted lateral MR"]
+    recorded = json.loads((tmp_path / "fit" / "case.json").read_text())
+    assert set(recorded["states"]) == {"compressed", "lateral"}
+    # a case of one state loaded next: no further states
+    logic.loadCompressedCase(p, str(compressed_case_dir))
+    assert p.references("stateVolumes") == []
+
+
 def test_pause_resume_and_results(scene, compressed_case_dir, fitting_mesh, tmp_path):
     """A run paused after its first batch keeps its evaluations and makes no result nodes;
     resumed, it replays them and finishes the budget; the result nodes agree with each other and

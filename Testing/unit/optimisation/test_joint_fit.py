@@ -21,7 +21,7 @@ def test_a_state_is_read_from_its_name_and_settings():
     assert parse_state(["supine", "compression-gravity=0,0,-9.81", "axis=SI"]) == \
         StateSpec("supine", axis="SI", compression_gravity=(0.0, 0.0, -9.81))
     for words, message in ((["compressed"], "not 'compressed'"), (["bad name"], "letters, digits"),
-                           (["s", "compression=1.2"], "between 0 and 1"), (["s", "axis=AP"], "one of LR, SI"),
+                           (["s", "compression=0.8"], "between 0 and 0.7"), (["s", "axis=AP"], "one of LR, SI"),
                            (["s", "moving-plate=left"], "one of both, first, second"),
                            (["s", "compression-gravity=0,9.81"], "three finite numbers"),
                            (["s", "force-sd=-1"], "positive number of newtons"), (["s", "travel=3"], "not a setting"),
@@ -30,9 +30,20 @@ def test_a_state_is_read_from_its_name_and_settings():
             parse_state(words)
 
 
-def test_a_phantom_with_a_further_state_is_fitted_jointly(tmp_path, capsys):
-    """A small phantom compressed 25 % by both plates and, as its state "lateral", 35 % by the
-    second plate alone with the plate force recorded; fitted jointly on a coarse mesh of its
+def test_a_state_needs_a_compressed_case_and_a_name_of_its_own(two_state_case, tmp_path, capsys):
+    from BreastBiomechLib.cli import main
+
+    assert main(["phantom", "--out", str(tmp_path / "p"), "--state", "lateral", "compression=0.3"]) == 2
+    assert "add --compressed" in capsys.readouterr().err and not (tmp_path / "p").exists()
+    assert main(["phantom-state", str(two_state_case), "--state", "lateral", "compression=0.3"]) == 2
+    assert "holds the state lateral already" in capsys.readouterr().err
+    assert main(["phantom-state", str(two_state_case), "--state", "a", "--state", "a"]) == 2
+    assert "given more than once" in capsys.readouterr().err
+
+
+def test_a_phantom_with_a_further_state_is_fitted_jointly(two_state_case, tmp_path, capsys):
+    """conftest's two-state phantom (25 % by both plates and, as its state "lateral", 35 % by the
+    second plate alone with the plate force recorded) fitted jointly on a coarse mesh of its
     labels (on purpose: the test is of the states, not of the segmentation). The further state
     is a truth of its own, the same breast and materials; the joint objective is the states'
     mean, and each state gets its outputs."""
@@ -42,11 +53,7 @@ def test_a_phantom_with_a_further_state_is_fitted_jointly(tmp_path, capsys):
     from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
     from BreastBiomechLib.phantom.truth_files import read_truth
 
-    case = tmp_path / "case"
-    assert main(["phantom", "--seed", "2", "--volume-cm3", "450", "--spacing", "1.5", "1.5", "3", "--compressed",
-                 "--compression", "0.25", "--truth-edge-mm", "6", "--device", "cpu", "--no-overview", "--out", str(case),
-                 "--state", "lateral", "moving-plate=second", "compression=0.35", "force-sd=0.5"]) == 0
-    assert "state lateral written to" in capsys.readouterr().out
+    case = two_state_case
     layout = CaseLayout(case)
     assert [s.name for s in layout.check()] == ["compressed", "lateral"]
     first, lateral = read_truth(case)["truth"], read_truth(case, "lateral")["truth"]
