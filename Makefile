@@ -28,8 +28,14 @@ $(STAMP): $(BIN)/python pyproject.toml
 demo: $(STAMP)
 	$(BIN)/breastbiomech demo --out out/demo
 
+# The Slicer 5.10 stack's venv is installed while the main suite runs (pip waits mostly on files:
+# about 40 s of a core, which the suite would otherwise wait through afterwards); its log is
+# shown where that install fails.
 test: $(STAMP)
-	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist worksteal --durations=10
+	@$(MAKE) --no-print-directory $(SLICER_STACK_STAMP) > $(SLICER_STACK_VENV).log 2>&1 & stack=$$!; \
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n 2 --dist worksteal --durations=10; tests=$$?; \
+	wait $$stack || { cat $(SLICER_STACK_VENV).log; echo "the Slicer 5.10 stack's venv failed to install"; exit 1; }; \
+	exit $$tests
 	$(MAKE) test-slicer-stack
 
 # Slicer 5.10's Python stack (Python 3.12 there; the Python CI has here): the library must not use an
@@ -70,4 +76,4 @@ table1-cases: $(STAMP)
 	$(BIN)/breastbiomech table1-cases $(if $(DEVICE),--device $(DEVICE)) --out out/table1
 
 clean:
-	rm -rf out .pytest_cache $(SLICER_STACK_VENV)
+	rm -rf out .pytest_cache $(SLICER_STACK_VENV) $(SLICER_STACK_VENV).log
