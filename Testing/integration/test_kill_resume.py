@@ -51,7 +51,7 @@ def test_a_study_killed_anywhere_resumes_to_the_uninterrupted_result(compressed_
     def study(out, resume=False):
         """The study resumes by running the same command again."""
         return ["study", str(compressed_case_dir), "--out", str(out), "--models", "iso-homo", "aniso-homo",
-                "--budget", "iso-homo=3", "aniso-homo=3", "--edge-mm", "12", "--tolerance-mm", "0.05",
+                "--budget", "iso-homo=2", "aniso-homo=2", "--edge-mm", "12", "--tolerance-mm", "0.05",
                 "--device", "cpu", "--workers", "0", "--quiet"]
 
     def rows(out):

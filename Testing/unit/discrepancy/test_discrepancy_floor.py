@@ -1,6 +1,7 @@
-"""The measured model-error floor's pure parts: grouping the discretisation estimate into a
-floor per region and channel, and the noise model that takes it (the refined solve itself:
-Testing/integration/test_discrepancy.py's null case and Testing/unit/solver/test_refinement.py)."""
+"""The measured model-error floor's parts: grouping the discretisation estimate into a floor per
+region and channel, the noise model that takes it, and the refined solve started from the coarse
+solution (the whole floor: Testing/integration/test_discrepancy.py's null case; the refinement:
+Testing/unit/solver/test_refinement.py)."""
 
 from __future__ import annotations
 
@@ -39,3 +40,31 @@ def test_the_noise_model_takes_each_feature_s_floor():
         fixed.with_floor(np.ones(2))
     with pytest.raises(ValueError, match="measured.*fixed"):
         NoiseModel(floor="guessed")
+
+
+def test_the_refined_model_relaxed_from_the_coarse_solution_ends_where_it_does_from_rest():
+    """A plate compression of a coarse hemi-ellipsoid, refined: relaxed from its coarse solution
+    carried onto the refined nodes, it reaches the equilibrium it reaches from rest (within the
+    relaxation's tolerance, far below the refinement's own change) in fewer iterations; with
+    friction (the equilibrium depends on the path) it is not started warm."""
+    from dataclasses import replace
+
+    from BreastBiomechLib.discrepancy.floor import warm_refined_solve
+    from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+    from BreastBiomechLib.solver.refinement import Refinement
+
+    relaxation = DynamicRelaxation(tolerance_mm=0.01)
+    coarse = hemi_ellipsoid_compression(18.0, compression=0.2)  # a stair-stepped coarse grid: the
+    # refinement moves nodes by up to 18 mm (2026-12-06), a start far from the refined equilibrium
+    [solution] = solve_batch(coarse, [coarse.materials], device="cpu", relaxation=relaxation)
+    refinement = Refinement(coarse.mesh)
+    fine = refinement.model(coarse, coarse.materials, coarse.loading.plates)
+    [cold] = solve_batch(fine, [fine.materials], device="cpu", relaxation=relaxation)
+    start = refinement.node_values(solution.displacement)
+    warm = warm_refined_solve(fine, start, relaxation, "cpu")
+    assert cold.ok and warm.ok
+    change = np.abs(cold.displacement - start).max()
+    assert np.abs(warm.displacement - cold.displacement).max() < min(0.05, 0.1 * change)
+    rough = replace(fine, loading=replace(fine.loading, plates=[replace(p, friction=0.3) for p in fine.loading.plates]))
+    assert warm_refined_solve(rough, start, relaxation, "cpu") is None
