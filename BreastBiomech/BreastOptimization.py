@@ -541,19 +541,25 @@ class BreastOptimizationLogic(ModuleLogicBase):
     def writeResults(self, parameterNode, problem, result) -> str:
         """The results at the best parameters written to the output folder as ``breastbiomech
         optimise`` writes them (a complete fit folder, which Breast Discrepancy diagnoses; with
-        the case folder's record when the case was loaded with :meth:`loadCompressedCase`), then
-        shown (:meth:`showFit`). Returns a line summarising the landmark errors."""
+        the case folder's record, and the absolute moduli its states' measured plate forces fix,
+        when the case was loaded with :meth:`loadCompressedCase`), then shown (:meth:`showFit`).
+        Returns a line summarising the landmark errors."""
         from pathlib import Path
 
+        from BreastBiomechLib.io.case_layout import FIRST_STATE, CaseLayout, read_force
         from BreastBiomechLib.optimisation.case import write_fit_outputs
 
         p = parameterNode
         out = Path(p["outputDirectory"])
-        write_fit_outputs(out, problem, result)
+        names = getattr(problem, "states", None) or [FIRST_STATE]
+        forces = {}
+        if p["caseDirectory"]:  # the measured plate forces of the fitted states, where the case records them
+            layout = CaseLayout(p["caseDirectory"])
+            forces = {name: read_force(layout.state(name)) for name in names if layout.state(name).force.is_file()}
+        write_fit_outputs(out, problem, result, forces)
         if p["caseDirectory"]:
             from BreastBiomechLib.optimisation.case import case_record
 
-            names = getattr(problem, "states", None) or None
             (out / "case.json").write_text(json.dumps(case_record(p["caseDirectory"], names), indent=2) + "\n")
         return self.showFit(p, out)
 

@@ -50,7 +50,7 @@ def cmd_optimise(args) -> int:
         print(file=sys.stderr)
     summary = fit.result.summary()
     if args.json:
-        print(json.dumps({**summary, "landmark_errors": fit.landmark_errors}))
+        print(json.dumps({**summary, "landmark_errors": fit.landmark_errors, "force_scale": fit.force_scale}))
         return 0
     best = fit.result.best
     print(f"{settings.model} fit of {args.case_dir} ({settings.optimiser}, {summary['evaluations']} evaluations, "
@@ -72,6 +72,15 @@ def cmd_optimise(args) -> int:
         print(f"  state {name}: objective {figures['objective']:.5f}, NMI {figures['nmi']:.4f}"
               + (f", landmark error {figures['landmark_mean_mm']:.2f} mm (mean)"
                  if figures["landmark_mean_mm"] == figures["landmark_mean_mm"] else ""))
+    if fit.force_scale is not None:
+        f = fit.force_scale
+        if f["scale"] is None:
+            print(f"  measured plate force not used: {f['reason']}")
+        else:
+            fat = f["materials"].get("fat", {}).get("E")
+            print(f"  absolute moduli from the measured plate force{'s' if len(f['states']) > 1 else ''}: the fitted "
+                  f"moduli x {f['scale']:.3f} (sd {f['sd']:.3f})" + (f", fat E {fat:.0f} Pa" if fat else "")
+                  + " (force_scale.json)")
     if fit.landmark_errors:
         e = fit.landmark_errors
         print(f"  landmarks{' (first state)' if best.states else ''}: displacement {e['displacement_mm']['mean']:.2f} ± {e['displacement_mm']['sd']:.2f} mm, "

@@ -10,6 +10,9 @@ Output folder (besides the optimisation's settings.json, evaluations.jsonl, resu
                                   mesh was made of it (no --mesh or --labels given)
     predicted.nrrd                the FE-predicted compressed MR at the best parameters
     predicted_landmarks.mrk.json  the landmarks moved by the best solution (LPS)
+    force_scale.json              where a fitted state records its measured plate force: the scale of
+                                  the moduli it fixes, its sd, and the absolute moduli
+                                  (:mod:`~BreastBiomechLib.optimisation.force_scale`)
     deformed_mesh.vtu             the fitting mesh with the best solution's ``displacement`` (mm)
     landmark_errors.json          per landmark and summarised as the seed's Table 2 (mm)
     case.json                     the case folder and the fingerprint of its measured image and plates
@@ -32,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from BreastBiomechLib.io.atomic import write_json_atomically
-from BreastBiomechLib.io.case_layout import FIRST_STATE, REFERENCE_LANDMARKS, STATE_LANDMARKS, STATES, CaseLayout
+from BreastBiomechLib.io.case_layout import (FIRST_STATE, REFERENCE_LANDMARKS, STATE_LANDMARKS, STATES, CaseLayout,
+                                             PlateForce, read_force)
 from BreastBiomechLib.io.claims import claimed
 from BreastBiomechLib.io.markups import read_markups, write_markups
 from BreastBiomechLib.landmarks import landmark_errors, map_landmarks
@@ -44,6 +48,7 @@ from BreastBiomechLib.optimisation.states import JointProblem
 from BreastBiomechLib.solver import DynamicRelaxation
 
 LANDMARK_ERRORS = "landmark_errors.json"  # per landmark and summarised (mm)
+FORCE_SCALE = "force_scale.json"  # the moduli's scale a measured plate force fixes
 
 
 @dataclass
@@ -71,11 +76,13 @@ class FitSettings:
 @dataclass
 class CaseFit:
     """A finished fit: the optimisation ``result``, the ``landmark_errors`` summary (the seed's
-    Table 2 figures, mm), and the output ``folder``."""
+    Table 2 figures, mm), the output ``folder`` and, where a fitted state records its measured
+    plate force, the ``force_scale`` record (force_scale.json)."""
 
     result: OptimisationResult
     landmark_errors: dict | None
     folder: Path
+    force_scale: dict | None = None
 
 
 def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: FitSettings | None = None,
@@ -151,8 +158,9 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
         result = optimise(problem, settings.optimiser, settings.budget, settings.seconds, settings.seed, out, resume,
                           progress, population=settings.population)
 
-        result, errors = write_fit_outputs(out, problem, result)
-        return CaseFit(result, errors, out)
+        forces = {name: read_force(layout.state(name)) for name in names if layout.state(name).force.is_file()}
+        result, errors, scale = write_fit_outputs(out, problem, result, forces)
+        return CaseFit(result, errors, out, scale)
 
 
 def segmented_labels(case: Path, image, out: Path):
@@ -199,30 +207,50 @@ def fitted_states(layout: CaseLayout, chosen: list[str] | None) -> list[str]:
     return [name for name in present if name in chosen]
 
 
-def write_fit_outputs(out: str | Path, problem: FittingProblem | JointProblem, result: OptimisationResult) -> tuple:
+def write_fit_outputs(out: str | Path, problem: FittingProblem | JointProblem, result: OptimisationResult,
+                      forces: dict[str, PlateForce] | None = None) -> tuple:
     """The files a user looks at of an ended optimisation of ``problem`` in its folder ``out``
     (the module's list; not case.json): the best parameters solved alone (a stand-in where they no
     longer solve, :func:`~BreastBiomechLib.optimisation.run.solve_best`), the fitting mesh and its
     solution, the predicted image, with landmarks the moved landmarks and their errors, the
     convergence picture; for a joint fit the first state's in ``out`` and each further state's
-    in ``out``/states/<name>. Returns the (possibly stood-in) result and the first state's
-    landmark-error summary (None without landmarks)."""
+    in ``out``/states/<name>; with the measured plate ``forces`` of fitted states (by state
+    name) the absolute moduli they give (force_scale.json). Returns the (possibly stood-in)
+    result, the first state's landmark-error summary (None without landmarks) and the force
+    scale's record (None without forces)."""
     from BreastBiomechLib.io.meshes import write_vtu
 
     out = Path(out)
     result, best = solve_best(problem, result, out)
     write_vtu(out / "fitting_mesh.vtu", problem.mesh)
-    if isinstance(problem, JointProblem):
-        errors = None
-        for k, (name, state) in enumerate(problem.problems.items()):
-            folder = out if k == 0 else out / STATES / name
-            folder.mkdir(parents=True, exist_ok=True)
-            summary = _write_state_outputs(folder, state, best.solutions[name].displacement)
-            errors = summary if k == 0 else errors
-    else:
-        errors = _write_state_outputs(out, problem, best.displacement)
+    states = problem.problems if isinstance(problem, JointProblem) else {FIRST_STATE: problem}
+    solutions = best.solutions if isinstance(problem, JointProblem) else {FIRST_STATE: best}
+    errors = None
+    for k, (name, state) in enumerate(states.items()):
+        folder = out if k == 0 else out / STATES / name
+        folder.mkdir(parents=True, exist_ok=True)
+        summary = _write_state_outputs(folder, state, solutions[name].displacement)
+        errors = summary if k == 0 else errors
+    scale = _write_force_scale(out, states, solutions, forces, result) if forces else None
     save_convergence(out / "convergence.png", result)
-    return result, errors
+    return result, errors, scale
+
+
+def _write_force_scale(out: Path, states: dict, solutions: dict, forces: dict[str, PlateForce],
+                       result: OptimisationResult) -> dict:
+    """force_scale.json of the fit in ``out``: the scale the measured ``forces`` fix and the
+    absolute moduli, or why the fit's model does not allow one (``reason``). Its record."""
+    from BreastBiomechLib.optimisation.force_scale import force_scale, not_scale_free, predicted_force
+
+    why = not_scale_free(next(iter(states.values())).model)
+    if why:
+        record = {"scale": None, "reason": why}
+    else:
+        records = {name: (force, predicted_force(solutions[name], states[name].model.loading.plates, force.plate))
+                   for name, force in forces.items() if name in states}
+        record = force_scale(records).to_dict(result.materials)
+    write_json_atomically(out / FORCE_SCALE, record)
+    return record
 
 
 def _write_state_outputs(out: Path, problem: FittingProblem, displacement: np.ndarray) -> dict | None:

@@ -107,6 +107,8 @@ def test_a_case_with_further_states_is_fitted_jointly_and_each_state_shown(scene
     assert [n.GetName() for n in predicted] == ["Predicted lateral MR"]
     recorded = json.loads((tmp_path / "fit" / "case.json").read_text())
     assert set(recorded["states"]) == {"compressed", "lateral"}
+    # the lateral state's measured plate force scales the fitted moduli, as `optimise` does
+    assert set(json.loads((tmp_path / "fit" / "force_scale.json").read_text())["states"]) == {"lateral"}
     # a case of one state loaded next: no further states
     logic.loadCompressedCase(p, str(compressed_case_dir))
     assert p.references("stateVolumes") == []

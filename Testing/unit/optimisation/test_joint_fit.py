@@ -68,8 +68,17 @@ def test_a_phantom_with_a_further_state_is_fitted_jointly(two_state_case, tmp_pa
     assert main(["optimise", str(case), "--model", "iso-hetero", "--free", "E", "--budget", "3", "--mesh",
                  str(tmp_path / "fitting.vtu"), "--device", "cpu", "--tolerance-mm", "0.05", "--out", str(out),
                  "--json", "--quiet"]) == 0
-    best = json.loads(capsys.readouterr().out)["best"]
+    summary = json.loads(capsys.readouterr().out)
+    best = summary["best"]
     assert set(best["states"]) == {"compressed", "lateral"}
+    # the lateral state's measured plate force fixes the moduli's scale (force_scale.json)
+    scale = summary["force_scale"]
+    assert scale == json.loads((out / "force_scale.json").read_text())
+    record = scale["states"]["lateral"]
+    assert set(scale["states"]) == {"lateral"} and record["plate"] == force.plate
+    assert scale["scale"] * record["predicted_N"] == pytest.approx(force.newtons)
+    assert scale["sd"] == pytest.approx(force.sd / record["predicted_N"])
+    assert scale["materials"]["glandular"]["E"] == pytest.approx(scale["scale"] * summary["materials"]["glandular"]["E"])
     assert best["objective"] == pytest.approx(np.mean([s["objective"] for s in best["states"].values()]))
     for name in ("predicted.nrrd", "predicted_landmarks.mrk.json", "deformed_mesh.vtu", "landmark_errors.json"):
         assert (out / name).is_file() and (out / "states" / "lateral" / name).is_file(), name
