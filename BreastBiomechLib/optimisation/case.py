@@ -28,6 +28,7 @@ plates); the files above without a state's folder are the first state's.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -132,6 +133,11 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
                          f"{', '.join(names)} jointly without 'offset' free, or one state (--states NAME) with it")
     with claimed(out, "a fit of a compressed case"):
         out.mkdir(parents=True, exist_ok=True)
+        if resume and (out / "case.json").is_file():  # its evaluations are of the states it began with
+            begun = list(json.loads((out / "case.json").read_text()).get("states") or [FIRST_STATE])
+            if begun != names:
+                raise ValueError(f"{out}: cannot resume a fit of the states {', '.join(begun)} with "
+                                 f"{', '.join(names)}: resume with --states {' '.join(begun)}, or start a new folder")
         write_json_atomically(out / "case.json", case_record(case, names))
         mesh_file = out / "fitting_mesh.vtu"
         if mesh_path is not None:

@@ -86,7 +86,12 @@ def test_a_phantom_with_a_further_state_is_fitted_jointly(two_state_case, tmp_pa
         read_image(layout.state("lateral").mr).GetSize()
     recorded = json.loads((out / "case.json").read_text())
     assert set(recorded["states"]) == {"compressed", "lateral"} and recorded["fingerprint"] == recorded["states"]["compressed"]
-    # one state on its own, chosen; a state the case does not hold, and the plates' offsets, refused
+    # resumed with other states: refused (its evaluations are of the two)
+    assert main(["optimise", str(case), "--model", "iso-hetero", "--free", "E", "--budget", "4", "--mesh",
+                 str(tmp_path / "fitting.vtu"), "--device", "cpu", "--tolerance-mm", "0.05", "--out", str(out),
+                 "--states", "compressed", "--resume", "--quiet"]) == 2
+    assert "cannot resume a fit of the states compressed, lateral with compressed" in capsys.readouterr().err
+    # a state the case does not hold, and the plates' offsets with several states, refused
     assert main(["optimise", str(case), "--model", "iso-hetero", "--free", "E", "offset", "--budget", "2", "--mesh",
                  str(tmp_path / "fitting.vtu"), "--device", "cpu", "--out", str(tmp_path / "offsets"), "--quiet"]) == 2
     assert "without 'offset' free" in capsys.readouterr().err
