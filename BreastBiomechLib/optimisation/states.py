@@ -35,10 +35,6 @@ class StateSolutions:
     def message(self) -> str:
         return "; ".join(f"state {name}: {s.message}" for name, s in self.solutions.items() if not s.ok)
 
-    @property
-    def first(self):
-        return next(iter(self.solutions.values()))
-
 
 class JointProblem:
     """Evaluates parameter sets on every measured state of a case: ``problems`` maps each state's
@@ -64,7 +60,6 @@ class JointProblem:
         self.space = first.space
         self.objective = first.objective
         self.mesh = first.mesh
-        self.landmarks = first.landmarks
 
     @property
     def states(self) -> list[str]:
