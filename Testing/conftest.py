@@ -15,6 +15,36 @@ from images import oblique_direction
 os.environ.setdefault("BREASTBIOMECH_CPU_WORKERS", "1")
 
 
+# session fixtures that make and fit a whole case (minutes of CPU each), by name: the tests that
+# use one run at the head of one pytest-xdist worker's share (pytest_collection_modifyitems)
+SHARED_CASES = ("null_case", "friction_case")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist, put the tests that use each of :data:`SHARED_CASES` at the head of one
+    worker's share of the run (``--dist worksteal`` hands worker k the k-th contiguous share and
+    steals from a share's end): each worker starts on a case of its own, no worker waits on
+    another's case, and the run ends on short tests rather than on a case still being made. The
+    rest keep their order. Without workers (``-n 0``) the order is pytest's."""
+    workers = int(getattr(config, "workerinput", {}).get("workercount", 1))
+    if workers < 2:
+        return
+    heads, placed = [], set()
+    for name in SHARED_CASES:
+        heads.append([item for item in items if name in item.fixturenames and id(item) not in placed])
+        placed |= {id(item) for item in heads[-1]}
+    rest = [item for item in items if id(item) not in placed]
+    shares, start = [], 0
+    for k in range(workers):  # worksteal's first shares: len(pending) // workers remaining, in turn
+        size = (len(items) - sum(len(share) for share in shares)) // (workers - k)
+        head = [item for i, h in enumerate(heads) if i % workers == k for item in h]
+        body = rest[start:start + max(size - len(head), 0)] if k < workers - 1 else rest[start:]
+        start += len(body)
+        shares.append(head + body)
+    items[:] = [item for share in shares for item in share]
+    assert len(items) == len(placed) + len(rest)
+
+
 @pytest.fixture
 def scene():
     """A new vtkMRMLScene with the default colour tables, as the Slicer application sets it up."""
