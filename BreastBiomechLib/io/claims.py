@@ -30,8 +30,8 @@ class FolderInUse(ValueError):
     """An output folder another running process is writing."""
 
 
-def _holder(path: Path) -> dict | None:
-    """The claim's record, or None where it is empty or cut short."""
+def holder_of(path: Path) -> dict | None:
+    """The record of the claim (or lock) file ``path``, or None where it is empty or cut short."""
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -64,9 +64,10 @@ def remove_dead_partials(folder: Path) -> list[Path]:
     return removed
 
 
-def _stale(path: Path, holder: dict | None) -> bool:
-    """Whether the claim can be taken over: its process, on this host, is gone; or it was never
-    written out (killed between making and writing it)."""
+def is_stale(path: Path, holder: dict | None) -> bool:
+    """Whether the claim (or lock) file ``path`` whose record is ``holder`` can be taken over: its
+    process, on this host, is gone; or it was never written out (killed between making and
+    writing it)."""
     if holder is None:
         try:
             return time.time() - path.stat().st_mtime > UNWRITTEN_CLAIM_S
@@ -94,10 +95,10 @@ def claimed(folder: str | Path | None, what: str):
         try:
             descriptor = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
         except FileExistsError:
-            holder = _holder(path)
+            holder = holder_of(path)
             if holder is not None and holder.get("pid") == os.getpid() and holder.get("host") == record["host"]:
                 break  # held by this process already
-            if _stale(path, holder):
+            if is_stale(path, holder):
                 path.unlink(missing_ok=True)
                 continue
             who = (f"{holder.get('what', 'a run')} (process {holder['pid']} on {holder.get('host', '?')}, since "

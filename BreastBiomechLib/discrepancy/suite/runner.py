@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -43,6 +44,7 @@ from BreastBiomechLib.discrepancy.suite.scores import case_result
 from BreastBiomechLib.discrepancy.suite.varied import anatomy_parameters
 from BreastBiomechLib.discrepancy.variants import solve_variants
 from BreastBiomechLib.io.atomic import write_json_atomically
+from BreastBiomechLib.io.claims import holder_of, is_stale
 from BreastBiomechLib.io.markups import read_markups
 from BreastBiomechLib.landmarks import Landmarks, map_landmarks
 from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
@@ -117,22 +119,32 @@ def write_json(path: Path, document: dict) -> None:
 
 
 class _Lock:
-    """A lock file made with O_EXCL, so that suite runs side by side on one folder prepare an anatomy once."""
+    """A lock file made with O_EXCL and holding its process id and host, so that suite runs side by
+    side on one folder prepare an anatomy or a case once. A lock whose process on this host is
+    gone (a run killed while it held it) is taken over, as a claimed folder is
+    (:mod:`~BreastBiomechLib.io.claims`): a suite run killed and started again goes on."""
 
     def __init__(self, path: Path, wait_s: float = 3600.0):
         self.path, self.wait_s = path, wait_s
 
     def __enter__(self):
         started = time.monotonic()
+        record = json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n"
         while True:
             try:
-                os.close(os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
-                return self
+                descriptor = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
             except FileExistsError:
+                if is_stale(self.path, holder_of(self.path)):
+                    self.path.unlink(missing_ok=True)
+                    continue
                 if time.monotonic() - started > self.wait_s:
-                    raise TimeoutError(f"{self.path} is held for over {self.wait_s:.0f} s: another suite run "
-                                       "died holding it? remove the file and run again") from None
+                    raise TimeoutError(f"{self.path} is held for over {self.wait_s:.0f} s by a live process "
+                                       f"({holder_of(self.path)}); wait for it, or stop that run") from None
                 time.sleep(2.0)
+                continue
+            with os.fdopen(descriptor, "w") as file:
+                file.write(record)
+            return self
 
     def __exit__(self, *exc):
         self.path.unlink(missing_ok=True)
@@ -303,7 +315,7 @@ def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device
     if states:
         outcomes = solve_variants([s.variant() for s in states.values()], fitted.mesh.nodes, fitted.relaxation,
                                   device)
-        displacements |= {key: o.displacement for key, o in zip(states, outcomes) if o.ok}
+        displacements |= {key: fitted.first(o.displacement) for key, o in zip(states, outcomes) if o.ok}
     errors = {}
     for key, displacement in displacements.items():
         moved = map_landmarks(fitted.mesh, displacement, reference)

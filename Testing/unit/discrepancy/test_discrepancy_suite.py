@@ -3,6 +3,10 @@ hidden in the truth, the measured copy that holds no truth, and the scoring."""
 
 from __future__ import annotations
 
+import json
+import os
+import socket
+
 import numpy as np
 import pytest
 
@@ -292,7 +296,8 @@ def test_a_case_another_run_is_making_is_waited_for_not_made_twice(tmp_path):
     folder = tmp_path / case.name
     folder.mkdir()
     (folder / "error.json").write_text("{}")  # an earlier attempt's failure
-    (folder / ".lock").touch()  # the other run is making it
+    # the other run (live: this process) is making it
+    (folder / ".lock").write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
 
     def the_other_run_finishes():
         time.sleep(2.5)
@@ -304,6 +309,28 @@ def test_a_case_another_run_is_making_is_waited_for_not_made_twice(tmp_path):
     assert run_case(case, tmp_path, SuiteSettings())["made_by"] == "the other run"
     other.join()
     assert not (tmp_path / "anatomy1").exists() and not (folder / "truth").exists()
+
+
+def test_a_lock_left_by_a_killed_run_is_taken_over(tmp_path):
+    """A suite run killed while it made a case leaves the case's lock; the run started again on
+    the folder sees that its process is gone and makes the case instead of waiting for it."""
+    import subprocess
+    import sys
+
+    from BreastBiomechLib.discrepancy.suite.runner import _Lock
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    lock = tmp_path / ".lock"
+    lock.write_text(json.dumps({"pid": gone.pid, "host": socket.gethostname()}))
+    with _Lock(lock, wait_s=5.0):
+        assert json.loads(lock.read_text())["pid"] == os.getpid()
+    assert not lock.exists()
+    # a live holder is waited for, up to the wait
+    lock.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    with pytest.raises(TimeoutError, match="held for over 1 s by a live process"):
+        with _Lock(lock, wait_s=1.0):
+            pass
 
 
 def test_the_suite_command_refuses_bad_arguments(tmp_path, capsys):
