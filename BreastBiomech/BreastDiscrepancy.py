@@ -778,7 +778,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         if when == "before":
             from BreastBiomechLib.discrepancy.regions import regions_of
 
-            node_regions = regions_of(session.fitted, session.fitted.mesh.nodes, displacement)
+            node_regions = regions_of(session.fitted, session.fitted.mesh.nodes, session.fitted.first(displacement))
             image, segments = region_labels(session.fitted, displacement, node_regions)
             regions = named_labels_to_segmentation_node(image, segments, self.scene, f"Round {number}: regions",
                                                         node=self._kindNode(number, "regions"))
@@ -813,6 +813,11 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                    "RMS feature residual (mm)": np.array([m["residual_rms_mm"] for _, m in stages], float),
                    "mean landmark error (mm)": np.array([m["landmark_error_mm"]["mean"] if m.get("landmark_error_mm")
                                                          else np.nan for _, m in stages], float)}
+        for state in record["before"].get("states") or {}:  # a joint fit's further measured states
+            columns[f"NMI {state}"] = np.array([m["states"][state]["nmi"] for _, m in stages], float)
+            columns[f"mean landmark error {state} (mm)"] = np.array(
+                [m["states"][state]["landmark_error_mm"]["mean"] if m["states"][state].get("landmark_error_mm")
+                 else np.nan for _, m in stages], float)
         table = columns_to_table_node(columns, self.scene, f"Round {number}: measures",
                                       node=self._kindNode(number, "measures"))
         p.set_reference("measuresTable", self._put(folder_item, number, "measures", table))

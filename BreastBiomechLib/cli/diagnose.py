@@ -17,6 +17,7 @@ def cmd_diagnose(args) -> int:
     from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
     from BreastBiomechLib.discrepancy.registration import RegistrationSettings
     from BreastBiomechLib.io.case_layout import CaseLayout
+    from BreastBiomechLib.optimisation.case import recorded_states
 
     noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
                        surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor=args.floor)
@@ -31,7 +32,8 @@ def cmd_diagnose(args) -> int:
         events.progress(message)
 
     unused = CaseLayout(args.case_dir).unused_states_note(
-        why="the diagnosis stacks no further states yet (a joint fit of them is read at its first state)")
+        recorded_states(args.fit), why="the fit did not use them; fit them jointly (`breastbiomech optimise`) to "
+                                       "diagnose them")
     if unused:
         print(f"breastbiomech diagnose: note: {unused}", file=sys.stderr)
         events.progress(unused)

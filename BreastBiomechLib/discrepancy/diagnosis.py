@@ -36,7 +36,7 @@ from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.profile import profile_intervals
 from BreastBiomechLib.discrepancy.refit import Refit, refine, refit
-from BreastBiomechLib.discrepancy.regions import regions_of
+from BreastBiomechLib.discrepancy.regions import feature_regions as feature_regions_of
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
 
@@ -406,7 +406,7 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     free = nuisance[:, ~held]
     q_theta = statistics.basis(free)
     overall = statistics.overall_by_channel(whitened, free, observations.channel)
-    feature_regions = regions_of(fitted, observations.points, sens.displacement)
+    feature_regions = feature_regions_of(fitted, observations, sens.displacement)
     excess = whitened ** 2 - 1.0
     residual_shares = _shares(excess, feature_regions)
     tested = [e for e in testable if e.name in sens.effects]

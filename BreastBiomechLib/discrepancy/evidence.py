@@ -4,7 +4,8 @@ the model's skin to the measured body, the regions on the measured grid, a candi
 residual pattern, and the residual magnitude's histogram.
 
 Frames and units: LPS millimetres; images on the measured compressed image's grid; a model's
-positions are the fitting mesh's nodes moved by its displacement (N, 3) mm.
+positions are the fitting mesh's nodes moved by its displacement (N, 3) mm. In a fit of several
+measured states, the first state's (a solution in every state is taken at its first part).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def landmark_residuals(fitted: FittedCase, displacement_mm: np.ndarray) -> Landm
     case has no landmarks."""
     if fitted.reference is None:
         return None
-    predicted = map_landmarks(fitted.mesh, displacement_mm, fitted.reference).positions
+    predicted = map_landmarks(fitted.mesh, fitted.first(displacement_mm), fitted.reference).positions
     measured = fitted.measured.positions
     return LandmarkResiduals(list(fitted.reference.labels), predicted, measured,
                              np.linalg.norm(measured - predicted, axis=1))
@@ -65,7 +66,7 @@ def skin_surface(fitted: FittedCase, displacement_mm: np.ndarray, surface=None):
                 faces = kept
             break
     used, triangles = np.unique(faces, return_inverse=True)
-    points = mesh.nodes[used] + np.asarray(displacement_mm, float)[used]
+    points = mesh.nodes[used] + np.asarray(fitted.first(displacement_mm), float)[used]
     surface = surface or SurfaceDistance(fitted.measured_image)
     return points, triangles.reshape(-1, 3), surface.signed_distances(points)
 
@@ -79,6 +80,7 @@ def region_labels(fitted: FittedCase, displacement_mm: np.ndarray,
     from scipy.spatial import cKDTree
 
     warper = fitted.problem.warper  # the fit's: its output grid is the measured image's
+    displacement_mm = fitted.first(displacement_mm)
     reference = sitk.GetArrayFromImage(warper.nodal_field(displacement_mm, fitted.mesh.nodes))
     inside = sitk.GetArrayFromImage(warper.predict(displacement_mm).inside).astype(bool)
     names = sorted(set(np.asarray(node_regions).tolist()))
@@ -100,7 +102,7 @@ def candidate_pattern(fitted: FittedCase, displacement_mm: np.ndarray, fields: n
     score test's ``estimate`` (k,)), as a magnitude image on the measured grid over the body
     deformed by ``displacement_mm`` (0 outside): comparable with the residual field's magnitude."""
     change = np.tensordot(np.atleast_1d(np.asarray(estimate, float)), np.asarray(fields, float), axes=1)
-    field = fitted.problem.warper.nodal_field(displacement_mm, change)
+    field = fitted.problem.warper.nodal_field(fitted.first(displacement_mm), fitted.first(change))
     magnitude = sitk.GetImageFromArray(np.linalg.norm(sitk.GetArrayFromImage(field), axis=-1).astype(np.float32))
     magnitude.CopyInformation(fitted.measured_image)
     return magnitude

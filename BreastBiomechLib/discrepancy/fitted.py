@@ -3,6 +3,13 @@ problem rebuilt (fitting mesh, measured plates, measured image), its best parame
 landmarks. Reads only what a fit may use (:mod:`BreastBiomechLib.phantom.compressed_files`):
 never a case's truth.json or truth mesh.
 
+A joint fit of several measured states (:mod:`BreastBiomechLib.optimisation.states`) is read
+with every state it fitted: the first state is the :class:`FittedCase` itself, each further one a
+:class:`FittedCase` of its own in :attr:`FittedCase.further` (the same fitting mesh, space,
+parameters and reference landmarks; its own plates, measured image, landmarks and posture). The
+diagnosis stacks them: a model's solution in every state is one array of the states' nodal
+displacements one after the other (:meth:`FittedCase.split`), first state first.
+
 Frames and units: LPS millimetres; the fitting mesh as imaged (undeformed).
 """
 
@@ -36,7 +43,9 @@ class FittedCase:
     the ``reference`` and ``measured`` landmarks (None when the case has none), the
     ``measured_image``, the undeformed scan's posture as gravity ``imaged_gravity`` and the
     compressed scan's ``compressed_gravity`` (m/s^2, LPS; prone: anterior), the forward solves'
-    ``relaxation`` and the warp ``device``; the folders it came from."""
+    ``relaxation`` and the warp ``device``; the folders it came from; the measured state's
+    ``name`` and, for the first state of a joint fit, its ``further`` states (each a
+    :class:`FittedCase` of the same fit)."""
 
     problem: FittingProblem
     z: np.ndarray
@@ -49,7 +58,32 @@ class FittedCase:
     compressed_gravity: np.ndarray = field(default_factory=lambda: np.array(PRONE_GRAVITY))
     relaxation: DynamicRelaxation = field(default_factory=DynamicRelaxation)
     device: object = None
+    name: str = FIRST_STATE
+    further: list["FittedCase"] = field(default_factory=list)
     _skin: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def states(self) -> list["FittedCase"]:
+        """Every measured state of the fit, the first (this one) first."""
+        return [self, *self.further]
+
+    @property
+    def state_names(self) -> list[str]:
+        return [state.name for state in self.states]
+
+    def split(self, displacement: np.ndarray) -> list[np.ndarray]:
+        """A solution in every state (S N, 3) mm, the states' nodal displacements one after the
+        other: each state's (N, 3), in :attr:`states`' order."""
+        displacement = np.asarray(displacement)
+        n, count = len(self.mesh.nodes), len(self.states)
+        if displacement.shape != (count * n, 3):
+            raise ValueError(f"a solution in {count} measured state(s) of a {n}-node mesh is ({count * n}, 3), not "
+                             f"{displacement.shape}")
+        return [displacement[k * n:(k + 1) * n] for k in range(count)]
+
+    def first(self, displacement: np.ndarray) -> np.ndarray:
+        """The first state's part (N, 3) mm of a solution in every state (:meth:`split`)."""
+        return self.split(displacement)[0]
 
     @property
     def mesh(self) -> TetMesh:
@@ -107,8 +141,8 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
     with reading(fit, "finished fit folder (case.json, settings.json, result.json)",
                  "run `breastbiomech optimise` to the end again into a new folder"):
         recorded = fit / "case.json"
-        if recorded.is_file():
-            written = json.loads(recorded.read_text())
+        written = json.loads(recorded.read_text()) if recorded.is_file() else {}
+        if written:
             if written.get("fingerprint") != case_fingerprint(case):
                 raise InputError(f"{fit} is a fit of another case ({written.get('case_dir')}): its measured image or "
                                  f"plates differ from {case}'s")
@@ -128,19 +162,47 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
                              "was made on another case")
     mesh = read_vtu(fit / "fitting_mesh.vtu")
     reference = read_markups(layout.landmarks) if layout.landmarks.is_file() else None
-    if measured.landmarks is None:  # landmarks count where both images have them
-        reference = None
-    landmarks = (reference, measured.landmarks) if reference is not None else None
     if space.plates and space.plates != len(measured.plates):
         raise ValueError(f"{fit}: the fit offsets {space.plates} plates, {case} has {len(measured.plates)}; "
                          "the fit was made on another case")
     relaxation = DynamicRelaxation(tolerance_mm=tolerance_mm)
-    try:
-        problem = FittingProblem(space, mesh, read_image(layout.mr), measured.image, measured.plates,
-                                 landmarks=landmarks, bins=int(settings.get("bins", 64)), relaxation=relaxation,
-                                 device=device)
-    except ValueError as error:
-        raise ValueError(f"{fit}: the fit does not match {case}: {error}") from None
-    return FittedCase(problem, z, reference, measured.landmarks if reference is not None else None, measured.image,
-                      case, fit,
-                      np.asarray(imaged_gravity, float), np.asarray(measured.gravity, float), relaxation, device)
+    imaged = read_image(layout.mr)
+
+    def state(name: str, measured) -> FittedCase:
+        ours = reference if measured.landmarks is not None else None  # landmarks count where both images have them
+        try:
+            problem = FittingProblem(space, mesh, imaged, measured.image, measured.plates,
+                                     landmarks=(ours, measured.landmarks) if ours is not None else None,
+                                     bins=int(settings.get("bins", 64)), relaxation=relaxation, device=device)
+        except ValueError as error:
+            raise ValueError(f"{fit}: the fit does not match {case}"
+                             f"{'' if name == FIRST_STATE else f' (state {name})'}: {error}") from None
+        return FittedCase(problem, z, ours, measured.landmarks if ours is not None else None, measured.image, case, fit,
+                          np.asarray(imaged_gravity, float), np.asarray(measured.gravity, float), relaxation, device,
+                          name)
+
+    fitted = state(FIRST_STATE, measured)
+    fitted.further = [state(name, read_compressed(case, name)) for name in _further_states(case, fit, written)]
+    return fitted
+
+
+def _further_states(case: Path, fit: Path, recorded: dict) -> list[str]:
+    """The measured states beyond the first that the fit in ``fit`` fitted jointly (its case.json's
+    ``states``, each fingerprint checked against the case's files), in the fit's order."""
+    from BreastBiomechLib.phantom.compressed_files import case_fingerprint
+
+    states = recorded.get("states") or {}
+    layout = CaseLayout(case)
+    further = []
+    for name, fingerprint in states.items():
+        if name == FIRST_STATE:
+            continue
+        if name not in layout.state_names():
+            raise InputError(f"{fit} is a joint fit of the measured states {', '.join(states)}; {case} has no state "
+                             f"{name!r} ({layout.state(name).folder.relative_to(case)}): restore it, or fit the case "
+                             "again")
+        if case_fingerprint(case, name) != fingerprint:
+            raise InputError(f"{fit} is a fit of another version of state {name!r}: its measured image or plates "
+                             f"differ from {case}'s; fit the case again")
+        further.append(name)
+    return further

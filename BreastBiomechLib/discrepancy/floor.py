@@ -76,27 +76,35 @@ class MeasuredFloor:
 
 def discretisation_error(state: ModelState, observations: Observations, displacement_mm: np.ndarray) -> tuple:
     """The estimated error (n,) mm of each feature of the model ``state`` whose solution on its
-    fitting mesh is ``displacement_mm`` (N, 3), from its solution on the refined mesh; with the
-    two meshes' tet counts. Raises RuntimeError when the refined model does not solve."""
+    fitting mesh is ``displacement_mm`` (N, 3; in a fit of several measured states (S N, 3),
+    each state solved on the refined mesh), from its solution on the refined mesh; with the two
+    meshes' tet counts. Raises RuntimeError when the refined model does not solve."""
     fitted = state.fitted
     variant = state.variant()
-    refinement = Refinement(variant.model.mesh)
-    model = refinement.model(variant.model, variant.materials, variant.plates)
-    imaged = refinement.node_values(fitted.mesh.nodes)
-    outcome = warm_refined_solve(model, refinement.node_values(displacement_mm), fitted.relaxation, fitted.device)
-    if outcome is None:  # cold: from rest, the load ramped (a warm start does not hold, or failed)
-        [outcome] = solve_variants([Variant(model, model.materials, model.loading.plates)], imaged, fitted.relaxation,
-                                   fitted.device)
-    if not outcome.ok:
-        raise RuntimeError(f"the fitted model on its refined mesh ({len(model.mesh.tets)} tets) did not solve "
-                           f"({outcome.status}: {outcome.message}); measure the floor with a finer fitting mesh or "
-                           "give a fixed one (--floor fixed --model-sd-mm)")
-    fine = outcome.displacement
-    predicted = observations.predicted(fine[:len(fitted.mesh.nodes)])
-    landmarks = observations.channel == "landmarks"
-    if landmarks.any():
-        imaged_mesh = TetMesh(imaged, refinement.refined.tets)  # the reference landmarks are in the imaged frame
-        predicted[landmarks] = map_landmarks(imaged_mesh, fine, fitted.reference).positions.ravel()
+    fine_parts, predicted_landmarks = [], {}
+    for fitted_state, part, coarse in zip(fitted.states, (variant, *variant.others), fitted.split(displacement_mm)):
+        refinement = Refinement(part.model.mesh)
+        model = refinement.model(part.model, part.materials, part.plates)
+        imaged = refinement.node_values(fitted.mesh.nodes)
+        outcome = warm_refined_solve(model, refinement.node_values(coarse), fitted.relaxation, fitted.device)
+        if outcome is None:  # cold: from rest, the load ramped (a warm start does not hold, or failed)
+            [outcome] = solve_variants([Variant(model, model.materials, model.loading.plates)], imaged,
+                                       fitted.relaxation, fitted.device)
+        if not outcome.ok:
+            where = f" in state {fitted_state.name}" if fitted.further else ""
+            raise RuntimeError(f"the fitted model on its refined mesh ({len(model.mesh.tets)} tets) did not solve"
+                               f"{where} ({outcome.status}: {outcome.message}); measure the floor with a finer "
+                               "fitting mesh or give a fixed one (--floor fixed --model-sd-mm)")
+        fine = outcome.displacement
+        fine_parts.append(fine[:len(fitted.mesh.nodes)])
+        if fitted_state.reference is not None:  # the reference landmarks are in the imaged frame
+            predicted_landmarks[fitted_state.name] = map_landmarks(TetMesh(imaged, refinement.refined.tets), fine,
+                                                                   fitted_state.reference).positions.ravel()
+    predicted = observations.predicted(np.concatenate(fine_parts))
+    for name, values in predicted_landmarks.items():
+        mine = (observations.channel == "landmarks") & observations.in_state(name)
+        if mine.any():
+            predicted[mine] = values
     error = RICHARDSON * (predicted - observations.predicted(displacement_mm))
     return error, (len(variant.model.mesh.tets), len(model.mesh.tets))
 

@@ -15,6 +15,12 @@ landmarks' localisation error and, for the surface, the voxels' quantisation (la
 sqrt(12)), each with a model-error floor (the fitting mesh's discretisation and the
 segmentation's error, which no effect explains) added in quadrature. Features are taken as
 independent.
+
+A fit of several measured states has these features in every state (each state's own measured
+image, landmarks and noise), stacked first state first; a further state's labels start with its
+name ("lateral: nipple L"), and :attr:`Observations.state` says each feature's state. Their
+:meth:`Observations.predicted` takes the states' displacements stacked
+(:meth:`~BreastBiomechLib.discrepancy.fitted.FittedCase.split`).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from BreastBiomechLib.io.case_layout import FIRST_STATE
 from BreastBiomechLib.landmarks import LandmarkMapper
 
 CHANNELS = ("landmarks", "surface")
@@ -60,8 +67,9 @@ class Observations:
     sits, for the regions), ``floor_mm`` the fixed model-error floor inside ``sigma`` (0 where
     none was assumed), ``measurement_sd`` (n,) mm the part of ``sigma`` that is measurement (the
     landmarks' localisation, the surface's quantisation) and ``floor`` (n,) mm each feature's
-    measured floor where one was measured (:meth:`with_floor`). :meth:`predicted` computes the
-    features from a displacement."""
+    measured floor where one was measured (:meth:`with_floor`), ``state`` (n,) the measured
+    state each feature belongs to (None: every feature the first state's). :meth:`predicted`
+    computes the features from a displacement."""
 
     labels: list[str]
     channel: np.ndarray
@@ -72,6 +80,13 @@ class Observations:
     floor_mm: float = 0.0
     measurement_sd: np.ndarray | None = None
     floor: np.ndarray | None = None
+    state: np.ndarray | None = None
+
+    def in_state(self, name: str) -> np.ndarray:
+        """Which features (n,) bool belong to measured state ``name``."""
+        if self.state is None:
+            return np.full(len(self), name == FIRST_STATE)
+        return self.state == name
 
     @property
     def base_sigma(self) -> np.ndarray:
@@ -115,16 +130,39 @@ def thinned(points: np.ndarray, spacing_mm: float) -> np.ndarray:
 def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | None = None) -> Observations:
     """The features of ``fitted`` (a :class:`~BreastBiomechLib.discrepancy.fitted.FittedCase`)
     in the channels of ``noise``, the surface features chosen where the fit's solution
-    ``base_displacement`` (N, 3) mm puts them inside the measured image."""
+    ``base_displacement`` (N, 3) mm puts them inside the measured image; in a fit of several
+    measured states, every state's features stacked (``base_displacement`` (S N, 3), the
+    states' solutions one after the other)."""
+    noise = noise or NoiseModel()
+    if not fitted.further:
+        return _state_observations(fitted, base_displacement, noise)
+    n = len(fitted.mesh.nodes)
+    parts = [_state_observations(state, u, noise, prefix=k > 0)
+             for k, (state, u) in enumerate(zip(fitted.states, fitted.split(base_displacement)))]
+
+    def sliced(part, k):
+        return lambda u: part(u[k * n:(k + 1) * n])
+
+    return Observations(
+        [label for o in parts for label in o.labels], np.concatenate([o.channel for o in parts]),
+        np.concatenate([o.measured for o in parts]), np.concatenate([o.sigma for o in parts]),
+        np.concatenate([o.points for o in parts]),
+        [sliced(part, k) for k, o in enumerate(parts) for part in o._parts], noise.model_sd_mm,
+        np.concatenate([o.measurement_sd for o in parts]),
+        state=np.concatenate([np.full(len(o), state.name) for o, state in zip(parts, fitted.states)]))
+
+
+def _state_observations(fitted, base_displacement: np.ndarray, noise: NoiseModel, prefix: bool = False) -> Observations:
+    """The features of one measured state ``fitted`` (labels starting with its name where ``prefix``)."""
     from BreastBiomechLib.similarity.surface import SurfaceDistance
 
-    noise = noise or NoiseModel()
     mesh = fitted.mesh
+    named = f"{fitted.name}: " if prefix else ""
     labels, channel, measured, measurement, points, parts = [], [], [], [], [], []
     if "landmarks" in noise.channels and fitted.reference is not None:
         mapper = LandmarkMapper(mesh, fitted.reference)
         for name in fitted.reference.labels:
-            labels += [f"{name} {axis}" for axis in "LPS"]
+            labels += [f"{named}{name} {axis}" for axis in "LPS"]
         n = 3 * len(fitted.reference.labels)
         channel += ["landmarks"] * n
         measured.append(fitted.measured.positions.ravel())
@@ -142,7 +180,7 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
         skin, base = skin[keep], base[keep]
         if len(skin):
             quantisation = max(fitted.measured_image.GetSpacing()) / np.sqrt(12.0)
-            labels += [f"skin node {i}" for i in skin]
+            labels += [f"{named}skin node {i}" for i in skin]
             channel += ["surface"] * len(skin)
             measured.append(np.zeros(len(skin)))
             measurement.append(np.full(len(skin), quantisation))
@@ -154,8 +192,9 @@ def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | N
 
             parts.append(signed)
     if not parts:
-        raise ValueError("no feature to compare: the case has no landmarks and no breast skin inside the measured "
-                         "image; add landmarks or check the fit's mesh and the measured image")
+        raise ValueError(f"no feature to compare{f' in state {fitted.name}' if prefix else ''}: the case has no "
+                         "landmarks and no breast skin inside the measured image; add landmarks or check the fit's "
+                         "mesh and the measured image")
     measurement = np.concatenate(measurement)
     return Observations(labels, np.array(channel), np.concatenate(measured), np.hypot(measurement, noise.model_sd_mm),
                         np.concatenate(points), parts, noise.model_sd_mm, measurement)

@@ -5,7 +5,8 @@ Regions, in the undeformed fitting mesh (LPS mm), first match wins:
 :data:`BAND_MM` of the skin nodes touching that plate at the fit's solution), ``chest wall``
 (within :data:`CHEST_BAND_MM` of the chest-wall nodes), ``sub-surface`` (within :data:`BAND_MM`
 of the skin), and deeper ``glandular``, ``muscle`` or ``fat`` by the tissue of the element that
-holds the point.
+holds the point. In a fit of several measured states, a feature's contact bands are its own
+state's (:func:`feature_regions`).
 """
 
 from __future__ import annotations
@@ -59,4 +60,16 @@ def regions_of(fitted, points: np.ndarray, displacement_mm: np.ndarray) -> np.nd
     if rest.any():
         where = locate_points(mesh, points[rest])
         out[rest] = [labels.tissue(int(t)).name for t in fitted.tissue[where.tets]]
+    return out.astype(str)
+
+
+def feature_regions(fitted, observations, displacement_mm: np.ndarray) -> np.ndarray:
+    """The region of each feature of ``observations`` (n,) at the solution ``displacement_mm`` (in
+    every measured state of ``fitted``, stacked): each feature's contact bands those of its own state."""
+    if not fitted.further:
+        return regions_of(fitted, observations.points, displacement_mm)
+    out = np.empty(len(observations), dtype=object)
+    for state, u in zip(fitted.states, fitted.split(displacement_mm)):
+        mine = observations.in_state(state.name)
+        out[mine] = regions_of(state, observations.points[mine], u)
     return out.astype(str)

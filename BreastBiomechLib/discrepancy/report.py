@@ -157,6 +157,20 @@ def _measures_line(name: str, m: dict) -> str:
     text = f"{name}: NMI {m['nmi']:.4f}, RMS feature residual {m['residual_rms_mm']:.2f} mm"
     if landmark:
         text += f", landmark error {landmark['mean']:.2f} mm mean (max {landmark['max']:.2f})"
+    for state, figures in (m.get("states") or {}).items():  # a joint fit's further measured states
+        text += f"; state {state}: NMI {figures['nmi']:.4f}"
+        if figures.get("landmark_error_mm"):
+            text += f", landmark error {figures['landmark_error_mm']['mean']:.2f} mm mean"
+    return text
+
+
+def _features_phrase(features: dict) -> str:
+    """How many features a round compared, by channel, and by measured state where it stacked several."""
+    text = (f"{features['count']} features "
+            f"({', '.join(f'{k} {v}' for k, v in features['channels'].items())})")
+    states = features.get("states") or {}
+    if len(states) > 1:
+        text += f" in {len(states)} measured states stacked ({', '.join(f'{k} {v}' for k, v in states.items())})"
     return text
 
 
@@ -172,7 +186,7 @@ def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
         o = d["overall"]
         noise = record["noise"]
         parts += [f"## Round {record['round']}: {d['verdict']}", "", d["sentence"], "",
-                  f"{record['features']['count']} features ({', '.join(f'{k} {v}' for k, v in record['features']['channels'].items())}); "
+                  f"{_features_phrase(record['features'])}; "
                   f"noise: landmarks {noise['landmark_sd_mm']:g} mm, {_floor_phrase(record)}. "
                   f"Overall test ({overall_phrase(o)}; T/dof of all features {o['per_dof']:.2f}); "
                   f"{d['solves']} forward solves; {record['seconds']:.0f} s.", "",

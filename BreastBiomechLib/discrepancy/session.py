@@ -51,7 +51,7 @@ from BreastBiomechLib.discrepancy.floor import MeasuredFloor, measure_floor
 from BreastBiomechLib.discrepancy.kept import SUFFIX as KEPT
 from BreastBiomechLib.discrepancy.kept import load_diagnosis, save_diagnosis
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
-from BreastBiomechLib.discrepancy.regions import regions_of
+from BreastBiomechLib.discrepancy.regions import feature_regions, regions_of
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings, ResidualField
 from BreastBiomechLib.discrepancy.report import write_report
 from BreastBiomechLib.discrepancy.state import ModelState
@@ -68,7 +68,21 @@ class DiagnosisCancelled(RuntimeError):
 
 def measures(fitted: FittedCase, observations: Observations, displacement: np.ndarray, regions) -> dict:
     """What the report compares before and after a round: landmark errors (mm), NMI against the
-    measured image, and the residual by region."""
+    measured image, and the residual by region; in a fit of several measured states the first
+    state's landmark errors and NMI, each further state's under ``states`` (by name), the
+    residual over every state's features."""
+    parts = fitted.split(displacement)
+    out = _state_measures(fitted, parts[0])
+    residual = observations.residual(displacement)
+    out["residual_rms_mm"] = float(np.sqrt(np.mean(residual ** 2)))
+    out["regions"] = region_summary(observations, residual, regions)
+    if fitted.further:
+        out["states"] = {state.name: _state_measures(state, u) for state, u in zip(fitted.further, parts[1:])}
+    return out
+
+
+def _state_measures(fitted: FittedCase, displacement: np.ndarray) -> dict:
+    """Landmark errors (mm) and NMI of one measured state ``fitted`` at its solution ``displacement`` (N, 3)."""
     out = {}
     if fitted.reference is not None:
         from BreastBiomechLib.landmarks import map_landmarks
@@ -78,9 +92,6 @@ def measures(fitted: FittedCase, observations: Observations, displacement: np.nd
         out["landmark_error_mm"] = {"mean": float(errors.mean()), "max": float(errors.max()),
                                     "per_landmark": dict(zip(fitted.reference.labels, errors.round(3).tolist()))}
     out["nmi"] = float(fitted.problem.similarity.nmi(fitted.problem.warper.warp(displacement)))
-    residual = observations.residual(displacement)
-    out["residual_rms_mm"] = float(np.sqrt(np.mean(residual ** 2)))
-    out["regions"] = region_summary(observations, residual, regions)
     return out
 
 
@@ -88,7 +99,8 @@ def measures(fitted: FittedCase, observations: Observations, displacement: np.nd
 class FieldRecorder:
     """Makes, summarises and saves the residual displacement fields of a run's models (see
     :mod:`~BreastBiomechLib.discrepancy.registration`): the measured body found once, the
-    fitting mesh's nodes labelled by region once."""
+    fitting mesh's nodes labelled by region once. In the first measured state (a solution in
+    every state is taken at its first state's part)."""
 
     fitted: FittedCase
     settings: RegistrationSettings
@@ -104,12 +116,12 @@ class FieldRecorder:
 
         body = body_mask(sitk.GetArrayFromImage(fitted.measured_image).astype(np.float32),
                          check_volume(fitted.measured_image))
-        return cls(fitted, settings, regions_of(fitted, fitted.mesh.nodes, base_displacement), body)
+        return cls(fitted, settings, regions_of(fitted, fitted.mesh.nodes, fitted.first(base_displacement)), body)
 
     def field(self, displacement: np.ndarray) -> ResidualField:
         from BreastBiomechLib.discrepancy.registration import residual_field_of
 
-        return residual_field_of(self.fitted, displacement, self.body, self.settings)
+        return residual_field_of(self.fitted, self.fitted.first(displacement), self.body, self.settings)
 
     def summary(self, field: ResidualField, displacement: np.ndarray, path: Path) -> dict:
         """The figures of ``field`` (of the model whose solution is ``displacement``), saved to ``path``."""
@@ -123,7 +135,8 @@ class FieldRecorder:
         magnitude = field.magnitude[field.mask]
         return {"file": path.name, "mean_mm": float(magnitude.mean()), "p95_mm": float(np.percentile(magnitude, 95)),
                 "accuracy": field.accuracy,
-                "regions": field_by_region(field, self.fitted.mesh.nodes, displacement, self.node_regions)}
+                "regions": field_by_region(field, self.fitted.mesh.nodes, self.fitted.first(displacement),
+                                           self.node_regions)}
 
 
 def state_from_record(fitted: FittedCase, record: dict, effects, when: str = "after") -> ModelState:
@@ -157,8 +170,6 @@ class DiagnosisSession:
                  settings: DiagnosisSettings | None = None, device=None, resume: bool = False,
                  registration: RegistrationSettings | None = RegistrationSettings(),
                  progress: Callable[[str], object] | None = None):
-        from BreastBiomechLib.io.meshes import read_vtu
-
         self.out = Path(out_dir)
         self.case_dir, self.fit_dir = Path(case_dir), Path(fit_dir)
         if self.out.exists() and any(p.name != CLAIM_FILE for p in self.out.iterdir()) and not resume:
@@ -179,15 +190,7 @@ class DiagnosisSession:
         self._say("reading the case and the fit")
         self.fitted = load_fitted_case(case_dir, fit_dir, device=device)
         self.candidates = library(self.fitted, effects)
-        solution = self.fit_dir / "deformed_mesh.vtu"
-        if solution.is_file():
-            base = read_vtu(solution).point_data["displacement"]
-        else:
-            from BreastBiomechLib.discrepancy.variants import solve_variants
-
-            self._say("solving the fitted model")
-            base = solve_variants([ModelState(self.fitted, self.fitted.z).variant()], self.fitted.mesh.nodes,
-                                  self.fitted.relaxation, device)[0].displacement
+        base = self._fitted_solution()
         self.base_displacement = base
         self.observations = observations_of(self.fitted, base, self.noise)
         self.out.mkdir(parents=True, exist_ok=True)
@@ -214,6 +217,28 @@ class DiagnosisSession:
                     self.fields[(self.last["round"], when)] = ResidualField.read(
                         self.path(self.last["round"], f"-residual-{when}.nrrd"), summary.get("accuracy"))
 
+    def _fitted_solution(self) -> np.ndarray:
+        """The fitted model's solution (N, 3) mm, in every measured state (S N, 3) of a joint fit:
+        the fit's deformed meshes (``states/<name>/`` of the fit folder for further states), else
+        solved."""
+        from BreastBiomechLib.io.case_layout import STATES
+        from BreastBiomechLib.io.meshes import read_vtu
+
+        files = [self.fit_dir / "deformed_mesh.vtu"] + [self.fit_dir / STATES / name / "deformed_mesh.vtu"
+                                                         for name in self.fitted.state_names[1:]]
+        if all(f.is_file() for f in files):
+            solutions = [read_vtu(f).point_data["displacement"] for f in files]
+            if all(u.shape == self.fitted.mesh.nodes.shape for u in solutions):
+                return np.concatenate(solutions)
+        from BreastBiomechLib.discrepancy.variants import solve_variants
+
+        self._say("solving the fitted model")
+        [outcome] = solve_variants([ModelState(self.fitted, self.fitted.z).variant()], self.fitted.mesh.nodes,
+                                   self.fitted.relaxation, self.device)
+        if not outcome.ok:
+            raise RuntimeError(f"the fitted model does not solve ({outcome.status}: {outcome.message})")
+        return outcome.displacement
+
     def _measured_floor(self, base: np.ndarray) -> MeasuredFloor:
         """The model-error floor measured from the case (:mod:`~BreastBiomechLib.discrepancy.floor`),
         written to floor.json; read from it where an earlier session of this folder measured it."""
@@ -228,7 +253,7 @@ class DiagnosisSession:
             if len(floor.floor) == len(self.observations):
                 return floor
         self._say("measuring the model-error floor (the fitted model solved on its refined fitting mesh)")
-        regions = regions_of(self.fitted, self.observations.points, base)
+        regions = feature_regions(self.fitted, self.observations, base)
         floor = measure_floor(ModelState(self.fitted, self.fitted.z), self.observations, base, regions,
                               self.noise.model_sd_mm)
         record = floor.to_dict() | {"case_dir": str(self.case_dir), "fit_dir": str(self.fit_dir)}
@@ -302,7 +327,9 @@ class DiagnosisSession:
                   "before": measures(fitted, observations, diagnosis.sensitivities.displacement, regions),
                   "features": {"count": len(observations),
                                "channels": {c: int(np.sum(observations.channel == c))
-                                            for c in sorted(set(observations.channel))}},
+                                            for c in sorted(set(observations.channel))},
+                               "states": {name: int(np.sum(observations.in_state(name)))
+                                          for name in fitted.state_names}},
                   "noise": self.noise.__dict__ | {"channels": list(self.noise.channels)},
                   "floor": self.floor.summary() if self.floor is not None else {"fixed_mm": self.noise.model_sd_mm}}
         record["refits"] = {name: measures(fitted, observations, r.displacement, regions)

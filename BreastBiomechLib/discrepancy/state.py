@@ -30,20 +30,17 @@ class ModelState:
 
     def variant(self, z=None, values: dict[str, np.ndarray] | None = None) -> Variant:
         """The variant at fit parameters ``z`` (default :attr:`z`) with the added effects at their
-        values, overridden or extended by ``values`` ({effect name: (Effect, its values)})."""
-        fitted = self.fitted
+        values, overridden or extended by ``values`` ({effect name: (Effect, its values)}); in a
+        fit of several measured states, the first state's, with the same model in each further
+        state (its plates and posture) in :attr:`Variant.others`."""
         z = self.z if z is None else np.asarray(z, float)
-        plates = fitted.plates
-        offsets = fitted.problem.plate_displacements(z)
-        if offsets is not None:
-            plates = [replace(p, displacement=d) for p, d in zip(plates, offsets)]
-        variant = Variant(fitted.model, fitted.space.element_materials(z, fitted.tissue), plates)
         chosen = {name: (effect, v) for name, (effect, v) in self.added.items()}
         for name, (effect, v) in (values or {}).items():
             chosen[name] = (effect, np.asarray(v, float))
-        for name, (effect, v) in sorted(chosen.items(), key=lambda item: item[1][0].order):
-            variant = effect.apply(variant, v, fitted)
-        return variant
+        ordered = sorted(chosen.values(), key=lambda item: item[0].order)
+        first, *further = [_variant_in(state, z, ordered) for state in self.fitted.states]
+        first.others = further
+        return first
 
     def with_effect(self, effect: Effect, values, z=None) -> "ModelState":
         """This state with ``effect`` added (or changed) at ``values`` and the fit's parameters at
@@ -85,3 +82,16 @@ class ModelState:
     def to_dict(self) -> dict:
         return {"z": [float(v) for v in self.z], "fit_values": self.fitted.space.values(self.z),
                 "added": {name: [float(v) for v in values] for name, (_, values) in self.added.items()}}
+
+
+def _variant_in(fitted: FittedCase, z: np.ndarray, effects: list[tuple[Effect, np.ndarray]]) -> Variant:
+    """The variant of measured state ``fitted`` at fit parameters ``z`` with ``effects`` ((Effect,
+    values), in the order applied)."""
+    plates = fitted.plates
+    offsets = fitted.problem.plate_displacements(z)
+    if offsets is not None:
+        plates = [replace(p, displacement=d) for p, d in zip(plates, offsets)]
+    variant = Variant(fitted.model, fitted.space.element_materials(z, fitted.tissue), plates)
+    for effect, v in effects:
+        variant = effect.apply(variant, v, fitted)
+    return variant

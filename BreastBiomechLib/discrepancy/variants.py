@@ -6,12 +6,14 @@ per-element ``materials`` and the ``plates``. Variants that share one ``model`` 
 solved in one batched launch (materials, plate poses, travel and friction may differ between
 them); an effect that changes the loading (gravity pre-stress, the chest-wall support) makes a
 model of its own. Displacements come back from the mesh as imaged (LPS mm), also for a
-pre-stressed model whose mesh is its unloaded shape.
+pre-stressed model whose mesh is its unloaded shape. A fit of several measured states solves each
+variant in every state (:attr:`Variant.others`): its displacement is the states' one after the
+other (:meth:`~BreastBiomechLib.discrepancy.fitted.FittedCase.split`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,11 +27,14 @@ from BreastBiomechLib.solver.settings import SolverSettings
 @dataclass
 class Variant:
     """One model to solve: ``model`` (loading and mesh), ``materials`` per element, ``plates``
-    (the model's plates in number and order, with their contact nodes)."""
+    (the model's plates in number and order, with their contact nodes); in a fit of several
+    measured states this is the first state's, and ``others`` the same model in each further
+    state, solved with it."""
 
     model: Model
     materials: ElementMaterials
     plates: list[Plate]
+    others: list["Variant"] = field(default_factory=list)
 
 
 @dataclass
@@ -52,17 +57,30 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
                    device=None) -> list[Outcome]:
     """Solve every variant (one batched launch per distinct ``model``) to static equilibrium by
     dynamic ``relaxation`` (:func:`~BreastBiomechLib.solver.run_case.run_variants`: a variant that
-    inverts an element is solved again alone with a slower load); the outcomes in the variants' order."""
-    outcomes: list[Outcome | None] = [None] * len(variants)
+    inverts an element is solved again alone with a slower load); the outcomes in the variants'
+    order. A variant with :attr:`Variant.others` is solved in every state: its outcome's
+    displacement is the states' stacked (first state first), its status the first failed state's."""
+    flat = [(i, part) for i, variant in enumerate(variants) for part in (variant, *variant.others)]
+    solved: list[Outcome | None] = [None] * len(flat)
     groups: dict[int, list[int]] = {}
-    for i, variant in enumerate(variants):
-        groups.setdefault(id(variant.model), []).append(i)
+    for k, (_, part) in enumerate(flat):
+        groups.setdefault(id(part.model), []).append(k)
     settings = SolverSettings(method="relaxation", device=device, relaxation=relaxation)
     for members in groups.values():
-        results = run_variants(variants[members[0]].model,
-                               [CaseVariant(variants[i].materials, variants[i].plates) for i in members], settings,
+        results = run_variants(flat[members[0]][1].model,
+                               [CaseVariant(flat[k][1].materials, flat[k][1].plates) for k in members], settings,
                                imaged_nodes=imaged_nodes)
-        for i, result in zip(members, results):
-            outcomes[i] = Outcome(result.displacement, result.solution.status, result.solution.message,
-                                  result.solution.attempts)
+        for k, result in zip(members, results):
+            solved[k] = Outcome(result.displacement, result.solution.status, result.solution.message,
+                                result.solution.attempts)
+    outcomes = []
+    for i in range(len(variants)):
+        parts = [solved[k] for k, (owner, _) in enumerate(flat) if owner == i]
+        if len(parts) == 1:
+            outcomes.append(parts[0])
+            continue
+        failed = next((p for p in parts if not p.ok), None)
+        outcomes.append(Outcome(np.concatenate([p.displacement for p in parts]),
+                                failed.status if failed else parts[0].status,
+                                failed.message if failed else parts[0].message, sum(p.attempts for p in parts)))
     return outcomes

@@ -20,8 +20,8 @@
 
 A state's name is letters, digits, "-" and "_". :meth:`CaseLayout.check` validates a folder and
 names what is wrong and what to do. A fit uses every state, jointly
-(:mod:`BreastBiomechLib.optimisation.states`), or those it is told; the diagnosis uses the first
-state (``compressed/``) only: :meth:`CaseLayout.unused_states_note` says so where a case holds more.
+(:mod:`BreastBiomechLib.optimisation.states`), or those it is told; the diagnosis stacks the
+states its fit used: :meth:`CaseLayout.unused_states_note` names those a run leaves out.
 """
 
 from __future__ import annotations

@@ -196,6 +196,14 @@ def case_record(case_dir: str | Path, states: list[str] | None = None) -> dict:
     return record
 
 
+def recorded_states(fit_dir: str | Path) -> list[str]:
+    """The measured states a fit in ``fit_dir`` fitted, as its case.json records them (:func:`case_record`;
+    the first state alone where it records none)."""
+    recorded = Path(fit_dir) / "case.json"
+    states = json.loads(recorded.read_text()).get("states") if recorded.is_file() else None
+    return list(states) if states else [FIRST_STATE]
+
+
 def fitted_states(layout: CaseLayout, chosen: list[str] | None) -> list[str]:
     """The measured states a fit of the case ``layout`` uses: ``chosen`` (names, in the case's
     order, the first state among them) or, with None, every state of the case. A ValueError

@@ -6,7 +6,10 @@ Discrepancy module's test) is a copy without its truth files."""
 from __future__ import annotations
 
 import json
+import shutil
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 
@@ -48,3 +51,65 @@ def test_hidden_friction_is_named_added_and_the_gap_shrinks(friction_case, tmp_p
     assert contact and all(fields[1]["regions"][name]["mean_mm"] < fields[0]["regions"][name]["mean_mm"]
                            for name in contact)
     assert (out / record["residual_picture"]).is_file() and record["residual_picture"] in report
+
+
+def _measured_twice(case: Path, fit: Path, root: Path) -> tuple[Path, Path]:
+    """``case`` with its compressed scan measured a second time (the same files as a further
+    state "again") and ``fit`` as a joint fit of both (the same parameters, each state's
+    solution the fit's): (case, fit) in ``root``."""
+    from BreastBiomechLib.optimisation.case import case_record
+
+    twice = Path(shutil.copytree(case, root / "case"))
+    shutil.copytree(twice / "compressed", twice / "states" / "again")
+    joint = Path(shutil.copytree(fit, root / "fit"))
+    (joint / "case.json").write_text(json.dumps(case_record(twice, ["compressed", "again"])))
+    (joint / "states" / "again").mkdir(parents=True)
+    shutil.copy(joint / "deformed_mesh.vtu", joint / "states" / "again" / "deformed_mesh.vtu")
+    return twice, joint
+
+
+@pytest.mark.slow
+def test_a_joint_fit_is_diagnosed_in_every_state_stacked(friction_case, tmp_path):
+    """A joint fit's states are diagnosed together: every feature in every state, each variant
+    solved in each state with that state's plates. With the same scan as both states, the two
+    halves of every sensitivity agree, the first is the single scan's, every score statistic is
+    twice the single scan's, and the round records each state's landmark error and NMI."""
+    from BreastBiomechLib.discrepancy import DiagnosisSession, DiagnosisSettings, NoiseModel, observations_of
+    from BreastBiomechLib.discrepancy import statistics
+    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    case, fit = friction_case
+    session = DiagnosisSession(*_measured_twice(case, fit, tmp_path), tmp_path / "diagnosis", effects=["skin"],
+                               noise=NoiseModel(floor="fixed"), device="cpu", registration=None,
+                               settings=DiagnosisSettings(refine_iterations=0, profile=False))
+    assert session.fitted.state_names == ["compressed", "again"]
+    single = observations_of(load_fitted_case(case, fit, device="cpu"),
+                             read_vtu(fit / "deformed_mesh.vtu").point_data["displacement"], NoiseModel(floor="fixed"))
+    n = len(single)
+    stacked = session.observations
+    assert len(stacked) == 2 * n and stacked.labels[n] == f"again: {single.labels[0]}"
+    np.testing.assert_array_equal(stacked.measured, np.tile(single.measured, 2))
+    record = session.diagnose()
+    assert record["features"]["states"] == {"compressed": n, "again": n}
+    sens = session.diagnosis.sensitivities
+    np.testing.assert_allclose(sens.features[:n], single.predicted(session.fitted.first(sens.displacement)))
+    for values in (sens.features, sens.nuisance, sens.effects["skin"]):
+        np.testing.assert_allclose(values[n:], values[:n], atol=1e-9)
+    # the stacked score test counts each feature twice
+    weights = 1.0 / stacked.sigma
+    whitened = weights * (stacked.measured - sens.features)
+    free = (weights[:, None] * sens.nuisance)[:, [k not in session.diagnosis.held for k in sens.nuisance_keys]]
+    half = statistics.score_by_channel(whitened[:n], free[:n], (weights[:, None] * sens.effects["skin"])[:n],
+                                       stacked.channel[:n])
+    [skin] = [c for c in record["diagnosis"]["candidates"] if c["name"] == "skin"]
+    assert skin["statistic"] == pytest.approx(2 * half["statistic"], rel=1e-6)
+    np.testing.assert_allclose(skin["estimate"], np.atleast_1d(half["estimate"]), rtol=1e-6)
+    before = record["before"]
+    assert before["states"]["again"]["nmi"] == pytest.approx(before["nmi"])
+    assert before["states"]["again"]["landmark_error_mm"] == before["landmark_error_mm"]
+    assert "in 2 measured states stacked (compressed " in (tmp_path / "diagnosis" / "report.md").read_text()
+    # a state the fit fitted that the case no longer holds is named
+    shutil.rmtree(tmp_path / "case" / "states" / "again")
+    with pytest.raises(ValueError, match="no state 'again'"):
+        DiagnosisSession(tmp_path / "case", tmp_path / "fit", tmp_path / "gone", device="cpu", registration=None)
