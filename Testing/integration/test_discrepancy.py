@@ -492,4 +492,3 @@ def test_a_cancel_clicked_during_a_round_after_its_save_does_not_undo_what_was_s
     with pytest.raises(DiagnosisCancelled, match="cancelled while"):
         session.diagnose(progress=lambda message: message != last_before)
     assert not (early / "round-1.json").exists() and session.rounds == []
-
