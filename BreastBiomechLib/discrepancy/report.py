@@ -144,7 +144,10 @@ def _floor_phrase(record: dict) -> str:
     meshes) or fixed."""
     floor = record.get("floor") or {}
     if "rms_mm" not in floor:
-        return f"model-error floor {floor.get('fixed_mm', record['noise']['model_sd_mm']):g} mm (fixed)"
+        fixed = floor.get("fixed_mm", record["noise"]["model_sd_mm"])
+        if floor.get("not_measured"):
+            return f"model-error floor {fixed:g} mm (fixed: measuring it from the case failed: {floor['not_measured']})"
+        return f"model-error floor {fixed:g} mm (fixed)"
     largest = floor["largest"]
     return (f"model-error floor measured from the case: {floor['rms_mm']:.2f} mm RMS over the features (at least "
             f"{floor['lower_bound_mm']:g} mm; the fitting mesh's discretisation error, estimated against its "

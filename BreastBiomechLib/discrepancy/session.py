@@ -12,7 +12,8 @@ Output folder::
     diagnosis.json   the case and fit, the settings, all rounds and the latest verdict
     floor.json       the measured model-error floor's per-feature discretisation estimate and
                      groups (:mod:`BreastBiomechLib.discrepancy.floor`; with the noise model's
-                     floor "measured")
+                     floor "measured"), or why it could not be measured (the refined model did
+                     not solve: the fixed floor is used, as each round's record and the report say)
     round-<N>-residual-{before,after}.nrrd
                      the residual displacement field of the round's model before and after its refit
                      (vector, LPS mm, on the measured image's grid; Slicer loads it as a vector
@@ -194,6 +195,7 @@ class DiagnosisSession:
         self.base_displacement = base
         self.observations = observations_of(self.fitted, base, self.noise)
         self.out.mkdir(parents=True, exist_ok=True)
+        self.floor_failure: str | None = None  # why the floor could not be measured (the fixed one is used)
         self.floor = self._measured_floor(base) if self.noise.floor == "measured" else None
         if self.floor is not None:
             self.observations = self.observations.with_floor(self.floor.floor)
@@ -249,15 +251,25 @@ class DiagnosisSession:
                 if Path(record.get(key, ours)).resolve() != ours.resolve():
                     raise ValueError(f"{self.out} holds the floor of {key.split('_')[0]} {record[key]}, not {ours}: "
                                      "choose another output folder")
+            if "failed" in record:
+                self.floor_failure = record["failed"]
+                return None
             floor = MeasuredFloor.from_dict(record, self.noise.model_sd_mm)
             if len(floor.floor) == len(self.observations):
                 return floor
         self._say("measuring the model-error floor (the fitted model solved on its refined fitting mesh)")
         regions = feature_regions(self.fitted, self.observations, base)
-        floor = measure_floor(ModelState(self.fitted, self.fitted.z), self.observations, base, regions,
-                              self.noise.model_sd_mm)
-        record = floor.to_dict() | {"case_dir": str(self.case_dir), "fit_dir": str(self.fit_dir)}
-        write_text_atomically(path, json.dumps(record) + "\n")
+        where = {"case_dir": str(self.case_dir), "fit_dir": str(self.fit_dir)}
+        try:
+            floor = measure_floor(ModelState(self.fitted, self.fitted.z), self.observations, base, regions,
+                                  self.noise.model_sd_mm)
+        except RuntimeError as error:  # the refined model did not solve: said, recorded, the fixed floor used
+            self.floor_failure = str(error)
+            self._say(f"the model-error floor could not be measured; the fixed floor ({self.noise.model_sd_mm:g} mm) "
+                      f"is used: {error}")
+            write_text_atomically(path, json.dumps({"failed": self.floor_failure} | where) + "\n")
+            return None
+        write_text_atomically(path, json.dumps(floor.to_dict() | where) + "\n")
         return floor
 
     @staticmethod
@@ -331,7 +343,9 @@ class DiagnosisSession:
                                "states": {name: int(np.sum(observations.in_state(name)))
                                           for name in fitted.state_names}},
                   "noise": self.noise.__dict__ | {"channels": list(self.noise.channels)},
-                  "floor": self.floor.summary() if self.floor is not None else {"fixed_mm": self.noise.model_sd_mm}}
+                  "floor": self.floor.summary() if self.floor is not None else
+                  {"fixed_mm": self.noise.model_sd_mm} | ({"not_measured": self.floor_failure}
+                                                          if self.floor_failure else {})}
         record["refits"] = {name: measures(fitted, observations, r.displacement, regions)
                             for name, r in diagnosis.refits.items() if r.ok}
         if self.recorder is not None:

@@ -492,3 +492,35 @@ def test_a_cancel_clicked_during_a_round_after_its_save_does_not_undo_what_was_s
     with pytest.raises(DiagnosisCancelled, match="cancelled while"):
         session.diagnose(progress=lambda message: message != last_before)
     assert not (early / "round-1.json").exists() and session.rounds == []
+
+
+def test_a_floor_that_cannot_be_measured_falls_back_to_the_fixed_one_and_says_so(null_case, tmp_path, monkeypatch):
+    """Where the fitted model on its refined mesh does not solve (an element inverted, as in one
+    case of the varied suite), the session uses the fixed floor instead of failing the whole
+    diagnosis, says so as it goes, records why (floor.json, each round's record, the report) and a
+    resumed session reads that rather than solving again."""
+    from BreastBiomechLib.discrepancy import DiagnosisSession
+    from BreastBiomechLib.discrepancy import session as session_module
+    from BreastBiomechLib.discrepancy.report import _floor_phrase
+
+    def inverted(*args, **kwargs):
+        raise RuntimeError("the fitted model on its refined mesh (800 tets) did not solve (inverted elements)")
+
+    monkeypatch.setattr(session_module, "measure_floor", inverted)
+    heard = []
+    session = DiagnosisSession(*null_case, tmp_path / "dx", device="cpu", registration=None, progress=heard.append)
+    assert session.floor is None and "inverted elements" in session.floor_failure
+    assert any(m.startswith("the model-error floor could not be measured; the fixed floor (0.5 mm) is used")
+               for m in heard)
+    np.testing.assert_allclose(session.observations.sigma, session.observations.base_sigma)
+    assert "inverted elements" in json.loads((tmp_path / "dx" / "floor.json").read_text())["failed"]
+
+    def not_again(*args, **kwargs):
+        raise AssertionError("the floor was measured again")
+
+    monkeypatch.setattr(session_module, "measure_floor", not_again)
+    again = DiagnosisSession(*null_case, tmp_path / "dx", device="cpu", registration=None, resume=True)
+    assert again.floor is None and again.floor_failure == session.floor_failure
+    phrase = _floor_phrase({"floor": {"fixed_mm": 0.5, "not_measured": session.floor_failure},
+                            "noise": {"model_sd_mm": 0.5}})
+    assert phrase.startswith("model-error floor 0.5 mm (fixed: measuring it from the case failed: the fitted model")
