@@ -449,8 +449,12 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
                 sensitivities=sens, feature_regions=feature_regions, refits={},
                 held=[key for key, h in zip(sens.nuisance_keys, held) if h], conflicts=conflicts)
+    marks = observations.channel == "landmarks"
     evidence = verdicts.Evidence(overall, [], correlations, _rms(residual), _largest(regions),
-                                 _rms(observations.feature_floor))
+                                 _rms(observations.feature_floor),
+                                 landmark_noise=(_rms(observations.measurement_sd[marks]),
+                                                 _rms(observations.feature_floor[marks]))
+                                 if marks.any() and observations.measurement_sd is not None else None)
     evidence.candidates = [c.to_dict() for c in ranked]
     chosen = [c for c in ranked if not c.skipped and c.p_adjusted < settings.alpha][:settings.refit_top]
     if not chosen and not verdicts.overall_significant(evidence, settings.alpha):

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 NONE = "no significant discrepancy"
 UNEXPLAINED = "unexplained discrepancy"
 MISSING = "missing effect"
@@ -46,9 +48,10 @@ class Evidence:
     :meth:`~BreastBiomechLib.discrepancy.diagnosis.Candidate.to_dict`'s keys, ranked, refit
     records filled where refitted), the pairwise ``correlations`` of their signatures
     ({"a|b": value}), the residual's RMS (``residual_rms_mm``) and where it is largest
-    (``largest_region``, e.g. "contact 1 (surface)"), the model-error floor ``floor_mm`` and
+    (``largest_region``, e.g. "contact 1 (surface)"), the model-error floor ``floor_mm``,
     the share of the residual the refit of the fitted parameters alone removed
-    (``fitted_alone_removed``; None when it was not refitted)."""
+    (``fitted_alone_removed``; None when it was not refitted) and the landmarks' assumed
+    localisation sd and model-error floor (``landmark_noise``, mm each; None without landmarks)."""
 
     overall: dict
     candidates: list[dict]
@@ -57,6 +60,7 @@ class Evidence:
     largest_region: str = ""
     floor_mm: float = 0.0
     fitted_alone_removed: float | None = None
+    landmark_noise: tuple[float, float] | None = None
 
 
 @dataclass
@@ -227,7 +231,26 @@ def unexplained_sentence(evidence: Evidence, refitted: list[dict], best: dict | 
                 f"{_needs(nearest)}.")
     else:
         text = f"{head}, but no candidate's score test is significant: the library holds nothing that would change it."
-    return text + _unconverged(evidence, settings)
+    return text + landmarks_alone_phrase(evidence, settings.alpha) + _unconverged(evidence, settings)
+
+
+def landmarks_alone_phrase(evidence: Evidence, alpha: float) -> str:
+    """Where the landmarks' channel alone is significant (every other channel not), the other
+    reading of an unexplained residual: landmarks marked less precisely than the noise model
+    assumes. The localisation sd that would give their T/dof of 1 (with the same model-error
+    floor), and what to do; "" otherwise."""
+    channels = evidence.overall.get("channels") or {}
+    marks = channels.get("landmarks")
+    if marks is None or evidence.landmark_noise is None or not marks["dof"] or marks["p_value"] >= alpha:
+        return ""
+    if any(t["p_value"] < alpha for name, t in channels.items() if name != "landmarks"):
+        return ""
+    sd, floor = evidence.landmark_noise
+    ratio = marks["statistic"] / marks["dof"]
+    implied = float(np.sqrt(max(ratio * (sd ** 2 + floor ** 2) - floor ** 2, 0.0)))
+    return (f" The landmarks alone carry it (T/dof {ratio:.2f}; the surface is within its noise): landmarks marked "
+            f"with a localisation error of about {implied:.2g} mm rather than the assumed {sd:g} mm would read the "
+            "same; if that is how precisely they were marked, give it (--landmark-sd-mm) and diagnose again.")
 
 
 def ambiguous_sentence(evidence: Evidence, best: dict, rivals: list[dict]) -> str:

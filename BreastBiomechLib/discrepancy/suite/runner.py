@@ -39,6 +39,7 @@ import numpy as np
 
 from BreastBiomechLib.cohort import Task, place, run_tasks
 from BreastBiomechLib.discrepancy.effects import library
+from BreastBiomechLib.discrepancy.observations import NoiseModel
 from BreastBiomechLib.discrepancy.suite.cases import SuiteCase
 from BreastBiomechLib.discrepancy.suite.scores import case_result
 from BreastBiomechLib.discrepancy.suite.varied import anatomy_parameters
@@ -66,7 +67,8 @@ class SuiteSettings:
     ``fit_population``; the diagnosis at most ``rounds`` rounds over the whole library. The
     measured landmarks of both images are the truth's moved by a localisation error of
     ``landmark_noise_mm`` per coordinate (one sd; a person marking them), so that the fit and
-    the diagnosis meet landmarks as uncertain as a clinic's. The plates' flat faces end
+    the diagnosis meet landmarks as uncertain as a clinic's; the diagnosis is told that sd, as a
+    user gives theirs (``--landmark-sd-mm``). The plates' flat faces end
     ``chest_clearance_mm`` anterior to the chest (None: the plate travel, see
     :func:`~BreastBiomechLib.solver.placement.plate_contacts`), in rounded edges. ``moving_plate``:
     which plate closes on the breast (:class:`~BreastBiomechLib.phantom.compressed.TruthModel`):
@@ -393,7 +395,9 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
     t = time.perf_counter()
     # no residual displacement fields: they are evidence for a person, not part of the verdict the
     # suite scores, and 45 cases' registrations would cost more than their diagnoses
+    # told how precisely the landmarks were marked, as a user gives it (--landmark-sd-mm)
     run = run_diagnosis(measured, fit_dir, diagnosis_dir, effects=settings.effects, rounds=settings.rounds,
+                        noise=NoiseModel(landmark_sd_mm=settings.landmark_noise_mm),
                         device=device, resume=diagnosis_dir.exists(), registration=None,
                         progress=lambda message: say(f"{case.name}: {message}"))
     seconds["diagnosis"] = time.perf_counter() - t

@@ -106,6 +106,25 @@ def test_a_significant_residual_with_no_significant_candidate_is_unexplained_and
     _agrees(decision, evidence)
 
 
+def test_an_unexplained_residual_in_the_landmarks_alone_says_what_marking_error_would_read_the_same():
+    """The landmarks' channel significant and the surface not: the sentence adds the other
+    reading, landmarks marked less precisely than assumed, with the localisation sd that would
+    give their T/dof of 1 at the same floor (here T/dof 80/57 at 0.5 mm and a 0.5 mm floor: 0.67
+    mm); with the surface significant too, or no landmark noise known, it does not."""
+    evidence = _evidence(0.003, [_candidate(p=0.3, refitted=False)])
+    evidence.landmark_noise = (0.5, 0.5)
+    decision = verdicts.decide(evidence, SETTINGS)
+    assert decision.verdict == verdicts.UNEXPLAINED
+    assert ("The landmarks alone carry it (T/dof 1.40; the surface is within its noise): landmarks marked with a "
+            "localisation error of about 0.67 mm rather than the assumed 0.5 mm") in decision.sentence
+    _agrees(decision, evidence)
+    evidence.overall["channels"]["surface"]["p_value"] = 0.001
+    assert "landmarks alone" not in verdicts.decide(evidence, SETTINGS).sentence
+    evidence.overall["channels"]["surface"]["p_value"] = 0.99
+    evidence.landmark_noise = None
+    assert "landmarks alone" not in verdicts.decide(evidence, SETTINGS).sentence
+
+
 def test_unexplained_names_the_nearest_candidate_and_what_it_pressed_against():
     near = _candidate("skin", dbic=-4.0, removed=0.15)
     near["refit"]["at_range_ends"] = ["ln(E_skin/E_tissue) at the top of its range (4)"]
