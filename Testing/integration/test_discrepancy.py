@@ -2,8 +2,8 @@
 coarse mesh of its labels and a few solves: the effects are nested in the fitted model, the
 inputs a diagnosis cannot use are refused, and this null case (nothing hidden beyond what the
 iso-hetero fit has) raises no alarm. Cases are copies without their truth files: the workflow
-never reads them. Hidden friction: test_discrepancy_friction.py (a file of its own, so that the
-two run side by side)."""
+never reads them. Hidden friction: the Breast Discrepancy module's test (Testing/modules), on a
+case of its own; conftest puts each case's tests at the head of one worker's share."""
 
 from __future__ import annotations
 

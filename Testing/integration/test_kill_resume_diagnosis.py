@@ -54,7 +54,7 @@ def test_a_diagnosis_killed_at_each_checkpoint_resumes_to_the_uninterrupted_resu
     resumed, after the refit (its resume adds the effect to the open round from the round's kept
     diagnosis). The fixed floor and the linearised interval: the
     measured floor's solve and the profile's (tested in test_discrepancy.py and
-    test_discrepancy_friction.py) would lengthen every killed run."""
+    the Breast Discrepancy module's test) would lengthen every killed run."""
     case, fit = friction_case
 
     def diagnosis(out, resume=False, progress=False):

@@ -49,22 +49,22 @@ def test_warm_started_batches_reach_the_cold_objectives_in_fewer_iterations(case
 
 def test_a_resumed_fit_evaluates_every_position_as_an_uninterrupted_one(case, tmp_path):
     problem = problem_of(case)
-    whole = optimise(problem, "cmaes", budget=16, seed=2, population=4)
+    whole = optimise(problem, "cmaes", budget=12, seed=2, population=4)
     calls = []
 
     def cancel_after_two_batches(done, budget, best, phase):
         calls.append(done)
         return len(calls) < 2
 
-    optimise(problem, "cmaes", budget=16, seed=2, population=4, out_dir=tmp_path, progress=cancel_after_two_batches)
+    optimise(problem, "cmaes", budget=12, seed=2, population=4, out_dir=tmp_path, progress=cancel_after_two_batches)
     starts = list((tmp_path / "warm_starts").glob("*.npz"))
     assert 1 <= len(starts) <= 2  # the current start and the one before it at most
-    resumed = optimise(problem, "cmaes", budget=16, seed=2, population=4, out_dir=tmp_path, resume=True)
+    resumed = optimise(problem, "cmaes", budget=12, seed=2, population=4, out_dir=tmp_path, resume=True)
     assert resumed.replayed == 8
     assert [(e.z, e.objective, e.iterations) for e in resumed.evaluations] == \
         [(e.z, e.objective, e.iterations) for e in whole.evaluations]
     # the later batches did start warm: fewer iterations than the same positions solved cold
-    later = whole.evaluations[12:]
+    later = whole.evaluations[8:]
     cold = problem_of(case, warm_starts=False).evaluate(np.array([e.z for e in later]))
     assert sum(e.iterations for e in later) < 0.9 * sum(e.iterations for e in cold)
 
