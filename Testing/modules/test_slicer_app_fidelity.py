@@ -248,11 +248,11 @@ def test_the_discrepancy_self_test_makes_the_headless_tests_case():
     source = (MODULE_DIR / "BreastDiscrepancy.py").read_text()
     test = source[source.index("class BreastDiscrepancyTest"):]
     assert "small_friction_case(" in test and 'device="cpu"' in test
-    assert 'p["effects"], p["refineIterations"], p["device"] = "friction skin", 1, "cpu"' in test
+    assert 'p["effects"], p["refineIterations"], p["device"] = "", 1, "cpu"' in test
     conftest = (ROOT / "Testing" / "conftest.py").read_text()
     assert '"friction-case", small_friction_case)' in conftest
     module_test = (ROOT / "Testing" / "modules" / "test_module_breastdiscrepancy.py").read_text()
-    assert 'EFFECTS = "friction skin"' in module_test and '= EFFECTS, 1, "cpu"' in module_test
+    assert 'EFFECTS = ""' in module_test and '= EFFECTS, 1, "cpu"' in module_test
 
 
 # -- module metadata and layout --------------------------------------------------------------------
