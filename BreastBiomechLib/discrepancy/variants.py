@@ -73,9 +73,12 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
         for k, result in zip(members, results):
             solved[k] = Outcome(result.displacement, result.solution.status, result.solution.message,
                                 result.solution.attempts)
+    parts_of: dict[int, list[Outcome]] = {}
+    for (owner, _), outcome in zip(flat, solved):
+        parts_of.setdefault(owner, []).append(outcome)
     outcomes = []
     for i in range(len(variants)):
-        parts = [solved[k] for k, (owner, _) in enumerate(flat) if owner == i]
+        parts = parts_of[i]
         if len(parts) == 1:
             outcomes.append(parts[0])
             continue
