@@ -183,6 +183,8 @@ def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tol
 
     fitted = state(FIRST_STATE, measured)
     fitted.further = [state(name, read_compressed(case, name)) for name in _further_states(case, fit, written)]
+    for further in fitted.further:  # one mesh: each element's skin share is computed once for every state
+        further._skin = fitted._skin
     return fitted
 
 
