@@ -134,7 +134,7 @@ def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: Fit
     with claimed(out, "a fit of a compressed case"):
         out.mkdir(parents=True, exist_ok=True)
         if resume and (out / "case.json").is_file():  # its evaluations are of the states it began with
-            begun = list(json.loads((out / "case.json").read_text()).get("states") or [FIRST_STATE])
+            begun = recorded_states(out)
             if begun != names:
                 raise ValueError(f"{out}: cannot resume a fit of the states {', '.join(begun)} with "
                                  f"{', '.join(names)}: resume with --states {' '.join(begun)}, or start a new folder")
