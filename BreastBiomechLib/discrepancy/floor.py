@@ -28,7 +28,8 @@ import numpy as np
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.variants import Outcome, Variant, solve_variants
-from BreastBiomechLib.landmarks import map_landmarks
+from BreastBiomechLib.landmarks import Landmarks, map_landmarks
+from BreastBiomechLib.landmarks.mapping import outside_tolerance_mm
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.refinement import Refinement
 
@@ -98,8 +99,8 @@ def discretisation_error(state: ModelState, observations: Observations, displace
         fine = outcome.displacement
         fine_parts.append(fine[:len(fitted.mesh.nodes)])
         if fitted_state.reference is not None:  # the reference landmarks are in the imaged frame
-            predicted_landmarks[fitted_state.name] = map_landmarks(TetMesh(imaged, refinement.refined.tets), fine,
-                                                                   fitted_state.reference).positions.ravel()
+            predicted_landmarks[fitted_state.name] = refined_landmarks(fitted.mesh, refinement, fine,
+                                                                       fitted_state.reference).ravel()
     predicted = observations.predicted(np.concatenate(fine_parts))
     for name, values in predicted_landmarks.items():
         mine = (observations.channel == "landmarks") & observations.in_state(name)
@@ -107,6 +108,17 @@ def discretisation_error(state: ModelState, observations: Observations, displace
             predicted[mine] = values
     error = RICHARDSON * (predicted - observations.predicted(displacement_mm))
     return error, (len(variant.model.mesh.tets), len(model.mesh.tets))
+
+
+def refined_landmarks(fitting_mesh: TetMesh, refinement: Refinement, displacement_mm: np.ndarray,
+                      landmarks: Landmarks) -> np.ndarray:
+    """(K, 3) mm: the reference ``landmarks`` (imaged frame, LPS mm) moved by ``displacement_mm``
+    on the nodes of ``refinement`` of ``fitting_mesh``. The refined mesh has the fitting mesh's
+    surface, so a landmark lies as far outside it as outside the fitting mesh, and the fitting
+    mesh's tolerance for that applies (the refined mesh's own, from its halved edges, would
+    refuse a nipple the fit mapped: a 12 mm mesh with a 9 mm surface did)."""
+    mesh = TetMesh(refinement.node_values(fitting_mesh.nodes), refinement.refined.tets)
+    return map_landmarks(mesh, displacement_mm, landmarks, outside_tolerance_mm(fitting_mesh)).positions
 
 
 def warm_refined_solve(model, start_mm: np.ndarray, relaxation, device=None) -> Outcome | None:

@@ -68,3 +68,35 @@ def test_the_refined_model_relaxed_from_the_coarse_solution_ends_where_it_does_f
     assert np.abs(warm.displacement - cold.displacement).max() < min(0.05, 0.1 * change)
     rough = replace(fine, loading=replace(fine.loading, plates=[replace(p, friction=0.3) for p in fine.loading.plates]))
     assert warm_refined_solve(rough, start, relaxation, "cpu") is None
+
+
+def test_a_landmark_outside_a_coarse_mesh_moves_on_its_refinement_as_on_the_mesh():
+    """The floor's refined solve moves the landmarks on the refined mesh, whose surface is the
+    fitting mesh's: a landmark the fitting mesh's tolerance admits (here 8 mm outside an 18 mm
+    stair-stepped mesh) is mapped there too, not refused for the refined mesh's halved edges, and
+    a linear displacement field moves it exactly as the fitting mesh does."""
+    from BreastBiomechLib.discrepancy.floor import refined_landmarks
+    from BreastBiomechLib.landmarks import Landmarks, locate_points, map_landmarks
+    from BreastBiomechLib.landmarks.mapping import outside_tolerance_mm
+    from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
+    from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
+    from BreastBiomechLib.solver.refinement import Refinement
+
+    mesh = hemi_ellipsoid_mesh(spacing_mm=18.0)
+    refinement = Refinement(mesh)
+    refined = TetMesh(refinement.node_values(mesh.nodes), refinement.refined.tets)
+    assert outside_tolerance_mm(refined) < 8.0 < outside_tolerance_mm(mesh)
+    faces = boundary_faces(mesh.tets)[0]
+    corners = mesh.nodes[faces]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    k = int(np.argmax(corners[:, :, 2].mean(axis=1)))  # a face on the breast's front, away from the chest wall
+    point = corners[k].mean(axis=0) + 8.0 * normals[k] / np.linalg.norm(normals[k])
+    assert 5.0 < locate_points(mesh, point[None]).outside_mm[0] < outside_tolerance_mm(mesh)
+    landmarks = Landmarks(point[None], ["nipple"])
+    with pytest.raises(ValueError, match="outside the mesh"):  # the refined mesh's own tolerance
+        map_landmarks(refined, np.zeros_like(refined.nodes), landmarks)
+    linear = np.array([[0.1, 0.02, 0.0], [0.0, -0.05, 0.03], [0.01, 0.0, 0.08]])
+    coarse = map_landmarks(mesh, mesh.nodes @ linear.T + [1.0, 2.0, 3.0], landmarks).positions
+    fine = refined_landmarks(mesh, refinement, refined.nodes @ linear.T + [1.0, 2.0, 3.0], landmarks)
+    np.testing.assert_allclose(fine, coarse, atol=1e-9)
+    np.testing.assert_allclose(fine[0], point + linear @ point + [1.0, 2.0, 3.0], atol=1e-9)
