@@ -1,4 +1,4 @@
-"""Command line: ``breastbiomech phantom|segment|mesh|simulate|niftysim|warp|compare|optimise|study|diagnose|demo|bench``.
+"""Command line: ``breastbiomech phantom|segment|mesh|simulate|niftysim|warp|compare|optimise|study|diagnose|design|demo|bench``.
 
 Each sub-command is a thin layer over library functions; results go to files and a short report
 on standard output (``--json`` where a machine reads it). One module per command group, each

@@ -9,6 +9,7 @@ import sys
 from BreastBiomechLib.cli.common import (device_argument, fraction, non_negative, non_negative_int, positive,
                                          positive_int)
 from BreastBiomechLib.cli.events import add_progress_option, events_of, wants_bar
+from BreastBiomechLib.discrepancy.acquisitions import KINDS
 from BreastBiomechLib.discrepancy.effects import NAMES
 from BreastBiomechLib.discrepancy.observations import CHANNELS, FLOORS
 
@@ -58,6 +59,42 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def cmd_design(args) -> int:
+    from pathlib import Path
+
+    from BreastBiomechLib.discrepancy import NoiseModel
+    from BreastBiomechLib.discrepancy.design import design
+    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
+    from BreastBiomechLib.io.atomic import write_json_atomically, write_text_atomically
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} exists and is not empty: choose a new output folder")
+    noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
+                       surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor="fixed")
+    bar, events = wants_bar(args), events_of(args)
+
+    def progress(message):
+        if bar:
+            print(f"  {message}", file=sys.stderr, flush=True)
+        events.progress(message)
+
+    fitted = load_fitted_case(args.case_dir, args.fit, device=args.device)
+    made = design(fitted, effects=args.effects, kinds=tuple(args.acquisitions), noise=noise, alpha=args.alpha,
+                  progress=progress)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomically(out / "design.json", made.to_dict())
+    write_text_atomically(out / "design.md", made.markdown())
+    events.output("design", out)
+    if args.json:
+        print(json.dumps(made.to_dict()))
+        return 0
+    for sentence in made.sentences():
+        print(sentence)
+    print(f"report: {out / 'design.md'}; every separation: {out / 'design.json'}")
+    return 0
+
+
 def add_parsers(sub) -> None:
     """Register the ``diagnose`` command on ``sub`` (argparse sub-parsers)."""
     p = sub.add_parser("diagnose", help="name the effect a fitted model is missing, add it, refit, report")
@@ -99,3 +136,28 @@ def add_parsers(sub) -> None:
     p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")
     add_progress_option(p)
     p.set_defaults(func=cmd_diagnose)
+
+    p = sub.add_parser("design", help="which further acquisition would tell each candidate effect apart from what "
+                                      "takes it up at this fit")
+    p.add_argument("case_dir", help="the compressed case folder the fit was made on")
+    p.add_argument("--fit", required=True, help="the fit's folder (`breastbiomech optimise --out`)")
+    p.add_argument("--out", required=True, help="a new output folder (design.json, design.md)")
+    p.add_argument("--effects", nargs="+", choices=NAMES, help="candidate effects (default: the whole library)")
+    p.add_argument("--acquisitions", nargs="+", default=list(KINDS), metavar="KIND_OR_NAME",
+                   help=f"further acquisitions simulated, by kind ({', '.join(KINDS)}; default: all) or name (e.g. "
+                        "only-left): the closure 10 and 20 %% of the thickness further or less, all of it by one "
+                        "plate, the plates turned 90 degrees")
+    p.add_argument("--channels", nargs="+", choices=CHANNELS, default=list(CHANNELS),
+                   help="features compared (default: all)")
+    p.add_argument("--landmark-sd-mm", type=non_negative, default=0.5,
+                   help="landmark localisation error, mm per coordinate (default 0.5)")
+    p.add_argument("--model-sd-mm", type=non_negative, default=0.5,
+                   help="model-error floor added to every feature, mm (default 0.5; fixed: a measured floor is "
+                        "not simulated)")
+    p.add_argument("--surface-spacing-mm", type=positive, default=8.0,
+                   help="spacing of the skin-surface features, mm (default 8)")
+    p.add_argument("--alpha", type=fraction, default=0.01, help="the diagnosis's significance level (default 0.01)")
+    p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
+    p.add_argument("--json", action="store_true", help="print the design as one JSON line")
+    add_progress_option(p)
+    p.set_defaults(func=cmd_design)

@@ -524,3 +524,53 @@ def test_a_floor_that_cannot_be_measured_falls_back_to_the_fixed_one_and_says_so
     phrase = _floor_phrase({"floor": {"fixed_mm": 0.5, "not_measured": session.floor_failure},
                             "noise": {"model_sd_mm": 0.5}})
     assert phrase.startswith("model-error floor 0.5 mm (fixed: measuring it from the case failed: the fitted model")
+
+
+@pytest.mark.slow
+def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, capsys):
+    """`breastbiomech design`: the library's acquisitions for the case's rig (both plates closing
+    25 % LR: the closure 10 and 20 % of the thickness further and less, all of it by either
+    plate, the same closure along SI), one of them simulated from the fit (the second plate
+    alone), and each candidate's separation from its rival and the fitted parameters, now and
+    with that acquisition (never lower): the chest-wall hold, which the fitted muscle modulus
+    takes up in this scan, is told apart with the second; the report's section; a used output
+    folder and an acquisition the library does not have are refused."""
+    from BreastBiomechLib.cli import main
+    from BreastBiomechLib.discrepancy import ModelState, load_fitted_case
+    from BreastBiomechLib.discrepancy.acquisitions import acquisition_library
+
+    case, fit = null_case
+    fitted = load_fitted_case(case, fit, device="cpu")
+    plates = ModelState(fitted, fitted.z).variant().plates
+    acquisitions = {a.name: a for a in acquisition_library(fitted)}
+    assert list(acquisitions) == ["compression-20", "compression-10", "compression+10", "compression+20",
+                                  f"only-{plates[0].name}", f"only-{plates[1].name}", "rotated-SI"]
+    thickness = (plates[1].point - plates[0].point) @ plates[0].normal
+    closure = sum(p.displacement @ p.normal for p in plates)
+
+    def gap(acquisition):
+        first, second = (np.asarray(p["point"]) for p in acquisition.planes)
+        return (second - first) @ np.asarray(acquisition.planes[0]["normal"])
+
+    assert gap(acquisitions["compression+20"]) == pytest.approx(thickness - closure - 0.2 * thickness)
+    assert gap(acquisitions[f"only-{plates[0].name}"]) == pytest.approx(thickness - closure)
+    np.testing.assert_allclose(acquisitions[f"only-{plates[0].name}"].planes[1]["point"], plates[1].point, atol=1e-9)
+    np.testing.assert_allclose(np.abs(acquisitions["rotated-SI"].planes[0]["normal"]), [0.0, 0.0, 1.0])
+    out = tmp_path / "design"
+    second = f"only-{plates[1].name}"
+    command = ["design", str(case), "--fit", str(fit), "--out", str(out), "--effects", "chest-wall", "skin",
+               "--acquisitions", second, "--device", "cpu", "--json"]
+    assert main(command) == 0
+    made = json.loads(capsys.readouterr().out)
+    assert [a["name"] for a in made["acquisitions"]] == [second] and not made["failed"]
+    for record, rival in zip(made["effects"], ("skin", "chest-wall")):
+        assert record["rival"] == rival and record["now_sigma"] > 0.0
+        [alone] = record["acquisitions"]
+        assert alone["separation_sigma"] >= record["now_sigma"] - 1e-9
+    hold = made["effects"][0]
+    assert hold["now_sigma"] < hold["detectable_sigma"] < hold["acquisitions"][0]["separation_sigma"]
+    report = (out / "design.md").read_text()
+    assert report.startswith("## The next measurement") and "To tell chest-wall hold from skin layer" in report
+    assert main(command) == 2 and "not empty" in capsys.readouterr().err
+    assert main([*command[:4], "--out", str(tmp_path / "again"), "--acquisitions", "sideways", "--device", "cpu"]) == 2
+    assert "unknown acquisitions ['sideways']" in capsys.readouterr().err

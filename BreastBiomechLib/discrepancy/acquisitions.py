@@ -1,0 +1,108 @@
+"""The acquisitions a design may recommend (:mod:`BreastBiomechLib.discrepancy.design`): further
+scans of the same breast on the fitted case's two-plate rig, each as its final plate planes on the
+fitting mesh - the plates closing 10 or 20 % of the breast's thickness further or less, all of the
+closure by one plate, or the same closure along the other axis (LR and SI swapped).
+
+Frames and units: LPS millimetres, the imaged (undeformed) frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+KINDS = ("compression", "one-plate", "rotated")  # the library's acquisitions, by kind
+COMPRESSION_CHANGES = (-0.2, -0.1, 0.1, 0.2)  # of the breast's thickness between the plates at the start
+MOST_COMPRESSION = 0.7  # a closure beyond this fraction of the thickness is not an acquisition made
+ONE_PLATE_SHARE = 0.95  # a plate with this share of the closure or more is the one that moved
+SWAPPED_AXES = {0: "SI", 1: "LR", 2: "LR"}  # the rotated acquisition's axis, by the plates' present axis (L, P, S)
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """A further scan: its ``name`` (a state name), ``description`` (words for the report),
+    final plate ``planes`` (dicts as in a case's plates.json: ``name``, ``point``, ``normal``
+    towards the tissue, optional ``edge``; LPS mm, the imaged frame) and ``kind`` (of
+    :data:`KINDS`)."""
+
+    name: str
+    description: str
+    planes: tuple[dict, ...]
+    kind: str = ""
+
+
+def acquisition_library(fitted, z=None, kinds=KINDS) -> list[Acquisition]:
+    """The acquisitions of ``kinds`` (or named: an entry of ``kinds`` may be an acquisition's
+    name, e.g. "only-left") for the fitted case's two-plate rig, from its first
+    state's plates at fit parameters ``z`` (default the fit's): the closure changed by each of
+    :data:`COMPRESSION_CHANGES` of the thickness (shared between the plates as now), all of it
+    by one plate (each plate not already moving alone), and the same closure along the other
+    axis (LR becomes SI, SI and AP become LR; plates touching the breast skin, ending where the
+    present plates end: :func:`_edge_kept`).
+    Refuses a rig of other than two facing plates, and a kind or name the library does not
+    have for this rig."""
+    from BreastBiomechLib.discrepancy.state import ModelState
+    from BreastBiomechLib.solver.placement import compression_plates
+
+    plates = ModelState(fitted, fitted.z if z is None else np.asarray(z, float)).variant().plates
+    if len(plates) != 2 or plates[0].normal @ plates[1].normal > -0.99:
+        raise ValueError(f"{fitted.case_dir}: the acquisition library is made for two facing plates; this case has "
+                         f"{len(plates)} plate(s){'' if len(plates) != 2 else ' that do not face each other'}")
+    travel = np.array([max(float(p.displacement @ p.normal), 0.0) for p in plates])
+    closure = float(travel.sum())
+    thickness = float((plates[1].point - plates[0].point) @ plates[0].normal)
+    if not (closure > 0 and thickness > closure):
+        raise ValueError(f"{fitted.case_dir}: the plates close {closure:.1f} mm of a {thickness:.1f} mm breast; a "
+                         "compression is needed to design the next one")
+    shares = travel / closure
+
+    def planes(travels):
+        return tuple(_plane(p, p.point + t * p.normal) for p, t in zip(plates, travels))
+
+    out = []
+    for change in COMPRESSION_CHANGES:
+        now = closure + change * thickness
+        if 0 < now < MOST_COMPRESSION * thickness:
+            out.append(Acquisition(f"compression{100 * change:+.0f}",
+                                   f"compress again {abs(100 * change):.0f} % of the breast's thickness "
+                                   f"{'further' if change > 0 else 'less'} ({100 * now / thickness:.0f} % in all)",
+                                   planes(travel * now / closure), "compression"))
+    for k, plate in enumerate(plates):
+        if shares[k] < ONE_PLATE_SHARE:
+            out.append(Acquisition(f"only-{plate.name}", f"compress again as far with only the {plate.name} plate moving",
+                                   planes(np.where(np.arange(2) == k, closure, 0.0)), "one-plate"))
+    axis = SWAPPED_AXES[int(np.argmax(np.abs(plates[0].normal)))]
+    moving = "both" if shares.max() < ONE_PLATE_SHARE else ("first" if shares[0] > shares[1] else "second")
+    turned = compression_plates(fitted.mesh, axis, closure / thickness, names=(f"{axis}-1", f"{axis}-2"),
+                                moving=moving, extent_nodes=fitted.mesh.node_set("breast_skin"))
+    turned = [replace(new, edge=_edge_kept(old, new)) for old, new in zip(plates, turned)]
+    out.append(Acquisition(f"rotated-{axis}", f"compress as far along {axis} instead (the plates turned 90 degrees)",
+                           tuple(_plane(p, p.point + p.displacement) for p in turned), "rotated"))
+    wanted = set(kinds)
+    unknown = sorted(wanted - set(KINDS) - {a.name for a in out})
+    if unknown:
+        raise ValueError(f"unknown acquisitions {unknown}: give kinds ({', '.join(KINDS)}) or names of this case's "
+                         f"({', '.join(a.name for a in out)})")
+    out = [a for a in out if a.kind in wanted or a.name in wanted]
+    return out
+
+
+def _edge_kept(plate, turned):
+    """The rounded edge of ``turned`` (a plate turned about the breast from ``plate``) where
+    ``plate``'s is, when that edge's direction lies in the turned plate's plane too (a plate
+    that ends before the chest wall still does, turned about the anterior-posterior axis);
+    None (unbounded) otherwise."""
+    from BreastBiomechLib.solver.model import PlateEdge
+
+    edge = plate.edge
+    if edge is None or abs(edge.direction @ turned.normal) > 1e-6:
+        return None
+    at = plate.point @ edge.direction + edge.distance  # where the flat face ends, along the direction
+    return PlateEdge(edge.direction, at - turned.point @ edge.direction, edge.radius)
+
+
+def _plane(plate, final_point: np.ndarray) -> dict:
+    """``plate``'s final plane at ``final_point`` (LPS mm) as plates.json has it."""
+    return {"name": plate.name, "point": np.asarray(final_point, float).tolist(), "normal": plate.normal.tolist(),
+            **({"edge": plate.edge.to_dict()} if plate.edge is not None else {})}

@@ -1,0 +1,290 @@
+"""The next measurement (``breastbiomech design``): which further acquisition of the breast would
+tell each candidate effect apart from what takes it up at this fit.
+
+Each acquisition of a library is simulated from the fit: the fitted model compressed another way
+on the fitting mesh - the plates closing 10 or 20 % of the breast's thickness further or less,
+the plates' travel moved to one plate, the plates turned 90 degrees about the breast (LR and SI
+swapped) - and its predicted image (on a grid covering the compressed breast, at the measured
+image's spacing) and landmarks taken as that state's measurement. For a candidate effect at its
+realistic size (each parameter's sensitivity step, :class:`~BreastBiomechLib.discrepancy.
+effects.EffectParameter`) the **separation** is the length, in units of the noise model's sigma,
+of its signature (the features' change) beyond the span of the fitted parameters' and its closest
+rival's signatures: what is left of the effect once the rival model is refitted to it, i.e. the
+square root of the score test's noncentrality, T-optimality's criterion for two rival linear
+models (Atkinson and Fedorov 1975). It is computed over the measured states (now) and over them
+with the simulated acquisition stacked (the fit's parameters shared by every state, as in a joint
+fit); a separation at or above the noncentrality at which the diagnosis's test reaches its level
+with 80 % power (:func:`~BreastBiomechLib.discrepancy.statistics.detectable_noncentrality`) tells
+the effect apart. Adding a state never lowers a separation.
+
+The closest rival of an effect is the other candidate whose signature, beyond the fitted
+parameters, is most nearly parallel to it (none where it is the only candidate tested); the
+fitted parameters themselves are always rivals (an effect they absorb has no separation).
+
+Linear: the signatures are the secants at this fit, the noise the fixed floor's
+(:class:`~BreastBiomechLib.discrepancy.observations.NoiseModel`; a measured floor needs a refined
+solve per acquisition). Not in the library yet: a posture change (the gravity model's reference
+state in the new posture) and a measured plate force (the diagnosis has no force channel).
+
+Frames and units: LPS millimetres; separations in sigma.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import SimpleITK as sitk
+
+from BreastBiomechLib.discrepancy.acquisitions import KINDS, Acquisition, acquisition_library
+from BreastBiomechLib.discrepancy.effects import library
+from BreastBiomechLib.discrepancy.fitted import FittedCase
+from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
+from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
+from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.discrepancy.statistics import detectable_noncentrality
+from BreastBiomechLib.discrepancy.variants import solve_variants
+
+GRID_MARGIN_MM = 10.0  # around the compressed breast, of a simulated acquisition's image
+POWER = 0.8  # of the detectable separation
+
+
+def covering_grid(points_mm: np.ndarray, spacing_mm, margin_mm: float = GRID_MARGIN_MM) -> sitk.Image:
+    """An empty image (LPS, identity direction) at ``spacing_mm`` covering ``points_mm`` (N, 3)
+    with ``margin_mm`` around them: the grid a simulated acquisition is imaged on."""
+    spacing = np.asarray(spacing_mm, float)
+    low = points_mm.min(axis=0) - margin_mm
+    size = np.ceil((points_mm.max(axis=0) + margin_mm - low) / spacing).astype(int) + 1
+    grid = sitk.Image([int(s) for s in size], sitk.sitkFloat32)
+    grid.SetSpacing([float(s) for s in spacing])
+    grid.SetOrigin([float(v) for v in low])
+    return grid
+
+
+def simulated_state(fitted: FittedCase, acquisition: Acquisition, z=None) -> tuple[FittedCase, np.ndarray]:
+    """(the measured state ``acquisition`` would give, the fitted model's solution (N, 3) mm in
+    it): the fitted model at ``z`` (default the fit's) solved with the acquisition's plates,
+    its predicted image and landmarks as that state's measurement. Raises a RuntimeError when
+    the model does not solve there."""
+    from BreastBiomechLib.io.case_layout import CaseLayout
+    from BreastBiomechLib.io.images import read_image
+    from BreastBiomechLib.landmarks import map_landmarks
+    from BreastBiomechLib.optimisation.forward import FittingProblem
+    from BreastBiomechLib.warping import ImageWarper
+
+    z = fitted.z if z is None else np.asarray(z, float)
+    undeformed = read_image(CaseLayout(fitted.case_dir).mr)
+    planes = [dict(p) for p in acquisition.planes]
+
+    def state(measured_image, landmarks=None) -> FittedCase:
+        problem = FittingProblem(fitted.space, fitted.mesh, undeformed, measured_image, planes,
+                                 landmarks=(fitted.reference, landmarks) if landmarks is not None else None,
+                                 relaxation=fitted.relaxation, device=fitted.device)
+        made = FittedCase(problem, z, fitted.reference if landmarks is not None else None, landmarks, measured_image,
+                          fitted.case_dir, fitted.fit_dir, fitted.imaged_gravity, fitted.compressed_gravity,
+                          fitted.relaxation, fitted.device, acquisition.name)
+        made._skin = fitted._skin  # one mesh: each element's skin share is computed once
+        return made
+
+    placed = state(fitted.measured_image)  # the plates on the mesh; its image is not used
+    [outcome] = solve_variants([ModelState(placed, z).variant()], fitted.mesh.nodes, fitted.relaxation,
+                               fitted.device)
+    if not outcome.ok:
+        raise RuntimeError(f"the fitted model does not solve in acquisition {acquisition.name} ({outcome.status}: "
+                           f"{outcome.message})")
+    u = outcome.displacement
+    grid = covering_grid(fitted.mesh.nodes + u, fitted.measured_image.GetSpacing())
+    predicted = ImageWarper(fitted.mesh, undeformed, grid, device=fitted.device).predict(u).image
+    landmarks = map_landmarks(fitted.mesh, u, fitted.reference) if fitted.reference is not None else None
+    return state(predicted, landmarks), u
+
+
+def residual_norm(signature: np.ndarray, rivals: np.ndarray) -> float:
+    """|| (I - P) signature ||: the length of ``signature`` (n,) beyond the span of the columns of
+    ``rivals`` (n, m) (least squares; ``m`` may be 0)."""
+    if rivals.size == 0:
+        return float(np.linalg.norm(signature))
+    coefficients, *_ = np.linalg.lstsq(rivals, signature, rcond=None)
+    return float(np.linalg.norm(signature - rivals @ coefficients))
+
+
+@dataclass
+class Rows:
+    """Whitened sensitivity rows of one or more measured states: ``nuisance`` {key: (n,)} per
+    fitted parameter, ``effects`` {name: (n,)} each candidate's signature at its realistic size,
+    both divided by the features' sigma; ``skipped`` {name: reason}."""
+
+    nuisance: dict[str, np.ndarray]
+    effects: dict[str, np.ndarray]
+    skipped: dict[str, str] = field(default_factory=dict)
+    n: int = 0
+
+    @classmethod
+    def of(cls, sens: Sensitivities, observations: Observations) -> "Rows":
+        weights = 1.0 / observations.sigma
+        nuisance = {key: weights * sens.nuisance[:, j] for j, key in enumerate(sens.nuisance_keys)}
+        effects = {name: weights * (values @ sens.steps[name]) for name, values in sens.effects.items()}
+        return cls(nuisance, effects, dict(sens.skipped), len(weights))
+
+    def stacked(self, other: "Rows") -> "Rows":
+        """These rows with ``other``'s below (a fitted parameter one state lacks: zero there)."""
+        keys = list(dict.fromkeys([*self.nuisance, *other.nuisance]))
+        zero_self, zero_other = np.zeros(self.n), np.zeros(other.n)
+        nuisance = {k: np.concatenate([self.nuisance.get(k, zero_self), other.nuisance.get(k, zero_other)]) for k in keys}
+        effects = {k: np.concatenate([v, other.effects[k]]) for k, v in self.effects.items() if k in other.effects}
+        skipped = {**other.skipped, **self.skipped}
+        return Rows(nuisance, effects, skipped, self.n + other.n)
+
+    def fitted_span(self) -> np.ndarray:
+        return np.column_stack(list(self.nuisance.values())) if self.nuisance else np.zeros((self.n, 0))
+
+    def separation(self, effect: str, rival: str | None) -> float:
+        """The separation (sigma) of ``effect`` beyond the fitted parameters and ``rival``."""
+        span = self.fitted_span()
+        if rival is not None:
+            span = np.column_stack([span, self.effects[rival]])
+        return residual_norm(self.effects[effect], span)
+
+    def closest_rival(self, effect: str) -> str | None:
+        """The other candidate whose signature beyond the fitted parameters is most nearly
+        parallel to ``effect``'s (None: no other)."""
+        span = self.fitted_span()
+
+        def beyond(v):
+            if span.size == 0:
+                return v
+            coefficients, *_ = np.linalg.lstsq(span, v, rcond=None)
+            return v - span @ coefficients
+
+        mine = beyond(self.effects[effect])
+        best, rival = -1.0, None
+        for name, values in self.effects.items():
+            if name == effect:
+                continue
+            other = beyond(values)
+            norm = np.linalg.norm(mine) * np.linalg.norm(other)
+            cosine = abs(float(mine @ other)) / norm if norm > 0 else 0.0
+            if cosine > best:
+                best, rival = cosine, name
+        return rival
+
+
+@dataclass
+class Design:
+    """Each candidate's separations now and with each acquisition (``effects``: one record per
+    candidate, its acquisitions best first), the acquisitions that could not be simulated
+    (``failed`` {name: why}) and the ``detectable`` separation per candidate (sigma)."""
+
+    effects: list[dict]
+    acquisitions: list[dict]
+    failed: dict[str, str]
+    alpha: float
+    noise: dict
+
+    def to_dict(self) -> dict:
+        return {"effects": self.effects, "acquisitions": self.acquisitions, "failed": self.failed, "alpha": self.alpha,
+                "power": POWER, "noise": self.noise}
+
+    def markdown(self) -> str:
+        """The design as a report section: the sentences, then every candidate's separation
+        (sigma) now and with each acquisition."""
+        names = [a["name"] for a in self.acquisitions]
+        lines = ["## The next measurement", "",
+                 "Separation of each candidate effect at its realistic size from its closest rival and the fitted "
+                 "parameters, in sigma of the noise model (landmarks "
+                 f"{self.noise['landmark_sd_mm']} mm, model floor {self.noise['model_sd_mm']} mm), now and with each "
+                 f"simulated acquisition added; told apart at the detectable separation (level {self.alpha}, "
+                 f"{100 * POWER:.0f} % power).", ""]
+        lines += [f"- {sentence}" for sentence in self.sentences()] + [""]
+        lines += ["| effect | rival | needed | now | " + " | ".join(names) + " |",
+                  "|---|---|---|---|" + "---|" * len(names)]
+        for record in self.effects:
+            seen = {a["name"]: a["separation_sigma"] for a in record["acquisitions"]}
+            cells = [f"{seen[n]:.1f}" if n in seen else "not solved" for n in names]
+            lines.append(f"| {record['title']} | {record.get('rival_title') or '-'} | {record['detectable_sigma']:.1f} | "
+                         f"{record['now_sigma']:.1f} | " + " | ".join(cells) + " |")
+        lines += ["", *[f"- {a['name']}: {a['description']}" + "".join(
+            f"; {effect} not solved there ({why})" for effect, why in a["skipped"].items()) for a in self.acquisitions]]
+        lines += [f"- {name}: not simulated ({why})" for name, why in self.failed.items()]
+        return "\n".join(lines) + "\n"
+
+    def sentences(self) -> list[str]:
+        """One sentence per candidate: the acquisition that separates it best, or that it is
+        told apart already, or that none of the library would."""
+        return [(lambda words: words[:1].upper() + words[1:])(_sentence(record)) for record in self.effects]
+
+
+def _sentence(record: dict) -> str:
+    title, now, needed = record["title"], record["now_sigma"], record["detectable_sigma"]
+    rival = f"{record['rival_title']} and the fitted parameters" if record["rival"] else "the fitted parameters"
+    if record.get("skipped"):
+        return f"{title}: not designed for ({record['skipped']})."
+    if now >= needed:
+        return (f"{title} is told apart from {rival} with the measured states already: separation {now:.1f} sigma "
+                f"({needed:.1f} needed).")
+    if not record["acquisitions"]:
+        return f"{title}: no acquisition could be simulated."
+    best = record["acquisitions"][0]
+    if best["separation_sigma"] < needed:
+        return (f"No acquisition of the library tells {title} from {rival}: the best, {best['description']}, gives "
+                f"{best['separation_sigma']:.1f} sigma (now {now:.1f}; {needed:.1f} needed).")
+    return (f"To tell {title} from {rival}, {best['description']}: expected separation "
+            f"{best['separation_sigma']:.1f} sigma (now {now:.1f}; {needed:.1f} needed).")
+
+
+def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acquisition] | None = None,
+           noise: NoiseModel | None = None, alpha: float = 0.01,
+           progress: Callable[[str], None] | None = None) -> Design:
+    """The :class:`Design` of the fitted case's next measurement for the candidate ``effects``
+    (names; default the whole library) over ``acquisitions`` (default :func:`acquisition_library`'s
+    of ``kinds``: kinds or names), at the fit's parameters, with the ``noise`` model's fixed floor (a measured
+    floor is not simulated: it is replaced by the fixed one) and the diagnosis level ``alpha``."""
+    from dataclasses import replace
+
+    say = progress or (lambda message: None)
+    noise = replace(noise or NoiseModel(), floor="fixed")
+    state = ModelState(fitted, fitted.z)
+    acquisitions = acquisition_library(fitted, kinds=kinds) if acquisitions is None else acquisitions
+    say("solving the fitted model in the measured states")
+    [base] = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)
+    if not base.ok:
+        raise RuntimeError(f"the fitted model does not solve ({base.status}: {base.message})")
+    observations = observations_of(fitted, base.displacement, noise)
+    say("sensitivities in the measured states")
+    now = Rows.of(sensitivities(state, observations, library(fitted, effects), progress=say), observations)
+    stacks, failed, made = {}, {}, []
+    for acquisition in acquisitions:
+        say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
+        try:
+            simulated, u = simulated_state(fitted, acquisition)
+            seen = observations_of(simulated, u, noise)
+            rows = Rows.of(sensitivities(ModelState(simulated, fitted.z), seen, library(simulated, effects),
+                                         progress=say), seen)
+        except RuntimeError as error:
+            failed[acquisition.name] = str(error)
+            continue
+        stacks[acquisition.name] = now.stacked(rows)
+        made.append({"name": acquisition.name, "description": acquisition.description,
+                     "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped})
+    titles = {e.name: e.title for e in library(fitted, effects)}
+    records = []
+    for effect in library(fitted, effects):
+        name = effect.name
+        record = {"effect": name, "title": titles[name],
+                  "size": {p.name: p.step for p in effect.parameters},
+                  "detectable_sigma": math.sqrt(detectable_noncentrality(1, alpha, POWER))}
+        if name not in now.effects:
+            records.append({**record, "skipped": now.skipped.get(name, "not tested"), "rival": None, "now_sigma": 0.0,
+                            "acquisitions": []})
+            continue
+        rival = now.closest_rival(name)
+        record.update(rival=rival, rival_title=titles.get(rival), now_sigma=now.separation(name, rival))
+        ranked = [{"name": a["name"], "description": a["description"],
+                   "separation_sigma": stacks[a["name"]].separation(name, rival)}
+                  for a in made if name in stacks[a["name"]].effects and (rival is None or rival in stacks[a["name"]].effects)]
+        record["acquisitions"] = sorted(ranked, key=lambda a: -a["separation_sigma"])
+        records.append(record)
+    return Design(records, made, failed, alpha, {"landmark_sd_mm": noise.landmark_sd_mm,
+                                                 "model_sd_mm": noise.model_sd_mm, "channels": list(noise.channels)})
