@@ -63,7 +63,7 @@ def cmd_design(args) -> int:
     from pathlib import Path
 
     from BreastBiomechLib.discrepancy import NoiseModel
-    from BreastBiomechLib.discrepancy.design import design
+    from BreastBiomechLib.discrepancy.design import design, last_round_state
     from BreastBiomechLib.discrepancy.fitted import load_fitted_case
     from BreastBiomechLib.io.atomic import write_json_atomically, write_text_atomically
 
@@ -80,8 +80,11 @@ def cmd_design(args) -> int:
         events.progress(message)
 
     fitted = load_fitted_case(args.case_dir, args.fit, device=args.device)
+    state = None
+    if args.diagnosis is not None:  # from the model its last round ended with (its added effects, refitted)
+        state = last_round_state(fitted, args.diagnosis)
     made = design(fitted, effects=args.effects, kinds=tuple(args.acquisitions), noise=noise, alpha=args.alpha,
-                  progress=progress)
+                  state=state, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomically(out / "design.json", made.to_dict())
     write_text_atomically(out / "design.md", made.markdown())
@@ -143,6 +146,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--fit", required=True, help="the fit's folder (`breastbiomech optimise --out`)")
     p.add_argument("--out", required=True, help="a new output folder (design.json, design.md)")
     p.add_argument("--effects", nargs="+", choices=NAMES, help="candidate effects (default: the whole library)")
+    p.add_argument("--diagnosis", help="a diagnosis folder of this fit (`breastbiomech diagnose --out`): design from "
+                                       "the model its last round ended with (the effects it added, refitted)")
     p.add_argument("--acquisitions", nargs="+", default=list(KINDS), metavar="KIND_OR_NAME",
                    help=f"further acquisitions simulated, by kind ({', '.join(KINDS)}; default: all) or name (e.g. "
                         "only-left): the closure 10 and 20 %% of the thickness further or less, all of it by one "

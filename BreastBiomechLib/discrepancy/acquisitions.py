@@ -32,7 +32,7 @@ class Acquisition:
     kind: str = ""
 
 
-def acquisition_library(fitted, z=None, kinds=KINDS) -> list[Acquisition]:
+def acquisition_library(fitted, state=None, kinds=KINDS) -> list[Acquisition]:
     """The acquisitions of ``kinds`` (or named: an entry of ``kinds`` may be an acquisition's
     name, e.g. "only-left") for the fitted case's two-plate rig, from its first
     state's plates at fit parameters ``z`` (default the fit's): the closure changed by each of
@@ -45,7 +45,7 @@ def acquisition_library(fitted, z=None, kinds=KINDS) -> list[Acquisition]:
     from BreastBiomechLib.discrepancy.state import ModelState
     from BreastBiomechLib.solver.placement import compression_plates
 
-    plates = ModelState(fitted, fitted.z if z is None else np.asarray(z, float)).variant().plates
+    plates = (state or ModelState(fitted, fitted.z)).variant().plates
     if len(plates) != 2 or plates[0].normal @ plates[1].normal > -0.99:
         raise ValueError(f"{fitted.case_dir}: the acquisition library is made for two facing plates; this case has "
                          f"{len(plates)} plate(s){'' if len(plates) != 2 else ' that do not face each other'}")

@@ -63,18 +63,20 @@ def covering_grid(points_mm: np.ndarray, spacing_mm, margin_mm: float = GRID_MAR
     return grid
 
 
-def simulated_state(fitted: FittedCase, acquisition: Acquisition, z=None) -> tuple[FittedCase, np.ndarray]:
-    """(the measured state ``acquisition`` would give, the fitted model's solution (N, 3) mm in
-    it): the fitted model at ``z`` (default the fit's) solved with the acquisition's plates,
-    its predicted image and landmarks as that state's measurement. Raises a RuntimeError when
-    the model does not solve there."""
+def simulated_state(fitted: FittedCase, acquisition: Acquisition,
+                    state: ModelState | None = None) -> tuple[FittedCase, np.ndarray]:
+    """(the measured state ``acquisition`` would give, the model's solution (N, 3) mm in it):
+    the model ``state`` (default the fit's; a diagnosis round's, with the effects it added)
+    solved with the acquisition's plates, its predicted image and landmarks as that state's
+    measurement. Raises a RuntimeError when the model does not solve there."""
     from BreastBiomechLib.io.case_layout import CaseLayout
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.landmarks import map_landmarks
     from BreastBiomechLib.optimisation.forward import FittingProblem
     from BreastBiomechLib.warping import ImageWarper
 
-    z = fitted.z if z is None else np.asarray(z, float)
+    state = state or ModelState(fitted, fitted.z)
+    z = state.z
     undeformed = read_image(CaseLayout(fitted.case_dir).mr)
     planes = [dict(p) for p in acquisition.planes]
 
@@ -89,7 +91,7 @@ def simulated_state(fitted: FittedCase, acquisition: Acquisition, z=None) -> tup
         return made
 
     placed = state(fitted.measured_image)  # the plates on the mesh; its image is not used
-    [outcome] = solve_variants([ModelState(placed, z).variant()], fitted.mesh.nodes, fitted.relaxation,
+    [outcome] = solve_variants([ModelState(placed, z, state.added).variant()], fitted.mesh.nodes, fitted.relaxation,
                                fitted.device)
     if not outcome.ok:
         raise RuntimeError(f"the fitted model does not solve in acquisition {acquisition.name} ({outcome.status}: "
@@ -99,6 +101,28 @@ def simulated_state(fitted: FittedCase, acquisition: Acquisition, z=None) -> tup
     predicted = ImageWarper(fitted.mesh, undeformed, grid, device=fitted.device).predict(u).image
     landmarks = map_landmarks(fitted.mesh, u, fitted.reference) if fitted.reference is not None else None
     return state(predicted, landmarks), u
+
+
+def last_round_state(fitted: FittedCase, folder) -> ModelState:
+    """The model the last round of the diagnosis in ``folder`` (``breastbiomech diagnose --out``)
+    ended with: the fit's parameters as refitted and the effects added. Refuses a folder that
+    holds no round, or the diagnosis of another case or fit."""
+    import json
+    from pathlib import Path
+
+    from BreastBiomechLib.discrepancy.session import state_from_record
+
+    folder = Path(folder)
+    rounds = sorted(folder.glob("round-*.json"), key=lambda p: int(p.stem.split("-")[1]))
+    if not rounds:
+        raise FileNotFoundError(f"{folder}: no diagnosis round (round-1.json); run `breastbiomech diagnose` first")
+    summary = folder / "diagnosis.json"
+    if summary.is_file():
+        recorded = json.loads(summary.read_text())
+        for key, ours in (("case_dir", fitted.case_dir), ("fit_dir", fitted.fit_dir)):
+            if key in recorded and Path(recorded[key]).resolve() != Path(ours).resolve():
+                raise ValueError(f"{folder} is the diagnosis of {key.split('_')[0]} {recorded[key]}, not {ours}")
+    return state_from_record(fitted, json.loads(rounds[-1].read_text()), library(fitted))
 
 
 def residual_norm(signature: np.ndarray, rivals: np.ndarray) -> float:
@@ -174,18 +198,20 @@ class Rows:
 @dataclass
 class Design:
     """Each candidate's separations now and with each acquisition (``effects``: one record per
-    candidate, its acquisitions best first), the acquisitions that could not be simulated
-    (``failed`` {name: why}) and the ``detectable`` separation per candidate (sigma)."""
+    candidate, its acquisitions best first, with the separation it needs), the acquisitions
+    simulated and those that could not be (``failed`` {name: why}), the diagnosis level, the
+    noise model and the ``model`` designed from (:meth:`ModelState.to_dict`)."""
 
     effects: list[dict]
     acquisitions: list[dict]
     failed: dict[str, str]
     alpha: float
     noise: dict
+    model: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return {"effects": self.effects, "acquisitions": self.acquisitions, "failed": self.failed, "alpha": self.alpha,
-                "power": POWER, "noise": self.noise}
+                "power": POWER, "noise": self.noise, "model": self.model}
 
     def markdown(self) -> str:
         """The design as a report section: the sentences, then every candidate's separation
@@ -235,42 +261,45 @@ def _sentence(record: dict) -> str:
 
 
 def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acquisition] | None = None,
-           noise: NoiseModel | None = None, alpha: float = 0.01,
+           noise: NoiseModel | None = None, alpha: float = 0.01, state: ModelState | None = None,
            progress: Callable[[str], None] | None = None) -> Design:
     """The :class:`Design` of the fitted case's next measurement for the candidate ``effects``
-    (names; default the whole library) over ``acquisitions`` (default :func:`acquisition_library`'s
-    of ``kinds``: kinds or names), at the fit's parameters, with the ``noise`` model's fixed floor (a measured
-    floor is not simulated: it is replaced by the fixed one) and the diagnosis level ``alpha``."""
+    (names; default the whole library, less those ``state`` has added) over ``acquisitions``
+    (default :func:`acquisition_library`'s of ``kinds``: kinds or names), at the model ``state``
+    (default the fit's; a diagnosis round's, with its added effects and refitted parameters),
+    with the ``noise`` model's fixed floor (a measured floor is not simulated: it is replaced by
+    the fixed one) and the diagnosis level ``alpha``."""
     from dataclasses import replace
 
     say = progress or (lambda message: None)
     noise = replace(noise or NoiseModel(), floor="fixed")
-    state = ModelState(fitted, fitted.z)
-    acquisitions = acquisition_library(fitted, kinds=kinds) if acquisitions is None else acquisitions
+    state = state or ModelState(fitted, fitted.z)
+    candidates = [e.name for e in library(fitted, effects) if e.name not in state.added]
+    acquisitions = acquisition_library(fitted, state, kinds) if acquisitions is None else acquisitions
     say("solving the fitted model in the measured states")
     [base] = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)
     if not base.ok:
         raise RuntimeError(f"the fitted model does not solve ({base.status}: {base.message})")
     observations = observations_of(fitted, base.displacement, noise)
     say("sensitivities in the measured states")
-    now = Rows.of(sensitivities(state, observations, library(fitted, effects), progress=say), observations)
+    now = Rows.of(sensitivities(state, observations, library(fitted, candidates), progress=say), observations)
     stacks, failed, made = {}, {}, []
     for acquisition in acquisitions:
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
         try:
-            simulated, u = simulated_state(fitted, acquisition)
+            simulated, u = simulated_state(fitted, acquisition, state)
             seen = observations_of(simulated, u, noise)
-            rows = Rows.of(sensitivities(ModelState(simulated, fitted.z), seen, library(simulated, effects),
-                                         progress=say), seen)
+            rows = Rows.of(sensitivities(ModelState(simulated, state.z, state.added), seen,
+                                         library(simulated, candidates), progress=say), seen)
         except RuntimeError as error:
             failed[acquisition.name] = str(error)
             continue
         stacks[acquisition.name] = now.stacked(rows)
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped})
-    titles = {e.name: e.title for e in library(fitted, effects)}
+    titles = {e.name: e.title for e in library(fitted, candidates)}
     records = []
-    for effect in library(fitted, effects):
+    for effect in library(fitted, candidates):
         name = effect.name
         record = {"effect": name, "title": titles[name],
                   "size": {p.name: p.step for p in effect.parameters},
@@ -287,4 +316,5 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         record["acquisitions"] = sorted(ranked, key=lambda a: -a["separation_sigma"])
         records.append(record)
     return Design(records, made, failed, alpha, {"landmark_sd_mm": noise.landmark_sd_mm,
-                                                 "model_sd_mm": noise.model_sd_mm, "channels": list(noise.channels)})
+                                                 "model_sd_mm": noise.model_sd_mm, "channels": list(noise.channels)},
+                  state.to_dict())

@@ -574,3 +574,28 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     assert main(command) == 2 and "not empty" in capsys.readouterr().err
     assert main([*command[:4], "--out", str(tmp_path / "again"), "--acquisitions", "sideways", "--device", "cpu"]) == 2
     assert "unknown acquisitions ['sideways']" in capsys.readouterr().err
+
+
+def test_a_design_starts_from_the_model_a_diagnosis_ended_with(null_case, tmp_path):
+    """`design --diagnosis DIR` designs from the last round's model (its refitted parameters and
+    added effects; the added ones are no longer candidates); a folder without a round, or the
+    diagnosis of another fit, is refused."""
+    from BreastBiomechLib.discrepancy import load_fitted_case
+    from BreastBiomechLib.discrepancy.design import last_round_state
+
+    case, fit = null_case
+    fitted = load_fitted_case(case, fit, device="cpu")
+    folder = tmp_path / "diagnosis"
+    folder.mkdir()
+    with pytest.raises(FileNotFoundError, match="no diagnosis round"):
+        last_round_state(fitted, folder)
+    z = np.clip(fitted.z + 0.05, 0.0, 1.0)
+    for number, added in ((1, {"friction": [0.4]}), (2, {"friction": [0.5], "skin": [1.5]})):
+        (folder / f"round-{number}.json").write_text(json.dumps({"state_after": {"z": z.tolist(), "added": added}}))
+    (folder / "diagnosis.json").write_text(json.dumps({"case_dir": str(case), "fit_dir": str(fit)}))
+    state = last_round_state(fitted, folder)
+    np.testing.assert_allclose(state.z, z)
+    assert {name: list(values) for name, (_, values) in state.added.items()} == {"friction": [0.5], "skin": [1.5]}
+    (folder / "diagnosis.json").write_text(json.dumps({"case_dir": str(case), "fit_dir": str(tmp_path / "other")}))
+    with pytest.raises(ValueError, match="is the diagnosis of fit"):
+        last_round_state(fitted, folder)
