@@ -80,7 +80,7 @@ def simulated_state(fitted: FittedCase, acquisition: Acquisition,
     undeformed = read_image(CaseLayout(fitted.case_dir).mr)
     planes = [dict(p) for p in acquisition.planes]
 
-    def state(measured_image, landmarks=None) -> FittedCase:
+    def measured(measured_image, landmarks=None) -> FittedCase:
         problem = FittingProblem(fitted.space, fitted.mesh, undeformed, measured_image, planes,
                                  landmarks=(fitted.reference, landmarks) if landmarks is not None else None,
                                  relaxation=fitted.relaxation, device=fitted.device)
@@ -90,7 +90,7 @@ def simulated_state(fitted: FittedCase, acquisition: Acquisition,
         made._skin = fitted._skin  # one mesh: each element's skin share is computed once
         return made
 
-    placed = state(fitted.measured_image)  # the plates on the mesh; its image is not used
+    placed = measured(fitted.measured_image)  # the plates on the mesh; its image is not used
     [outcome] = solve_variants([ModelState(placed, z, state.added).variant()], fitted.mesh.nodes, fitted.relaxation,
                                fitted.device)
     if not outcome.ok:
@@ -100,7 +100,7 @@ def simulated_state(fitted: FittedCase, acquisition: Acquisition,
     grid = covering_grid(fitted.mesh.nodes + u, fitted.measured_image.GetSpacing())
     predicted = ImageWarper(fitted.mesh, undeformed, grid, device=fitted.device).predict(u).image
     landmarks = map_landmarks(fitted.mesh, u, fitted.reference) if fitted.reference is not None else None
-    return state(predicted, landmarks), u
+    return measured(predicted, landmarks), u
 
 
 def last_round_state(fitted: FittedCase, folder) -> ModelState:

@@ -531,9 +531,10 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     """`breastbiomech design`: the library's acquisitions for the case's rig (both plates closing
     25 % LR: the closure 10 and 20 % of the thickness further and less, all of it by either
     plate, the same closure along SI), one of them simulated from the fit (the second plate
-    alone), and each candidate's separation from its rival and the fitted parameters, now and
-    with that acquisition (never lower): the chest-wall hold, which the fitted muscle modulus
-    takes up in this scan, is told apart with the second; the report's section; a used output
+    alone), and the chest-wall hold's separation from the fitted parameters now and with that
+    acquisition: the fitted muscle modulus takes it up in this scan, the second tells it apart
+    (rivals among candidates, and that a state never lowers a separation:
+    Testing/unit/discrepancy/test_discrepancy_design.py); the report's section; a used output
     folder and an acquisition the library does not have are refused."""
     from BreastBiomechLib.cli import main
     from BreastBiomechLib.discrepancy import ModelState, load_fitted_case
@@ -558,19 +559,17 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     np.testing.assert_allclose(np.abs(acquisitions["rotated-SI"].planes[0]["normal"]), [0.0, 0.0, 1.0])
     out = tmp_path / "design"
     second = f"only-{plates[1].name}"
-    command = ["design", str(case), "--fit", str(fit), "--out", str(out), "--effects", "chest-wall", "skin",
+    command = ["design", str(case), "--fit", str(fit), "--out", str(out), "--effects", "chest-wall",
                "--acquisitions", second, "--device", "cpu", "--json"]
     assert main(command) == 0
     made = json.loads(capsys.readouterr().out)
     assert [a["name"] for a in made["acquisitions"]] == [second] and not made["failed"]
-    for record, rival in zip(made["effects"], ("skin", "chest-wall")):
-        assert record["rival"] == rival and record["now_sigma"] > 0.0
-        [alone] = record["acquisitions"]
-        assert alone["separation_sigma"] >= record["now_sigma"] - 1e-9
-    hold = made["effects"][0]
-    assert hold["now_sigma"] < hold["detectable_sigma"] < hold["acquisitions"][0]["separation_sigma"]
+    [hold] = made["effects"]
+    assert hold["rival"] is None  # the only candidate: the fitted parameters are its rivals
+    [alone] = hold["acquisitions"]
+    assert 0.0 < hold["now_sigma"] < hold["detectable_sigma"] < alone["separation_sigma"]
     report = (out / "design.md").read_text()
-    assert report.startswith("## The next measurement") and "To tell chest-wall hold from skin layer" in report
+    assert report.startswith("## The next measurement") and "To tell chest-wall hold from the fitted" in report
     assert main(command) == 2 and "not empty" in capsys.readouterr().err
     assert main([*command[:4], "--out", str(tmp_path / "again"), "--acquisitions", "sideways", "--device", "cpu"]) == 2
     assert "unknown acquisitions ['sideways']" in capsys.readouterr().err
