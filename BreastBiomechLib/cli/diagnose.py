@@ -15,13 +15,12 @@ from BreastBiomechLib.discrepancy.observations import CHANNELS, FLOORS
 
 
 def cmd_diagnose(args) -> int:
-    from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
+    from BreastBiomechLib.discrepancy import DiagnosisSettings, run_diagnosis
     from BreastBiomechLib.discrepancy.registration import RegistrationSettings
     from BreastBiomechLib.io.case_layout import CaseLayout
     from BreastBiomechLib.optimisation.case import recorded_states
 
-    noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
-                       surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor=args.floor)
+    noise = _noise(args)
     settings = DiagnosisSettings(alpha=args.alpha, refine_iterations=args.refine_iterations,
                                  profile=args.interval == "profile")
 
@@ -62,7 +61,6 @@ def cmd_diagnose(args) -> int:
 def cmd_design(args) -> int:
     from pathlib import Path
 
-    from BreastBiomechLib.discrepancy import NoiseModel
     from BreastBiomechLib.discrepancy.design import design, last_round_state
     from BreastBiomechLib.discrepancy.fitted import load_fitted_case
     from BreastBiomechLib.io.atomic import write_json_atomically, write_text_atomically
@@ -70,8 +68,7 @@ def cmd_design(args) -> int:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty: choose a new output folder")
-    noise = NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
-                       surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels), floor="fixed")
+    noise = _noise(args)
     bar, events = wants_bar(args), events_of(args)
 
     def progress(message):
@@ -98,6 +95,37 @@ def cmd_design(args) -> int:
     return 0
 
 
+def _add_noise_options(p, measured_floor: bool) -> None:
+    """The noise model's and the test level's options (:func:`_noise`); ``measured_floor``: a
+    ``--floor`` choice (else the floor is the fixed one)."""
+    p.add_argument("--channels", nargs="+", choices=CHANNELS, default=list(CHANNELS),
+                   help="what is compared (default: landmarks and the body surface)")
+    p.add_argument("--landmark-sd-mm", type=non_negative, default=0.5,
+                   help="landmark localisation error per coordinate (mm, default 0.5)")
+    if measured_floor:
+        p.add_argument("--floor", choices=FLOORS, default="measured",
+                       help="the model-error floor added to every feature's noise: measured from the case (the "
+                            "fitted model solved again on its refined fitting mesh: one solve of 8x the tets) or "
+                            "fixed at --model-sd-mm (default measured)")
+    p.add_argument("--model-sd-mm", type=non_negative, default=0.5,
+                   help="the model-error floor (mm, default 0.5): the measured floor's lower bound, or with "
+                        "--floor fixed the floor itself" if measured_floor else
+                        "the model-error floor added to every feature (mm, default 0.5; a measured floor is not "
+                        "simulated)")
+    p.add_argument("--surface-spacing-mm", type=positive, default=8.0,
+                   help="one surface feature per cube of this size (mm, default 8)")
+    p.add_argument("--alpha", type=fraction, default=0.01, help="family-wise significance level (default 0.01)")
+
+
+def _noise(args):
+    """The :class:`~BreastBiomechLib.discrepancy.NoiseModel` of :func:`_add_noise_options`' options."""
+    from BreastBiomechLib.discrepancy import NoiseModel
+
+    return NoiseModel(landmark_sd_mm=args.landmark_sd_mm, model_sd_mm=args.model_sd_mm,
+                      surface_spacing_mm=args.surface_spacing_mm, channels=tuple(args.channels),
+                      floor=getattr(args, "floor", "fixed"))
+
+
 def add_parsers(sub) -> None:
     """Register the ``diagnose`` command on ``sub`` (argparse sub-parsers)."""
     p = sub.add_parser("diagnose", help="name the effect a fitted model is missing, add it, refit, report")
@@ -106,20 +134,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="a new output folder (or an interrupted run's, with --resume)")
     p.add_argument("--effects", nargs="+", choices=NAMES, help="candidate effects (default: the whole library)")
     p.add_argument("--rounds", type=positive_int, default=3, help="rounds of diagnose, add and refit at most (default 3)")
-    p.add_argument("--channels", nargs="+", choices=CHANNELS, default=list(CHANNELS),
-                   help="what is compared (default: landmarks and the body surface)")
-    p.add_argument("--landmark-sd-mm", type=non_negative, default=0.5,
-                   help="landmark localisation error per coordinate (mm, default 0.5)")
-    p.add_argument("--floor", choices=FLOORS, default="measured",
-                   help="the model-error floor added to every feature's noise: measured from the case (the fitted "
-                        "model solved again on its refined fitting mesh: one solve of 8x the tets) or fixed at "
-                        "--model-sd-mm (default measured)")
-    p.add_argument("--model-sd-mm", type=non_negative, default=0.5,
-                   help="the model-error floor (mm, default 0.5): the measured floor's lower bound, or with "
-                        "--floor fixed the floor itself")
-    p.add_argument("--surface-spacing-mm", type=positive, default=8.0,
-                   help="one surface feature per cube of this size (mm, default 8)")
-    p.add_argument("--alpha", type=fraction, default=0.01, help="family-wise significance level (default 0.01)")
+    _add_noise_options(p, measured_floor=True)
     p.add_argument("--refine-iterations", type=non_negative_int, default=2,
                    help="Gauss-Newton iterations refining the refit of an added effect (default 2)")
     p.add_argument("--interval", choices=("profile", "linearised"), default="profile",
@@ -152,16 +167,7 @@ def add_parsers(sub) -> None:
                    help=f"further acquisitions simulated, by kind ({', '.join(KINDS)}; default: all) or name (e.g. "
                         "only-left): the closure 10 and 20 %% of the thickness further or less, all of it by one "
                         "plate, the plates turned 90 degrees")
-    p.add_argument("--channels", nargs="+", choices=CHANNELS, default=list(CHANNELS),
-                   help="features compared (default: all)")
-    p.add_argument("--landmark-sd-mm", type=non_negative, default=0.5,
-                   help="landmark localisation error, mm per coordinate (default 0.5)")
-    p.add_argument("--model-sd-mm", type=non_negative, default=0.5,
-                   help="model-error floor added to every feature, mm (default 0.5; fixed: a measured floor is "
-                        "not simulated)")
-    p.add_argument("--surface-spacing-mm", type=positive, default=8.0,
-                   help="spacing of the skin-surface features, mm (default 8)")
-    p.add_argument("--alpha", type=fraction, default=0.01, help="the diagnosis's significance level (default 0.01)")
+    _add_noise_options(p, measured_floor=False)
     p.add_argument("--device", type=device_argument, help="warp device (cuda, cpu; default: warp's)")
     p.add_argument("--json", action="store_true", help="print the design as one JSON line")
     add_progress_option(p)
