@@ -40,7 +40,7 @@ import SimpleITK as sitk
 
 from BreastBiomechLib.discrepancy.acquisitions import KINDS, Acquisition, acquisition_library
 from BreastBiomechLib.discrepancy.effects import library
-from BreastBiomechLib.discrepancy.fitted import FittedCase
+from BreastBiomechLib.discrepancy.fitted import FittedCase, recorded_solution
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
@@ -276,11 +276,14 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     state = state or ModelState(fitted, fitted.z)
     candidates = [e.name for e in library(fitted, effects) if e.name not in state.added]
     acquisitions = acquisition_library(fitted, state, kinds) if acquisitions is None else acquisitions
-    say("solving the fitted model in the measured states")
-    [base] = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)
-    if not base.ok:
-        raise RuntimeError(f"the fitted model does not solve ({base.status}: {base.message})")
-    observations = observations_of(fitted, base.displacement, noise)
+    base = recorded_solution(fitted) if not state.added and np.array_equal(state.z, fitted.z) else None
+    if base is None:  # a diagnosis round's model, or a fit folder without its solutions
+        say("solving the model in the measured states")
+        [outcome] = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)
+        if not outcome.ok:
+            raise RuntimeError(f"the model does not solve ({outcome.status}: {outcome.message})")
+        base = outcome.displacement
+    observations = observations_of(fitted, base, noise)
     say("sensitivities in the measured states")
     now = Rows.of(sensitivities(state, observations, library(fitted, candidates), progress=say), observations)
     stacks, failed, made = {}, {}, []

@@ -115,6 +115,23 @@ class FittedCase:
         return self._skin[thickness_mm]
 
 
+def recorded_solution(fitted: FittedCase) -> np.ndarray | None:
+    """The fitted model's solution as its fit wrote it (N, 3) mm, in every measured state (S N, 3)
+    of a joint fit (``deformed_mesh.vtu`` of the fit folder, ``states/<name>/`` for further
+    states); None where a file is missing or holds another mesh's nodes."""
+    from BreastBiomechLib.io.case_layout import STATES
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    files = [fitted.fit_dir / "deformed_mesh.vtu"] + [fitted.fit_dir / STATES / name / "deformed_mesh.vtu"
+                                                       for name in fitted.state_names[1:]]
+    if not all(f.is_file() for f in files):
+        return None
+    solutions = [read_vtu(f).point_data["displacement"] for f in files]
+    if not all(u.shape == fitted.mesh.nodes.shape for u in solutions):
+        return None
+    return np.concatenate(solutions)
+
+
 def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tolerance_mm: float = 0.01,
                      imaged_gravity=PRONE_GRAVITY) -> FittedCase:
     """The fit in ``fit_dir`` (``breastbiomech optimise``'s output folder) of the compressed case

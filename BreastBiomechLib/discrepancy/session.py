@@ -47,7 +47,7 @@ import numpy as np
 
 from BreastBiomechLib.discrepancy.diagnosis import Diagnosis, DiagnosisSettings, adopt, diagnose, region_summary
 from BreastBiomechLib.discrepancy.effects import library
-from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case
+from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case, recorded_solution
 from BreastBiomechLib.discrepancy.floor import MeasuredFloor, measure_floor
 from BreastBiomechLib.discrepancy.kept import SUFFIX as KEPT
 from BreastBiomechLib.discrepancy.kept import load_diagnosis, save_diagnosis
@@ -223,15 +223,9 @@ class DiagnosisSession:
         """The fitted model's solution (N, 3) mm, in every measured state (S N, 3) of a joint fit:
         the fit's deformed meshes (``states/<name>/`` of the fit folder for further states), else
         solved."""
-        from BreastBiomechLib.io.case_layout import STATES
-        from BreastBiomechLib.io.meshes import read_vtu
-
-        files = [self.fit_dir / "deformed_mesh.vtu"] + [self.fit_dir / STATES / name / "deformed_mesh.vtu"
-                                                         for name in self.fitted.state_names[1:]]
-        if all(f.is_file() for f in files):
-            solutions = [read_vtu(f).point_data["displacement"] for f in files]
-            if all(u.shape == self.fitted.mesh.nodes.shape for u in solutions):
-                return np.concatenate(solutions)
+        recorded = recorded_solution(self.fitted)
+        if recorded is not None:
+            return recorded
         from BreastBiomechLib.discrepancy.variants import solve_variants
 
         self._say("solving the fitted model")
