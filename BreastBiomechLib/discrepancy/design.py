@@ -125,13 +125,18 @@ def last_round_state(fitted: FittedCase, folder) -> ModelState:
     return state_from_record(fitted, json.loads(rounds[-1].read_text()), library(fitted))
 
 
-def residual_norm(signature: np.ndarray, rivals: np.ndarray) -> float:
-    """|| (I - P) signature ||: the length of ``signature`` (n,) beyond the span of the columns of
+def beyond(signature: np.ndarray, rivals: np.ndarray) -> np.ndarray:
+    """(I - P) signature: what is left of ``signature`` (n,) beyond the span of the columns of
     ``rivals`` (n, m) (least squares; ``m`` may be 0)."""
     if rivals.size == 0:
-        return float(np.linalg.norm(signature))
+        return signature
     coefficients, *_ = np.linalg.lstsq(rivals, signature, rcond=None)
-    return float(np.linalg.norm(signature - rivals @ coefficients))
+    return signature - rivals @ coefficients
+
+
+def residual_norm(signature: np.ndarray, rivals: np.ndarray) -> float:
+    """|| (I - P) signature ||: the length of ``signature`` beyond the span of ``rivals`` (:func:`beyond`)."""
+    return float(np.linalg.norm(beyond(signature, rivals)))
 
 
 @dataclass
@@ -175,19 +180,12 @@ class Rows:
         """The other candidate whose signature beyond the fitted parameters is most nearly
         parallel to ``effect``'s (None: no other)."""
         span = self.fitted_span()
-
-        def beyond(v):
-            if span.size == 0:
-                return v
-            coefficients, *_ = np.linalg.lstsq(span, v, rcond=None)
-            return v - span @ coefficients
-
-        mine = beyond(self.effects[effect])
+        mine = beyond(self.effects[effect], span)
         best, rival = -1.0, None
         for name, values in self.effects.items():
             if name == effect:
                 continue
-            other = beyond(values)
+            other = beyond(values, span)
             norm = np.linalg.norm(mine) * np.linalg.norm(other)
             cosine = abs(float(mine @ other)) / norm if norm > 0 else 0.0
             if cosine > best:
@@ -274,7 +272,8 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     say = progress or (lambda message: None)
     noise = replace(noise or NoiseModel(), floor="fixed")
     state = state or ModelState(fitted, fitted.z)
-    candidates = [e.name for e in library(fitted, effects) if e.name not in state.added]
+    candidates = [e for e in library(fitted, effects) if e.name not in state.added]
+    names = [e.name for e in candidates]
     acquisitions = acquisition_library(fitted, state, kinds) if acquisitions is None else acquisitions
     base = recorded_solution(fitted) if not state.added and np.array_equal(state.z, fitted.z) else None
     if base is None:  # a diagnosis round's model, or a fit folder without its solutions
@@ -285,7 +284,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         base = outcome.displacement
     observations = observations_of(fitted, base, noise)
     say("sensitivities in the measured states")
-    now = Rows.of(sensitivities(state, observations, library(fitted, candidates), progress=say), observations)
+    now = Rows.of(sensitivities(state, observations, candidates, progress=say), observations)
     stacks, failed, made = {}, {}, []
     for acquisition in acquisitions:
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
@@ -293,16 +292,16 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
             simulated, u = simulated_state(fitted, acquisition, state)
             seen = observations_of(simulated, u, noise)
             rows = Rows.of(sensitivities(ModelState(simulated, state.z, state.added), seen,
-                                         library(simulated, candidates), progress=say), seen)
+                                         library(simulated, names), progress=say), seen)
         except RuntimeError as error:
             failed[acquisition.name] = str(error)
             continue
         stacks[acquisition.name] = now.stacked(rows)
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped})
-    titles = {e.name: e.title for e in library(fitted, candidates)}
+    titles = {e.name: e.title for e in candidates}
     records = []
-    for effect in library(fitted, candidates):
+    for effect in candidates:
         name = effect.name
         record = {"effect": name, "title": titles[name],
                   "size": {p.name: p.step for p in effect.parameters},
