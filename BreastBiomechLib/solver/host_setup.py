@@ -170,6 +170,32 @@ def anp_slots(tets: np.ndarray, materials: list[ElementMaterials], vol: np.ndarr
     return slots, np.bincount(slots.ravel(), weights=np.repeat(vol, 4), minlength=n_slots)
 
 
+def anp_partition_classes(materials: list[ElementMaterials], across_materials: bool = False) -> np.ndarray:
+    """(B,) for each parameter set of a batch, the class of its own ANP partition (its elements
+    grouped by its own bulk moduli, as :func:`anp_slots` of that set alone would): sets of one
+    class average their nodal pressure over the same groups. A batch's slots are the union of its
+    sets' partitions, so a set batched with another of a different class (a skin layer stiffer
+    than the fat under it, a gland told from the fat) would average over a finer partition than
+    its own, and its solution would depend on its batch partners (1 mm on a coarse fitting mesh).
+    All 0 with ``across_materials`` (one slot per node)."""
+    classes = np.zeros(len(materials), np.int64)
+    if across_materials or len(materials) < 2:
+        return classes
+    representatives: list[tuple[np.ndarray, int]] = []
+    for b, mat in enumerate(materials):
+        group = element_groups([mat], lambda m: [np.asarray(m.kappa, np.float64)])
+        n = int(group.max()) + 1
+        for c, (other, count) in enumerate(representatives):
+            # the same partition: as many groups, each group of one set inside one group of the other
+            if count == n and np.count_nonzero(np.bincount(group * n + other, minlength=n * n)) == n:
+                classes[b] = c
+                break
+        else:
+            classes[b] = len(representatives)
+            representatives.append((group, n))
+    return classes
+
+
 def anp_mode(model: Model) -> int:
     """The element kernels' ANP mode for ``model`` (``kernels.ANP_*``)."""
     if model.formulation != "T4ANP":

@@ -27,8 +27,8 @@ from BreastBiomechLib.solver import cpu_pool
 from BreastBiomechLib.solver import kernels as k
 from BreastBiomechLib.solver.batch_run import BatchOptions, BatchRun
 from BreastBiomechLib.solver.geometry import MeshGeometry
-from BreastBiomechLib.solver.host_setup import (anp_mode, anp_slots, constraint_load_shapes, material_table,
-                                                merged_constraints)
+from BreastBiomechLib.solver.host_setup import (anp_mode, anp_partition_classes, anp_slots, constraint_load_shapes,
+                                                material_table, merged_constraints)
 from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import Model, Plate
 from BreastBiomechLib.solver.ordering import SolverOrder
@@ -107,6 +107,10 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     plate sets ``plates[b]`` (pose, travel, edge and friction per variant; the same P plates in
     the same order with the same contact nodes as the model's, which they replace). All variants
     use the smallest critical step of the batch, so results equal separate solves at that step.
+    Variants whose own T4ANP partitions differ (elements grouped by each one's bulk moduli: a
+    stiffer skin layer, a gland told from the fat) are solved in one launch per partition
+    (:func:`~BreastBiomechLib.solver.host_setup.anp_partition_classes`), so that no variant's
+    pressure averaging, and so its solution, depends on the others in its batch.
     ``initial_displacement`` (N, 3) mm starts every variant from rest in that configuration.
     ``warm_start`` (dynamic relaxation, frictionless plates): every variant starts at that
     nearby equilibrium (:class:`~BreastBiomechLib.solver.warm.WarmStart`) with the constraints
@@ -146,6 +150,17 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     (:mod:`~BreastBiomechLib.solver.cpu_pool`)."""
     wp.init()
     device = _device(device)
+    classes = (anp_partition_classes(materials) if anp_mode(model) == k.ANP_WITHIN_MATERIALS
+               else np.zeros(len(materials), np.int64))
+    if classes.max() > 0:  # sets whose own ANP partitions differ: one launch per partition
+        def solve_part(members, part_progress):
+            return solve_batch(model, [materials[b] for b in members], _members(plate_displacements, members),
+                               device=device, sample_every=sample_every, ke_ie_limit=ke_ie_limit,
+                               initial_displacement=initial_displacement, relaxation=relaxation,
+                               warm_start=warm_start, progress=part_progress, steady_state_mm=steady_state_mm,
+                               mass_scaling=mass_scaling, plates=_members(plates, members),
+                               memory_limit_bytes=memory_limit_bytes, cpu_workers=cpu_workers)
+        return _by_class(classes, solve_part, progress)
     options = BatchOptions(relaxation=relaxation, warm_start=warm_start, initial_displacement=initial_displacement,
                            sample_every=sample_every, ke_ie_limit=ke_ie_limit, steady_state_mm=steady_state_mm,
                            mass_scaling=mass_scaling, progress=progress, memory_limit_bytes=memory_limit_bytes)
@@ -173,4 +188,36 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
                          element_ids=order.elements).run()
     for s in solutions:
         s.displacement = order.mesh_values(s.displacement)
+    return solutions
+
+
+def _members(per_model: list | None, members: np.ndarray) -> list | None:
+    return None if per_model is None else [per_model[b] for b in members]
+
+
+def _by_class(classes: np.ndarray, solve_part: Callable, progress: Callable[[float], bool | None] | None) -> list[Solution]:
+    """The solutions of a batch solved as one launch per class of ``classes`` (B,) in the sets'
+    order: ``solve_part(members, part_progress)`` solves the sets ``members``; ``progress`` gets
+    the batch's fraction done, and once it returns False the parts not yet started are cancelled
+    at their first sample."""
+    B = len(classes)
+    solutions: list[Solution | None] = [None] * B
+    done, cancelled = 0, False
+
+    def part_progress(size: int):
+        def report(fraction: float):
+            nonlocal cancelled
+            if cancelled:
+                return False
+            if progress is not None and progress((done + fraction * size) / B) is False:
+                cancelled = True
+                return False
+            return None
+        return report
+
+    for c in np.unique(classes):
+        members = np.flatnonzero(classes == c)
+        for b, solution in zip(members, solve_part(members, part_progress(len(members)))):
+            solutions[b] = solution
+        done += len(members)
     return solutions

@@ -411,6 +411,37 @@ def test_batched_equals_sequential():
     assert batch[0].displacement[:, 2].min() > batch[2].displacement[:, 2].min()
 
 
+def test_a_sets_solution_does_not_depend_on_its_batch_partners_pressure_groups():
+    """ANP averages the pressure over the elements of one bulk modulus. A homogeneous block batched
+    with a variant whose upper half is stiffer (a skin layer, a gland told from the fat) keeps its
+    own averaging, over the whole block: its answer is the one it has alone (a batch's shared
+    slots split it too, which moved a coarse fitting mesh's solution by 1 mm)."""
+    from BreastBiomechLib.solver import DynamicRelaxation
+    from BreastBiomechLib.solver.host_setup import anp_partition_classes
+
+    mesh = _block(4)
+    upper = (mesh.nodes[mesh.tets].mean(axis=1)[:, 2] > 0.5 * SIDE).astype(int)
+    top = np.flatnonzero(mesh.point_data["face_zhi"])  # a plate on a block held at its base: it bulges
+    model = Model(mesh, ElementMaterials.uniform(len(mesh.tets), Material(E, NU)),
+                  Loading([Constraint.fixed(np.flatnonzero(mesh.point_data["face_zlo"]))],
+                          [Plate([0, 0, SIDE], [0, 0, -1], [0, 0, -0.2 * SIDE], top, "moving")]))
+    homogeneous = ElementMaterials.from_tissues(upper, {0: Material(E, 0.495), 1: Material(E, 0.495)})
+    layered = ElementMaterials.from_tissues(upper, {0: Material(E, 0.495), 1: Material(3 * E, 0.495)})
+    softer_top = ElementMaterials.from_tissues(upper, {0: Material(E, 0.495), 1: Material(E / 3, 0.495)})
+    assert list(anp_partition_classes([homogeneous, layered, softer_top])) == [0, 1, 1]
+    assert list(anp_partition_classes([homogeneous, layered], across_materials=True)) == [0, 0]
+    relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.001)
+    fractions = []
+    batch = solve_batch(model, [homogeneous, layered, softer_top], device="cpu", relaxation=relaxation, cpu_workers=1,
+                        progress=fractions.append)
+    # one progress over the two launches (a fraction of the step budget: the second starts at a third)
+    assert fractions == sorted(fractions) and 1 / 3 <= fractions[-1] <= 1.0
+    for materials, b in zip([homogeneous, layered, softer_top], batch):
+        [one] = solve_batch(model, [materials], device="cpu", relaxation=relaxation)
+        assert b.ok and one.ok
+        np.testing.assert_allclose(b.displacement, one.displacement, atol=1e-5)  # 0.01 mm batched together
+
+
 def test_kernels_built_for_a_formulation_give_the_general_builds_answers(monkeypatch):
     """The element and node kernels are built per formulation and loading (kernels.element_kernels,
     kernels.node_kernel: no Prony terms, ANP slots that are the nodes, no gravity, no friction, no
