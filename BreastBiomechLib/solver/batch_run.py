@@ -30,6 +30,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
+from BreastBiomechLib.solver.capture import graph_capture
 from BreastBiomechLib.solver.geometry import MeshGeometry
 from BreastBiomechLib.solver.host_setup import (anp_mode, anp_slots, constraint_load_shapes, critical_time_step,
                                                 element_lanes, material_table, merged_constraints, plate_pose,
@@ -486,7 +487,7 @@ class BatchRun:
         groups, rest = divmod(pairs, STEP_GRAPH_PAIRS)
         for size, count in ((STEP_GRAPH_PAIRS, groups), (1, rest)):
             if count and (size, width) not in self.graphs:
-                with wp.ScopedCapture() as capture:
+                with graph_capture() as capture:
                     for _ in range(2 * size):
                         self.one_step(width)
                 self.graphs[size, width] = capture.graph
@@ -540,7 +541,7 @@ class BatchRun:
             self.sample(renew)
             return
         if renew not in self.sample_graphs:
-            with wp.ScopedCapture() as capture:
+            with graph_capture() as capture:
                 self.sample(renew)
             self.sample_graphs[renew] = capture.graph
         wp.capture_launch(self.sample_graphs[renew])

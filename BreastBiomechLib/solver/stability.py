@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from BreastBiomechLib.solver import kernels as k
+from BreastBiomechLib.solver.capture import graph_capture
 from BreastBiomechLib.solver.packing import Selection
 from BreastBiomechLib.solver.readback import HostCopy
 
@@ -70,7 +71,7 @@ class StableStepMonitor:
         if iterations > 1 and device.is_cuda and not device.is_capturing:
             # one iteration captured and replayed: its ten launches cost the host about 20 us
             # each, ten times the device's time, and the GPU would stand idle between them
-            with wp.ScopedCapture(device) as capture:
+            with graph_capture(device) as capture:
                 self._iterate(state, f_base)
             for _ in range(iterations):
                 wp.capture_launch(capture.graph)
