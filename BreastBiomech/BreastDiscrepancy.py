@@ -9,8 +9,10 @@ colour with a legend, the residual field can be shown as glyphs, the landmark re
 lines from predicted to measured positions, the model's skin is coloured by its signed distance
 to the measured body, and the regions are segments. Selecting a candidate shows the residual it
 predicts beside the measured one. *Refit with effect* adds the chosen candidate (warm start) with
-progress and cancel; before/after plots and overlays follow. Every round keeps its nodes in a
-subject-hierarchy folder; *Save report* writes the Markdown report with the slice views.
+progress and cancel; before/after plots and overlays follow. *Design next measurement* says, for
+the candidates the last round could not tell apart, which further acquisition would (a table of
+separations and a sentence each). Every round keeps its nodes in a subject-hierarchy folder;
+*Save report* writes the Markdown report with the slice views.
 
 Module, Widget, Logic and Test classes follow Slicer's scripted-module template. The Logic holds
 no Qt and runs headless on the ``slicer-core`` wheel (see docs/developing.md).
@@ -48,7 +50,7 @@ friction, gravity and the unloaded state, the chest wall holding the breast, ski
 heterogeneity, tumour stiffness, plate tilt or offset) is missing, with the evidence on the images;
 accept it, refit and see the gap shrink. Each round stays in the scene. From the Python console: logic =
 slicer.util.getModuleLogic('BreastDiscrepancy'), then logic.diagnose(p), logic.showCandidate(p, name),
-logic.accept(p, name), logic.reject(p, name), logic.saveReport(p). See docs/discrepancy.md of the
+logic.accept(p, name), logic.reject(p, name), logic.designNext(p), logic.saveReport(p). See docs/discrepancy.md of the
 <a href='https://github.com/BreastBiomech/BreastBiomech'>project</a>.
 """)
         self.parent.acknowledgementText = _("""
@@ -82,7 +84,8 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
         """While a step runs (in its own process) only Cancel is live: the buttons, the folders and
         settings, the round selector, the table and the view options would change what the step
         reads or shows."""
-        for widget in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.saveReportButton,
+        for widget in (self.ui.diagnoseButton, self.ui.acceptButton, self.ui.rejectButton, self.ui.designButton,
+                       self.ui.saveReportButton,
                        self.ui.useOptimizationButton, self.ui.inputsCollapsibleButton,
                        self.ui.settingsCollapsibleButton, self.ui.resultsCollapsibleButton):
             widget.enabled = not running
@@ -125,6 +128,12 @@ class BreastDiscrepancyWidget(ModuleWidgetBase):
                     self.logic.showRound(parameterNode, parameterNode["shownRound"])
 
             self.startWorker(worker, ended, statusLabel=self.ui.statusLabel)
+
+    def onDesignButton(self):
+        if not dependencies_ready(DEPENDENCIES, _("Breast Discrepancy")):
+            return
+        self._startStep(_("Design failed to start."), lambda: self.logic.startDesign(self._parameterNode),
+                        _("Design failed."), self.logic.finishDesign)
 
     def onRejectButton(self):
         name = self.runAction(DEPENDENCIES, _("Could not reject the candidate."),
@@ -192,10 +201,11 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
     MODULE_NAME = "BreastDiscrepancy"
     DEFAULTS = {"caseDirectory": "", "fitDirectory": "", "outputDirectory": "", "effects": "", "refineIterations": 2,
                 "maxRounds": 4, "landmarkSdMm": 0.5, "modelSdMm": 0.5, "measuredFloor": True, "alpha": 0.01,
-                "device": "auto", "residualField": True, "fieldGlyphs": False, "showRegions": False, "shownRound": 0, "candidate": ""}
+                "device": "auto", "residualField": True, "fieldGlyphs": False, "showRegions": False, "shownRound": 0,
+                "candidate": "", "designAcquisitions": ""}
     ROLES = ("measuredVolume", "candidatesTable", "residualVolume", "candidateVolume", "residualTransform",
              "landmarkLines", "skinModel", "regions", "landmarkErrorsTable", "landmarkErrorsChart", "measuresTable",
-             "measuresChart", "histogramTable", "histogramChart")
+             "measuresChart", "histogramTable", "histogramChart", "designTable")
 
     def __init__(self, scene=None):
         ModuleLogicBase.__init__(self, scene)
@@ -427,6 +437,98 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
             raise RuntimeError("the refit added nothing")
         return self._showAccepted(parameterNode, record)
 
+    def designNext(self, parameterNode, progress=None):
+        """*Design next measurement* in this process: after the last round (decided), the
+        acquisitions of the library (``designAcquisitions``: kinds or names, blank: all) simulated
+        from the current model, and each one's separation of the candidates the round could not
+        tell apart from their closest rivals and the fitted parameters
+        (:meth:`~BreastBiomechLib.discrepancy.session.DiagnosisSession.design`). Returns the
+        design's table node."""
+        p = parameterNode
+        session = self.openSession(p, progress)
+        return self._showDesign(p, session.design(self._acquisitions(p), progress))
+
+    @staticmethod
+    def _acquisitions(parameterNode) -> list[str]:
+        return [a.strip() for a in parameterNode["designAcquisitions"].replace(",", " ").split() if a.strip()]
+
+    def startDesign(self, parameterNode):
+        """*Design next measurement* out of Slicer's process: `breastbiomech diagnose --resume
+        --design [ACQUISITIONS]` on the output folder's decided rounds. Returns the running worker;
+        once it has ended :meth:`finishDesign` shows the design."""
+        from BreastBiomechCommon.worker import CommandWorker
+        from BreastBiomechLib.discrepancy.session import is_open
+
+        p = parameterNode
+        session = self._session(p)
+        if is_open(session.last):
+            raise ValueError(f"round {session.last['round']} waits for a decision: refit with its effect or reject it "
+                             "first")
+        arguments = self.commandArguments(p)
+        if "--resume" not in arguments:
+            arguments.append("--resume")
+        arguments[arguments.index("--rounds") + 1] = str(len(session.rounds))  # after the rounds made: none further
+        self.session, self._key = None, None
+        return CommandWorker(arguments + ["--design", *self._acquisitions(p)], folder=p["outputDirectory"]).start()
+
+    def finishDesign(self, parameterNode, worker):
+        """The design of an ended :meth:`startDesign` into the scene. Raises RuntimeError with the
+        worker's reason where it failed or was cancelled. Returns the design's table node."""
+        import json
+
+        from BreastBiomechLib.discrepancy.session import DESIGN_FILE
+
+        self._ended(worker, "the design")
+        session = self.openSession(parameterNode)
+        path = session.out / DESIGN_FILE
+        record = json.loads(path.read_text()) if path.is_file() else None
+        if record is None or record.get("round") != session.last["round"]:
+            raise RuntimeError("the design wrote nothing for the last round")
+        return self._showDesign(parameterNode, record)
+
+    def _showDesign(self, parameterNode, record):
+        """A design (design.json's ``record``) as the table "Round N: next measurement" in its
+        round's folder: per candidate designed for, its closest rival, the separation it needs and
+        has now, and with each acquisition (sigma; NaN where its secant did not solve there); one
+        row saying so where every candidate was told apart. The parameter node's shown round
+        becomes that round."""
+        from BreastBiomechLib.mrml import columns_to_table_node
+
+        number = record["round"]
+        names = [a["name"] for a in record["acquisitions"]]
+        rows = record["effects"]
+        columns = {"effect": np.array([r["title"] for r in rows] or ["every tested candidate told apart"],
+                                      dtype=object),
+                   "rival": np.array([r.get("rival_title") or "-" for r in rows] or ["-"], dtype=object),
+                   "needed (sigma)": np.array([r["detectable_sigma"] for r in rows] or [float("nan")], float),
+                   "now (sigma)": np.array([r["now_sigma"] for r in rows] or [float("nan")], float)}
+        for name in names:
+            seen = [{a["name"]: a["separation_sigma"] for a in r["acquisitions"]}.get(name, float("nan")) for r in rows]
+            columns[f"{name} (sigma)"] = np.array(seen or [float("nan")], float)
+        node = columns_to_table_node(columns, self.scene, f"Round {number}: next measurement",
+                                     node=self._kindNode(number, "design"))
+        parameterNode.set_reference("designTable", self._put(self._roundFolder(number), number, "design", node))
+        parameterNode["shownRound"] = number
+        return node
+
+    def designText(self, parameterNode) -> str:
+        """The sentences of the design made after the shown round ("" where none was)."""
+        import json
+
+        from BreastBiomechLib.discrepancy.design import Design
+        from BreastBiomechLib.discrepancy.session import DESIGN_FILE
+
+        folder = self._folder(parameterNode) if parameterNode is not None else None
+        path = Path(folder) / DESIGN_FILE if folder else None
+        if path is None or not path.is_file():
+            return ""
+        record = json.loads(path.read_text())
+        if record.get("round") != parameterNode["shownRound"]:
+            return ""
+        if not record["designed_for"]:
+            return "Next measurement: every tested candidate was told apart with the measured states."
+        return "\n".join(f"Next measurement: {s}" for s in Design.from_dict(record).sentences())
+
     @staticmethod
     def _ended(worker, what: str) -> None:
         if worker.running:
@@ -493,7 +595,8 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                                                      if before and after else "")
         if record.get("rejected"):
             text += f"\nRejected: {', '.join(record['rejected'])}"
-        return text
+        design = self.designText(parameterNode)
+        return f"{text}\n{design}" if design else text
 
     def candidateAtRow(self, parameterNode, row: int) -> str:
         """The candidate's name in ``row`` of the shown round's candidates table."""
@@ -548,8 +651,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
 
     def showRound(self, parameterNode, number: int) -> None:
         """Point the panel's nodes at round ``number``'s (after its refit where there was one):
-        the residual overlay, field, landmark lines, skin model, regions, candidates table and
-        plots; in the application the overlay lies over the measured volume."""
+        the residual overlay, field, landmark lines, skin model, regions, candidates table, plots
+        and the next measurement's table where one was designed after it; in the application the
+        overlay lies over the measured volume."""
         p = parameterNode
         if number not in self.roundNumbers(p):
             raise ValueError(f"round {number} is not in the scene (rounds: {self.roundNumbers(p)})")
@@ -560,7 +664,7 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
                            ("candidatesTable", "candidates"), ("landmarkErrorsTable", "landmark-errors"),
                            ("landmarkErrorsChart", "landmark-errors-chart"), ("measuresTable", "measures"),
                            ("measuresChart", "measures-chart"), ("histogramTable", "histogram"),
-                           ("histogramChart", "histogram-chart")):
+                           ("histogramChart", "histogram-chart"), ("designTable", "design")):
             p.set_reference(role, self._kindNode(number, kind))
         p["shownRound"] = number
         for other in self._roundNodes():

@@ -40,11 +40,15 @@ def cmd_diagnose(args) -> int:
     run = run_diagnosis(args.case_dir, args.fit, args.out, effects=args.effects, rounds=args.rounds, noise=noise,
                         settings=settings, device=args.device, resume=args.resume, progress=progress,
                         registration=None if args.no_residual_field else RegistrationSettings(),
-                        one_round=args.one_round, add=args.add)
+                        one_round=args.one_round, add=args.add,
+                        design=None if args.design is None else tuple(args.design))
     events.output("diagnosis", run.folder)
     if args.json:
-        print(json.dumps({"final": run.final["verdict"], "sentence": run.final["sentence"], "added": run.added,
-                          "rounds": len(run.rounds)}))
+        summary = {"final": run.final["verdict"], "sentence": run.final["sentence"], "added": run.added,
+                   "rounds": len(run.rounds)}
+        if args.design is not None:
+            summary["design"] = _design_summary(run.folder)
+        print(json.dumps(summary))
         return 0
     for record in run.rounds:
         d = record["diagnosis"]
@@ -54,8 +58,27 @@ def cmd_diagnose(args) -> int:
         if before and after:
             print(f"  landmark error {before['mean']:.2f} -> {after['mean']:.2f} mm (mean); NMI "
                   f"{record['before']['nmi']:.4f} -> {record['after']['nmi']:.4f}")
+    if args.design is not None:
+        _print_design(run.folder)
     print(f"report: {run.folder / 'report.md'}; every statistic: {run.folder / 'diagnosis.json'}")
     return 0
+
+
+def _design_summary(folder) -> dict:
+    """``designed_for`` and the sentences of ``folder``'s design.json (:meth:`DiagnosisSession.design`)."""
+    from BreastBiomechLib.discrepancy.design import Design
+    from BreastBiomechLib.discrepancy.session import DESIGN_FILE
+
+    record = json.loads((folder / DESIGN_FILE).read_text())
+    return {"designed_for": record["designed_for"], "sentences": Design.from_dict(record).sentences()}
+
+
+def _print_design(folder) -> None:
+    summary = _design_summary(folder)
+    if not summary["designed_for"]:
+        print("next measurement: every tested candidate was told apart with the measured states")
+    for sentence in summary["sentences"]:
+        print(f"next measurement: {sentence}")
 
 
 def cmd_design(args) -> int:
@@ -151,6 +174,11 @@ def add_parsers(sub) -> None:
                         "waits for a decision (--add), its diagnosis kept in --out")
     p.add_argument("--add", choices=NAMES, metavar="EFFECT",
                    help="with --resume: add EFFECT (one the open last round tested) to the model, refit, and stop")
+    p.add_argument("--design", nargs="*", metavar="KIND_OR_NAME",
+                   help="once the rounds are done, design the next measurement for the candidates the last round "
+                        "could not tell apart: each acquisition of these kinds (" + ", ".join(KINDS) + ") or names "
+                        "(none given: all) simulated from the model, design.md and a report section (a few solves "
+                        "per acquisition: seconds on a GPU, one to two minutes on 2 CPU cores)")
     p.add_argument("--json", action="store_true", help="print the final verdict as one JSON line")
     add_progress_option(p)
     p.set_defaults(func=cmd_diagnose)

@@ -211,6 +211,18 @@ class Design:
         return {"effects": self.effects, "acquisitions": self.acquisitions, "failed": self.failed, "alpha": self.alpha,
                 "power": POWER, "noise": self.noise, "model": self.model}
 
+    @classmethod
+    def from_dict(cls, record: dict) -> "Design":
+        """The design :meth:`to_dict` wrote (other keys are ignored)."""
+        return cls(record["effects"], record["acquisitions"], record["failed"], record["alpha"], record["noise"],
+                   record.get("model", {}))
+
+    def only(self, names) -> "Design":
+        """This design's records of the effects ``names`` only (their rivals were designed with them)."""
+        names = set(names)
+        return Design([r for r in self.effects if r["effect"] in names], self.acquisitions, self.failed, self.alpha,
+                      self.noise, self.model)
+
     def markdown(self) -> str:
         """The design as a report section: the sentences, then every candidate's separation
         (sigma) now and with each acquisition."""
@@ -252,10 +264,44 @@ def _sentence(record: dict) -> str:
         return f"{title}: no acquisition could be simulated."
     best = record["acquisitions"][0]
     if best["separation_sigma"] < needed:
-        return (f"No acquisition of the library tells {title} from {rival}: the best, {best['description']}, gives "
+        return (f"No acquisition simulated tells {title} from {rival}: the best, {best['description']}, gives "
                 f"{best['separation_sigma']:.1f} sigma (now {now:.1f}; {needed:.1f} needed).")
     return (f"To tell {title} from {rival}, {best['description']}: expected separation "
             f"{best['separation_sigma']:.1f} sigma (now {now:.1f}; {needed:.1f} needed).")
+
+
+def undecided(diagnosis: dict, effects: dict) -> list[str]:
+    """The candidates a diagnosis round (its record's ``diagnosis``) could not tell apart, which
+    the next measurement is designed for: those whose signature the fitted parameters reproduce
+    (at least :data:`~BreastBiomechLib.discrepancy.diagnosis.ABSORBED` of it), those whose smallest
+    detectable size lies beyond their range (``effects``: name -> :class:`Effect`), and, where the
+    verdict is ambiguous, the effects it could not choose between."""
+    from BreastBiomechLib.discrepancy.diagnosis import ABSORBED
+
+    names = []
+    for c in diagnosis["candidates"]:
+        if c.get("skipped"):
+            continue
+        effect = effects.get(c["name"])
+        absorbed = c.get("absorbed")
+        hidden = absorbed is not None and absorbed == absorbed and absorbed >= ABSORBED
+        small = effect is not None and any(
+            size is None or size > max(p.upper - p.off, p.off - p.lower)
+            for p, size in zip(effect.parameters, c.get("detectable") or []))
+        if hidden or small:
+            names.append(c["name"])
+    if diagnosis["verdict"] == "ambiguous":
+        names += [n for n in (diagnosis.get("effect"), *(diagnosis.get("alternatives") or [])) if n]
+    return [n for n in dict.fromkeys(names) if n in effects]
+
+
+def with_rivals(diagnosis: dict, names: list[str]) -> list[str]:
+    """``names`` and the closest rival of each among the round's tested candidates (by the
+    correlation of their signatures beyond the fitted parameters), for :func:`design`."""
+    from BreastBiomechLib.discrepancy.diagnosis import closest_rivals
+
+    rivals = closest_rivals(diagnosis["candidates"], diagnosis.get("correlations") or {})
+    return list(dict.fromkeys([*names, *[rivals[n][0] for n in names if n in rivals]]))
 
 
 def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acquisition] | None = None,

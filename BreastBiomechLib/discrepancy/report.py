@@ -177,6 +177,32 @@ def _features_phrase(features: dict) -> str:
     return text
 
 
+def _design_section(run) -> list[str]:
+    """The next measurement: the design made after the last round (design.json beside the
+    report), or where to make it; nothing while the last round waits for a decision."""
+    import json
+
+    from BreastBiomechLib.discrepancy.design import Design
+    from BreastBiomechLib.discrepancy.session import DESIGN_FILE, is_open
+
+    last = run.rounds[-1]
+    if is_open(last):
+        return []
+    path = Path(run.folder) / DESIGN_FILE
+    record = json.loads(path.read_text()) if path.is_file() else None
+    if record is None or record.get("round") != last["round"]:
+        return ["## The next measurement", "",
+                "Not designed after this round: `breastbiomech diagnose ... --resume --design` (or `breastbiomech "
+                "design CASE --fit FIT --diagnosis DIR --out NEW`) simulates further acquisitions from the model and "
+                "says which would tell apart the candidates this round could not.", ""]
+    if not record["designed_for"]:
+        return ["## The next measurement", "",
+                f"After round {last['round']} every tested candidate could be told apart with the measured states "
+                "(none absorbed by the fitted parameters, none too small to see within its range): no further "
+                "acquisition is needed for that.", ""]
+    return [Design.from_dict(record).markdown()]
+
+
 def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
     """Write the Markdown report of ``run`` (a :class:`~BreastBiomechLib.discrepancy.workflow.DiagnosisRun`)
     with ``pictures`` ((caption, file name beside the report) each, e.g. Slicer's slice views) at its end."""
@@ -200,6 +226,7 @@ def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
         if record.get("after"):
             parts += ["", _measures_line(f"After adding {record['added']}", record["after"])]
         parts += [""]
+    parts += _design_section(run)
     if pictures:
         parts += ["## Views", ""] + [f"![{caption}]({name})\n" for caption, name in pictures]
     return write_text_atomically(path, "\n".join(parts) + "\n")

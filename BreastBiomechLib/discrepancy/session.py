@@ -28,6 +28,10 @@ Output folder::
                      and statistics and before the registration and its first write, which a
                      resumed run takes up where it was made from the same model, candidates,
                      settings and features (removed when the round is written and waits for no decision)
+    design.json, design.md
+                     the next measurement (:meth:`DiagnosisSession.design`, ``diagnose --design``): for the
+                     candidates the last round could not tell apart, each acquisition's separation
+                     (:mod:`BreastBiomechLib.discrepancy.design`); ``round``: the round it was made after
     report.md        the report (:mod:`BreastBiomechLib.discrepancy.report`)
 
 A round is *open* while its verdict asks for a decision (a missing effect or an ambiguous
@@ -60,6 +64,7 @@ from BreastBiomechLib.io.atomic import atomic_path, write_text_atomically
 from BreastBiomechLib.io.claims import CLAIM_FILE
 
 FLOOR_FILE = "floor.json"  # the measured model-error floor of the session's features
+DESIGN_FILE, DESIGN_MARKDOWN = "design.json", "design.md"  # the next measurement (DiagnosisSession.design)
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
 
 
@@ -403,6 +408,38 @@ class DiagnosisSession:
             self._keep(record["round"], self.diagnosis)
         self._write(record)
         self._told(progress)(f"round {record['round']}: added {effect.title} ({effect.describe(chosen.values)})")
+        return record
+
+    def design(self, kinds=None, progress: Callable[[str], object] | None = None) -> dict:
+        """The next measurement after the last round (which must be decided): for the candidates
+        it could not tell apart (:func:`~BreastBiomechLib.discrepancy.design.undecided`), each
+        acquisition of the library's ``kinds`` (kinds or names; default all) simulated from the
+        current model and its separation from the closest rival and the fitted parameters, with
+        the session's noise model at its fixed floor. Written as design.json and design.md and
+        added to the report; returns design.json's record (``designed_for`` empty, and nothing
+        simulated, where every candidate was told apart)."""
+        from BreastBiomechLib.discrepancy.acquisitions import KINDS
+        from BreastBiomechLib.discrepancy.design import Design, design, undecided, with_rivals
+
+        say = self._checked(progress) if progress is not None else self._say
+        last = self.last
+        if last is None:
+            raise ValueError("no round diagnosed yet: diagnose first, then design the next measurement")
+        if is_open(last):
+            raise ValueError(f"round {last['round']} waits for a decision ({last['diagnosis']['verdict']}): add or "
+                             "reject its effect first, then design the next measurement")
+        wanted = undecided(last["diagnosis"], {e.name: e for e in self.candidates})
+        record = {"round": last["round"], "designed_for": wanted}
+        if wanted:
+            say(f"designing the next measurement for {', '.join(wanted)}")
+            made = design(self.fitted, with_rivals(last["diagnosis"], wanted), tuple(kinds or KINDS), noise=self.noise,
+                          alpha=self.settings.alpha, state=self.state, progress=say)
+            record.update(made.only(wanted).to_dict())
+            write_text_atomically(self.out / DESIGN_MARKDOWN, made.only(wanted).markdown())
+        else:
+            record.update(Design([], [], {}, self.settings.alpha, {}).to_dict())
+        write_text_atomically(self.out / DESIGN_FILE, json.dumps(record, indent=1, default=float) + "\n")
+        write_report(self.run(), self.out / "report.md")
         return record
 
     def reject(self, name: str) -> dict:

@@ -36,7 +36,7 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
                   settings: DiagnosisSettings | None = None, device=None, resume: bool = False,
                   progress: Callable[[str], None] | None = None,
                   registration: RegistrationSettings | None = RegistrationSettings(), one_round: bool = False,
-                  add: str | None = None) -> DiagnosisRun:
+                  add: str | None = None, design: tuple[str, ...] | None = None) -> DiagnosisRun:
     """Diagnose the fit in ``fit_dir`` of the compressed case in ``case_dir`` over the candidate
     ``effects`` (names; default the whole library) for at most ``rounds`` rounds, writing to
     ``out_dir`` (a new folder, or the folder of an interrupted run with ``resume``). Each round
@@ -50,11 +50,19 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
     stops there, its diagnosis kept for the decision (its confirmation refits not refined);
     ``add`` (a candidate's name, with ``resume``) adds that candidate to the open last round,
     refits, refines by ``settings.refine_iterations``, makes its intervals (``settings.profile``),
-    and stops."""
+    and stops.
+
+    ``design`` (acquisition kinds or names; empty: all): once the run ends, the next measurement
+    is designed for the candidates its last round could not tell apart
+    (:meth:`~BreastBiomechLib.discrepancy.session.DiagnosisSession.design`; kept on resume where
+    it was made after that round already). Not with ``one_round`` or ``add``: a person decides
+    the round first."""
     from BreastBiomechLib.discrepancy.session import DiagnosisSession, is_open
 
     if rounds < 1:
         raise ValueError("the diagnosis needs at least one round")
+    if design is not None and (one_round or add is not None):
+        raise ValueError("the next measurement is designed once the rounds are decided: not with --one-round or --add")
     if add is not None and (one_round or not resume):
         raise ValueError("adding a candidate decides the open round of an earlier run: give --resume, without "
                          "--one-round")
@@ -89,4 +97,16 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
             if record["diagnosis"]["verdict"] != "missing effect":
                 break
             session.add(record["diagnosis"]["effect"])
+        if design is not None and not _designed(session):
+            session.design(design)
         return session.run()
+
+
+def _designed(session) -> bool:
+    """Whether the session's folder holds the design made after its last round."""
+    import json
+
+    from BreastBiomechLib.discrepancy.session import DESIGN_FILE
+
+    path = session.out / DESIGN_FILE
+    return path.is_file() and json.loads(path.read_text()).get("round") == session.last["round"]

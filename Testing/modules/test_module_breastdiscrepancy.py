@@ -178,6 +178,32 @@ def test_a_hidden_friction_case_is_diagnosed_refitted_and_shown(scene, friction_
         "candidates", "field-before", "field-after", "candidate-friction"}
     logic.showRound(p, 1)
     assert p.reference("residualVolume").GetAttribute("BreastDiscrepancy.Kind") == "residual-after"
+    # Design next measurement, out of Slicer's process once the round is decided: for what round 1
+    # could not tell apart, one acquisition simulated from the refitted model; its table sits in
+    # the round's folder and is shown with the round, its sentences follow the verdict
+    p["designAcquisitions"] = "rotated"
+    worker = logic.startDesign(p)
+    assert worker.wait(900) == 0, worker.error
+    design = logic.finishDesign(p, worker)
+    made = json.loads((tmp_path / "diagnosis" / "design.json").read_text())
+    assert made["round"] == 1
+    assert [a["name"] for a in made["acquisitions"]] == (["rotated-SI"] if made["effects"] else [])
+    assert _column(design, "effect") == [r["title"] for r in made["effects"]] or ["every tested candidate told apart"]
+    for row, effect in enumerate(made["effects"]):
+        assert design.GetTable().GetValueByName(row, "now (sigma)").ToDouble() == pytest.approx(effect["now_sigma"])
+    assert "Next measurement: " in logic.verdictText(p)
+    assert logic.designText(p).count("Next measurement: ") == max(len(made["effects"]), 1)
+    logic.showRound(p, 1)
+    assert p.reference("designTable") is design and design.GetAttribute("BreastDiscrepancy.Kind") == "design"
+    section = (tmp_path / "diagnosis" / "report.md").read_text().split("## The next measurement")[1]
+    assert all(effect["title"] in section for effect in made["effects"])
+    # the rounds and the design are done: a resumed run asking for it again keeps it, not makes it again
+    from BreastBiomechLib.discrepancy import NoiseModel, run_diagnosis
+
+    stamp = (tmp_path / "diagnosis" / "design.json").stat().st_mtime_ns
+    run_diagnosis(case, fit, tmp_path / "diagnosis", rounds=1, noise=NoiseModel(floor="fixed"), device="cpu",
+                  resume=True, registration=None, design=("rotated",))
+    assert (tmp_path / "diagnosis" / "design.json").stat().st_mtime_ns == stamp
     logic.setGlyphsVisible(p, True)
     assert p.reference("residualTransform").GetDisplayNode().GetVisibility()
     # the report names the effect; with a capture function its picture is in it
@@ -258,6 +284,8 @@ def test_bad_inputs_are_refused_and_leave_the_scene_as_it_was(scene, friction_ca
     assert scene.GetNumberOfNodes() == nodes + 1  # the parameter node only
     with pytest.raises(ValueError, match="diagnose first"):
         logic.accept(p)
+    with pytest.raises(ValueError, match="diagnose first"):
+        logic.startDesign(p)
     # cancelling a diagnosis writes no round and adds no round node (the fixed floor: that a
     # Cancel keeps a measured floor is the null case's test, test_discrepancy.py)
     p["caseDirectory"], p["measuredFloor"] = str(case), False

@@ -50,3 +50,69 @@ def test_a_further_state_never_lowers_a_separation_and_is_stacked_parameter_by_p
     further.effects["chest-wall"] = -0.9 * further.nuisance["muscle.E"]
     stacked = now.stacked(further)
     assert stacked.separation("chest-wall", None) > 3 * now.separation("chest-wall", None)
+
+
+def _candidate(name, absorbed, detectable, skipped=""):
+    return {"name": name, "title": name, "absorbed": absorbed, "detectable": detectable, "skipped": skipped}
+
+
+def test_the_next_measurement_is_designed_for_what_a_round_could_not_tell_apart():
+    """A round's candidates the design is for: those the fitted parameters absorb (>= 80 %), those
+    too small to see anywhere in their range, an ambiguous verdict's effects; not a candidate told
+    apart, nor one skipped; with each one's closest rival beside it."""
+    from BreastBiomechLib.discrepancy.design import undecided, with_rivals
+    from BreastBiomechLib.discrepancy.effects.chest_wall import ChestWallHold
+    from BreastBiomechLib.discrepancy.effects.friction import PlateFriction
+    from BreastBiomechLib.discrepancy.effects.skin import SkinLayer
+    from BreastBiomechLib.discrepancy.effects.tumour import TumourStiffness
+
+    effects = {e.name: e for e in (ChestWallHold(), PlateFriction(), SkinLayer(), TumourStiffness())}
+    diagnosis = {"verdict": "no significant discrepancy", "effect": None, "alternatives": [],
+                 "candidates": [_candidate("chest-wall", 0.88, [0.5]), _candidate("friction", 0.1, [0.2]),
+                                _candidate("skin", 0.2, [4.5]), _candidate("tumour", 0.95, [], skipped="no tumour")],
+                 "correlations": {"chest-wall|friction": 0.3, "chest-wall|skin": 0.7, "friction|skin": 0.2}}
+    assert undecided(diagnosis, effects) == ["chest-wall", "skin"]  # absorbed; 4.5 beyond the skin's 0-4
+    assert with_rivals(diagnosis, ["chest-wall"]) == ["chest-wall", "skin"]
+    told_apart = {**diagnosis, "candidates": [_candidate("friction", 0.1, [0.2])]}
+    assert undecided(told_apart, effects) == []
+    assert undecided({**told_apart, "verdict": "ambiguous", "alternatives": ["friction", "chest-wall"]},
+                     effects) == ["friction", "chest-wall"]
+    unseen = {**diagnosis, "candidates": [_candidate("friction", 0.3, [None])]}  # nothing would show it
+    assert undecided(unseen, effects) == ["friction"]
+
+
+def test_diagnose_prints_and_summarises_the_design_it_made(tmp_path, capsys):
+    """`diagnose --design`'s words: the design.json of the diagnosis folder as sentences (one per
+    candidate designed for) and under ``design`` in the --json summary; where every candidate was
+    told apart, a sentence saying so."""
+    import json
+
+    from BreastBiomechLib.cli.diagnose import _design_summary, _print_design
+    from BreastBiomechLib.discrepancy.design import Design
+
+    hold = {"effect": "chest-wall", "title": "chest-wall hold", "rival": "skin", "rival_title": "skin layer",
+            "now_sigma": 0.8, "detectable_sigma": 3.4,
+            "acquisitions": [{"name": "only-left", "description": "compress with only the left plate moving",
+                              "separation_sigma": 4.5}]}
+    record = {"round": 2, "designed_for": ["chest-wall"],
+              **Design([hold], [{"name": "only-left", "skipped": {}}], {}, 0.01, {}).to_dict()}
+    (tmp_path / "design.json").write_text(json.dumps(record))
+    summary = _design_summary(tmp_path)
+    assert summary["designed_for"] == ["chest-wall"]
+    [sentence] = summary["sentences"]
+    assert sentence.startswith("To tell chest-wall hold from skin layer") and "4.5 sigma (now 0.8" in sentence
+    _print_design(tmp_path)
+    assert capsys.readouterr().out == f"next measurement: {sentence}\n"
+    (tmp_path / "design.json").write_text(json.dumps({**record, "designed_for": [], "effects": []}))
+    _print_design(tmp_path)
+    assert "every tested candidate was told apart" in capsys.readouterr().out
+
+
+def test_the_next_measurement_waits_for_the_rounds_to_be_decided(tmp_path):
+    """A design is made once the rounds are decided: not with a round left for a person to decide
+    (--one-round) nor with the decision itself (--add)."""
+    from BreastBiomechLib.discrepancy import run_diagnosis
+
+    for kwargs in ({"one_round": True}, {"add": "friction", "resume": True}):
+        with pytest.raises(ValueError, match="once the rounds are decided"):
+            run_diagnosis(tmp_path / "case", tmp_path / "fit", tmp_path / "out", design=(), **kwargs)
