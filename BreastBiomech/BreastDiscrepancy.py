@@ -497,8 +497,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         number = record["round"]
         names = [a["name"] for a in record["acquisitions"]]
         rows = record["effects"]
-        columns = {"effect": np.array([r["title"] for r in rows] or ["every tested candidate told apart"],
-                                      dtype=object),
+        nothing = "outside the chosen effects: " + ", ".join(record["undecided"]) if record.get("undecided") \
+            else "every tested candidate told apart"
+        columns = {"effect": np.array([r["title"] for r in rows] or [nothing], dtype=object),
                    "rival": np.array([r.get("rival_title") or "-" for r in rows] or ["-"], dtype=object),
                    "needed (sigma)": np.array([r["detectable_sigma"] for r in rows] or [float("nan")], float),
                    "now (sigma)": np.array([r["now_sigma"] for r in rows] or [float("nan")], float)}
@@ -526,7 +527,9 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
         if record.get("round") != parameterNode["shownRound"]:
             return ""
         if not record["designed_for"]:
-            return "Next measurement: every tested candidate was told apart with the measured states."
+            from BreastBiomechLib.discrepancy.report import not_designed
+
+            return f"Next measurement: {not_designed(record)}"
         return "\n".join(f"Next measurement: {s}" for s in Design.from_dict(record).sentences())
 
     @staticmethod

@@ -69,15 +69,15 @@ def _design_summary(folder) -> dict:
     from BreastBiomechLib.discrepancy.design import Design
     from BreastBiomechLib.discrepancy.session import DESIGN_FILE
 
+    from BreastBiomechLib.discrepancy.report import not_designed
+
     record = json.loads((folder / DESIGN_FILE).read_text())
-    return {"designed_for": record["designed_for"], "sentences": Design.from_dict(record).sentences()}
+    sentences = Design.from_dict(record).sentences() if record["designed_for"] else [not_designed(record)]
+    return {"undecided": record.get("undecided", []), "designed_for": record["designed_for"], "sentences": sentences}
 
 
 def _print_design(folder) -> None:
-    summary = _design_summary(folder)
-    if not summary["designed_for"]:
-        print("next measurement: every tested candidate was told apart with the measured states")
-    for sentence in summary["sentences"]:
+    for sentence in _design_summary(folder)["sentences"]:
         print(f"next measurement: {sentence}")
 
 

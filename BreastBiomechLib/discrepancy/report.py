@@ -177,6 +177,15 @@ def _features_phrase(features: dict) -> str:
     return text
 
 
+def not_designed(record: dict) -> str:
+    """Why a design (design.json's ``record``) simulated nothing."""
+    if record.get("undecided"):
+        return (f"the candidates the round could not tell apart ({', '.join(record['undecided'])}) lie outside the "
+                "effects chosen for this diagnosis: nothing designed (choose them to design for them).")
+    return ("every tested candidate could be told apart with the measured states (none absorbed by the fitted "
+            "parameters, none too small to see within its range): no further acquisition is needed for that.")
+
+
 def _design_section(run) -> list[str]:
     """The next measurement: the design made after the last round (design.json beside the
     report), or where to make it; nothing while the last round waits for a decision."""
@@ -196,10 +205,7 @@ def _design_section(run) -> list[str]:
                 "design CASE --fit FIT --diagnosis DIR --out NEW`) simulates further acquisitions from the model and "
                 "says which would tell apart the candidates this round could not.", ""]
     if not record["designed_for"]:
-        return ["## The next measurement", "",
-                f"After round {last['round']} every tested candidate could be told apart with the measured states "
-                "(none absorbed by the fitted parameters, none too small to see within its range): no further "
-                "acquisition is needed for that.", ""]
+        return ["## The next measurement", "", f"After round {last['round']}: {not_designed(record)}", ""]
     return [Design.from_dict(record).markdown()]
 
 

@@ -415,9 +415,12 @@ class DiagnosisSession:
         it could not tell apart (:func:`~BreastBiomechLib.discrepancy.design.undecided`), each
         acquisition of the library's ``kinds`` (kinds or names; default all) simulated from the
         current model and its separation from the closest rival and the fitted parameters, with
-        the session's noise model at its fixed floor. Written as design.json and design.md and
-        added to the report; returns design.json's record (``designed_for`` empty, and nothing
-        simulated, where every candidate was told apart)."""
+        the session's noise model at a fixed floor: the RMS of the floor measured from the case
+        where there is one (a simulated acquisition has no refined solve), else the fixed one.
+        Written as design.json and design.md and
+        added to the report; returns design.json's record: ``undecided`` the round's candidates it
+        could not tell apart, ``designed_for`` those among the session's effects (empty, and
+        nothing simulated, where there are none)."""
         from BreastBiomechLib.discrepancy.acquisitions import KINDS
         from BreastBiomechLib.discrepancy.design import Design, design, undecided, with_rivals
 
@@ -428,11 +431,16 @@ class DiagnosisSession:
         if is_open(last):
             raise ValueError(f"round {last['round']} waits for a decision ({last['diagnosis']['verdict']}): add or "
                              "reject its effect first, then design the next measurement")
-        wanted = undecided(last["diagnosis"], {e.name: e for e in self.candidates})
-        record = {"round": last["round"], "designed_for": wanted}
+        unresolved = undecided(last["diagnosis"], {e.name: e for e in library(self.fitted)})
+        chosen = {e.name for e in self.candidates}
+        wanted = [name for name in unresolved if name in chosen]
+        record = {"round": last["round"], "undecided": unresolved, "designed_for": wanted}
         if wanted:
             say(f"designing the next measurement for {', '.join(wanted)}")
-            made = design(self.fitted, with_rivals(last["diagnosis"], wanted), tuple(kinds or KINDS), noise=self.noise,
+            noise = self.noise
+            if self.floor is not None:
+                noise = replace(noise, model_sd_mm=max(noise.model_sd_mm, self.floor.summary()["rms_mm"]))
+            made = design(self.fitted, with_rivals(last["diagnosis"], wanted), tuple(kinds or KINDS), noise=noise,
                           alpha=self.settings.alpha, state=self.state, progress=say)
             record.update(made.only(wanted).to_dict())
             write_text_atomically(self.out / DESIGN_MARKDOWN, made.only(wanted).markdown())

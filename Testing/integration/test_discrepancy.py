@@ -147,6 +147,34 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     lower = MeasuredFloor.from_dict(json.loads((out / "floor.json").read_text()), 0.2)
     np.testing.assert_array_equal(lower.discretisation, floor.discretisation)
     assert lower.floor.min() >= 0.2 and np.all(lower.floor <= floor.floor)
+    # the next measurement, designed once the rounds are done (`--resume --design`) for what the
+    # round could not tell apart (the chest-wall hold, which the fitted muscle takes up), with one
+    # acquisition (the second plate alone), at the measured floor's RMS: the summary, design.json
+    # and the report's section say it; asked again after the same round, it is kept, not made again
+    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case
+    from BreastBiomechLib.discrepancy.design import undecided
+
+    fitted = load_fitted_case(case, fit, device="cpu")
+    second = f"only-{ModelState(fitted, fitted.z).variant().plates[1].name}"
+    designing = ["diagnose", str(case), "--fit", str(fit), "--out", str(out), "--device", "cpu", "--quiet", "--json",
+                 "--no-residual-field", "--resume", "--design", second]
+    assert main(designing) == 0
+    summary = json.loads(capsys.readouterr().out)
+    record = json.loads((out / "design.json").read_text())
+    last = json.loads((out / "round-1.json").read_text())["diagnosis"]
+    assert summary["final"] == "no significant discrepancy" and record["round"] == 1
+    assert summary["design"]["designed_for"] == record["designed_for"] == record["undecided"] == undecided(
+        last, {e.name: e for e in library(fitted)})
+    assert "chest-wall" in record["designed_for"] and [a["name"] for a in record["acquisitions"]] == [second]
+    assert record["noise"]["model_sd_mm"] == pytest.approx(floor.summary()["rms_mm"])
+    hold = next(r for r in record["effects"] if r["effect"] == "chest-wall")
+    assert hold["now_sigma"] < hold["detectable_sigma"]  # taken up by the muscle in this scan
+    assert len(summary["design"]["sentences"]) == len(record["effects"])
+    section = (out / "report.md").read_text().split("## The next measurement")[1]
+    assert "chest-wall hold" in section and second in section
+    made = (out / "design.json").stat().st_mtime_ns
+    assert main(designing) == 0 and (out / "design.json").stat().st_mtime_ns == made
+    capsys.readouterr()
 
 
 def _friction_secant(null_case, step: float = 0.3):

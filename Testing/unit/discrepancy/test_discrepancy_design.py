@@ -83,8 +83,8 @@ def test_the_next_measurement_is_designed_for_what_a_round_could_not_tell_apart(
 
 def test_diagnose_prints_and_summarises_the_design_it_made(tmp_path, capsys):
     """`diagnose --design`'s words: the design.json of the diagnosis folder as sentences (one per
-    candidate designed for) and under ``design`` in the --json summary; where every candidate was
-    told apart, a sentence saying so."""
+    candidate designed for) and under ``design`` in the --json summary; where nothing was designed,
+    why: every candidate was told apart, or those that were not lie outside the effects chosen."""
     import json
 
     from BreastBiomechLib.cli.diagnose import _design_summary, _print_design
@@ -105,7 +105,12 @@ def test_diagnose_prints_and_summarises_the_design_it_made(tmp_path, capsys):
     assert capsys.readouterr().out == f"next measurement: {sentence}\n"
     (tmp_path / "design.json").write_text(json.dumps({**record, "designed_for": [], "effects": []}))
     _print_design(tmp_path)
-    assert "every tested candidate was told apart" in capsys.readouterr().out
+    assert "every tested candidate could be told apart" in capsys.readouterr().out
+    (tmp_path / "design.json").write_text(json.dumps({**record, "undecided": ["gravity"], "designed_for": [],
+                                                      "effects": []}))
+    assert _design_summary(tmp_path)["undecided"] == ["gravity"]
+    _print_design(tmp_path)
+    assert "(gravity) lie outside the effects chosen" in capsys.readouterr().out
 
 
 def test_the_next_measurement_waits_for_the_rounds_to_be_decided(tmp_path):
