@@ -181,6 +181,20 @@ def anp_partition_classes(materials: list[ElementMaterials], across_materials: b
     classes = np.zeros(len(materials), np.int64)
     if across_materials or len(materials) < 2:
         return classes
+    shared = [m.rows for m in materials]
+    if all(r is not None for r in shared) and all(r[1] is shared[0][1] or np.array_equal(r[1], shared[0][1])
+                                                  for r in shared[1:]):
+        # one tissue labelling: each set's partition of the tissues present, its groups numbered
+        # in the order they first occur (a fit's batch: no pass over the elements per set)
+        row = shared[0][1]
+        present = np.flatnonzero(np.bincount(np.ravel(row), minlength=len(shared[0][0].kappa)))
+        keys: dict[bytes, int] = {}
+        for b, (table, _) in enumerate(shared):
+            _, first, inverse = np.unique(np.asarray(table.kappa, np.float64)[present], return_index=True,
+                                          return_inverse=True)
+            key = np.argsort(np.argsort(first))[np.ravel(inverse)].tobytes()
+            classes[b] = keys.setdefault(key, len(keys))
+        return classes
     representatives: list[tuple[np.ndarray, int]] = []
     for b, mat in enumerate(materials):
         group = element_groups([mat], lambda m: [np.asarray(m.kappa, np.float64)])

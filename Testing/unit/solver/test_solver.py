@@ -430,6 +430,11 @@ def test_a_sets_solution_does_not_depend_on_its_batch_partners_pressure_groups()
     softer_top = ElementMaterials.from_tissues(upper, {0: Material(E, 0.495), 1: Material(E / 3, 0.495)})
     assert list(anp_partition_classes([homogeneous, layered, softer_top])) == [0, 1, 1]
     assert list(anp_partition_classes([homogeneous, layered], across_materials=True)) == [0, 0]
+    # the same from per-element arrays as from a tissue table (the fit's batches)
+    per_element = [ElementMaterials(m.mu, m.kappa, m.eta, m.fibre, m.density)
+                   for m in (homogeneous, layered, softer_top)]
+    assert all(m.rows is None for m in per_element)
+    assert list(anp_partition_classes(per_element)) == [0, 1, 1]
     relaxation = DynamicRelaxation(load_iterations=300, tolerance_mm=0.001)
     fractions = []
     batch = solve_batch(model, [homogeneous, layered, softer_top], device="cpu", relaxation=relaxation, cpu_workers=1,
