@@ -474,15 +474,12 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
     def finishDesign(self, parameterNode, worker):
         """The design of an ended :meth:`startDesign` into the scene. Raises RuntimeError with the
         worker's reason where it failed or was cancelled. Returns the design's table node."""
-        import json
-
-        from BreastBiomechLib.discrepancy.session import DESIGN_FILE
+        from BreastBiomechLib.discrepancy.design_record import read_design
 
         self._ended(worker, "the design")
         session = self.openSession(parameterNode)
-        path = session.out / DESIGN_FILE
-        record = json.loads(path.read_text()) if path.is_file() else None
-        if record is None or record.get("round") != session.last["round"]:
+        record = read_design(session.out, session.last["round"])
+        if record is None:
             raise RuntimeError("the design wrote nothing for the last round")
         return self._showDesign(parameterNode, record)
 
@@ -514,23 +511,11 @@ class BreastDiscrepancyLogic(ModuleLogicBase):
 
     def designText(self, parameterNode) -> str:
         """The sentences of the design made after the shown round ("" where none was)."""
-        import json
-
-        from BreastBiomechLib.discrepancy.design import Design
-        from BreastBiomechLib.discrepancy.session import DESIGN_FILE
+        from BreastBiomechLib.discrepancy.design_record import design_sentences, read_design
 
         folder = self._folder(parameterNode) if parameterNode is not None else None
-        path = Path(folder) / DESIGN_FILE if folder else None
-        if path is None or not path.is_file():
-            return ""
-        record = json.loads(path.read_text())
-        if record.get("round") != parameterNode["shownRound"]:
-            return ""
-        if not record["designed_for"]:
-            from BreastBiomechLib.discrepancy.report import not_designed
-
-            return f"Next measurement: {not_designed(record)}"
-        return "\n".join(f"Next measurement: {s}" for s in Design.from_dict(record).sentences())
+        record = read_design(folder, parameterNode["shownRound"]) if folder else None
+        return "\n".join(f"Next measurement: {s}" for s in design_sentences(record)) if record else ""
 
     @staticmethod
     def _ended(worker, what: str) -> None:

@@ -66,14 +66,11 @@ def cmd_diagnose(args) -> int:
 
 def _design_summary(folder) -> dict:
     """``designed_for`` and the sentences of ``folder``'s design.json (:meth:`DiagnosisSession.design`)."""
-    from BreastBiomechLib.discrepancy.design import Design
-    from BreastBiomechLib.discrepancy.session import DESIGN_FILE
-
-    from BreastBiomechLib.discrepancy.report import not_designed
+    from BreastBiomechLib.discrepancy.design_record import DESIGN_FILE, design_sentences
 
     record = json.loads((folder / DESIGN_FILE).read_text())
-    sentences = Design.from_dict(record).sentences() if record["designed_for"] else [not_designed(record)]
-    return {"undecided": record.get("undecided", []), "designed_for": record["designed_for"], "sentences": sentences}
+    return {"undecided": record.get("undecided", []), "designed_for": record["designed_for"],
+            "sentences": design_sentences(record)}
 
 
 def _print_design(folder) -> None:

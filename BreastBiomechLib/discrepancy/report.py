@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from BreastBiomechLib.discrepancy.design_record import not_designed, read_design
 from BreastBiomechLib.discrepancy.diagnosis import closest_rivals, inseparable_sentence
 from BreastBiomechLib.discrepancy.verdicts import overall_phrase
 from BreastBiomechLib.io.atomic import write_text_atomically
@@ -177,35 +178,24 @@ def _features_phrase(features: dict) -> str:
     return text
 
 
-def not_designed(record: dict) -> str:
-    """Why a design (design.json's ``record``) simulated nothing."""
-    if record.get("undecided"):
-        return (f"the candidates the round could not tell apart ({', '.join(record['undecided'])}) lie outside the "
-                "effects chosen for this diagnosis: nothing designed (choose them to design for them).")
-    return ("every tested candidate could be told apart with the measured states (none absorbed by the fitted "
-            "parameters, none too small to see within its range): no further acquisition is needed for that.")
-
-
 def _design_section(run) -> list[str]:
     """The next measurement: the design made after the last round (design.json beside the
     report), or where to make it; nothing while the last round waits for a decision."""
-    import json
-
-    from BreastBiomechLib.discrepancy.design import Design
-    from BreastBiomechLib.discrepancy.session import DESIGN_FILE, is_open
+    from BreastBiomechLib.discrepancy.session import is_open
 
     last = run.rounds[-1]
     if is_open(last):
         return []
-    path = Path(run.folder) / DESIGN_FILE
-    record = json.loads(path.read_text()) if path.is_file() else None
-    if record is None or record.get("round") != last["round"]:
+    record = read_design(run.folder, last["round"])
+    if record is None:
         return ["## The next measurement", "",
                 "Not designed after this round: `breastbiomech diagnose ... --resume --design` (or `breastbiomech "
                 "design CASE --fit FIT --diagnosis DIR --out NEW`) simulates further acquisitions from the model and "
                 "says which would tell apart the candidates this round could not.", ""]
     if not record["designed_for"]:
         return ["## The next measurement", "", f"After round {last['round']}: {not_designed(record)}", ""]
+    from BreastBiomechLib.discrepancy.design import Design
+
     return [Design.from_dict(record).markdown()]
 
 

@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from BreastBiomechLib.discrepancy.design_record import DESIGN_FILE, DESIGN_MARKDOWN
 from BreastBiomechLib.discrepancy.diagnosis import Diagnosis, DiagnosisSettings, adopt, diagnose, region_summary
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.fitted import FittedCase, load_fitted_case, recorded_solution
@@ -64,7 +65,6 @@ from BreastBiomechLib.io.atomic import atomic_path, write_text_atomically
 from BreastBiomechLib.io.claims import CLAIM_FILE
 
 FLOOR_FILE = "floor.json"  # the measured model-error floor of the session's features
-DESIGN_FILE, DESIGN_MARKDOWN = "design.json", "design.md"  # the next measurement (DiagnosisSession.design)
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
 
 

@@ -104,9 +104,6 @@ def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noi
 
 def _designed(session) -> bool:
     """Whether the session's folder holds the design made after its last round."""
-    import json
+    from BreastBiomechLib.discrepancy.design_record import read_design
 
-    from BreastBiomechLib.discrepancy.session import DESIGN_FILE
-
-    path = session.out / DESIGN_FILE
-    return path.is_file() and json.loads(path.read_text()).get("round") == session.last["round"]
+    return read_design(session.out, session.last["round"]) is not None

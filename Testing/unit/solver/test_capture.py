@@ -46,21 +46,17 @@ def test_the_collector_is_paused_for_the_capture_and_restored_after(enabled):
 
 
 @pytest.mark.gpu
-def test_garbage_holding_a_graph_is_not_collected_inside_a_capture():
-    wp.init()
-    if not wp.is_cuda_available():
-        pytest.skip("no CUDA device")
-    with wp.ScopedDevice("cuda"):
-        values = wp.zeros(4, dtype=float)
-        for _ in range(3):
-            with graph_capture() as earlier:
-                wp.launch(_add_one, 4, [values])
-            _Cycle(earlier.graph)  # garbage that only the cyclic collector frees
-            del earlier
-            with graph_capture() as capture:
-                [[] for _ in range(10 * gc.get_threshold()[0])]  # tracked containers: would trigger a collection
-                wp.launch(_add_one, 4, [values])
-            wp.capture_launch(capture.graph)
-        wp.synchronize()
-        np.testing.assert_array_equal(values.numpy(), [3.0] * 4)
-        gc.collect()  # the earlier graphs, outside any capture
+def test_garbage_holding_a_graph_is_not_collected_inside_a_capture(cuda):
+    values = wp.zeros(4, dtype=float)
+    for _ in range(3):
+        with graph_capture() as earlier:
+            wp.launch(_add_one, 4, [values])
+        _Cycle(earlier.graph)  # garbage that only the cyclic collector frees
+        del earlier
+        with graph_capture() as capture:
+            [[] for _ in range(10 * gc.get_threshold()[0])]  # tracked containers: would trigger a collection
+            wp.launch(_add_one, 4, [values])
+        wp.capture_launch(capture.graph)
+    wp.synchronize()
+    np.testing.assert_array_equal(values.numpy(), [3.0] * 4)
+    gc.collect()  # the earlier graphs, outside any capture

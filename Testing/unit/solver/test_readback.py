@@ -68,16 +68,12 @@ def test_a_copy_follows_a_smaller_array_of_its_dtype_and_refuses_others():
 
 
 @pytest.mark.gpu
-def test_a_refresh_captured_in_a_graph_copies_at_every_replay():
-    wp.init()
-    if not wp.is_cuda_available():
-        pytest.skip("no CUDA device")
-    with wp.ScopedDevice("cuda"):
-        values = wp.zeros(4, dtype=float)
-        copy = HostCopy(values)
-        with wp.ScopedCapture() as capture:
-            wp.launch(_add_one, 4, [values])
-            copy.refresh()
-        for replays in (1, 2, 3):
-            wp.capture_launch(capture.graph)
-            np.testing.assert_array_equal(copy.read(), np.full(4, float(replays)))
+def test_a_refresh_captured_in_a_graph_copies_at_every_replay(cuda):
+    values = wp.zeros(4, dtype=float)
+    copy = HostCopy(values)
+    with wp.ScopedCapture() as capture:
+        wp.launch(_add_one, 4, [values])
+        copy.refresh()
+    for replays in (1, 2, 3):
+        wp.capture_launch(capture.graph)
+        np.testing.assert_array_equal(copy.read(), np.full(4, float(replays)))
