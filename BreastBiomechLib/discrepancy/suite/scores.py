@@ -7,7 +7,10 @@ round is scored: a case's **final** answer is its last round's ("unconfirmed" wh
 out on a round that added an effect, so that nothing tested the model with it). A case is
 **right** when: null - nothing added and finally "none"; one or two library effects - the rounds
 add exactly those effects and the last then says "none" (a right first round followed by a
-false "unexplained" is wrong: the verdict a user reads is the last); an effect outside the
+false "unexplained" is wrong: the verdict a user reads is the last); a one-scan case hiding the
+chest-wall hold is also right when nothing is added, the last round says "none" and it calls the
+hold not identifiable here, taken up by the muscle's modulus (issue 78's rule: one scan cannot
+tell them apart, a verdict that says so is not a miss); an effect outside the
 library - finally "unexplained discrepancy" with nothing added. Where the right effects were
 added and the last round still says "unexplained", the case counts among the **false
 "unexplained" after the right effect**. Where a hidden effect's true values are known
@@ -18,6 +21,9 @@ records without one, the estimate +- 1.96 sd of the linearised information). Whe
 over the landmarks, mm; against the truth's exact landmarks where the suite gives them, as the
 measured ones carry a localisation error) and the NMI gap closed is (after - before) / (truth -
 before), "truth" the NMI of the image the truth parameters predict (the ceiling of any model).
+Whether the first round's identifiability statements held (named when hidden at or above the
+smallest size it could detect; not named when called not identifiable):
+:mod:`~BreastBiomechLib.discrepancy.suite.identifiability`.
 """
 
 from __future__ import annotations
@@ -26,9 +32,10 @@ import numpy as np
 
 from BreastBiomechLib.discrepancy.effects import NAMES as EFFECT_NAMES
 from BreastBiomechLib.discrepancy.suite.cases import ANATOMIES, HIDDEN_EFFECTS, MISSING, NONE, UNEXPLAINED, SuiteCase
+from BreastBiomechLib.discrepancy.suite.identifiability import calibration, identifiability, told_absorbed_by_muscle
 from BreastBiomechLib.discrepancy.suite.varied import SETTING_BINS, setting_bin
 
-TARGETS = {"right_verdicts": 0.9, "false_alarms": 0.05, "false_unexplained_after_right": 0.05,
+TARGETS = {"named_at_or_above_detectable": 0.8, "named_not_identifiable": 0.2, "right_verdicts": 0.9, "false_alarms": 0.05, "false_unexplained_after_right": 0.05,
            "truth_in_interval": 0.8, "friction_within_0.2": 0.8, "landmark_error_fall": 0.5, "nmi_gap_closed": 0.5,
            "h100_seconds_per_case": 300.0}
 Z95 = 1.96  # the two-sided 95 % normal quantile of an estimate's interval
@@ -102,6 +109,10 @@ def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared:
         correct = final == "unexplained" and not added
     else:
         correct = right_added and final == "none"
+        if case.hidden.expected == ("chest-wall",) and not added and final == "none":
+            # one scan: right when the verdict says the hold is not identifiable here and names
+            # the muscle's modulus as what takes it up (issue 78's rule)
+            correct = told_absorbed_by_muscle(rounds[-1], "chest-wall")
     before = rounds[0]["before"]
     last = next((r["after"] for r in reversed(rounds) if r.get("after")), None)
     out = {"case": case.name, "anatomy": case.anatomy, "hidden": case.hidden.name, "kind": kind,
@@ -109,7 +120,7 @@ def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared:
            "answer": first, "final": final, "rounds": len(rounds), "verdicts": verdicts, "added": added,
            "correct": bool(correct),
            "false_unexplained_after_right": bool(kind in ("single", "two") and right_added and final == "unexplained"),
-           "estimates": estimates(case, rounds),
+           "estimates": estimates(case, rounds), "identifiability": identifiability(case, rounds),
            "landmark_error_before_mm": true_errors.get("before", before.get("landmark_error_mm", {}).get("mean")),
            "measured_landmark_error_before_mm": before.get("landmark_error_mm", {}).get("mean"),
            "nmi_before": before["nmi"], "nmi_truth": truth_nmi,
@@ -168,7 +179,7 @@ def suite_scores(results: list[dict]) -> dict:
         "landmark_error_after_mm": mean("landmark_error_after_mm", named),
         "seconds_per_case": mean("total_seconds", [r | {"total_seconds": sum(r["seconds"].values())} for r in done]),
         "confusion": confusion, "answers": answers, "targets": TARGETS,
-        "by_setting": by_setting(done), "false_naming": false_naming(done),
+        "by_setting": by_setting(done), "false_naming": false_naming(done), "identifiability": calibration(done),
     }
 
 
@@ -243,6 +254,22 @@ def _varied_markdown(scores: dict) -> list[str]:
     return lines
 
 
+def _calibration_rows(scores: dict) -> list[str]:
+    """The identifiability statements' calibration (:mod:`~BreastBiomechLib.discrepancy.suite.identifiability`)
+    as two rows of the headline table."""
+    found = scores.get("identifiability") or {}
+    if not found:
+        return []
+    targets = scores["targets"]
+    rows = []
+    for key, what, sign in (("at_or_above_detectable", "hidden at or above the smallest size the case said it "
+                             "could detect", "≥"), ("not_identifiable", "the case called not identifiable", "≤")):
+        named, cases = found[key]
+        rate = named / cases if cases else None
+        rows.append(f"| effects named, of those {what} | {_rate(rate, cases)} | {sign} {targets['named_' + key]:.0%} |")
+    return rows
+
+
 def scores_markdown(scores: dict, results: list[dict]) -> str:
     """The scores as Markdown: the headline figures against the issue's targets (rates with their
     Wilson 95 % intervals), the confusion matrix (hidden effect x first round's answer: what was named first) and one row per
@@ -268,6 +295,7 @@ def scores_markdown(scores: dict, results: list[dict]) -> str:
              f"≥ {targets['landmark_error_fall']:.0%} |",
              f"| NMI gap to the truth-parameter image closed | {_percent(scores['nmi_gap_closed'])} | "
              f"≥ {targets['nmi_gap_closed']:.0%} |",
+             *_calibration_rows(scores),
              f"| rounds per case (mean) | {rounds} | |",
              f"| wall seconds per case (truth, fit, diagnosis) | {seconds} | ≤ {targets['h100_seconds_per_case']:.0f} on an "
              "H100 |",

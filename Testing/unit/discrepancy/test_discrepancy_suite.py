@@ -371,3 +371,55 @@ def test_only_the_suite_s_scoring_reads_a_hidden_effect_s_truth():
             assert path.name in ("study.py", "case.py"), path
     case_code = (library / "optimisation" / "case.py").read_text()
     assert "read_label_map(labels)" in case_code and "labels or case" not in case_code
+
+
+def _tested(name, absorbed=0.1, detectable=(0.2,), absorbed_by="glandular.E"):
+    return {"name": name, "absorbed": absorbed, "detectable": list(detectable),
+            "absorbed_by": {"name": absorbed_by, "correlation": 0.9}, "skipped": ""}
+
+
+def test_the_identifiability_statements_are_scored_against_the_truth_s_size():
+    def result(hidden, rounds):
+        return case_result(SuiteCase(1, HIDDEN_EFFECTS[hidden]), rounds, 1.3, {}, {"fit": 10.0})
+
+    # friction 0.6 hidden: seen from 0.2 on and named; seen only from 0.9 on and not named
+    named = _round("missing effect", "friction", "friction", after=(0.8, 1.26), refit={"refined_values": [0.5]})
+    named["diagnosis"]["candidates"] = [_tested("friction", detectable=(0.2,)) | {"refit": {}}]
+    small = _round("no significant discrepancy")
+    small["diagnosis"]["candidates"] = [_tested("friction", detectable=(0.9,))]
+    beyond = _round("no significant discrepancy")  # detectable only past the range's end (1.5): not identifiable
+    beyond["diagnosis"]["candidates"] = [_tested("friction", detectable=(2.1,))]
+    seen = result("friction", [named, _round("no significant discrepancy")])
+    missed = result("friction", [small])
+    hopeless = result("friction", [beyond])
+    assert seen["identifiability"]["friction"] == {"size": 0.6, "detectable": 0.2, "absorbed": 0.1,
+                                                   "not_identifiable": False, "at_or_above_detectable": True,
+                                                   "named": True}
+    assert not missed["identifiability"]["friction"]["at_or_above_detectable"]
+    assert not missed["identifiability"]["friction"]["not_identifiable"]
+    assert hopeless["identifiability"]["friction"]["not_identifiable"]
+    # the skin's size in the candidate's units: 100 kPa over 2 mm on 10 kPa fat is ln 10
+    skin = _round("no significant discrepancy")
+    skin["diagnosis"]["candidates"] = [_tested("skin", detectable=(3.0,))]
+    thin = result("skin", [skin])["identifiability"]["skin"]
+    assert thin["size"] == pytest.approx(np.log(10.0)) and not thin["at_or_above_detectable"]
+    # a one-scan chest-wall case: right when the last round says the muscle takes the hold up
+    hold = _round("no significant discrepancy")
+    hold["diagnosis"]["candidates"] = [_tested("chest-wall", absorbed=0.85, detectable=(0.5,), absorbed_by="muscle.E")]
+    other = _round("no significant discrepancy")
+    other["diagnosis"]["candidates"] = [_tested("chest-wall", absorbed=0.85, absorbed_by="glandular.E")]
+    seen_low = _round("no significant discrepancy")
+    seen_low["diagnosis"]["candidates"] = [_tested("chest-wall", absorbed=0.3, detectable=(0.5,))]
+    told, wrong_parameter, plainly_missed = (result("chest-wall", [r]) for r in (hold, other, seen_low))
+    assert [told["correct"], wrong_parameter["correct"], plainly_missed["correct"]] == [True, False, False]
+    assert told["identifiability"]["chest-wall"]["not_identifiable"]
+    assert told["identifiability"]["chest-wall"]["size"] == pytest.approx(3400.0 / 3740.0)
+    assert plainly_missed["identifiability"]["chest-wall"]["at_or_above_detectable"]  # h 0.91 >= 0.5
+    scores = suite_scores([seen, missed, hopeless, told, wrong_parameter, plainly_missed])
+    calibration = scores["identifiability"]
+    assert calibration["at_or_above_detectable"] == [1, 2]   # friction seen and named; the hold missed
+    assert calibration["not_identifiable"] == [0, 3]        # friction past its range, the hold twice
+    assert calibration["by_effect"]["friction"] == {"at_or_above_detectable": [1, 1], "not_identifiable": [0, 1]}
+    text = scores_markdown(scores, [seen, missed])
+    assert "| effects named, of those hidden at or above the smallest size the case said it could detect | 50% of 2" in text
+    assert "| effects named, of those the case called not identifiable | 0% of 3" in text
