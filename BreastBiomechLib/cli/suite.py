@@ -4,6 +4,7 @@ workflow (:mod:`BreastBiomechLib.discrepancy.suite`), resumable, its cases as co
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 from BreastBiomechLib.cli.common import (add_cluster_options, cohort_progress, device_argument, fraction, non_negative,
@@ -19,8 +20,10 @@ def cmd_suite(args) -> int:
     out = Path(args.out)
     if args.varied:
         cases = varied_cases(args.varied, args.varied_seed, args.anatomies or VARIED_ANATOMIES, args.hidden)
+        if args.two_state:
+            cases = [replace(c, states=2) for c in cases]
     else:
-        cases = suite_cases(args.anatomies or ANATOMIES, args.hidden)
+        cases = suite_cases(args.anatomies or ANATOMIES, args.hidden, states=2 if args.two_state else 1)
     settings = SuiteSettings(compression=args.compression,
                              spacing_mm=None if args.spacing is None else tuple(args.spacing),
                              truth_edge_mm=args.truth_edge_mm, fit_edge_mm=args.fit_edge_mm,
@@ -72,6 +75,9 @@ def add_parsers(sub) -> None:
                    help="the varied suite's first N cases instead: each draws its anatomy, compression, rig, "
                         "landmark noise, fit budget, fitting and truth mesh sizes and its effect's size (a third "
                         "null cases); the options below are then the run's defaults, which the draws replace")
+    p.add_argument("--two-state", action="store_true",
+                   help="each case also with a second scan: the one the design step recommends after the one-scan "
+                        "diagnosis, made from the truth, then both scans fitted and diagnosed jointly (issue 78)")
     p.add_argument("--varied-seed", type=non_negative_int, default=0, help="the varied suite's draws (default 0)")
     p.add_argument("--compression", type=fraction, default=d.compression,
                    help=f"fraction of the breast thickness the plates close (default {d.compression})")

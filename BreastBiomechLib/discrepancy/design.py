@@ -223,6 +223,20 @@ class Design:
         return Design([r for r in self.effects if r["effect"] in names], self.acquisitions, self.failed, self.alpha,
                       self.noise, self.model)
 
+    def choice(self) -> str | None:
+        """The one acquisition this design recommends: the simulated acquisition that tells the
+        most of its candidates apart (separation at least the detectable one) among those not told
+        apart already, ties broken by the larger sum of their separations; None where none was
+        simulated."""
+        open_ = [r for r in self.effects if not r.get("skipped") and r["now_sigma"] < r["detectable_sigma"]]
+        scored = []
+        for a in self.acquisitions:
+            seen = [next((x["separation_sigma"] for x in r["acquisitions"] if x["name"] == a["name"]), 0.0)
+                    for r in open_]
+            told = sum(s >= r["detectable_sigma"] for s, r in zip(seen, open_))
+            scored.append((told, sum(seen), a["name"]))
+        return max(scored)[2] if scored else None
+
     def markdown(self) -> str:
         """The design as a report section: the sentences, then every candidate's separation
         (sigma) now and with each acquisition."""

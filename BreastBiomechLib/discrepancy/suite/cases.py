@@ -87,19 +87,26 @@ class SuiteCase:
     (:mod:`~BreastBiomechLib.discrepancy.suite.varied`) has its ``index`` in the run of seed
     ``varied_seed`` and the settings it drew (``draw``: (name, value) pairs of
     :class:`~BreastBiomechLib.discrepancy.suite.runner.SuiteSettings` fields); a fixed suite's
-    case has index -1 and draws nothing."""
+    case has index -1 and draws nothing. ``states``: 1, the case as one scan; 2, also a second
+    scan chosen by the design step from the one-scan diagnosis, then both fitted and diagnosed
+    jointly (:mod:`~BreastBiomechLib.discrepancy.suite.two_state`)."""
 
     anatomy: int
     hidden: HiddenEffect
     index: int = -1
     varied_seed: int = 0
     draw: tuple = ()
+    states: int = 1
+
+    def __post_init__(self) -> None:
+        if self.states not in (1, 2):
+            raise ValueError(f"a suite case has one or two measured states, not {self.states}")
 
     @property
     def name(self) -> str:
-        if self.index >= 0:
-            return f"varied{self.varied_seed}-{self.index:03d}-anatomy{self.anatomy}-{self.hidden.name}"
-        return f"anatomy{self.anatomy}-{self.hidden.name}"
+        name = (f"varied{self.varied_seed}-{self.index:03d}-anatomy{self.anatomy}-{self.hidden.name}"
+                if self.index >= 0 else f"anatomy{self.anatomy}-{self.hidden.name}")
+        return name + ("-two-state" if self.states == 2 else "")
 
     @property
     def seed(self) -> int:
@@ -114,10 +121,10 @@ class SuiteCase:
         return dict(self.draw)
 
 
-def suite_cases(anatomies=ANATOMIES, effects=None) -> list[SuiteCase]:
+def suite_cases(anatomies=ANATOMIES, effects=None, states: int = 1) -> list[SuiteCase]:
     """The cases of ``anatomies`` (Table 1 numbers) x ``effects`` (names of :data:`HIDDEN_EFFECTS`,
     default all), hidden effect by hidden effect (so that workers running side by side start on
-    different anatomies)."""
+    different anatomies), each of ``states`` measured states (:attr:`SuiteCase.states`)."""
     names = list(HIDDEN_EFFECTS) if effects is None else list(effects)
     unknown = sorted(set(names) - set(HIDDEN_EFFECTS))
     if unknown:
@@ -125,4 +132,4 @@ def suite_cases(anatomies=ANATOMIES, effects=None) -> list[SuiteCase]:
     bad = sorted(set(anatomies) - set(ANATOMIES))
     if bad:
         raise ValueError(f"anatomies {bad}: the suite's anatomies are the Table 1 presets {list(ANATOMIES)} (6-11: the varied suite's)")
-    return [SuiteCase(a, HIDDEN_EFFECTS[n]) for n in names for a in anatomies]
+    return [SuiteCase(a, HIDDEN_EFFECTS[n], states=states) for n in names for a in anatomies]

@@ -45,6 +45,7 @@ from BreastBiomechLib.discrepancy.suite.scores import case_result
 from BreastBiomechLib.discrepancy.suite.varied import anatomy_parameters
 from BreastBiomechLib.discrepancy.variants import solve_variants
 from BreastBiomechLib.io.atomic import write_json_atomically
+from BreastBiomechLib.io.case_layout import STATES
 from BreastBiomechLib.io.claims import holder_of, is_stale
 from BreastBiomechLib.io.markups import read_markups
 from BreastBiomechLib.landmarks import Landmarks, map_landmarks
@@ -257,11 +258,14 @@ def hidden_truth(case: SuiteCase, settings: SuiteSettings) -> dict:
     return truth
 
 
-def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, seed: int = 0) -> Path:
+def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, seed: int = 0,
+                  states: bool = False) -> Path:
     """Copy of the compressed case in ``case_dir`` holding only :data:`MEASURED_FILES` (what a
     clinic would have: no labels, no truth), in ``into``; its landmarks (undeformed and
     compressed) moved by a localisation error drawn from N(0, ``landmark_noise_mm``²) per
-    coordinate (mm; random numbers from ``seed``)."""
+    coordinate (mm; random numbers from ``seed``). ``states``: also each further state's scan,
+    landmarks and plates (``states/<name>/``), their landmarks' errors drawn after the first
+    state's (which are the same as without the states)."""
     from BreastBiomechLib.io.markups import read_markups, write_markups
 
     if landmark_noise_mm < 0:
@@ -269,7 +273,13 @@ def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, se
     if into.exists():
         shutil.rmtree(into)
     rng = np.random.default_rng(seed)
-    for name in MEASURED_FILES:
+    names = list(MEASURED_FILES)
+    if states:
+        from BreastBiomechLib.io.case_layout import STATE_LANDMARKS, STATE_MR, STATE_PLATES, CaseLayout
+
+        names += [f"{STATES}/{state}/{file}" for state in CaseLayout(case_dir).state_names()
+                  for file in (STATE_MR, STATE_LANDMARKS, STATE_PLATES)]
+    for name in names:
         source = case_dir / name
         if not source.is_file():
             continue
@@ -278,20 +288,22 @@ def measured_copy(case_dir: Path, into: Path, landmark_noise_mm: float = 0.0, se
             exact = read_markups(source)
             marked = exact.positions + landmark_noise_mm * rng.standard_normal(exact.positions.shape)
             write_markups(into / name, Landmarks(marked, exact.labels, exact.descriptions),
-                          name="Compressed landmarks" if name.startswith("compressed/") else "Landmarks")
+                          name="Landmarks" if name == "landmarks.mrk.json" else "Compressed landmarks")
         else:
             shutil.copy2(source, into / name)
     return into
 
 
-def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device=None) -> tuple[float, dict]:
+def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device=None,
+                         measured: Path | None = None) -> tuple[float, dict]:
     """For scoring only (it reads the case's truth folder, after the diagnosis has answered):
     the NMI against the measured image of the image the truth parameters predict (the undeformed
     MR warped through the truth mesh's displacement: the ceiling of any fit, measured as the fit
     measures its own), and the mean landmark error (mm) of the fitted model before the first
     round and after the last refit against the truth's exact landmarks ({"before", "after"}: the
     exact undeformed landmarks moved by each model's displacement against the exact compressed
-    ones; the measured landmarks carry a localisation error that would floor the figure)."""
+    ones; the measured landmarks carry a localisation error that would floor the figure), all of
+    the first state; ``measured`` the case copy the fit read (default ``folder``/measured)."""
     from BreastBiomechLib.discrepancy.fitted import load_fitted_case
     from BreastBiomechLib.discrepancy.session import state_from_record
     from BreastBiomechLib.discrepancy.state import ModelState
@@ -299,10 +311,11 @@ def scored_against_truth(folder: Path, fit_dir: Path, rounds: list[dict], device
     from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.warping import ImageWarper
 
-    fitted = load_fitted_case(folder / "measured", fit_dir, device=device)
+    measured = measured or folder / "measured"
+    fitted = load_fitted_case(measured, fit_dir, device=device)
     truth = read_vtu(folder / "truth" / "compressed" / "truth_mesh.vtu")
-    warper = ImageWarper(truth, read_image(folder / "measured" / "mr.nrrd"),
-                         read_image(folder / "measured" / "compressed" / "mr.nrrd"), device=device)
+    warper = ImageWarper(truth, read_image(measured / "mr.nrrd"), read_image(measured / "compressed" / "mr.nrrd"),
+                         device=device)
     ceiling = float(fitted.problem.similarity.nmi(warper.warp(truth.point_data["displacement"])))
 
     reference = read_markups(folder / "truth" / "landmarks.mrk.json")
@@ -348,9 +361,7 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
 def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, device, say) -> dict:
     """The body of :func:`run_case` (under the case's lock): what is missing of the case's truth,
     measured copy, fit and diagnosis made, then scored against the truth."""
-    from BreastBiomechLib.discrepancy.workflow import run_diagnosis
     from BreastBiomechLib.io.meshes import read_vtu
-    from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
     from BreastBiomechLib.phantom.compressed import TruthModel, compress_phantom
     from BreastBiomechLib.phantom.compressed_files import write_compressed
     from BreastBiomechLib.phantom.files import read_phantom
@@ -379,19 +390,48 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
     measured = folder / "measured"
     if not (measured / "compressed" / "plates.json").is_file():
         measured_copy(truth_dir, measured, settings.landmark_noise_mm, case.seed)
-    fit_dir = folder / "fit"
+    fitting_mesh = anatomy_mesh(anatomy, "fitting", settings, run_settings)
+    fit_dir, diagnosis_dir = folder / "fit", folder / "diagnosis"
+    rounds = _fit_and_diagnose(case, measured, fit_dir, diagnosis_dir, fitting_mesh, settings, device, say, seconds,
+                               design=case.states == 2)
+    say(f"{case.name}: scoring against the truth")
+    ceiling, true_errors = scored_against_truth(folder, fit_dir, rounds, device)
+    one = case_result(replace(case, states=1), rounds, ceiling, prepared, seconds, true_errors,
+                      truth_parameters=case.hidden.truth)
+    if case.states == 1:
+        return one
+    second = _second_state(case, folder, diagnosis_dir, rounds[-1]["round"], settings, device, say, seconds)
+    measured = folder / "measured-two-state"
+    if not (measured / STATES / second["acquisition"] / "plates.json").is_file():
+        measured_copy(truth_dir, measured, settings.landmark_noise_mm, case.seed, states=True)
+    fit_dir, diagnosis_dir = folder / "fit-two-state", folder / "diagnosis-two-state"
+    rounds = _fit_and_diagnose(case, measured, fit_dir, diagnosis_dir, fitting_mesh, settings, device, say, seconds,
+                               stage="two-state ")
+    ceiling, true_errors = scored_against_truth(folder, fit_dir, rounds, device, measured=measured)
+    return {**case_result(case, rounds, ceiling, prepared, seconds, true_errors, truth_parameters=case.hidden.truth),
+            "one_state": one, "second_state": second}
+
+
+def _fit_and_diagnose(case: SuiteCase, measured: Path, fit_dir: Path, diagnosis_dir: Path, fitting_mesh: Path,
+                      settings: SuiteSettings, device, say, seconds: dict, design: bool = False,
+                      stage: str = "") -> list[dict]:
+    """The material fit of the measured copy ``measured`` (every state it holds, jointly) and its
+    diagnosis (with ``design``: then the next measurement designed from it); returns the rounds.
+    Each is skipped where its output exists (the diagnosis resumes)."""
+    from BreastBiomechLib.discrepancy.acquisitions import KINDS
+    from BreastBiomechLib.discrepancy.workflow import run_diagnosis
+    from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
+
     if not (fit_dir / "result.json").is_file():
-        say(f"{case.name}: material fit ({settings.fit_budget} solves)")
+        say(f"{case.name}: {stage}material fit ({settings.fit_budget} solves)")
         t = time.perf_counter()
         if fit_dir.exists():
             shutil.rmtree(fit_dir)
         fit = FitSettings(model="iso-hetero", free=("E",), edge_mm=settings.fit_edge_mm, optimiser="cmaes",
                           budget=settings.fit_budget, population=settings.fit_population)
-        fit_compressed_case(measured, fit_dir, fit, mesh_path=anatomy_mesh(anatomy, "fitting", settings, run_settings),
-                            device=device)
-        seconds["fit"] = time.perf_counter() - t
-    diagnosis_dir = folder / "diagnosis"
-    say(f"{case.name}: diagnosis")
+        fit_compressed_case(measured, fit_dir, fit, mesh_path=fitting_mesh, device=device)
+        seconds[f"{stage}fit".replace(" ", "_")] = time.perf_counter() - t
+    say(f"{case.name}: {stage}diagnosis")
     t = time.perf_counter()
     # no residual displacement fields: they are evidence for a person, not part of the verdict the
     # suite scores, and 45 cases' registrations would cost more than their diagnoses
@@ -399,11 +439,62 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
     run = run_diagnosis(measured, fit_dir, diagnosis_dir, effects=settings.effects, rounds=settings.rounds,
                         noise=NoiseModel(landmark_sd_mm=settings.landmark_noise_mm),
                         device=device, resume=diagnosis_dir.exists(), registration=None,
-                        progress=lambda message: say(f"{case.name}: {message}"))
-    seconds["diagnosis"] = time.perf_counter() - t
-    say(f"{case.name}: scoring against the truth")
-    ceiling, true_errors = scored_against_truth(folder, fit_dir, run.rounds, device)
-    return case_result(case, run.rounds, ceiling, prepared, seconds, true_errors, truth_parameters=case.hidden.truth)
+                        design=KINDS if design else None, progress=lambda message: say(f"{case.name}: {message}"))
+    seconds[f"{stage}diagnosis".replace(" ", "_")] = time.perf_counter() - t
+    return run.rounds
+
+
+def _second_state(case: SuiteCase, folder: Path, diagnosis_dir: Path, last_round: int, settings: SuiteSettings,
+                  device, say, seconds: dict) -> dict:
+    """The second scan of a two-state case: the acquisition the design made after the one-scan
+    diagnosis recommends (over the whole library where that design had nothing undecided to
+    design for), made as a further state of the truth. Returns {"acquisition", "description",
+    "designed_for", "predicted_sigma" (each designed-for effect's separation from its rival with
+    it), "needed_sigma"}."""
+    from BreastBiomechLib.discrepancy.design_record import read_design
+    from BreastBiomechLib.discrepancy.suite.two_state import designed_acquisition, state_spec
+    from BreastBiomechLib.io.case_layout import CaseLayout
+    from BreastBiomechLib.phantom.states import add_states
+
+    record = read_design(diagnosis_dir, last_round)
+    if record is None:
+        raise RuntimeError(f"{diagnosis_dir}: the one-scan diagnosis made no design after round {last_round}")
+    if not record["designed_for"]:
+        record = _library_design(case, folder, diagnosis_dir, settings, device, say)
+    acquisition = designed_acquisition(record)
+    spec = state_spec(acquisition, settings.compression)
+    truth_dir = folder / "truth"
+    if spec.name not in CaseLayout(truth_dir).state_names():
+        say(f"{case.name}: truth of the second scan ({acquisition['description']})")
+        t = time.perf_counter()
+        add_states(truth_dir, [spec], device=device, overview=False)
+        seconds["second_truth"] = time.perf_counter() - t
+    predicted = {r["effect"]: next((a["separation_sigma"] for a in r["acquisitions"] if a["name"] == spec.name), None)
+                 for r in record["effects"] if not r.get("skipped")}
+    return {"acquisition": spec.name, "description": acquisition["description"],
+            "designed_for": record["designed_for"], "predicted_sigma": predicted,
+            "needed_sigma": next((r["detectable_sigma"] for r in record["effects"]), None)}
+
+
+def _library_design(case: SuiteCase, folder: Path, diagnosis_dir: Path, settings: SuiteSettings, device, say) -> dict:
+    """The next measurement designed for every candidate of the library from the one-scan
+    diagnosis's last model (where its rounds told every candidate apart), kept as
+    design-library.json in the case's folder."""
+    from BreastBiomechLib.discrepancy.acquisitions import KINDS
+    from BreastBiomechLib.discrepancy.design import design, last_round_state
+    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
+
+    path = folder / "design-library.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    say(f"{case.name}: designing the second scan over the whole library")
+    fitted = load_fitted_case(folder / "measured", folder / "fit", device=device)
+    state = last_round_state(fitted, diagnosis_dir)
+    made = design(fitted, settings.effects, KINDS, noise=NoiseModel(landmark_sd_mm=settings.landmark_noise_mm),
+                  state=state, progress=lambda message: say(f"{case.name}: {message}"))
+    record = {"undecided": [], "designed_for": [r["effect"] for r in made.effects], **made.to_dict()}
+    write_json(path, record)
+    return record
 
 
 def suite_tasks(out: Path, cases: list[SuiteCase], settings: SuiteSettings) -> list:

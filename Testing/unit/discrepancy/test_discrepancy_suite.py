@@ -268,10 +268,21 @@ def test_the_runner_hands_the_fit_and_the_diagnosis_only_the_measured_copy():
         case = call.args[0]
         text = ast.unparse(case)
         assert text in ("measured", "case_dir / 'measured'", "folder / 'measured'"), f"{call.func.id} reads {text}"
-    # the truth is read for scoring only after the diagnosis has answered
-    run_case = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "_make_fit_and_diagnose")
-    lines = {n.func.id: n.lineno for n in ast.walk(run_case) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
-    assert lines["fit_compressed_case"] < lines["run_diagnosis"] < lines["scored_against_truth"]
+    def calls_in(function):
+        body = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == function)
+        return sorted((n.lineno, n.func.id, n) for n in ast.walk(body)
+                      if isinstance(n, ast.Call) and isinstance(n.func, ast.Name))
+
+    lines = {name: line for line, name, _ in calls_in("_fit_and_diagnose")}
+    assert lines["fit_compressed_case"] < lines["run_diagnosis"]
+    # each fit and diagnosis (one scan; with two, the second) of the measured copy, and the truth
+    # read for scoring only after the diagnosis has answered
+    order = [(name, ast.unparse(call.args[0])) for _, name, call in calls_in("_make_fit_and_diagnose")
+             if name in ("_fit_and_diagnose", "scored_against_truth")]
+    assert order == [("_fit_and_diagnose", "case"), ("scored_against_truth", "folder"), ("_fit_and_diagnose", "case"),
+                     ("scored_against_truth", "folder")]
+    fits = [call for _, name, call in calls_in("_make_fit_and_diagnose") if name == "_fit_and_diagnose"]
+    assert [ast.unparse(call.args[1]) for call in fits] == ["measured", "measured"]
     # every fitting mesh, the prepared one and a varied case's own size, is made of the segmentation
     fitting = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
                and n.func.id == "_fitting_mesh"]
@@ -423,3 +434,76 @@ def test_the_identifiability_statements_are_scored_against_the_truth_s_size():
     text = scores_markdown(scores, [seen, missed])
     assert "| effects named, of those hidden at or above the smallest size the case said it could detect | 50% of 2" in text
     assert "| effects named, of those the case called not identifiable | 0% of 3" in text
+
+
+def test_a_two_state_case_s_copy_holds_its_further_scan_and_the_first_scan_unchanged(two_state_case, tmp_path):
+    from BreastBiomechLib.io.markups import read_markups
+
+    one = measured_copy(two_state_case, tmp_path / "one", landmark_noise_mm=0.5, seed=3)
+    both = measured_copy(two_state_case, tmp_path / "both", landmark_noise_mm=0.5, seed=3, states=True)
+    held = {str(p.relative_to(both)) for p in both.rglob("*") if p.is_file()}
+    assert not (one / "states").exists()
+    assert held == {str(p.relative_to(one)) for p in one.rglob("*") if p.is_file()} | {
+        "states/lateral/mr.nrrd", "states/lateral/landmarks.mrk.json", "states/lateral/plates.json"}
+    assert not any("truth" in name or "force" in name for name in held)  # the force only where a case is told of it
+    for name in ("landmarks.mrk.json", "compressed/landmarks.mrk.json"):  # the first scan's errors as without it
+        np.testing.assert_array_equal(read_markups(one / name).positions, read_markups(both / name).positions)
+    exact = read_markups(two_state_case / "states" / "lateral" / "landmarks.mrk.json").positions
+    moved = read_markups(both / "states" / "lateral" / "landmarks.mrk.json").positions - exact
+    assert 0.2 < moved.std() < 0.8
+
+
+def test_a_design_s_acquisition_becomes_the_phantom_state_that_makes_it():
+    from BreastBiomechLib.discrepancy.suite.two_state import designed_acquisition, state_spec
+
+    planes = [{"name": "left"}, {"name": "right"}]
+    assert state_spec({"name": "compression+10", "planes": planes}, 0.25).compression == pytest.approx(0.35)
+    assert state_spec({"name": "compression-20", "planes": planes}, 0.4).compression == pytest.approx(0.2)
+    lateral = state_spec({"name": "only-right", "planes": planes}, 0.25)
+    assert (lateral.name, lateral.moving_plate, lateral.compression) == ("only-right", "second", None)
+    assert state_spec({"name": "only-left", "planes": planes}, 0.25).moving_plate == "first"
+    assert state_spec({"name": "rotated-SI", "planes": planes}, 0.25).axis == "SI"
+    with pytest.raises(ValueError, match="no plate 'top'"):
+        state_spec({"name": "only-top", "planes": planes}, 0.25)
+    with pytest.raises(ValueError, match="not this one"):
+        state_spec({"name": "posture-prone", "planes": planes}, 0.25)
+    # the design's choice: the acquisition that tells most of the open candidates apart
+    acquisitions = [{"name": n, "description": n, "planes": planes} for n in ("compression+10", "only-right")]
+
+    def effect(name, now, seen):
+        return {"effect": name, "title": name, "now_sigma": now, "detectable_sigma": 3.4,
+                "acquisitions": [{"name": k, "separation_sigma": v} for k, v in seen.items()]}
+
+    record = {"effects": [effect("chest-wall", 0.8, {"compression+10": 1.0, "only-right": 4.5}),
+                          effect("skin", 0.5, {"compression+10": 3.6, "only-right": 3.5}),
+                          effect("friction", 9.0, {"compression+10": 20.0, "only-right": 9.0})],  # told apart now
+              "acquisitions": acquisitions, "failed": {}, "alpha": 0.01, "noise": {}}
+    assert designed_acquisition(record)["name"] == "only-right"  # both open ones told apart; the compression one
+    record["effects"][0]["acquisitions"][0]["separation_sigma"] = 3.0  # chest wall: 3.0 and 2.0, neither told
+    record["effects"][0]["acquisitions"][1]["separation_sigma"] = 2.0
+    assert designed_acquisition(record)["name"] == "compression+10"  # one each: the larger sum (6.6 against 5.5)
+    with pytest.raises(RuntimeError, match="no acquisition"):
+        designed_acquisition({**record, "acquisitions": [], "failed": {"only-right": "inverted"}})
+
+
+def test_two_state_cases_are_named_by_their_second_scan_and_scored_against_their_first():
+    hold = _round("no significant discrepancy")
+    hold["diagnosis"]["candidates"] = [_tested("chest-wall", absorbed=0.85, absorbed_by="muscle.E")]
+    named = _round("missing effect", "chest-wall", "chest-wall", after=(0.3, 1.27))
+    one_scan = case_result(SuiteCase(1, HIDDEN_EFFECTS["chest-wall"]), [hold], 1.3, {}, {})
+    still_absorbed = case_result(SuiteCase(1, HIDDEN_EFFECTS["chest-wall"], states=2), [hold], 1.3, {}, {})
+    told = case_result(SuiteCase(1, HIDDEN_EFFECTS["chest-wall"], states=2), [named, _round("no significant discrepancy")],
+                       1.3, {}, {})
+    assert one_scan["correct"] and not still_absorbed["correct"] and told["correct"]  # two scans: only naming it
+    assert SuiteCase(1, HIDDEN_EFFECTS["chest-wall"], states=2).name == "anatomy1-chest-wall-two-state"
+    with pytest.raises(ValueError, match="one or two"):
+        SuiteCase(1, HIDDEN_EFFECTS["null"], states=3)
+    null = case_result(SuiteCase(2, HIDDEN_EFFECTS["null"], states=2), [_round("no significant discrepancy")], 1.3, {}, {})
+    results = [told | {"one_state": one_scan | {"correct": False}, "second_state": {"acquisition": "only-right"}},
+               still_absorbed | {"one_state": one_scan, "second_state": {"acquisition": "only-right"}},
+               null | {"one_state": null, "second_state": {"acquisition": "compression+10"}}]
+    scores = suite_scores(results)
+    assert scores["scans"] == {"one": [1, 2], "two": [1, 2], "null_one": [0, 1], "null_two": [0, 1],
+                               "acquisitions": {"only-right": 2, "compression+10": 1}}
+    text = scores_markdown(scores, results)
+    assert "| the same cases with the designed second scan (compression+10 1, only-right 2) | 50% of 2" in text
