@@ -21,7 +21,6 @@ import math
 from dataclasses import fields
 
 from BreastBiomechLib.discrepancy import effects
-from BreastBiomechLib.discrepancy.diagnosis import ABSORBED, Candidate, beyond_range
 from BreastBiomechLib.discrepancy.suite.cases import HiddenEffect, SuiteCase
 
 
@@ -62,6 +61,8 @@ def not_identifiable(candidate: dict, name: str) -> bool:
     """Whether a round said of ``candidate`` (a round record's candidate) that this case could not
     have shown it: at least :data:`ABSORBED` of its signature absorbed by the fitted parameters,
     or a parameter's smallest detectable size past both ends of its range (or none)."""
+    from BreastBiomechLib.discrepancy.diagnosis import ABSORBED, Candidate, beyond_range  # SimpleITK, SciPy
+
     if candidate.get("absorbed", float("nan")) >= ABSORBED:
         return True
     detectable = candidate.get("detectable") or []
@@ -100,6 +101,8 @@ def told_absorbed_by_muscle(record: dict, name: str) -> bool:
     """Whether round ``record`` said candidate ``name`` is not identifiable here because the
     fitted pectoral muscle's parameters take it up (issue 78's rule for a one-scan chest-wall
     case: right when the verdict says so)."""
+    from BreastBiomechLib.discrepancy.diagnosis import ABSORBED
+
     candidate = _candidate(record, name)
     return (candidate is not None and candidate.get("absorbed", float("nan")) >= ABSORBED
             and str((candidate.get("absorbed_by") or {}).get("name", "")).startswith("muscle."))
