@@ -235,14 +235,32 @@ def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
 
 
+def _ends_touching(plate: Plate, contacts: np.ndarray) -> bool:
+    """Whether ``plate`` in its final pose (``point + displacement``) reaches no further than the
+    undeformed ``contacts`` (N, 3) mm, to :data:`TOUCH_TOLERANCE_MM`: a held plate, onto which the
+    other plate pushes the breast (it may have travelled to get there)."""
+    gaps = Plate(plate.point + plate.displacement, plate.normal, np.zeros(3), [], plate.name, plate.edge).gaps(contacts)
+    gaps = gaps[np.isfinite(gaps)]
+    return len(gaps) > 0 and float(gaps.min()) >= -TOUCH_TOLERANCE_MM
+
+
+def _turned_away(contacts: np.ndarray, final: np.ndarray, old_normal: np.ndarray, new_normal: np.ndarray) -> float:
+    """How far (mm) turning a plate's plane about its point ``final`` from ``old_normal`` to
+    ``new_normal`` moved it at the farthest of the ``contacts`` (N, 3) mm."""
+    return float(np.abs((contacts - final) @ (new_normal - old_normal)).max())
+
+
 def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_mm: float = 0.0) -> Plate:
     """``plate`` with its final pose changed: turned by ``tilt_deg`` (two angles, degrees, about
     :func:`tilt_axes`, right-handed) about its final point (``point + displacement``) and moved
     ``offset_mm`` along its new normal (> 0: further into the tissue). It starts where it just
     touches the first of its contact nodes (``slave_nodes`` of the mesh nodes ``nodes_mm``, LPS
     mm) and travels along its new normal to the final pose (plus the turned in-plane part of
-    its old travel, if any). Edge, friction, name and contact nodes are kept (the edge turned with
-    the plate). The pose a fit or a hidden-effect phantom gives a plate: paddles tilt by
+    its old travel, if any). A held plate (its final pose just touches the undeformed tissue) that
+    the turn lifts off that tissue ends at its turned final pose without travel: the other plate
+    pushes the breast onto it; a stand-off larger than the turn itself made, or with an offset
+    away from the tissue (another frame, a wrong offset), is refused.
+    Edge, friction, name and contact nodes are kept (the edge turned with the plate). The pose a fit or a hidden-effect phantom gives a plate: paddles tilt by
     0.04-0.7 degrees."""
     tilt = np.asarray(tilt_deg, float).reshape(-1)
     if tilt.shape != (2,) or not np.all(np.isfinite(tilt)) or not np.isfinite(offset_mm):
@@ -270,6 +288,12 @@ def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_
         raise ValueError(f"plate {plate.name!r}: none of its contact nodes is within its reach")
     travel = -float(gaps.min())
     if -TOUCH_TOLERANCE_MM <= travel < 0:  # a held plate placed onto the tissue, to rounding
+        travel = 0.0
+    if travel < 0 and offset_mm >= 0 and _ends_touching(plate, contacts) \
+            and -travel <= _turned_away(contacts, final, plate.normal, normal) + TOUCH_TOLERANCE_MM:
+        # a held plate (its final pose just touches the undeformed tissue) turned about its final
+        # point off that tissue by no more than the turn moved its plane there: it ends there
+        # without travel, and the other plate pushes the breast onto it
         travel = 0.0
     if travel < 0:
         raise ValueError(f"plate {plate.name!r}: in that pose it ends {-travel:.2f} mm short of the tissue and would "

@@ -154,3 +154,25 @@ def test_niftysim_and_the_static_reference_refuse_friction(tmp_path):
         write_niftysim(tmp_path / "model.xml", model)
     with pytest.raises(ValueError, match="frictionless"):
         solve_static(model)
+
+
+def test_a_held_plate_turned_off_a_curved_breast_stays_put_for_the_other_plate_to_push_onto():
+    from BreastBiomechLib.solver.placement import posed_plate
+
+    # a dome: the held plate above it touches its top node only, its point 30 mm to the side
+    mesh = box_mesh((40.0, 40.0, 10.0), (8, 8, 2))
+    nodes = mesh.nodes.copy()
+    r2 = (nodes[:, 0] - 20.0) ** 2 + (nodes[:, 1] - 20.0) ** 2
+    nodes[:, 2] += 5.0 * np.exp(-r2 / 200.0) * (nodes[:, 2] > 9.0)
+    top = np.flatnonzero(nodes[:, 2] > 9.0)
+    held = Plate([50.0, 20.0, nodes[top, 2].max()], [0, 0, -1], [0, 0, 0], top, "held")
+    assert abs(held.gaps(nodes[top]).min()) < 1e-9
+    # turned 1 degree about its point: its plane rises over the dome's top by about 30 mm x 1 degree
+    turned = posed_plate(held, nodes, (1.0, 0.0))
+    turned = turned if turned.gaps(nodes[top]).min() > 0 else posed_plate(held, nodes, (-1.0, 0.0))
+    stand_off = turned.gaps(nodes[top]).min()
+    assert 0.2 < stand_off < 0.6 and np.allclose(turned.displacement, 0.0)
+    np.testing.assert_allclose(turned.point, held.point)
+    # lifted further than the turn did (an offset away from the tissue): refused as before
+    with pytest.raises(ValueError, match="short of the tissue"):
+        posed_plate(held, nodes, (1.0, 0.0), offset_mm=-2.0)
