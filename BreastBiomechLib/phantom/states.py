@@ -136,12 +136,13 @@ def measured_force(compressed: CompressedCase, sd: float, seed: int) -> dict:
 
 
 def add_states(case_dir: str | Path, specs: list[StateSpec], device=None, overview: bool = True,
-               progress: Callable[[str], None] | None = None) -> list[dict]:
+               progress: Callable[[str], None] | None = None, phantom_dir: str | Path | None = None) -> list[dict]:
     """Simulate and image each further state of ``specs`` on the compressed phantom case in
     ``case_dir`` (its phantom, its first state's truth model and truth mesh, read back) and write
-    it under ``states/<name>/``; a state the case holds already is refused. Returns each
-    state's figures: {"name", "truth" (:class:`TruthModel`), "summary", "force" (or None),
-    "folder"}."""
+    it under ``states/<name>/``; a state the case holds already is refused. ``phantom_dir``: where
+    the phantom lies when not in ``case_dir`` (the hidden-effect suite keeps it once per anatomy).
+    Returns each state's figures: {"name", "truth" (:class:`TruthModel`), "summary", "force"
+    (or None), "folder"}."""
     from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.mesh.tetmesh import TetMesh
     from BreastBiomechLib.phantom.compressed import compress_phantom
@@ -158,7 +159,7 @@ def add_states(case_dir: str | Path, specs: list[StateSpec], device=None, overvi
         raise CaseLayoutError(f"{case_dir} holds the state {', '.join(taken)} already: choose another name, or "
                               f"remove {layout.state(taken[0]).folder} first")
     first = TruthModel(**read_truth(case_dir)["truth"])
-    case = read_phantom(case_dir)
+    case = read_phantom(case_dir if phantom_dir is None else phantom_dir)
     made = read_vtu(truth_mesh_path(case_dir))
     mesh = TetMesh(made.nodes, made.tets, {k: v for k, v in made.point_data.items() if k != "displacement"},
                    dict(made.cell_data))

@@ -402,7 +402,7 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
         return one
     second = _second_state(case, folder, diagnosis_dir, rounds[-1]["round"], settings, device, say, seconds)
     measured = folder / "measured-two-state"
-    if not (measured / STATES / second["acquisition"] / "plates.json").is_file():
+    if not (measured / STATES / second["state"] / "plates.json").is_file():
         measured_copy(truth_dir, measured, settings.landmark_noise_mm, case.seed, states=True)
     fit_dir, diagnosis_dir = folder / "fit-two-state", folder / "diagnosis-two-state"
     rounds = _fit_and_diagnose(case, measured, fit_dir, diagnosis_dir, fitting_mesh, settings, device, say, seconds,
@@ -448,7 +448,8 @@ def _second_state(case: SuiteCase, folder: Path, diagnosis_dir: Path, last_round
                   device, say, seconds: dict) -> dict:
     """The second scan of a two-state case: the acquisition the design made after the one-scan
     diagnosis recommends (over the whole library where that design had nothing undecided to
-    design for), made as a further state of the truth. Returns {"acquisition", "description",
+    design for), made as a further state of the truth. Returns {"acquisition", "state" (its
+    state's name), "description",
     "designed_for", "predicted_sigma" (each designed-for effect's separation from its rival with
     it), "needed_sigma"}."""
     from BreastBiomechLib.discrepancy.design_record import read_design
@@ -467,11 +468,13 @@ def _second_state(case: SuiteCase, folder: Path, diagnosis_dir: Path, last_round
     if spec.name not in CaseLayout(truth_dir).state_names():
         say(f"{case.name}: truth of the second scan ({acquisition['description']})")
         t = time.perf_counter()
-        add_states(truth_dir, [spec], device=device, overview=False)
+        phantom = folder.parent / f"anatomy{case.anatomy}" / "phantom"  # the anatomy's, shared by its cases
+        add_states(truth_dir, [spec], device=device, overview=False, phantom_dir=phantom)
         seconds["second_truth"] = time.perf_counter() - t
-    predicted = {r["effect"]: next((a["separation_sigma"] for a in r["acquisitions"] if a["name"] == spec.name), None)
+    predicted = {r["effect"]: next((a["separation_sigma"] for a in r["acquisitions"] if a["name"] == acquisition["name"]),
+                                   None)
                  for r in record["effects"] if not r.get("skipped")}
-    return {"acquisition": spec.name, "description": acquisition["description"],
+    return {"acquisition": acquisition["name"], "state": spec.name, "description": acquisition["description"],
             "designed_for": record["designed_for"], "predicted_sigma": predicted,
             "needed_sigma": next((r["detectable_sigma"] for r in record["effects"]), None)}
 

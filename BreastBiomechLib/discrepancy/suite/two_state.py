@@ -24,12 +24,14 @@ def state_spec(acquisition: dict, first_compression: float) -> StateSpec:
     """The phantom state (:class:`~BreastBiomechLib.phantom.states.StateSpec`) that makes the
     design's ``acquisition`` (its record in design.json: ``name``, ``planes`` in the case's
     plate order) on a truth compressed by ``first_compression`` (fraction of the thickness).
-    The state takes the acquisition's name. Raises ValueError for an acquisition the phantom
-    cannot make."""
+    The state takes the acquisition's name where it is a state name ("compression+10" becomes
+    "compression-up10", "compression-10" "compression-down10"). Raises ValueError for an
+    acquisition the phantom cannot make."""
     name = acquisition["name"]
     if name.startswith(COMPRESSION_PREFIX):
         change = float(name[len(COMPRESSION_PREFIX):]) / 100.0
-        return StateSpec(name, compression=round(first_compression + change, 6))
+        state = f"{COMPRESSION_PREFIX}-{'up' if change > 0 else 'down'}{abs(round(100 * change))}"
+        return StateSpec(state, compression=round(first_compression + change, 6))
     if name.startswith(ONE_PLATE_PREFIX):
         plates = [plane["name"] for plane in acquisition["planes"]]
         plate = name[len(ONE_PLATE_PREFIX):]

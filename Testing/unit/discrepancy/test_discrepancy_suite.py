@@ -455,10 +455,14 @@ def test_a_two_state_case_s_copy_holds_its_further_scan_and_the_first_scan_uncha
 
 def test_a_design_s_acquisition_becomes_the_phantom_state_that_makes_it():
     from BreastBiomechLib.discrepancy.suite.two_state import designed_acquisition, state_spec
+    from BreastBiomechLib.phantom.states import check_states
 
     planes = [{"name": "left"}, {"name": "right"}]
-    assert state_spec({"name": "compression+10", "planes": planes}, 0.25).compression == pytest.approx(0.35)
-    assert state_spec({"name": "compression-20", "planes": planes}, 0.4).compression == pytest.approx(0.2)
+    further = state_spec({"name": "compression+10", "planes": planes}, 0.25)
+    less = state_spec({"name": "compression-20", "planes": planes}, 0.4)
+    assert (further.name, further.compression) == ("compression-up10", pytest.approx(0.35))
+    assert (less.name, less.compression) == ("compression-down20", pytest.approx(0.2))
+    check_states([further, less])  # names a case folder takes
     lateral = state_spec({"name": "only-right", "planes": planes}, 0.25)
     assert (lateral.name, lateral.moving_plate, lateral.compression) == ("only-right", "second", None)
     assert state_spec({"name": "only-left", "planes": planes}, 0.25).moving_plate == "first"
