@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from BreastBiomechLib.discrepancy import priors, statistics, verdicts
+from BreastBiomechLib.discrepancy.design import Rows
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.profile import profile_intervals
@@ -90,7 +91,10 @@ class Candidate:
     fitted parameter that alone reproduces most of it ({"name", "correlation"}); ``detectable``
     the smallest size of each of its parameters (its units, away from the off value; None: none)
     its score test would see at this case's noise with 80 % power at the verdict's level
-    (:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable`, along its secant); or
+    (:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable`, along its secant);
+    ``separations`` its signature at its realistic size beyond the fitted parameters ("": alone)
+    and beyond them and each other tested candidate (by name), in sigma of this round's noise:
+    what :mod:`~BreastBiomechLib.discrepancy.design` predicts for a further scan, realised; or
     the reason it was ``skipped``."""
 
     name: str
@@ -111,6 +115,7 @@ class Candidate:
     channels: dict = field(default_factory=dict)
     linear_delta_bic: float = float("nan")
     detectable: list = field(default_factory=list)
+    separations: dict = field(default_factory=dict)
     skipped: str = ""
 
     def to_dict(self) -> dict:
@@ -427,6 +432,9 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                                 channels=test["channels"],
                                 linear_delta_bic=-test["statistic"] + test["dof"] * np.log(n),
                                 detectable=_detectable(b, q_theta, settings.alpha / (m * (1 + len(test["channels"]))))))
+    rows = Rows.of(sens, observations)  # each signature at its realistic size, as the design's
+    for c in ranked:
+        c.separations = {rival or "": rows.separation(c.name, rival) for rival in [None, *rows.effects] if rival != c.name}
     ranked.sort(key=lambda c: (c.linear_delta_bic, c.p_adjusted))
     for name, reason in sens.skipped.items():
         effect = next((e for e in candidates if e.name == name), None)

@@ -361,6 +361,7 @@ def run_case(case: SuiteCase, out: Path, settings: SuiteSettings, device=None,
 def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, device, say) -> dict:
     """The body of :func:`run_case` (under the case's lock): what is missing of the case's truth,
     measured copy, fit and diagnosis made, then scored against the truth."""
+    from BreastBiomechLib.discrepancy.suite.two_state import realised_separations
     from BreastBiomechLib.io.meshes import read_vtu
     from BreastBiomechLib.phantom.compressed import TruthModel, compress_phantom
     from BreastBiomechLib.phantom.compressed_files import write_compressed
@@ -408,6 +409,7 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
     rounds = _fit_and_diagnose(case, measured, fit_dir, diagnosis_dir, fitting_mesh, settings, device, say, seconds,
                                stage="two-state ")
     ceiling, true_errors = scored_against_truth(folder, fit_dir, rounds, device, measured=measured)
+    second["realised_sigma"] = realised_separations(rounds[0], second)
     return {**case_result(case, rounds, ceiling, prepared, seconds, true_errors, truth_parameters=case.hidden.truth),
             "one_state": one, "second_state": second}
 
@@ -450,8 +452,8 @@ def _second_state(case: SuiteCase, folder: Path, diagnosis_dir: Path, last_round
     diagnosis recommends (over the whole library where that design had nothing undecided to
     design for), made as a further state of the truth. Returns {"acquisition", "state" (its
     state's name), "description",
-    "designed_for", "predicted_sigma" (each designed-for effect's separation from its rival with
-    it), "needed_sigma"}."""
+    "designed_for", "predicted_sigma" (each effect's separation from its rival with it), "rivals",
+    "needed_sigma"}; the caller adds "realised_sigma" once the two scans are diagnosed."""
     from BreastBiomechLib.discrepancy.design_record import read_design
     from BreastBiomechLib.discrepancy.suite.two_state import designed_acquisition, state_spec
     from BreastBiomechLib.io.case_layout import CaseLayout
@@ -476,6 +478,7 @@ def _second_state(case: SuiteCase, folder: Path, diagnosis_dir: Path, last_round
                  for r in record["effects"] if not r.get("skipped")}
     return {"acquisition": acquisition["name"], "state": spec.name, "description": acquisition["description"],
             "designed_for": record["designed_for"], "predicted_sigma": predicted,
+            "rivals": {r["effect"]: r.get("rival") for r in record["effects"] if not r.get("skipped")},
             "needed_sigma": next((r["detectable_sigma"] for r in record["effects"]), None)}
 
 

@@ -188,8 +188,9 @@ def suite_scores(results: list[dict]) -> dict:
 def scans(results: list[dict]) -> dict:
     """Two-state cases against themselves with one scan (their ``one_state`` records):
     {"one": [right, hidden-effect cases], "two": [...], "null_one": [false alarms, null cases],
-    "null_two": [...], "acquisitions": {the designed second scan: cases}} (all 0 without
-    two-state cases)."""
+    "null_two": [...], "acquisitions": {the designed second scan: cases}, "design_within_30":
+    [separations the design predicted within 30 % of the one the two scans realised, effects]}
+    (all 0 without two-state cases)."""
     both = [r for r in results if r.get("one_state")]
     hidden = [r for r in both if r["kind"] != "null"]
     null = [r for r in both if r["kind"] == "null"]
@@ -197,7 +198,11 @@ def scans(results: list[dict]) -> dict:
     for r in both:
         name = r.get("second_state", {}).get("acquisition", "?")
         chosen[name] = chosen.get(name, 0) + 1
+    pairs = [(p, r["second_state"].get("realised_sigma", {}).get(effect)) for r in both
+             for effect, p in r.get("second_state", {}).get("predicted_sigma", {}).items()]
+    pairs = [(p, q) for p, q in pairs if p is not None and q is not None and q > 0]
     return {"one": [sum(r["one_state"]["correct"] for r in hidden), len(hidden)],
+            "design_within_30": [sum(abs(p / q - 1.0) <= 0.3 for p, q in pairs), len(pairs)],
             "two": [sum(r["correct"] for r in hidden), len(hidden)],
             "null_one": [sum(not r["one_state"]["correct"] for r in null), len(null)],
             "null_two": [sum(not r["correct"] for r in null), len(null)], "acquisitions": chosen}
@@ -300,7 +305,9 @@ def _scans_rows(scores: dict) -> list[str]:
     return [f"| right final verdicts of the two-state cases: first scan alone | {_count(found['one'])} | |",
             f"| the same cases with the designed second scan ({chosen}) | {_count(found['two'])} | ≥ 95 % |",
             f"| false alarms of the two-state null cases: first scan alone / both | {_count(found['null_one'])} / "
-            f"{_count(found['null_two'])} | ≤ 5 % |"]
+            f"{_count(found['null_two'])} | ≤ 5 % |",
+            f"| the design's predicted separations within ±30 % of those the two scans realised | "
+            f"{_count(found.get('design_within_30', [0, 0]))} | |"]
 
 
 def scores_markdown(scores: dict, results: list[dict]) -> str:

@@ -15,7 +15,10 @@ Frames and units: LPS millimetres.
 
 from __future__ import annotations
 
-from BreastBiomechLib.phantom.states import StateSpec
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from BreastBiomechLib.phantom.states import StateSpec
 
 COMPRESSION_PREFIX, ONE_PLATE_PREFIX, ROTATED_PREFIX = "compression", "only-", "rotated-"
 
@@ -27,6 +30,8 @@ def state_spec(acquisition: dict, first_compression: float) -> StateSpec:
     The state takes the acquisition's name where it is a state name ("compression+10" becomes
     "compression-up10", "compression-10" "compression-down10"). Raises ValueError for an
     acquisition the phantom cannot make."""
+    from BreastBiomechLib.phantom.states import StateSpec  # the phantom: SimpleITK
+
     name = acquisition["name"]
     if name.startswith(COMPRESSION_PREFIX):
         change = float(name[len(COMPRESSION_PREFIX):]) / 100.0
@@ -54,3 +59,17 @@ def designed_acquisition(record: dict) -> dict:
     if name is None:
         raise RuntimeError(f"the design simulated no acquisition ({record.get('failed') or 'none in its library'})")
     return next(a for a in record["acquisitions"] if a["name"] == name)
+
+
+def realised_separations(first_round: dict, second: dict) -> dict:
+    """Each effect the design predicted a separation for with the second scan (``second``:
+    :func:`~BreastBiomechLib.discrepancy.suite.runner` 's second-state record, with the design's
+    ``rivals``): the separation the two-scan diagnosis's first round (``first_round``, its record)
+    realised beyond the fitted parameters and the same rival (sigma; None where it did not test
+    the effect)."""
+    candidates = {c["name"]: c for c in first_round["diagnosis"].get("candidates", []) if not c.get("skipped")}
+    out = {}
+    for effect in second.get("predicted_sigma", {}):
+        rival = (second.get("rivals") or {}).get(effect)
+        out[effect] = (candidates.get(effect) or {}).get("separations", {}).get(rival or "")
+    return out

@@ -508,6 +508,24 @@ def test_two_state_cases_are_named_by_their_second_scan_and_scored_against_their
                null | {"one_state": null, "second_state": {"acquisition": "compression+10"}}]
     scores = suite_scores(results)
     assert scores["scans"] == {"one": [1, 2], "two": [1, 2], "null_one": [0, 1], "null_two": [0, 1],
-                               "acquisitions": {"only-right": 2, "compression+10": 1}}
+                               "acquisitions": {"only-right": 2, "compression+10": 1}, "design_within_30": [0, 0]}
     text = scores_markdown(scores, results)
     assert "| the same cases with the designed second scan (compression+10 1, only-right 2) | 50% of 2" in text
+
+
+def test_the_design_s_predicted_separations_are_set_against_those_the_two_scans_realised():
+    from BreastBiomechLib.discrepancy.suite.two_state import realised_separations
+
+    second = {"acquisition": "only-right", "predicted_sigma": {"chest-wall": 4.5, "skin": 2.0, "tumour": 1.0},
+              "rivals": {"chest-wall": "heterogeneity", "skin": None, "tumour": "skin"}}
+    first = _round("missing effect", "chest-wall")
+    first["diagnosis"]["candidates"] = [
+        {"name": "chest-wall", "separations": {"": 6.0, "heterogeneity": 4.0, "skin": 5.5}},
+        {"name": "skin", "separations": {"": 1.0, "chest-wall": 0.9}},
+        {"name": "tumour", "skipped": "no tumour"}]
+    realised = realised_separations(first, second)
+    assert realised == {"chest-wall": 4.0, "skin": 1.0, "tumour": None}  # against the design's own rival
+    hold = _round("no significant discrepancy")
+    result = case_result(SuiteCase(1, HIDDEN_EFFECTS["chest-wall"], states=2), [hold], 1.3, {}, {})
+    scores = suite_scores([result | {"one_state": result, "second_state": second | {"realised_sigma": realised}}])
+    assert scores["scans"]["design_within_30"] == [1, 2]  # 4.5 against 4.0 within; 2.0 against 1.0 not
