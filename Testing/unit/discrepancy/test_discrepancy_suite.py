@@ -373,6 +373,19 @@ def test_only_the_suite_s_scoring_reads_a_hidden_effect_s_truth():
         assert ".hidden.values" not in code, path
     readers = [p.name for p in (library / "discrepancy" / "suite").glob("*.py") if ".hidden.values" in p.read_text()]
     assert readers == ["scores.py"], readers
+    # the truth's fields: read to make the truth (the runner's hidden_truth), to score (the
+    # identifiability's sizes, the runner's record), never to choose a two-state case's second scan
+    fields = sorted(p.name for p in (library / "discrepancy" / "suite").glob("*.py")
+                    if re.search(r"hidden\.truth\b", re.sub(r'"""[\s\S]*?"""', "", p.read_text())))
+    assert fields == ["identifiability.py", "runner.py"], fields
+    # the second scan is the design's choice, made before the truth folder is touched
+    import inspect
+
+    from BreastBiomechLib.discrepancy.suite import runner
+
+    second = inspect.getsource(runner._second_state).split('"""')[-1]
+    assert second.index("designed_acquisition(record)") < second.index("truth_dir")
+    assert "truth" not in inspect.getsource(runner._library_design).split('"""')[-1]
     # a phantom case's labels.nrrd is its ground truth: the diagnosis never names it, and in the fit
     # only the cohort study meshes it (on purpose, said in make_fitting_mesh) and the fit's refusal
     # to do so unasked names it in its message
