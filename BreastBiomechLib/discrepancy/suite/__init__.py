@@ -1,7 +1,7 @@
 """The hidden-effect suite: phantom cases whose truth hides one effect, two, none, or one the
 candidate library does not hold; each fitted on a mesh of the segmentation of its MR and
 diagnosed without its truth; scored against the effect it hides (``breastbiomech
-discrepancy-suite``; docs/discrepancy.md)."""
+discrepancy-suite``; docs/discrepancy-suite.md)."""
 
 from BreastBiomechLib.discrepancy.suite.cases import ANATOMIES, HIDDEN_EFFECTS, HiddenEffect, SuiteCase, suite_cases
 from BreastBiomechLib.lazy import exports
