@@ -290,20 +290,10 @@ def undecided(diagnosis: dict, effects: dict) -> list[str]:
     (at least :data:`~BreastBiomechLib.discrepancy.diagnosis.ABSORBED` of it), those whose smallest
     detectable size lies beyond their range (``effects``: name -> :class:`Effect`), and, where the
     verdict is ambiguous, the effects it could not choose between."""
-    from BreastBiomechLib.discrepancy.diagnosis import ABSORBED
+    from BreastBiomechLib.discrepancy.diagnosis import not_identifiable
 
-    names = []
-    for c in diagnosis["candidates"]:
-        if c.get("skipped"):
-            continue
-        effect = effects.get(c["name"])
-        absorbed = c.get("absorbed")
-        hidden = absorbed is not None and absorbed == absorbed and absorbed >= ABSORBED
-        small = effect is not None and any(
-            size is None or size > max(p.upper - p.off, p.off - p.lower)
-            for p, size in zip(effect.parameters, c.get("detectable") or []))
-        if hidden or small:
-            names.append(c["name"])
+    names = [c["name"] for c in diagnosis["candidates"]
+             if not c.get("skipped") and not_identifiable(c, effects.get(c["name"]))]
     if diagnosis["verdict"] == "ambiguous":
         names += [n for n in (diagnosis.get("effect"), *(diagnosis.get("alternatives") or [])) if n]
     return [n for n in dict.fromkeys(names) if n in effects]

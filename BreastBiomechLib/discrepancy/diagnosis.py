@@ -206,6 +206,18 @@ def _detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float) -> l
     return [float(v) if np.isfinite(v) else None for v in sizes]
 
 
+def not_identifiable(candidate: dict, effect: Effect | None) -> bool:
+    """Whether a round said of ``candidate`` (its record, :meth:`Candidate.to_dict`) that this
+    case could not have shown it: at least :data:`ABSORBED` of its signature reproduced by the
+    fitted parameters, or (given its ``effect``) a parameter's smallest detectable size past both
+    ends of its range, or none."""
+    absorbed = candidate.get("absorbed")
+    if absorbed is not None and absorbed == absorbed and absorbed >= ABSORBED:
+        return True
+    return effect is not None and any(size is None or size > max(p.upper - p.off, p.off - p.lower)
+                                      for p, size in zip(effect.parameters, candidate.get("detectable") or []))
+
+
 def beyond_range(candidate: Candidate, effects: dict) -> list[str]:
     """The parameters of ``candidate`` whose smallest detectable size reaches past both ends of
     their range from the off value ("mu 2.1, its range 0-1.5"): no value the effect may take

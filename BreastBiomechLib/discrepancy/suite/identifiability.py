@@ -18,7 +18,6 @@ Reads a hidden effect's truth: the suite's scoring only (never the fit or the di
 from __future__ import annotations
 
 import math
-from dataclasses import fields
 
 from BreastBiomechLib.discrepancy import effects
 from BreastBiomechLib.discrepancy.suite.cases import HiddenEffect, SuiteCase
@@ -58,21 +57,15 @@ def _candidate(record: dict, name: str) -> dict | None:
 
 
 def not_identifiable(candidate: dict, name: str) -> bool:
-    """Whether a round said of ``candidate`` (a round record's candidate) that this case could not
-    have shown it: at least :data:`ABSORBED` of its signature absorbed by the fitted parameters,
-    or a parameter's smallest detectable size past both ends of its range (or none)."""
-    from BreastBiomechLib.discrepancy.diagnosis import ABSORBED, Candidate, beyond_range  # SimpleITK, SciPy
+    """Whether a round said of ``candidate`` (a round record's candidate of the library effect
+    ``name``) that this case could not have shown it
+    (:func:`~BreastBiomechLib.discrepancy.diagnosis.not_identifiable`)."""
+    from BreastBiomechLib.discrepancy import diagnosis  # SimpleITK, SciPy
 
-    if candidate.get("absorbed", float("nan")) >= ABSORBED:
-        return True
     detectable = candidate.get("detectable") or []
     made = {"friction": effects.PlateFriction, "gravity": effects.GravityPrestress, "chest-wall": effects.ChestWallHold,
             "skin": effects.SkinLayer, "plate-tilt": lambda: effects.PlateTilt(max(len(detectable) // 2, 1))}
-    if name not in made or not detectable:
-        return False
-    known = {f.name for f in fields(Candidate)}
-    record = {"title": name, "acts_in": "", **{k: v for k, v in candidate.items() if k in known}}
-    return bool(beyond_range(Candidate(**record), {name: made[name]()}))
+    return diagnosis.not_identifiable(candidate, made[name]() if name in made else None)
 
 
 def identifiability(case: SuiteCase, rounds: list[dict]) -> dict:
