@@ -13,6 +13,7 @@ import SimpleITK as sitk
 
 from BreastBiomechLib import labels as lt
 from BreastBiomechLib.landmarks import Landmarks
+from BreastBiomechLib.timing import staged
 
 
 def _axis_aligned(image: sitk.Image) -> sitk.Image:
@@ -42,6 +43,7 @@ def orthogonal_views(image: sitk.Image, centre_mm) -> tuple[list, np.ndarray]:
     return views, idx
 
 
+@staged("pictures")
 def save_overview(path: str | Path, image: sitk.Image, label_image: sitk.Image | None = None,
                   landmarks: Landmarks | None = None, centre_mm=None, title: str = "",
                   landmark_slab_mm: float = 6.0) -> Path:
@@ -105,6 +107,7 @@ def save_overview(path: str | Path, image: sitk.Image, label_image: sitk.Image |
     return path
 
 
+@staged("pictures")
 def side_by_side(pictures, path: str | Path) -> Path:
     """The PNG ``pictures`` (paths; RGB or RGBA, any heights) in one row, top-aligned on black,
     written to ``path``: a screenshot of several views (e.g. the slice views alone, not the

@@ -28,6 +28,7 @@ from BreastBiomechLib.mesh.primitives import hemi_ellipsoid_mesh
 from BreastBiomechLib.solver import DynamicRelaxation
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
 from BreastBiomechLib.solver.warm import WarmStart
+from BreastBiomechLib.timing import StageClock, clocked
 
 BENCH_RADII_MM = (80.0, 70.0, 75.0)  # the benchmarks' hemi-ellipsoid (hemi_ellipsoid_compression's default)
 # benchmarks that need only warp, NumPy and SciPy (the solver on its own hemi-ellipsoid meshes): they
@@ -182,6 +183,21 @@ def _bench_effects(args) -> dict:
     return figures
 
 
+def _bench_demo(args) -> dict:
+    """`breastbiomech demo` timed stage by stage (:mod:`~BreastBiomechLib.timing`) in ``--out``
+    (replaced as the demo replaces its results) or a temporary folder: the wall seconds of each
+    kind of work, its share, and the solver's share of the whole."""
+    from BreastBiomechLib.cli.demo import run_demo
+
+    with tempfile.TemporaryDirectory(prefix="bench-demo-") as scratch:
+        out = Path(args.out) if args.out else Path(scratch) / "demo"
+        clock = run_demo(out, args.device, None)
+        verdict = json.loads((out / "diagnosis" / "diagnosis.json").read_text())["final"]["sentence"]
+    return {"benchmark": "demo", "version": __version__, "device": args.device or "default",
+            "wall_s": round(clock.wall_s, 1), "solving_share": round(clock.share("solving"), 3),
+            "stages": clock.to_dict()["stages"], "unstaged_s": round(clock.unstaged_s, 1), "verdict": verdict}
+
+
 def _bench_diagnose(args) -> dict:
     """One hidden-effect suite case timed stage by stage: Table 1 anatomy ``--cases[0]`` with
     ``--hidden`` hidden in its truth, segmented, meshed, fitted and diagnosed as the suite does it
@@ -195,7 +211,8 @@ def _bench_diagnose(args) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-diagnose-") as scratch:
         out = Path(args.out) if args.out else Path(scratch)
         started = time.perf_counter()
-        result = run_case(case, out, settings, args.device)
+        with clocked(StageClock(synchronise=_synchronise(args.device))) as clock:
+            result = run_case(case, out, settings, args.device)
         wall = time.perf_counter() - started
         rounds = json.loads((out / case.name / "diagnosis" / "diagnosis.json").read_text())["rounds"]
     return {"benchmark": "diagnose", "version": __version__, "device": args.device or "default",
@@ -210,7 +227,17 @@ def _bench_diagnose(args) -> dict:
             "rounds": [{"verdict": r["diagnosis"]["verdict"], "added": r.get("added"), "solves": r["diagnosis"]["solves"],
                         "seconds": r["seconds"]} for r in rounds],
             "right": result["correct"], "landmark_error_before_mm": result["landmark_error_before_mm"],
-            "landmark_error_after_mm": result.get("landmark_error_after_mm"), "wall_s": round(wall, 1)}
+            "landmark_error_after_mm": result.get("landmark_error_after_mm"), "wall_s": round(wall, 1),
+            "solving_share": round(clock.share("solving"), 3), "stages": clock.to_dict()["stages"]}
+
+
+def _synchronise(device):
+    """``warp.synchronize`` where ``device`` (a warp device name, or None: warp's default) is a
+    GPU, so that each stage holds its own kernels' time; None on a CPU."""
+    import warp as wp
+
+    wp.init()
+    return wp.synchronize if wp.get_device(device).is_cuda else None
 
 
 def _fit_grid(image, grid):
@@ -513,10 +540,10 @@ def cmd_bench(args) -> int:
                             args.compression, args.device, args.family or "anatomy")
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items() if k != "rows"))
         return 0
-    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "diagnose", "cohort"):
+    if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "demo", "diagnose", "cohort"):
         figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp, "optimise": _bench_optimise,
-                   "unloaded": _bench_unloaded, "effects": _bench_effects, "diagnose": _bench_diagnose,
-                   "cohort": _bench_cohort}[args.what](args)
+                   "unloaded": _bench_unloaded, "effects": _bench_effects, "demo": _bench_demo,
+                   "diagnose": _bench_diagnose, "cohort": _bench_cohort}[args.what](args)
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items()))
         return 0
     if args.what == "phantom":
@@ -544,7 +571,7 @@ def add_parsers(sub) -> None:
     """Register the ``bench`` command on ``sub`` (argparse sub-parsers)."""
     p = sub.add_parser("bench", help="print benchmark figures")
     p.add_argument("what", choices=["phantom", "segment", "mesh", "solver", "unloaded", "effects", "warp", "optimise",
-                                    "diagnose", "cohort"], help="what to time")
+                                    "demo", "diagnose", "cohort"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], choices=range(1, 6),
                    help="Table 1 cases (phantom; effects, diagnose: the first)")
     p.add_argument("--truth-edge-mm", type=positive, default=3.0,
@@ -603,8 +630,9 @@ def add_parsers(sub) -> None:
                         "to reach (default 0.02 mm)")
     p.add_argument("--out", help="optimise: a new folder for the fit's log (evaluations.jsonl: every solve's "
                                  "parameters, objective and status; result.json); diagnose: the case's folder (kept, "
-                                 "resumed; default a temporary one); cohort: a new folder for the studies; sweep: a "
-                                 "JSON-lines file of finished variants (appended, and resumed from)")
+                                 "resumed; default a temporary one); demo: its output folder (default a temporary "
+                                 "one); cohort: a new folder for the studies; sweep: a JSON-lines file of finished "
+                                 "variants (appended, and resumed from)")
     p.add_argument("--case-dirs", nargs="+", default=[], help="cohort: compressed case folders (table1-cases)")
     p.add_argument("--models", nargs="+", choices=MODEL_CHOICES, default=["iso-homo"], help="cohort: models fitted")
     p.add_argument("--modes", nargs="+", choices=("serial", "dask", "processes"), default=["serial", "dask"],

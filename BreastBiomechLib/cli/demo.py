@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import time
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 from BreastBiomechLib import __version__
 from BreastBiomechLib.cli.common import device_argument, positive_int
 from BreastBiomechLib.io.atomic import write_text_atomically
+from BreastBiomechLib.timing import StageClock, clocked, stage
 
 
 def clear_earlier_result(folder: Path, marker: str = "settings.json", what: str = "fit") -> None:
@@ -28,32 +30,50 @@ def cmd_demo(args) -> int:
     """The main job on the built-in phantom: phantom and its compressed "measured" scan,
     segmentation from seed points, FE mesh of the segmentation, a simulation with the starting
     materials, the material fit, and a Markdown report (out/demo/report.md)."""
-    import warp as wp
+    run_demo(Path(args.out), args.device, args.budget)
+    return 0
 
-    from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
-    from BreastBiomechLib.io.images import read_image
-    from BreastBiomechLib.io.meshes import write_vtu
-    from BreastBiomechLib.io.segmentation import write_segmentation
-    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
-    from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
-    from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
-    from BreastBiomechLib.phantom.compressed import compress_phantom, table1_truth
-    from BreastBiomechLib.phantom.compressed_files import write_compressed
-    from BreastBiomechLib.phantom.files import SEED_COUNTS
-    from BreastBiomechLib.phantom.seeds import seed_points
-    from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
-    from BreastBiomechLib.visualisation import save_overview
 
-    wp.init()
-    gpu = (args.device or ("cuda" if wp.get_cuda_device_count() else "cpu")).startswith("cuda")
+def run_demo(out: Path, device: str | None = None, budget: int | None = None) -> StageClock:
+    """:func:`cmd_demo`'s work in ``out`` on ``device`` (default the GPU when there is one) with
+    ``budget`` forward solves for the fit (default the device's); returns the wall seconds per
+    stage (:mod:`~BreastBiomechLib.timing`; also written to out/stages.json and the report)."""
+    with clocked() as clock:
+        with stage("imports"):
+            import warp as wp
+
+            wp.init()
+        gpu = (device or ("cuda" if wp.get_cuda_device_count() else "cpu")).startswith("cuda")
+        if gpu:  # each stage holds its own kernels' time
+            clock.synchronise = wp.synchronize
+        _demo(out, device, budget, gpu, clock)
+    write_text_atomically(out / "stages.json", json.dumps(clock.to_dict(), indent=2))
+    return clock
+
+
+def _demo(out: Path, device: str | None, budget: int | None, gpu: bool, clock: StageClock) -> None:
+    with stage("imports"):
+        from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
+        from BreastBiomechLib.io.images import read_image
+        from BreastBiomechLib.io.meshes import write_vtu
+        from BreastBiomechLib.io.segmentation import write_segmentation
+        from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+        from BreastBiomechLib.optimisation.case import FitSettings, fit_compressed_case
+        from BreastBiomechLib.phantom import generate_phantom, table1_case, write_phantom
+        from BreastBiomechLib.phantom.compressed import compress_phantom, table1_truth
+        from BreastBiomechLib.phantom.compressed_files import write_compressed
+        from BreastBiomechLib.phantom.files import SEED_COUNTS
+        from BreastBiomechLib.phantom.seeds import seed_points
+        from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
+        from BreastBiomechLib.visualisation import save_overview
+
     # on a CPU: coarser voxels (1.5 x 1.5 x 3 mm), a 6 mm truth mesh, and an 8 mm fitting mesh of
     # a smoother surface (3 mm blur) without refinement at the tissue interfaces (tissues by voxel
     # majority): some 45k tets (its 4 mm skin included) instead of 240k; a 19-solve fit (two
     # generations of five, then three batched gradients) keeps the whole run within 10 minutes on 2 cores
-    truth_mm, fit_mm, budget = (2.0, 4.0, 200) if gpu else (6.0, 8.0, 19)
+    truth_mm, fit_mm, default_budget = (2.0, 4.0, 200) if gpu else (6.0, 8.0, 19)
     spacing = (1.0, 1.0, 2.5) if gpu else (1.5, 1.5, 3.0)
-    budget = args.budget or budget
-    out = Path(args.out)
+    budget = budget or default_budget
     report = {"steps": []}
     started = time.perf_counter()
 
@@ -77,7 +97,7 @@ def cmd_demo(args) -> int:
     step(f"2/7 compressed 'measured' scan: truth simulation of {truth.compression:.0%} LR plate compression "
          f"on a {truth_mm:g} mm truth mesh, with plate friction mu {truth.friction:g} hidden in it (the fit's model "
          "has none), imaged with its own noise and bias")
-    compressed = compress_phantom(case, truth, device=args.device)
+    compressed = compress_phantom(case, truth, device=device)
     compressed_paths = write_compressed(compressed, out / "case")
     c = compressed.summary
     print(f"    {c['truth_tets']} tets, {c['solve_message']}; largest displacement {c['max_displacement_mm']:.1f} mm")
@@ -112,7 +132,7 @@ def cmd_demo(args) -> int:
     settings = FitSettings(model="iso-hetero", free=("E",), edge_mm=fit_mm,
                            optimiser="cmaes" if gpu else "cmaes-local", budget=budget, population=6 if gpu else 5)
     clear_earlier_result(out / "fit")
-    fit = fit_compressed_case(out / "case", out / "fit", settings, mesh_path=mesh_path, device=args.device,
+    fit = fit_compressed_case(out / "case", out / "fit", settings, mesh_path=mesh_path, device=device,
                               progress=progress)
     print()
     errors = fit.landmark_errors["error_mm"]
@@ -128,7 +148,7 @@ def cmd_demo(args) -> int:
     clear_earlier_result(out / "diagnosis", "diagnosis.json", "diagnosis")
     diagnosis = run_diagnosis(out / "case", out / "fit", out / "diagnosis", effects=effects, rounds=rounds,
                               noise=NoiseModel(floor=floor),
-                              settings=DiagnosisSettings(refine_iterations=2 if gpu else 0), device=args.device,
+                              settings=DiagnosisSettings(refine_iterations=2 if gpu else 0), device=device,
                               progress=lambda message: print(f"    {message}", flush=True))
     for record in diagnosis.rounds:
         if record.get("after"):
@@ -140,11 +160,10 @@ def cmd_demo(args) -> int:
     save_overview(out / "fit" / "predicted_overview.png", read_image(out / "fit" / "predicted.nrrd"), None,
                   compressed.landmarks, title="FE-predicted compressed MR at the fitted parameters; measured landmarks")
     path = _write_demo_report(out, case, compressed, truth, dice, m, fit, diagnosis, report,
-                              time.perf_counter() - started, "GPU" if gpu else "CPU")
+                              time.perf_counter() - started, "GPU" if gpu else "CPU", clock)
     print(f"demo finished in {time.perf_counter() - started:.0f} s: report {path}; open {paths['mr']}, "
           f"{compressed_paths['measured']}, {seg_paths['labels']}, {mesh_path} and {out / 'fit' / 'predicted.nrrd'} "
           "in Slicer")
-    return 0
 
 
 DEMO_CASE = 5  # Table 1 case 5: 716 cm3, isotropic truth (inside the fitted family)
@@ -196,7 +215,7 @@ def _fit_note(fit, diagnosis) -> str:
 
 
 def _write_demo_report(out: Path, case, compressed, truth, dice, mesh_summary, fit, diagnosis, report, seconds,
-                       device) -> Path:
+                       device, clock: StageClock) -> Path:
     """out/report.md: what each step made, with pictures (paths relative to ``out``)."""
     times = [t for _, t in report["steps"]] + [time.perf_counter()]
     rows = "\n".join(f"| {text} | {times[i + 1] - times[i]:.0f} |" for i, (text, _) in enumerate(report["steps"]))
@@ -262,6 +281,14 @@ rounds, with two further Gauss-Newton iterations of the added effect and the flo
 residual fields as .nrrd).
 
 {_diagnosis_section(diagnosis)}
+
+## Where the time went
+
+Wall seconds per kind of work up to this report, each without the kinds inside it (solving
+counts inside the fit, the truth and the diagnosis alike; `breastbiomech bench demo --json` prints
+them; stages.json holds the run's own).
+
+{clock.table()}
 """
     return write_text_atomically(out / "report.md", text)
 

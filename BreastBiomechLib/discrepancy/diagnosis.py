@@ -40,6 +40,7 @@ from BreastBiomechLib.discrepancy.refit import Refit, refine, refit
 from BreastBiomechLib.discrepancy.regions import feature_regions as feature_regions_of
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.timing import staged
 
 VERDICTS = verdicts.VERDICTS
 EDGE = 0.005  # a fitted parameter this close to an end of its range (unit coordinates) is at it
@@ -398,6 +399,7 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     return result
 
 
+@staged("statistics")
 def _decide(state: ModelState, observations: Observations, candidates: list[Effect],
             settings: DiagnosisSettings | None, progress: Callable[[str], None] | None,
             excluded: dict[str, str] | None) -> Diagnosis:

@@ -32,6 +32,7 @@ from BreastBiomechLib.landmarks import Landmarks, map_landmarks
 from BreastBiomechLib.landmarks.mapping import outside_tolerance_mm
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.refinement import Refinement
+from BreastBiomechLib.timing import staged
 
 RICHARDSON = 4.0 / 3.0  # the coarse error over the coarse-to-refined difference at second order
 
@@ -155,6 +156,7 @@ def floor_of(error: np.ndarray, groups: np.ndarray, lower_bound_mm: float) -> tu
     return floor, summary
 
 
+@staged("model-error floor")
 def measure_floor(state: ModelState, observations: Observations, displacement_mm: np.ndarray,
                   regions: np.ndarray, lower_bound_mm: float) -> MeasuredFloor:
     """The floor of ``observations`` for the model ``state`` (its solution ``displacement_mm`` on

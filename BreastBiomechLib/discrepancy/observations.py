@@ -31,6 +31,7 @@ import numpy as np
 
 from BreastBiomechLib.io.case_layout import FIRST_STATE
 from BreastBiomechLib.landmarks import LandmarkMapper
+from BreastBiomechLib.timing import staged
 
 CHANNELS = ("landmarks", "surface")
 FLOORS = ("measured", "fixed")  # the model-error floor measured from the case (lower bound model_sd_mm), or fixed
@@ -127,6 +128,7 @@ def thinned(points: np.ndarray, spacing_mm: float) -> np.ndarray:
     return np.sort(first)
 
 
+@staged("features")
 def observations_of(fitted, base_displacement: np.ndarray, noise: NoiseModel | None = None) -> Observations:
     """The features of ``fitted`` (a :class:`~BreastBiomechLib.discrepancy.fitted.FittedCase`)
     in the channels of ``noise``, the surface features chosen where the fit's solution

@@ -14,6 +14,7 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from BreastBiomechLib.discrepancy.registration import ResidualField
+from BreastBiomechLib.timing import staged
 from BreastBiomechLib.visualisation import image_bounds, orthogonal_views
 
 SHOWN_FROM_MM = 0.25  # residual below this is drawn transparent
@@ -27,6 +28,7 @@ def hot_spot(field: ResidualField, smoothing_mm: float = 5.0) -> np.ndarray:
     return np.asarray(field.like.TransformIndexToPhysicalPoint((int(i), int(j), int(k))), float)
 
 
+@staged("pictures")
 def save_residual_maps(path: str | Path, measured: sitk.Image, rows: list[tuple[str, ResidualField, tuple | None]],
                        centre_mm=None, title: str = "", limit_mm: float | None = None) -> Path:
     """Save a PNG with one row per ``(name, field, landmarks)`` in ``rows``: axial, sagittal and

@@ -33,6 +33,7 @@ from scipy.optimize import lsq_linear
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.timing import staged
 
 CHI2_95 = 3.841458820694124  # the chi-square 95 % quantile with one degree of freedom
 STEPS = 3  # solves per side of a parameter at most
@@ -135,6 +136,7 @@ def bound(estimate: float, walked: list[tuple[float, float]], end: float) -> tup
     return float(end), True
 
 
+@staged("profile intervals")
 def profile_intervals(state: ModelState, observations: Observations, effect_name: str, design: np.ndarray,
                       rss_at_estimate: float, progress: Callable[[str], None] | None = None) -> list[ProfiledParameter]:
     """The profile intervals of the added effect ``effect_name``'s parameters at ``state`` (its

@@ -27,6 +27,7 @@ from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants
+from BreastBiomechLib.timing import staged
 
 HALVINGS = 3
 ACCEPTED_RATIO = 0.5  # a step that removes at least this share of its predicted reduction stands
@@ -86,6 +87,7 @@ def _step(state: ModelState, sens: Sensitivities, effect: Effect | None, weights
     return current, solution.x, sd, rss_linear, len(nuisance)
 
 
+@staged("refits")
 def refit(state: ModelState, observations: Observations, sens: Sensitivities,
           effects: list[Effect | None]) -> list[Refit]:
     """Refit ``state`` with each of ``effects`` added (their sensitivities in ``sens``; None: no
@@ -194,6 +196,7 @@ class Refined(NamedTuple):
     sensitivities: Sensitivities | None
 
 
+@staged("refits")
 def refine(state: ModelState, observations: Observations, iterations: int = 1,
            progress: Callable[[str], None] | None = None) -> Refined:
     """Gauss-Newton iterations of every fitted parameter of ``state`` (the fit's and the added

@@ -28,6 +28,8 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
+from BreastBiomechLib.timing import staged
+
 
 @dataclass
 class RegistrationSettings:
@@ -161,6 +163,7 @@ def _displaced(values: np.ndarray, displacement_zyx3: np.ndarray, spacing_zyx: n
     return ndimage.map_coordinates(values, coordinates, order=1, mode="constant", cval=0.0).astype(np.float32)
 
 
+@staged("registration")
 def residual_field(predicted: sitk.Image, inside: sitk.Image, measured: sitk.Image, body: np.ndarray | None = None,
                    settings: RegistrationSettings | None = None, landmarks=None) -> ResidualField:
     """The residual field of the FE-``predicted`` image (``inside``: its mask of voxels in the

@@ -16,6 +16,7 @@ from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import FIT_STEP, ModelState
 from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.timing import staged
 
 
 @dataclass
@@ -40,6 +41,7 @@ class Sensitivities:
     solves: int = 0
 
 
+@staged("sensitivities")
 def sensitivities(state: ModelState, observations: Observations, candidates: list[Effect],
                   progress: Callable[[str], None] | None = None) -> Sensitivities:
     """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects

@@ -24,6 +24,7 @@ from BreastBiomechLib.mesh.volume import TetGenSettings, interface_points, tetra
 from BreastBiomechLib.surface.extract import RegionTooThin, SurfaceSettings, body_surface, label_array, tissue_surface
 from BreastBiomechLib.surface.intersections import SurfaceCrossesItself
 from BreastBiomechLib.surface.trisurface import TriSurface
+from BreastBiomechLib.timing import staged
 
 _RETRIES = 2  # finer body surfaces tried when TetGen finds the surface intersecting itself
 REMAKE_FACTOR = 0.9  # the body surface's edge, as a fraction of the asked, tried where failing elements remain
@@ -180,6 +181,7 @@ def _repaired_volume_mesh(labels: sitk.Image, body: TriSurface, interfaces: list
     return mesh, bound, mesh_quality(mesh)
 
 
+@staged("meshing")
 def mesh_labels(labels: sitk.Image, settings: MeshSettings | None = None, nipple_mm=None,
                 progress: Callable[[float, str], None] | None = None) -> BreastMesh:
     """Mesh the labelled region of ``labels`` (see the module notes). ``nipple_mm`` (3,) LPS

@@ -47,6 +47,7 @@ from BreastBiomechLib.optimisation.run import OptimisationResult, optimise, solv
 from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.optimisation.states import JointProblem
 from BreastBiomechLib.solver import DynamicRelaxation
+from BreastBiomechLib.timing import staged
 
 LANDMARK_ERRORS = "landmark_errors.json"  # per landmark and summarised (mm)
 FORCE_SCALE = "force_scale.json"  # the moduli's scale a measured plate force fixes
@@ -291,6 +292,7 @@ def _write_state_outputs(out: Path, problem: FittingProblem, displacement: np.nd
     return errors
 
 
+@staged("pictures")
 def save_convergence(path: str | Path, result: OptimisationResult) -> Path:
     """A PNG of each evaluation's objective and the best so far against the evaluation count."""
     import matplotlib

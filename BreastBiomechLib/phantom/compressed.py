@@ -26,6 +26,7 @@ from BreastBiomechLib.solver.placement import final_planes, posed_plate
 from BreastBiomechLib.solver.run_case import run_case
 from BreastBiomechLib.solver.settings import UnloadedRequest
 from BreastBiomechLib.solver.supports import chest_wall_support
+from BreastBiomechLib.timing import staged
 
 # Hidden truth materials (ours; within the seed's bounds): E in Pa, nu, eta in Pa.
 DEFAULT_TRUTH_MATERIALS = {
@@ -184,6 +185,7 @@ class CompressedCase:
     gravity: list = field(default_factory=lambda: list(PRONE_GRAVITY))
 
 
+@staged("truth simulation")
 def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=None,
                      progress: Callable[[float, str], None] | None = None,
                      mesh: TetMesh | None = None) -> CompressedCase:

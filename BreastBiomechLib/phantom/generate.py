@@ -21,6 +21,7 @@ from BreastBiomechLib.landmarks import Landmarks
 from BreastBiomechLib.phantom.anatomy import NIPPLE_RADIUS_MM, BreastAnatomy, DuctTree, tumour_phi_factory
 from BreastBiomechLib.phantom.parameters import INTENSITY, PhantomParameters
 from BreastBiomechLib.phantom.seeds import farthest_points
+from BreastBiomechLib.timing import staged
 
 # Fine-grid material codes: the truth tissues plus structures imaged but not modelled.
 _LUNG, _RIB, _INTERCOSTAL, _SUBPECTORAL_FAT = 6, 7, 8, 9
@@ -159,6 +160,7 @@ def _ray_to_surface(anatomy: BreastAnatomy, start, direction, reach=250.0) -> np
     return pts[k - 1] + t * (pts[k] - pts[k - 1])
 
 
+@staged("phantom")
 def generate_phantom(params: PhantomParameters | None = None,
                      progress: Callable[[float, str], None] | None = None) -> PhantomCase:
     """Generate the case described by ``params`` (deterministic in ``params.seed``).

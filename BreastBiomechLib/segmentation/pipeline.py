@@ -25,6 +25,7 @@ from BreastBiomechLib.segmentation.seeded import (GrowSettings, OutsideTissues, 
                                                   agreeing_probability,
                                                   border_fractions, grow_from_seeds, grow_to_midpoint, refine_border)
 from BreastBiomechLib.segmentation.volume import VoxelGrid, check_volume, seed_voxels
+from BreastBiomechLib.timing import staged
 
 Progress = Callable[[float, str], None]
 
@@ -72,6 +73,7 @@ class TissueSegmentation:
     summary: dict
 
 
+@staged("segmentation")
 def segment_tissues(image: sitk.Image, muscle_seeds, tumour_seeds=None,
                     settings: SegmentationSettings | None = None,
                     progress: Progress | None = None) -> TissueSegmentation:

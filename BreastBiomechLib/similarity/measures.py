@@ -16,6 +16,7 @@ import SimpleITK as sitk
 import warp as wp
 
 from BreastBiomechLib.similarity import kernels
+from BreastBiomechLib.timing import staged
 
 CHUNK = 64  # voxels per thread in the reductions
 
@@ -103,11 +104,13 @@ class Similarity:
                        self.bins / (b_high - b_low), self.bins, CHUNK, self._histogram])
             return self._histogram.numpy().reshape(self.bins, self.bins).astype(np.float64)
 
+    @staged("similarity")
     def nmi(self, predicted) -> float:
         """(H(A) + H(B)) / H(A, B), A the measured and B the predicted image (1 to 2)."""
         h_a, h_b, h_ab = entropies(self.joint_histogram(predicted))
         return (h_a + h_b) / h_ab if h_ab > 0 else 2.0
 
+    @staged("similarity")
     def ncc(self, predicted) -> float:
         """Pearson correlation of the two images over the mask (-1 to 1); 0 if either is constant."""
         b = self._device_array(predicted)
@@ -122,6 +125,7 @@ class Similarity:
         return float((sab - sa * sb / n) / np.sqrt(var_a * var_b))
 
 
+@staged("similarity")
 def nmi(measured, predicted, mask=None, bins: int = 64, range_measured=None, range_predicted=None,
         device=None) -> float:
     """NMI of two images of one grid (see :class:`Similarity`); each image's range defaults to
@@ -133,6 +137,7 @@ def nmi(measured, predicted, mask=None, bins: int = 64, range_measured=None, ran
     return Similarity(measured, mask, bins, range_measured, range_predicted, device).nmi(predicted)
 
 
+@staged("similarity")
 def ncc(measured, predicted, mask=None, device=None) -> float:
     """Normalised cross-correlation of two images of one grid over the mask."""
     return Similarity(measured, mask, device=device, range_measured=(0.0, 1.0)).ncc(predicted)

@@ -36,6 +36,7 @@ from BreastBiomechLib.solver.relaxation import MM
 from BreastBiomechLib.solver.settings import DynamicRelaxation
 from BreastBiomechLib.solver.solution import Solution
 from BreastBiomechLib.solver.warm import WarmStart
+from BreastBiomechLib.timing import staged
 
 
 def _device(device):
@@ -94,6 +95,7 @@ def solve(model: Model, device=None, sample_every: int = 200, ke_ie_limit: float
 
 
 
+@staged("solving")
 def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacements: list | None = None,
                 device=None, sample_every: int = 200, ke_ie_limit: float = 0.05,
                 initial_displacement: np.ndarray | None = None,

@@ -20,6 +20,7 @@ import warp as wp
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.solver.memory import check_warp_fits
+from BreastBiomechLib.timing import staged
 from BreastBiomechLib.warping import kernels
 
 
@@ -94,6 +95,7 @@ class ImageWarper:
                       [self._deformed, self._reference, self._tets, origin, to_lps, to_index, nx, ny, nz,
                        self._position, self._inside])
 
+    @staged("image warping")
     def warp(self, displacement_mm: np.ndarray) -> wp.array:
         """The predicted image as a flat device array (z, y, x order) for nodal displacements (N, 3)
         mm; stays on the device (for similarity measures computed there)."""
@@ -104,6 +106,7 @@ class ImageWarper:
                       [self._position, self._inside, self._image, origin, to_index, self.background, self._values])
         return self._values
 
+    @staged("image warping")
     def predict(self, displacement_mm: np.ndarray) -> PredictedImage:
         """The predicted image and the inside mask as SimpleITK images on the output grid."""
         values = self.warp(displacement_mm).numpy().reshape(self.size[::-1])
@@ -156,12 +159,14 @@ class ImageWarper:
         return image
 
 
+@staged("image warping")
 def predict_image(mesh: TetMesh, displacement_mm: np.ndarray, undeformed: sitk.Image, like: sitk.Image,
                   device=None, background: float = 0.0) -> PredictedImage:
     """The FE-predicted deformed image on ``like``'s grid (see :class:`ImageWarper`)."""
     return ImageWarper(mesh, undeformed, like, device, background).predict(displacement_mm)
 
 
+@staged("image warping")
 def displacement_field(mesh: TetMesh, displacement_mm: np.ndarray, like: sitk.Image, device=None) -> sitk.Image:
     """The dense displacement field of the FE solution on ``like``'s grid (see
     :meth:`ImageWarper.displacement_field`)."""
