@@ -80,13 +80,16 @@ class StageClock:
                            for name, s in ordered}}
 
     def table(self) -> str:
-        """The stages as a Markdown table (stage, count, own seconds, share of the wall time)."""
+        """The stages as a Markdown table: stage, times entered, own seconds, share of the wall
+        time, seconds with the stages inside it."""
         data = self.to_dict()
-        rows = [f"| {name} | {s['count']} | {s['own_s']:.1f} | {s['share']:.0%} |" for name, s in data["stages"].items()]
-        rows.append(f"| (outside the stages: imports, file reading and writing, Python) | | {data['unstaged_s']:.1f} | "
-                    f"{data['unstaged_s'] / data['wall_s'] if data['wall_s'] > 0 else 0:.0%} |")
-        return "\n".join(["| stage | times | seconds | share |", "|---|---|---|---|", *rows,
-                          f"| **wall** | | **{data['wall_s']:.1f}** | 100% |"])
+        wall = data["wall_s"]
+        rows = [f"| {name} | {s['count']} | {s['own_s']:.1f} | {s['share']:.0%} | {s['total_s']:.1f} |"
+                for name, s in data["stages"].items()]
+        rows.append(f"| (outside the stages: file reading and writing, Python) | | {data['unstaged_s']:.1f} | "
+                    f"{data['unstaged_s'] / wall if wall > 0 else 0:.0%} | |")
+        return "\n".join(["| stage | times | seconds | share | seconds with the stages inside |",
+                          "|---|---|---|---|---|", *rows, f"| **wall** | | **{wall:.1f}** | 100% | |"])
 
     def _enter(self, name: str) -> None:
         if self.synchronise is not None:

@@ -14,6 +14,7 @@ from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings
 from BreastBiomechLib.discrepancy.observations import NoiseModel
 from BreastBiomechLib.discrepancy.registration import RegistrationSettings
 from BreastBiomechLib.io.claims import claimed
+from BreastBiomechLib.timing import staged
 
 
 @dataclass
@@ -32,6 +33,7 @@ class DiagnosisRun:
         return [r["added"] for r in self.rounds if r.get("added")]
 
 
+@staged("diagnosis")
 def run_diagnosis(case_dir, fit_dir, out_dir, effects=None, rounds: int = 3, noise: NoiseModel | None = None,
                   settings: DiagnosisSettings | None = None, device=None, resume: bool = False,
                   progress: Callable[[str], None] | None = None,

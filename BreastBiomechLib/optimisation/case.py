@@ -87,6 +87,7 @@ class CaseFit:
     force_scale: dict | None = None
 
 
+@staged("fit")
 def fit_compressed_case(case_dir: str | Path, out_dir: str | Path, settings: FitSettings | None = None,
                         labels: str | Path | None = None, mesh_path: str | Path | None = None,
                         resume: bool = False, device=None,
