@@ -112,6 +112,7 @@ class Observations:
     def __len__(self) -> int:
         return len(self.measured)
 
+    @staged("features")
     def predicted(self, displacement_mm: np.ndarray) -> np.ndarray:
         """The features (n,) of nodal displacements (N, 3) mm of the fitting mesh."""
         return np.concatenate([part(displacement_mm) for part in self._parts])

@@ -16,7 +16,7 @@ from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import FIT_STEP, ModelState
 from BreastBiomechLib.discrepancy.variants import solve_variants
-from BreastBiomechLib.timing import staged
+from BreastBiomechLib.timing import stage, staged
 
 
 @dataclass
@@ -69,10 +69,11 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
         say(f"building the {effect.title} variants")
         built = []
         try:
-            for j, parameter in enumerate(effect.parameters):
-                values = effect.off.copy()
-                values[j] = parameter.stepped(parameter.off)
-                built.append((state.variant(values={effect.name: (effect, values)}), j, values[j] - parameter.off))
+            with stage(f"building variants: {effect.name}"):
+                for j, parameter in enumerate(effect.parameters):
+                    values = effect.off.copy()
+                    values[j] = parameter.stepped(parameter.off)
+                    built.append((state.variant(values={effect.name: (effect, values)}), j, values[j] - parameter.off))
         except ValueError as error:
             skipped[effect.name] = f"could not be built: {error}"
             continue
