@@ -32,6 +32,7 @@ from BreastBiomechLib.optimisation.space import ParameterSpace
 from BreastBiomechLib.phantom.parameters import PRONE_GRAVITY
 from BreastBiomechLib.solver import DynamicRelaxation, Model
 from BreastBiomechLib.solver.model import Plate
+from BreastBiomechLib.timing import staged
 
 FIT_FILES = ("settings.json", "result.json", "fitting_mesh.vtu")
 
@@ -132,6 +133,7 @@ def recorded_solution(fitted: FittedCase) -> np.ndarray | None:
     return np.concatenate(solutions)
 
 
+@staged("reading the case and the fit")
 def load_fitted_case(case_dir: str | Path, fit_dir: str | Path, device=None, tolerance_mm: float = 0.01,
                      imaged_gravity=PRONE_GRAVITY) -> FittedCase:
     """The fit in ``fit_dir`` (``breastbiomech optimise``'s output folder) of the compressed case

@@ -63,6 +63,7 @@ from BreastBiomechLib.discrepancy.report import write_report
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.io.atomic import atomic_path, write_text_atomically
 from BreastBiomechLib.io.claims import CLAIM_FILE
+from BreastBiomechLib.timing import staged
 
 FLOOR_FILE = "floor.json"  # the measured model-error floor of the session's features
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
@@ -114,6 +115,7 @@ class FieldRecorder:
     body: np.ndarray
 
     @classmethod
+    @staged("residual fields")
     def of(cls, fitted: FittedCase, base_displacement: np.ndarray, settings: RegistrationSettings) -> FieldRecorder:
         import SimpleITK as sitk
 
@@ -129,6 +131,7 @@ class FieldRecorder:
 
         return residual_field_of(self.fitted, self.fitted.first(displacement), self.body, self.settings)
 
+    @staged("residual fields")
     def summary(self, field: ResidualField, displacement: np.ndarray, path: Path) -> dict:
         """The figures of ``field`` (of the model whose solution is ``displacement``), saved to ``path``."""
         import SimpleITK as sitk
@@ -498,6 +501,7 @@ class DiagnosisSession:
             path.unlink(missing_ok=True)
             return None
 
+    @staged("checkpoints")
     def _keep(self, number: int, diagnosis: Diagnosis, key: dict | None = None) -> None:
         save_diagnosis(self.path(number, KEPT), diagnosis, key)
 
@@ -532,6 +536,7 @@ class DiagnosisSession:
                                            "measured image)")
         record["residual_picture"] = picture.name
 
+    @staged("report")
     def _write(self, record: dict) -> None:
         from BreastBiomechLib.discrepancy.workflow import DiagnosisRun
 
