@@ -19,8 +19,8 @@ from __future__ import annotations
 import contextvars
 import functools
 import time
-from contextlib import contextmanager
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 _CURRENT: contextvars.ContextVar["StageClock | None"] = contextvars.ContextVar("breastbiomech_stage_clock",
@@ -57,6 +57,7 @@ class StageClock:
 
     @property
     def wall_s(self) -> float:
+        """Seconds from the clock's making to its stop (to now while it runs)."""
         return (self.stopped if self.stopped is not None else self.now()) - self.started
 
     @property
