@@ -194,11 +194,18 @@ def _bench_demo(args) -> dict:
         out = Path(args.out) if args.out else Path(scratch) / "demo"
         with contextlib.redirect_stdout(sys.stderr):  # the demo's progress; stdout keeps the figures
             clock = run_demo(out, args.device, None)
-        record = json.loads((out / "diagnosis" / "diagnosis.json").read_text())
-    verdict = {"final": record["final"], "added": record["added"], "rounds": len(record["rounds"])}
-    return {"benchmark": "demo", "version": __version__, "device": args.device or "default",
-            "wall_s": round(clock.wall_s, 1), "solving_share": round(clock.share("solving"), 3),
-            "stages": clock.to_dict()["stages"], "unstaged_s": round(clock.unstaged_s, 1), "verdict": verdict}
+        return {"benchmark": "demo", "version": __version__, "device": args.device or "default",
+                **staged_figures(clock, out / "diagnosis")}
+
+
+def staged_figures(clock: StageClock, diagnosis_dir: Path) -> dict:
+    """The figures of a timed run that ended with the diagnosis in ``diagnosis_dir``: wall
+    seconds, the solver's share, each stage's seconds, and the diagnosis's final verdict, effects
+    added and rounds (from its diagnosis.json)."""
+    record = json.loads((Path(diagnosis_dir) / "diagnosis.json").read_text())
+    return {"wall_s": round(clock.wall_s, 1), "solving_share": round(clock.share("solving"), 3),
+            "stages": clock.to_dict()["stages"], "unstaged_s": round(clock.unstaged_s, 1),
+            "verdict": {"final": record["final"], "added": record["added"], "rounds": len(record["rounds"])}}
 
 
 def _bench_diagnose(args) -> dict:

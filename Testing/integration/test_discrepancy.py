@@ -130,6 +130,11 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     assert "model-error floor" not in clock.stages  # read back, not measured again
     assert clock.stages["sensitivities"].total_s >= clock.stages["sensitivities"].own_s > 0.0
     assert 0.0 < clock.share("solving") < 1.0 and clock.unstaged_s >= 0.0
+    from BreastBiomechLib.cli.bench import staged_figures
+
+    figures = staged_figures(clock, out)  # what `bench demo` prints of a run
+    assert figures["verdict"] == {"final": "no significant discrepancy", "added": [], "rounds": 1}
+    assert figures["solving_share"] == round(clock.share("solving"), 3) and "statistics" in figures["stages"]
     again = (out / "floor.json").stat()
     assert (again.st_ino, again.st_mtime_ns) == (measured.st_ino, measured.st_mtime_ns)
     summary = json.loads(capsys.readouterr().out)
