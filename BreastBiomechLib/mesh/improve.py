@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from BreastBiomechLib.mesh.quality import mesh_quality
-from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes, signed_volumes
+from BreastBiomechLib.rows import unique_rows
 
 
 def boundary_face_counts(tets: np.ndarray) -> np.ndarray:
@@ -32,9 +33,7 @@ def _rank(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> tuple
     minus the number of poor elements, then :func:`_score`. A collapse that leaves no element
     poor is taken even where its worst element's shape factor falls (it stays above the poor
     limit); an inverted element ranks below everything."""
-    p = nodes[tets]
-    volume = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
-    if (volume <= 0).any():
+    if (signed_volumes(nodes, tets) <= 0).any():
         return (-len(tets) - 1, -1.0)
     report = mesh_quality(TetMesh(nodes, tets))
     poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
@@ -278,5 +277,5 @@ def _collapse_short_edges(nodes: np.ndarray, tets: np.ndarray, poor: np.ndarray,
 def _conforming(tets: np.ndarray) -> bool:
     """Whether every face is shared by at most two elements and no element repeats another."""
     faces = np.sort(tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1)
-    _, counts = np.unique(faces, axis=0, return_counts=True)
-    return bool(counts.max() <= 2) and len(np.unique(np.sort(tets, axis=1), axis=0)) == len(tets)
+    _, counts = unique_rows(faces, return_counts=True)
+    return bool(counts.max() <= 2) and len(unique_rows(np.sort(tets, axis=1))) == len(tets)

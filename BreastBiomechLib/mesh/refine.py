@@ -9,6 +9,7 @@ from typing import Callable
 import numpy as np
 
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_nodes
+from BreastBiomechLib.rows import unique_rows
 
 _EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 # the eight children of a tet in terms of its corners 0-3 and edge midpoints 4-9 (order of _EDGES):
@@ -21,8 +22,8 @@ def _edges(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The unique edges (E, 2) of ``tets`` (each sorted) and, for each tet's six edges in the order
     of ``_EDGES``, its index among them (M * 6,)."""
     edges = np.sort(tets[:, _EDGES].reshape(-1, 2), axis=1)
-    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
-    return unique, inverse.ravel()
+    unique, inverse = unique_rows(edges, return_inverse=True)
+    return unique, inverse
 
 
 def midpoint_edges(mesh: TetMesh) -> np.ndarray:

@@ -10,6 +10,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from BreastBiomechLib.rows import unique_rows
 from BreastBiomechLib.surface.trisurface import TriSurface
 
 
@@ -56,9 +57,8 @@ def check_surface(surface: TriSurface) -> SurfaceCheck:
         return SurfaceCheck(surface.name, 0, 0, 0, 0, 0, 0, 0.0)
     directed = np.stack([tri, np.roll(tri, -1, axis=1)], axis=2).reshape(-1, 2)  # (3T, 2): a->b
     undirected = np.sort(directed, axis=1)
-    edges, edge_of, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
-    edge_of = edge_of.ravel()
-    _, directed_counts = np.unique(directed, axis=0, return_counts=True)
+    edges, edge_of, counts = unique_rows(undirected, return_inverse=True, return_counts=True)
+    _, directed_counts = unique_rows(directed, return_counts=True)
     misoriented = int(np.count_nonzero(directed_counts > 1))
 
     # vertex fans: the corners of the triangles around a vertex are linked when their triangles
@@ -75,7 +75,7 @@ def check_surface(surface: TriSurface) -> SurfaceCheck:
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_tri, 3 * n_tri))
     _, group = connected_components(graph, directed=False)
     vertex = tri.ravel()
-    fans = np.unique(np.stack([vertex, group], axis=1), axis=0)[:, 0]
+    fans = unique_rows(np.stack([vertex, group], axis=1))[:, 0]
     nonmanifold_vertices = int(np.count_nonzero(np.bincount(fans) > 1))
 
     tri_graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(n_tri, n_tri))

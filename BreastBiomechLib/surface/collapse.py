@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from BreastBiomechLib.rows import unique_rows
 from BreastBiomechLib.surface.trisurface import TriSurface, corner_angles
 
 SHORT_EDGE_FRACTION = 0.3  # edges under this share of the target edge are collapsed
@@ -73,7 +74,7 @@ def collapse_short_edges(surface: TriSurface, target_edge_mm: float, fraction: f
     collapsed: list[tuple[int, int]] = []
     for _ in range(passes):  # a collapse can shorten an edge next to it: pass again until none is left
         live = triangles[alive]
-        edges = np.unique(np.sort(np.concatenate([live[:, [0, 1]], live[:, [1, 2]], live[:, [2, 0]]]), axis=1), axis=0)
+        edges = unique_rows(np.sort(np.concatenate([live[:, [0, 1]], live[:, [1, 2]], live[:, [2, 0]]]), axis=1))
         lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
         short = np.argsort(lengths)[: int(np.count_nonzero(lengths < fraction * target_edge_mm))]
         before_pass = len(collapsed)
