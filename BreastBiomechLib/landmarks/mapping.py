@@ -10,11 +10,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from BreastBiomechLib.landmarks.points import Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
 
 _CANDIDATES = 32  # tets searched for the nearest one to a point outside the mesh
+_NEAREST = 64  # tets, by their centroids' distance, tried first for holding a point
+_BLOCK = 4096  # points tried at a time
 
 
 @dataclass
@@ -30,16 +33,36 @@ class PointLocation:
 
 def locate_points(mesh: TetMesh, points: np.ndarray) -> PointLocation:
     """The reference tet and barycentric coordinates of each point (K, 3) LPS mm; a point
-    outside the mesh takes the nearest tet (searched among those with the nearest centroids)."""
+    outside the mesh takes the nearest tet (searched among those with the nearest centroids).
+
+    Each point is first tried in the :data:`_NEAREST` tets with the nearest centroids, all points
+    at once (a node of the mesh, shared by some twenty tets, has them all there); only a point
+    that none of them holds is tried against every tet. Where several tets hold a point (on a
+    shared face, edge or node) the one it lies deepest in is taken, the lowest numbered on a tie."""
     points = np.atleast_2d(np.asarray(points, dtype=float))
     corners = mesh.nodes[mesh.tets]                                   # (M, 4, 3)
     edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # columns p1-p0, p2-p0, p3-p0
     to_barycentric = np.linalg.inv(edges)
     centroids = corners.mean(axis=1)
-    tets = np.empty(len(points), dtype=np.int64)
+    tets = np.full(len(points), -1, dtype=np.int64)
     weights = np.empty((len(points), 4))
     outside = np.zeros(len(points))
-    for k, p in enumerate(points):
+    if len(points):
+        nearest = cKDTree(centroids).query(points, k=min(_NEAREST, len(centroids)))[1].reshape(len(points), -1)
+        nearest.sort(axis=1)  # a tie goes to the lowest numbered tet, as a search over all of them gives it
+        for start in range(0, len(points), _BLOCK):
+            block = slice(start, start + _BLOCK)
+            near = nearest[block]
+            b = np.einsum("kcij,kcj->kci", to_barycentric[near], points[block, None] - corners[near, 0])
+            full = np.concatenate([1.0 - b.sum(axis=2, keepdims=True), b], axis=2)  # (k, c, 4)
+            least = full.min(axis=2)
+            best = least.argmax(axis=1)
+            rows = np.arange(len(near))
+            held = least[rows, best] >= -1e-9
+            tets[block][held] = near[rows, best][held]
+            weights[block][held] = full[rows, best][held]
+    for k in np.flatnonzero(tets < 0):  # held by none of its nearest tets: all of them, then outside
+        p = points[k]
         b = np.einsum("mij,mj->mi", to_barycentric, p - corners[:, 0])
         full = np.column_stack([1.0 - b.sum(axis=1), b])
         least = full.min(axis=1)

@@ -51,3 +51,27 @@ def test_errors_follow_the_seeds_table_2():
     assert summary["error_mm"] == pytest.approx({"mean": 2.0, "sd": np.std([1, 0, 5]), "max": 5.0})
     with pytest.raises(ValueError, match="share no label"):
         landmark_errors(reference, Landmarks([[0, 0, 0]], ["Z"]), measured)
+
+
+def test_points_are_found_in_the_tet_a_search_of_every_tet_gives():
+    """The nearest-centroid search finds, for points inside, on nodes and outside, the tet the
+    search over every tet finds (the deepest holding one, the lowest numbered on a tie)."""
+    fine = box_mesh((40.0, 30.0, 20.0), (10, 8, 5), origin_mm=(-20.0, -15.0, -10.0))  # 2400 tets: more than tried first
+    rng = np.random.default_rng(3)
+    points = np.vstack([rng.uniform([-19.9, -14.9, -9.9], [19.9, 14.9, 9.9], (300, 3)), fine.nodes[::7],
+                        [[0.0, 0.0, 12.0], [25.0, 3.0, 0.0]]])
+    where = locate_points(fine, points)
+    corners = fine.nodes[fine.tets]
+    inverse = np.linalg.inv(np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1)))
+    for k, p in enumerate(points[:-2]):
+        b = np.einsum("mij,mj->mi", inverse, p - corners[:, 0])
+        least = np.column_stack([1.0 - b.sum(axis=1), b]).min(axis=1)
+        assert least[where.tets[k]] == pytest.approx(least.max(), abs=1e-12)
+        assert where.outside_mm[k] == 0
+    np.testing.assert_allclose(np.einsum("kc,kcd->kd", where.weights, corners[where.tets]), points, atol=1e-9)
+    # a node lies in a tet that holds it, with all its weight on itself
+    nodes = fine.nodes[::7]
+    held = where.tets[300:300 + len(nodes)]
+    assert np.all(np.isclose(where.weights[300:300 + len(nodes)].max(axis=1), 1.0))
+    assert np.all(np.any(fine.tets[held] == np.arange(0, len(fine.nodes), 7)[:, None], axis=1))
+    np.testing.assert_allclose(where.outside_mm[-2:], [2.0, 5.0], atol=1e-9)
