@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from BreastBiomechLib.mesh.quality import mesh_quality
-from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes, signed_volumes
+from BreastBiomechLib.mesh.quality import QualityReport, element_measures, mesh_quality
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes, cross, signed_volumes
 from BreastBiomechLib.rows import unique_rows
 
 
@@ -22,15 +22,24 @@ def boundary_face_counts(tets: np.ndarray) -> np.ndarray:
     return np.bincount(boundary_faces(tets)[1], minlength=len(tets))
 
 
-def _score(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> float:
-    """The worst element of ``tets`` (the smoothing's acceptance test): its shape factor, halved
-    if it is poor, -1 if an element is inverted."""
-    return _rank(nodes, tets, min_dihedral_deg)[1]
+def _scores_at(nodes: np.ndarray, tets: np.ndarray, node: int, positions: np.ndarray,
+               min_dihedral_deg: float) -> np.ndarray:
+    """The worst element of ``tets`` (the smoothing's acceptance test) with ``node`` at each of
+    ``positions`` (T, 3) in turn, all measured at once: its shape factor, halved if it is poor,
+    -1 if an element is inverted."""
+    p = np.broadcast_to(nodes[tets], (len(positions), len(tets), 4, 3)).copy()
+    p[:, tets == node] = positions[:, None, :]
+    p = p.reshape(-1, 4, 3)
+    volume = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    report = QualityReport(*element_measures(p))
+    poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
+    worst = (report.shape_factor * np.where(poor, 0.5, 1.0)).reshape(len(positions), -1).min(axis=1)
+    return np.where((volume <= 0).reshape(len(positions), -1).any(axis=1), -1.0, worst)
 
 
 def _rank(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> tuple[int, float]:
     """How good ``tets`` are, for comparing the elements around a collapse (larger is better):
-    minus the number of poor elements, then :func:`_score`. A collapse that leaves no element
+    minus the number of poor elements, then the worst element as :func:`_scores_at` scores it. A collapse that leaves no element
     poor is taken even where its worst element's shape factor falls (it stays above the poor
     limit); an inverted element ranks below everything."""
     if (signed_volumes(nodes, tets) <= 0).any():
@@ -143,15 +152,12 @@ def improve_once(mesh: TetMesh, min_dihedral_deg: float = 5.0,
             targets += [_ideal_apex(nodes, tet, node) for tet in around if tuple(tet) in poor_tets]
             weights = (0.25, 0.5, 0.75, 1.0)
         old = nodes[node].copy()
-        best, best_score = old, _score(nodes, around, min_dihedral_deg)
-        for target in targets:
-            for weight in weights:
-                nodes[node] = old + weight * (target - old)
-                score = _score(nodes, around, min_dihedral_deg)
-                if score > best_score:
-                    best, best_score = nodes[node].copy(), score
-        nodes[node] = best
-        moved += int(best is not old)
+        trials = np.array([old] + [old + weight * (target - old) for target in targets for weight in weights])
+        scores = _scores_at(nodes, around, node, trials, min_dihedral_deg)
+        best = int(np.argmax(scores))  # the first of the best, as trying them in turn finds it
+        if scores[best] > scores[0]:
+            nodes[node] = trials[best]
+            moved += 1
     used = np.zeros(len(nodes), bool)
     used[tets.ravel()] = True
     remap = np.cumsum(used) - 1

@@ -109,11 +109,11 @@ def mesh_quality(mesh: TetMesh) -> QualityReport:
     faster on a mesh of 200k elements than all at once)."""
     if len(mesh.tets) == 0:
         raise ValueError("the mesh has no elements to check")
-    blocks = [_measures(mesh.nodes[mesh.tets[start:start + CHUNK]]) for start in range(0, len(mesh.tets), CHUNK)]
+    blocks = [element_measures(mesh.nodes[mesh.tets[start:start + CHUNK]]) for start in range(0, len(mesh.tets), CHUNK)]
     return QualityReport(*(np.concatenate(arrays) for arrays in zip(*blocks)))
 
 
-def _measures(p: np.ndarray) -> tuple[np.ndarray, ...]:
+def element_measures(p: np.ndarray) -> tuple[np.ndarray, ...]:
     """Shape factor, smallest and largest face corner, aspect ratio, smallest and largest dihedral
     angle (degrees) of the elements with node coordinates ``p`` (M, 4, 3)."""
     a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
