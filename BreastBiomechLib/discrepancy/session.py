@@ -45,6 +45,7 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from dataclasses import field as dataclass_field
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +67,7 @@ from BreastBiomechLib.io.claims import CLAIM_FILE
 from BreastBiomechLib.timing import staged
 
 FLOOR_FILE = "floor.json"  # the measured model-error floor of the session's features
+SAME_SOLUTION_MM = 0.01  # two solutions this close (largest node difference) are of the same model
 DECISIONS = ("missing effect", "ambiguous")  # verdicts that leave a round open until the user decides
 
 
@@ -126,10 +128,21 @@ class FieldRecorder:
                          check_volume(fitted.measured_image))
         return cls(fitted, settings, regions_of(fitted, fitted.mesh.nodes, fitted.first(base_displacement)), body)
 
+    last: tuple[np.ndarray, ResidualField] | None = dataclass_field(default=None, repr=False)
+
     def field(self, displacement: np.ndarray) -> ResidualField:
+        """The residual field of the model whose solution is ``displacement``; the last one made
+        again where the model is the same (a round's model after its refit is the next round's
+        before it: its solution re-solved there differs by under :data:`SAME_SOLUTION_MM`)."""
         from BreastBiomechLib.discrepancy.registration import residual_field_of
 
-        return residual_field_of(self.fitted, self.fitted.first(displacement), self.body, self.settings)
+        first = self.fitted.first(displacement)
+        if (self.last is not None and self.last[0].shape == first.shape
+                and float(np.abs(self.last[0] - first).max()) <= SAME_SOLUTION_MM):
+            return self.last[1]
+        made = residual_field_of(self.fitted, first, self.body, self.settings)
+        self.last = (first.copy(), made)
+        return made
 
     @staged("residual fields")
     def summary(self, field: ResidualField, displacement: np.ndarray, path: Path) -> dict:
