@@ -89,8 +89,8 @@ def save_diagnosis(path: str | Path, diagnosis: Diagnosis, key: dict | None = No
     arrays["meta"] = np.array(json.dumps(meta, default=float))
     handle, temporary = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(handle, "wb") as file:
-            np.savez_compressed(file, **arrays)
+        with os.fdopen(handle, "wb") as file:  # uncompressed: solutions in floats compress by ~6 % at 20x the time
+            np.savez(file, **arrays)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
