@@ -147,10 +147,13 @@ def _demo(out: Path, device: str | None, budget: int | None, gpu: bool, clock: S
     step(f"6/7 model-discrepancy diagnosis: where the fit and the measurement disagree, which effect is missing "
          f"(the whole library; at most {DEMO_ROUNDS} rounds; model-error floor {floor}), added and refitted")
     clear_earlier_result(out / "diagnosis", "diagnosis.json", "diagnosis")
+    # on a GPU the next measurement is designed for what the last round could not tell apart (every
+    # acquisition of the library simulated: seconds there, a quarter of an hour on two CPU cores)
     diagnosis = run_diagnosis(out / "case", out / "fit", out / "diagnosis", rounds=DEMO_ROUNDS,
                               noise=NoiseModel(floor=floor),
                               settings=DiagnosisSettings(refine_iterations=2), device=device,
-                              progress=lambda message: print(f"    {message}", flush=True))
+                              progress=lambda message: print(f"    {message}", flush=True),
+                              design=() if gpu else None)
     for record in diagnosis.rounds:
         if record.get("after"):
             before, after = record["before"]["landmark_error_mm"], record["after"]["landmark_error_mm"]
@@ -194,6 +197,61 @@ def _diagnosis_section(diagnosis) -> str:
             parts += ["", f"![residual displacement field, round {record['round']}](diagnosis/{record['residual_picture']})"]
         parts.append("")
     return "\n".join(parts)
+
+
+def identifiability_effects(case_dir: Path, fit_dir: Path) -> dict:
+    """The library's effects sized to a fitted case (name -> effect), for their parameters' ranges."""
+    from BreastBiomechLib.discrepancy.effects import library
+    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
+
+    return {e.name: e for e in library(load_fitted_case(case_dir, fit_dir, device="cpu"))}
+
+
+def identifiability_section(diagnosis, effects: dict) -> str:
+    """What the demo's case could and could not have shown: per candidate of the last round, the
+    share of its signature the fitted parameters reproduce and the smallest size its test would
+    see, so that "no significant discrepancy" is not read as "nothing missing"."""
+    from BreastBiomechLib.discrepancy.diagnosis import ABSORBED, not_identifiable
+
+    last = diagnosis.rounds[-1]
+    rows = []
+    for c in last["diagnosis"]["candidates"]:
+        effect = effects.get(c["name"])
+        if c.get("skipped"):
+            rows.append(f"| {c['title']} | - | - | not tested: {c['skipped']} |")
+            continue
+        by = c.get("absorbed_by") or {}
+        absorbed = f"{c['absorbed']:.0%}" + (f" (chiefly {by['name']})" if by.get("name") else "")
+        sizes = [f"{p.name} {'none' if d is None else f'{d:.3g} {p.unit}'.strip()} (range {p.lower:g} to {p.upper:g})"
+                 for p, d in zip(effect.parameters, c.get("detectable") or [])] if effect is not None else []
+        if c["absorbed"] >= ABSORBED:
+            verdict = f"no: the fit takes it up as {by.get('name', 'its parameters')}"
+        elif not_identifiable(c, effect):
+            verdict = "no: too small to see at this case's noise, whatever its size"
+        else:
+            verdict = "yes, from that size on"
+        rows.append(f"| {c['title']} | {absorbed} | {'; '.join(sizes) or '-'} | {verdict} |")
+    return "\n".join([
+        f"### What this case could and could not have shown (round {last['round']})", "",
+        "Each candidate's share of its signature that the fitted parameters reproduce (at "
+        f"{ABSORBED:.0%} or more no test of the residual can see it: it has been fitted as those "
+        "parameters) and the smallest size its score test would detect with 80 % power at this case's "
+        "noise (the diagnosis report's columns, docs/discrepancy.md):", "",
+        "| effect | absorbed by the fit | smallest size its test would see | could this case show it |",
+        "|---|---|---|---|", *rows])
+
+
+def _next_measurement_section(diagnosis, device: str) -> str:
+    """The design of the next measurement (on a GPU) or the command that makes it (on a CPU)."""
+    from BreastBiomechLib.discrepancy.report import design_section
+
+    if device == "GPU":
+        return "\n".join(design_section(diagnosis)).replace("## The next measurement", "### The next measurement")
+    return ("### The next measurement\n\nNot designed on a CPU: it simulates each acquisition of the library "
+            "(compressions of -20 to +20 %, each plate moving alone, the plates turned) with the sensitivities of "
+            "the candidates it would tell apart: 16 minutes on two cores for the CPU demo's case. `breastbiomech diagnose "
+            "out/demo/case --fit out/demo/fit --out out/demo/diagnosis --resume --design --floor fixed` adds it to "
+            "diagnosis/report.md (docs/discrepancy.md, \"The next measurement\").")
 
 
 def _fit_note(fit, diagnosis) -> str:
@@ -281,6 +339,10 @@ CPU against the fixed floor (0.5 mm; measuring it solves the fit again on eight 
 Everything is in `diagnosis/` (report.md, round-N.json, the residual fields as .nrrd).
 
 {_diagnosis_section(diagnosis)}
+
+{identifiability_section(diagnosis, identifiability_effects(out / 'case', out / 'fit'))}
+
+{_next_measurement_section(diagnosis, device)}
 
 ## Where the time went
 

@@ -178,7 +178,7 @@ def _features_phrase(features: dict) -> str:
     return text
 
 
-def _design_section(run) -> list[str]:
+def design_section(run) -> list[str]:
     """The next measurement: the design made after the last round (design.json beside the
     report), or where to make it; nothing while the last round waits for a decision."""
     from BreastBiomechLib.discrepancy.session import is_open
@@ -222,7 +222,7 @@ def write_report(run, path: Path, pictures: list[tuple[str, str]] = ()) -> Path:
         if record.get("after"):
             parts += ["", _measures_line(f"After adding {record['added']}", record["after"])]
         parts += [""]
-    parts += _design_section(run)
+    parts += design_section(run)
     if pictures:
         parts += ["## Views", ""] + [f"![{caption}]({name})\n" for caption, name in pictures]
     return write_text_atomically(path, "\n".join(parts) + "\n")

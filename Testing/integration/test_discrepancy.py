@@ -135,6 +135,20 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     figures = staged_figures(clock, out)  # what `bench demo` prints of a run
     assert figures["verdict"] == {"final": "no significant discrepancy", "added": [], "rounds": 1}
     assert figures["solving_share"] == round(clock.share("solving"), 3) and "statistics" in figures["stages"]
+    # the demo's report says, per candidate, whether this case could have shown it (issue 78)
+    from BreastBiomechLib.cli.demo import identifiability_effects, identifiability_section
+    from BreastBiomechLib.discrepancy.diagnosis import not_identifiable
+    from BreastBiomechLib.discrepancy.workflow import DiagnosisRun
+
+    run = DiagnosisRun([json.loads((out / "round-1.json").read_text())], out)
+    effects = identifiability_effects(case, fit)
+    table = identifiability_section(run, effects)
+    for candidate in run.rounds[0]["diagnosis"]["candidates"]:
+        [row] = [line for line in table.splitlines() if line.startswith(f"| {candidate['title']} |")]
+        if candidate.get("skipped"):
+            assert "not tested" in row
+        else:
+            assert row.endswith("| yes, from that size on |") != not_identifiable(candidate, effects[candidate["name"]])
     again = (out / "floor.json").stat()
     assert (again.st_ino, again.st_mtime_ns) == (measured.st_ino, measured.st_mtime_ns)
     summary = json.loads(capsys.readouterr().out)
