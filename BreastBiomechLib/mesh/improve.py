@@ -39,9 +39,9 @@ def _scores_at(nodes: np.ndarray, tets: np.ndarray, node: int, positions: np.nda
 
 def _rank(nodes: np.ndarray, tets: np.ndarray, min_dihedral_deg: float) -> tuple[int, float]:
     """How good ``tets`` are, for comparing the elements around a collapse (larger is better):
-    minus the number of poor elements, then the worst element as :func:`_scores_at` scores it. A collapse that leaves no element
-    poor is taken even where its worst element's shape factor falls (it stays above the poor
-    limit); an inverted element ranks below everything."""
+    minus the number of poor elements, then the worst element as :func:`_scores_at` scores it. A
+    collapse that leaves no element poor is taken even where its worst element's shape factor
+    falls (it stays above the poor limit); an inverted element ranks below everything."""
     if (signed_volumes(nodes, tets) <= 0).any():
         return (-len(tets) - 1, -1.0)
     report = mesh_quality(TetMesh(nodes, tets))
