@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from BreastBiomechLib.landmarks.points import Landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
@@ -39,6 +38,8 @@ def locate_points(mesh: TetMesh, points: np.ndarray) -> PointLocation:
     at once (a node of the mesh, shared by some twenty tets, has them all there); only a point
     that none of them holds is tried against every tet. Where several tets hold a point (on a
     shared face, edge or node) the one it lies deepest in is taken, the lowest numbered on a tie."""
+    from scipy.spatial import cKDTree  # SciPy on first use: the command line's parsers import this module
+
     points = np.atleast_2d(np.asarray(points, dtype=float))
     corners = mesh.nodes[mesh.tets]                                   # (M, 4, 3)
     edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # columns p1-p0, p2-p0, p3-p0
