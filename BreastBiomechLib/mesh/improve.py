@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from BreastBiomechLib.mesh.quality import QualityReport, element_measures, mesh_quality
-from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes, cross, signed_volumes
+from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes, signed_volumes, signed_volumes_of
 from BreastBiomechLib.rows import unique_rows
 
 
@@ -30,7 +30,7 @@ def _scores_at(nodes: np.ndarray, tets: np.ndarray, node: int, positions: np.nda
     p = np.broadcast_to(nodes[tets], (len(positions), len(tets), 4, 3)).copy()
     p[:, tets == node] = positions[:, None, :]
     p = p.reshape(-1, 4, 3)
-    volume = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    volume = signed_volumes_of(p)
     report = QualityReport(*element_measures(p))
     poor = report.failing()["any"] | (report.min_dihedral_deg < min_dihedral_deg)
     worst = (report.shape_factor * np.where(poor, 0.5, 1.0)).reshape(len(positions), -1).min(axis=1)

@@ -33,7 +33,11 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volumes of the tets (M, 4) over ``nodes`` (N, 3), in the nodes' units cubed;
     positive where a tet's first three edges from its node 0 form a right-handed triple."""
-    p = nodes[tets]
+    return signed_volumes_of(nodes[tets])
+
+
+def signed_volumes_of(p: np.ndarray) -> np.ndarray:
+    """:func:`signed_volumes` of tets given by their corners' coordinates ``p`` (M, 4, 3)."""
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
 
 
