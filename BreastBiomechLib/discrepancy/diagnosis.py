@@ -327,13 +327,15 @@ def region_summary(observations: Observations, residual: np.ndarray, regions: np
 
 def adopt(state: ModelState, observations: Observations, sens: Sensitivities, candidate: Candidate, effect: Effect,
           refits: dict[str, Refit], iterations: int, progress: Callable[[str], None] | None = None,
-          profile: bool = True) -> Refit:
+          profile: bool = True, tolerance: float = 1.0) -> Refit:
     """The refit of ``state`` with ``candidate``'s ``effect`` added, refined by ``iterations``
     Gauss-Newton iterations of every fitted parameter (warm start: its confirmation refit in
     ``refits``, else one made now from the round's sensitivities ``sens``), with its parameters'
-    profile intervals where ``profile`` (kept from an earlier call when nothing was refined).
-    Records the refined values and the intervals in ``candidate.refit``; 0 iterations keep the
-    confirmation refit as it is."""
+    profile intervals where ``profile`` (kept from an earlier call when nothing was refined),
+    which hold the values whose features lie within ``tolerance`` times the model-error floor of
+    the estimate's (:mod:`~BreastBiomechLib.discrepancy.profile`). Records the refined values and
+    the intervals (with the data's alone, ``data_interval``) in ``candidate.refit``; 0 iterations
+    keep the confirmation refit as it is."""
     say = progress or (lambda message: None)
     chosen = refits.get(candidate.name)
     if chosen is None:
@@ -361,7 +363,8 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
         if design is None and candidate.name in sens.effects:  # not refined: the round's sensitivities
             design = np.hstack([sens.nuisance, sens.effects[candidate.name]])
         if design is not None:
-            profiled = profile_intervals(chosen.state, observations, candidate.name, design, chosen.rss_after, say)
+            profiled = profile_intervals(chosen.state, observations, candidate.name, design, chosen.rss_after, say,
+                                         residual_at_estimate=chosen.residual_after, tolerance=tolerance)
             chosen = replace(chosen, profile=[p.to_dict() for p in profiled])
     candidate.refit = candidate.refit or {"status": chosen.status, "values": chosen.values.tolist(),
                                           "sd": chosen.sd.tolist(), "described": chosen.effect.describe(chosen.values),
@@ -370,6 +373,7 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
                             "interval": interval(chosen),
                             "interval_kind": "profile" if chosen.profile else "linearised",
                             "interval_open": [p["open"] for p in chosen.profile] if chosen.profile else [],
+                            "data_interval": [p["data_interval"] for p in chosen.profile] if chosen.profile else [],
                             "profile": chosen.profile or [],
                             "refined_described": chosen.effect.describe(chosen.values),
                             "rss_refined": chosen.rss_after,
@@ -509,8 +513,9 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                            "removed_whitened": max(null - r.rss_after, 0.0) / null if null > 0 else 0.0,
                            "excess_explained": statistics.excess_explained(null, r.rss_after, overall["dof"],
                                                                            overall["dof"] - k),
-                           "effect_mm": effect_size_mm(reference - r.residual_after),
-                           "floor_mm": _rms(observations.feature_floor[where_it_acts(reference - r.residual_after)]),
+                           "effect_mm": verdicts.effect_size_mm(reference - r.residual_after),
+                           "floor_mm": _rms(observations.feature_floor[
+                               verdicts.where_it_acts(reference - r.residual_after)]),
                            "at_range_ends": range_ends(r)}
         if r.note:
             candidate.refit["note"] = r.note
@@ -522,7 +527,7 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
         return Diagnosis(decision.verdict, None, decision.alternatives, decision.sentence, refitted=None, **base)
     best = next(c for c in ranked if c.name == decision.effect)
     chosen_refit = adopt(state, observations, sens, best, by_name[best.name], refits, settings.refine_iterations, say,
-                         settings.profile)
+                         settings.profile, settings.min_effect)
     return Diagnosis(verdicts.MISSING, best.name, [],
                      verdicts.missing_effect_sentence(best.to_dict(), _bound_note(chosen_refit), evidence, settings),
                      refitted=chosen_refit, **base)
@@ -539,24 +544,6 @@ def removed_share(before: np.ndarray, after: np.ndarray, sigma: np.ndarray) -> f
     if total <= 0:
         return 0.0
     return max(total - float(np.sum((np.asarray(after, float) / sigma) ** 2)), 0.0) / total
-
-
-def where_it_acts(change: np.ndarray) -> np.ndarray:
-    """The features (boolean (n,)) where a refit's ``change`` (n,) mm is largest: at or above the
-    :data:`~BreastBiomechLib.discrepancy.verdicts.EFFECT_QUANTILE` quantile of its magnitude."""
-    size = np.abs(np.asarray(change, float))
-    if size.size == 0:
-        return np.zeros(0, bool)
-    return size >= np.quantile(size, verdicts.EFFECT_QUANTILE)
-
-
-def effect_size_mm(change: np.ndarray) -> float:
-    """The size of a refit's change of the features (mm): the RMS of the changes where it acts
-    (:func:`where_it_acts`; an effect confined to a contact band is not diluted by the features
-    it leaves alone)."""
-    change = np.asarray(change, float)
-    acts = where_it_acts(change)
-    return float(np.sqrt(np.mean(change[acts] ** 2))) if acts.any() else 0.0
 
 
 def _rms(values: np.ndarray) -> float:

@@ -13,14 +13,28 @@ whitened residual sum of squares rises by less than the chi-square 95 % quantile
 freedom (3.84) above its least value; a saturating parameter's interval reaches the end of its
 range ("open"), which says that the data bound it from one side only.
 
+The model-error floor is taken in (issue 77): the deviance counts each feature's floor as
+independent noise, but a model's discretisation and segmentation errors are systematic, alike
+over hundreds of features, so a parameter whose predictions hardly change over a stretch of its
+range (friction once the skin sticks) is pinned within that stretch by the model's own error: a
+6 mm mesh of the truth's own labels misses the truth's landmarks by 1.1 mm at every mu from 0.3
+to 1.5 while mu moves them by 0.01-0.04 mm there (docs/discrepancy.md). A value is therefore
+also inside the interval where the features it predicts, the others re-fitted, differ from the
+estimate's by less than the floor where they change (``tolerance`` times it:
+:func:`~BreastBiomechLib.discrepancy.verdicts.floor_ratio`, the rule a named effect must pass):
+no model with this error could tell it from the estimate. Each parameter keeps the interval of
+the data alone (``data_interval``) beside it.
+
 Each side of each parameter is walked in at most :data:`STEPS` solves (batched over the
 parameters and sides): 2 linearised sd from the estimate (at least 2 % of the range), where the
 data reject it the side is done; else the range's end, where they do not the side is open; else
 four times as far as the first value (or halfway to the end) to bracket the bound, which is
 interpolated between the last value inside and the first outside linearly in the root deviance
 (linear in the parameter for a Gaussian likelihood). A well-determined parameter takes one solve
-a side, a saturating one two on its open side. Values whose solve fails are left out
-(counted in ``failed``)."""
+a side, a saturating one two on its open side. Where the floor held a value the data reject, the
+bracket is halved until :data:`FLOOR_STEPS` values (the features then change little over a
+stretch and steeply past it, which one line brackets badly). Values whose solve fails are left
+out (counted in ``failed``)."""
 
 from __future__ import annotations
 
@@ -33,10 +47,12 @@ from scipy.optimize import lsq_linear
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.discrepancy.verdicts import floor_ratio
 from BreastBiomechLib.timing import staged
 
 CHI2_95 = 3.841458820694124  # the chi-square 95 % quantile with one degree of freedom
-STEPS = 3  # solves per side of a parameter at most
+STEPS = 3  # solves per side of a parameter where the data alone decide
+FLOOR_STEPS = 5  # solves per side at most where the model-error floor holds a value the data reject
 FIRST_STEP = (2.0, 0.02)  # the first value tried: this many linearised sd from the estimate, at least this share of the range
 SECOND_STEP = 4.0  # the second this many times as far
 
@@ -44,15 +60,19 @@ SECOND_STEP = 4.0  # the second this many times as far
 @dataclass
 class ProfiledParameter:
     """One parameter's profile: its ``key`` ("<effect>:<index>"), ``estimate``, the 95 %
-    ``interval`` [low, high] (effect units), ``open`` [low, high] (True where the interval
-    reaches that end of the parameter's range: the data do not bound it on that side),
-    ``points`` [[value, deviance], ...] the values solved (the estimate at deviance 0) and
-    ``failed`` the number of values whose solve failed."""
+    ``interval`` [low, high] (effect units; the values neither the data nor the model-error
+    floor tell from the estimate), ``open`` [low, high] (True where the interval reaches that
+    end of the parameter's range: nothing bounds it on that side), ``data_interval`` and
+    ``data_open`` the same from the deviance alone, ``points`` [[value, deviance, floor ratio],
+    ...] the values solved (the estimate at 0, 0; the floor ratio infinite where no floor was
+    given) and ``failed`` the number of values whose solve failed."""
 
     key: str
     estimate: float
     interval: list[float]
     open: list[bool]
+    data_interval: list[float] = field(default_factory=list)
+    data_open: list[bool] = field(default_factory=list)
     points: list[list[float]] = field(default_factory=list)
     failed: int = 0
 
@@ -63,36 +83,71 @@ class ProfiledParameter:
 @dataclass
 class _Side:
     """One side of one parameter's walk: the parameter's ``index`` in its effect and ``column``
-    in the design, the ``direction`` (-1 down, +1 up), the ``values`` to try (:func:`side_values`'
-    order), those ``walked`` [(value, rss)], the ``failed`` solves and whether the side is
-    ``done``: its first value rejected, its range's end not rejected (nothing between can be, for
-    a profile that rises away from its least value), or every value tried."""
+    in the design, the ``direction`` (-1 down, +1 up), the ``values`` to try first
+    (:func:`side_values`' order), those ``walked`` [(value, rss, floor ratio)], the ``failed``
+    solves and whether the side is ``done``: its first value rejected, its range's end not
+    rejected (nothing between can be, for a profile that rises away from its least value), or
+    every value tried. A value is rejected where the data reject it and its features differ from
+    the estimate's by at least the floor (floor ratio >= 1). Where the floor held a value the data
+    rejected, the features change little over a stretch and then steeply (a saturating
+    parameter), which a line through two values brackets badly: the bracket is then halved up to
+    :data:`FLOOR_STEPS` values in all."""
 
     index: int
     column: int
     direction: int
     values: list[float]
-    walked: list[tuple[float, float]] = field(default_factory=list)
+    walked: list[tuple[float, float, float]] = field(default_factory=list)
     failed: int = 0
     done: bool = False
+    held_by_floor: bool = False  # some value the data rejected was inside the floor
+    _inside: list[bool] = field(default_factory=list)
+
+    @property
+    def _tried(self) -> int:
+        return len(self.walked) + self.failed
+
+    def _bracket(self) -> tuple[float, float] | None:
+        """The farthest value inside before the first outside and that outside value, going
+        outwards from the estimate (None: no value inside or none outside)."""
+        inside = None
+        for (value, *_), ok in sorted(zip(self.walked, self._inside), key=lambda w: w[0][0] * self.direction):
+            if not ok:
+                return (inside, value) if inside is not None else None
+            inside = value
+        return None
 
     @property
     def pending(self) -> bool:
-        return not self.done and len(self.walked) + self.failed < len(self.values)
+        if self.done:
+            return False
+        if self._tried < len(self.values):
+            return True
+        return self.held_by_floor and self._tried < FLOOR_STEPS and self._bracket() is not None
 
     @property
     def next_value(self) -> float:
-        return self.values[len(self.walked) + self.failed]
+        if self._tried < len(self.values):
+            return self.values[self._tried]
+        inside, outside = self._bracket()
+        return 0.5 * (inside + outside)
 
-    def record(self, rss: float | None, rss_at_estimate: float) -> None:
-        """The next value's profiled residual sum of squares (None: its solve failed)."""
-        tried = len(self.walked) + self.failed
+    def record(self, rss: float | None, rss_at_estimate: float, ratio: float = float("inf")) -> None:
+        """The next value's profiled residual sum of squares (None: its solve failed) and its
+        features' change from the estimate's against the model-error floor (``ratio``,
+        :func:`~BreastBiomechLib.discrepancy.verdicts.floor_ratio`; infinite: no floor)."""
+        tried = self._tried
         if rss is None:
             self.failed += 1
             return
-        self.walked.append((self.next_value, rss))
-        rejected = rss - rss_at_estimate > CHI2_95
-        if len(self.values) == 1 or tried == 2:  # the end alone, or the bracketing value
+        self.walked.append((self.next_value, rss, ratio))
+        by_data = rss - rss_at_estimate > CHI2_95
+        rejected = by_data and ratio >= 1.0
+        self._inside.append(not rejected)
+        self.held_by_floor = self.held_by_floor or (by_data and not rejected)
+        if tried >= 2:  # the bracketing value, or a halving of the bracket
+            self.done = not self.pending
+        elif len(self.values) == 1:  # the end alone
             self.done = True
         elif tried == 0:  # the first step
             self.done = rejected
@@ -120,17 +175,18 @@ def side_values(estimate: float, sd: float, lower: float, upper: float, directio
     return [float(near), float(end), float(inner)]
 
 
-def bound(estimate: float, walked: list[tuple[float, float]], end: float) -> tuple[float, bool]:
-    """One end of the interval from a side's walk ``walked`` [(value, deviance), ...] (any
-    order) from ``estimate`` (deviance 0): going outwards, where the root deviance reaches sqrt(:data:`CHI2_95`),
-    interpolated linearly between the last value inside and the first outside; the range's
-    ``end`` when no value is outside (open: True)."""
-    threshold = np.sqrt(CHI2_95)
+def bound(estimate: float, walked: list[tuple], end: float) -> tuple[float, bool]:
+    """One end of the interval from a side's walk ``walked`` [(value, deviance[, floor ratio]),
+    ...] (any order) from ``estimate`` (deviance 0): going outwards, where the root deviance
+    reaches sqrt(:data:`CHI2_95`) and, where a floor ratio is given, the ratio reaches 1 (the
+    smaller of the two, each scaled to 1 at its threshold), interpolated linearly between the
+    last value inside and the first outside; the range's ``end`` when no value is outside
+    (open: True)."""
     inside_value, inside_root = estimate, 0.0
-    for value, deviance in sorted(walked, key=lambda point: abs(point[0] - estimate)):
-        root = np.sqrt(max(deviance, 0.0))
-        if root > threshold:
-            t = (threshold - inside_root) / (root - inside_root)
+    for value, deviance, *ratio in sorted(walked, key=lambda point: abs(point[0] - estimate)):
+        root = min([float(np.sqrt(max(deviance, 0.0) / CHI2_95)), *ratio])
+        if root > 1.0:
+            t = (1.0 - inside_root) / (root - inside_root)
             return float(inside_value + t * (value - inside_value)), False
         inside_value, inside_root = value, root
     return float(end), True
@@ -138,11 +194,16 @@ def bound(estimate: float, walked: list[tuple[float, float]], end: float) -> tup
 
 @staged("profile intervals")
 def profile_intervals(state: ModelState, observations: Observations, effect_name: str, design: np.ndarray,
-                      rss_at_estimate: float, progress: Callable[[str], None] | None = None) -> list[ProfiledParameter]:
+                      rss_at_estimate: float, progress: Callable[[str], None] | None = None,
+                      residual_at_estimate: np.ndarray | None = None,
+                      tolerance: float = 1.0) -> list[ProfiledParameter]:
     """The profile intervals of the added effect ``effect_name``'s parameters at ``state`` (its
     refit), ``design`` (n, p) the features' change per unit of each of ``state.nuisance()``'s
     parameters (in that order; from the refit's last sensitivities) and ``rss_at_estimate`` the
-    whitened residual sum of squares of ``state`` solved."""
+    whitened residual sum of squares of ``state`` solved. With ``residual_at_estimate`` (n,) mm,
+    that state's feature residual, a value whose features differ from the estimate's by less
+    than ``tolerance`` times the model-error floor where they change is inside (see the module);
+    without it the data alone decide."""
     say = progress or (lambda message: None)
     effect, values = state.added[effect_name]
     nuisance = state.nuisance()
@@ -157,24 +218,33 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
     whitened_design = weights[:, None] * design
     sd = np.sqrt(np.maximum(np.diag(np.linalg.pinv(whitened_design.T @ whitened_design)), 0.0))
 
-    def profiled_rss(column: int, displacement: np.ndarray) -> float:
+    if residual_at_estimate is not None and np.shape(residual_at_estimate) != (len(observations.measured),):
+        raise ValueError(f"the residual at the estimate has shape {np.shape(residual_at_estimate)}; it needs one "
+                         f"value per feature ({len(observations.measured)})")
+
+    def profiled(column: int, displacement: np.ndarray) -> tuple[float, float]:
         """The residual sum of squares at the value solved, the other parameters re-fitted by one
-        linearised step within their ranges."""
+        linearised step within their ranges, and the features' change from the estimate's
+        against the floor (infinite without ``residual_at_estimate``)."""
         others = [k for k in range(len(keys)) if k != column]
         whitened = weights * observations.residual(displacement)
         a = whitened_design[:, others]
         step = lsq_linear(a, whitened, bounds=(lower[others] - current[others], upper[others] - current[others])).x
-        return float(np.sum((whitened - a @ step) ** 2))
+        left = whitened - a @ step
+        if residual_at_estimate is None:
+            return float(np.sum(left ** 2)), float("inf")
+        change = np.asarray(residual_at_estimate, float) - observations.sigma * left
+        return float(np.sum(left ** 2)), floor_ratio(change, observations.feature_floor, tolerance)
 
     columns = [keys.index(f"{effect_name}:{j}") for j in range(len(effect.parameters))]
     sides = [_Side(j, columns[j], direction,
                    side_values(values[j], sd[columns[j]], parameter.lower, parameter.upper, direction))
              for j, parameter in enumerate(effect.parameters) for direction in (-1, 1)]
-    for step in range(STEPS):
+    for step in range(FLOOR_STEPS):
         active = [side for side in sides if side.pending]
         if not active:
             break
-        say(f"profile interval of {effect.title}: {len(active)} solves (step {step + 1} of at most {STEPS})")
+        say(f"profile interval of {effect.title}: {len(active)} solves (step {step + 1} of at most {FLOOR_STEPS})")
         trials = []
         for side in active:
             moved = values.copy()
@@ -182,18 +252,22 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
             trials.append(state.with_effect(effect, moved).variant())
         outcomes = solve_variants(trials, state.fitted.mesh.nodes, state.fitted.relaxation, state.fitted.device)
         for side, outcome in zip(active, outcomes):
-            side.record(profiled_rss(side.column, outcome.displacement) if outcome.ok else None, rss_at_estimate)
-    least = min([rss_at_estimate] + [rss for side in sides for _, rss in side.walked])
+            rss, ratio = profiled(side.column, outcome.displacement) if outcome.ok else (None, float("inf"))
+            side.record(rss, rss_at_estimate, ratio)
+    least = min([rss_at_estimate] + [rss for side in sides for _, rss, _ in side.walked])
     out = []
     for j, parameter in enumerate(effect.parameters):
         low_side, high_side = (side for side in sides if side.index == j)
-        ends, opened, points = [], [], [[float(values[j]), rss_at_estimate - least]]
+        estimate = float(values[j])
+        ends, opened, data_ends, data_opened = [], [], [], []
+        points = [[estimate, rss_at_estimate - least, 0.0]]
         for side, end in ((low_side, parameter.lower), (high_side, parameter.upper)):
-            walked = [(value, rss - least) for value, rss in side.walked]
-            points += [[value, deviance] for value, deviance in walked]
-            limit, is_open = bound(float(values[j]), walked, end)
-            ends.append(limit)
-            opened.append(is_open)
-        out.append(ProfiledParameter(keys[low_side.column], float(values[j]), ends, opened, sorted(points),
-                                     low_side.failed + high_side.failed))
+            walked = [(value, rss - least, ratio) for value, rss, ratio in side.walked]
+            points += [list(point) for point in walked]
+            for limits, opens, kept in ((ends, opened, walked), (data_ends, data_opened, [w[:2] for w in walked])):
+                limit, is_open = bound(estimate, kept, end)
+                limits.append(limit)
+                opens.append(is_open)
+        out.append(ProfiledParameter(keys[low_side.column], estimate, ends, opened, data_ends, data_opened,
+                                     sorted(points), low_side.failed + high_side.failed))
     return out

@@ -408,7 +408,7 @@ class DiagnosisSession:
             more = self.settings.refine_iterations if iterations is None else iterations
         chosen = adopt(self.state, self.observations, diagnosis.sensitivities, candidate, effect, refits, more,
                        lambda m: say(f"round {record['round']}: {m}"),
-                       self.settings.profile if profile is None else profile)
+                       self.settings.profile if profile is None else profile, self.settings.min_effect)
         record["diagnosis"] = diagnosis.to_dict()
         record["added"] = name
         record["accepted"] = "verdict" if diagnosis.effect == name else "user"

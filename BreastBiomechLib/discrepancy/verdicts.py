@@ -41,6 +41,37 @@ VERDICTS = (MISSING, AMBIGUOUS, UNEXPLAINED, NONE)
 EFFECT_QUANTILE = 0.9  # an effect's size: the RMS of the feature changes above this quantile (where it acts)
 
 
+def where_it_acts(change: np.ndarray) -> np.ndarray:
+    """The features (boolean (n,)) where a refit's ``change`` (n,) mm is largest: at or above the
+    :data:`EFFECT_QUANTILE` quantile of its magnitude."""
+    size = np.abs(np.asarray(change, float))
+    if size.size == 0:
+        return np.zeros(0, bool)
+    return size >= np.quantile(size, EFFECT_QUANTILE)
+
+
+def effect_size_mm(change: np.ndarray) -> float:
+    """The size of a refit's change of the features (mm): the RMS of the changes where it acts
+    (:func:`where_it_acts`; an effect confined to a contact band is not diluted by the features
+    it leaves alone)."""
+    change = np.asarray(change, float)
+    acts = where_it_acts(change)
+    return float(np.sqrt(np.mean(change[acts] ** 2))) if acts.any() else 0.0
+
+
+def floor_ratio(change: np.ndarray, floor_mm: np.ndarray, factor: float = 1.0) -> float:
+    """A change of the features (``change`` (n,) mm) against the model-error floor where it acts
+    (``floor_mm`` (n,) mm per feature): its size (:func:`effect_size_mm`) over ``factor`` times
+    the floor's RMS on the same features. Below 1 the model's own error could make such a change,
+    so it does not matter (the rule a named effect must pass, and what an estimate's interval
+    takes in); infinite where there is no floor."""
+    change = np.asarray(change, float)
+    acts = where_it_acts(change)
+    floor = float(np.sqrt(np.mean(np.asarray(floor_mm, float)[acts] ** 2))) if acts.any() else 0.0
+    size = effect_size_mm(change)
+    return size / (factor * floor) if factor * floor > 0 else (0.0 if size == 0 else float("inf"))
+
+
 @dataclass
 class Evidence:
     """What a round's verdict is decided from: the ``overall`` test (pooled numbers with

@@ -441,13 +441,14 @@ def test_a_directed_residual_below_the_floor_is_no_discrepancy(null_case, monkey
     floor's level, and the sentence says why friction was not named."""
     from BreastBiomechLib.discrepancy import diagnosis as diagnosis_module
     from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy import verdicts
     from BreastBiomechLib.discrepancy.observations import Observations
     from BreastBiomechLib.discrepancy.variants import Outcome
 
     state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case)
     change = secant_features - sens.features  # the signature of friction at its step: 1 mm posterior
     scale = np.sqrt(16.0 / np.sum((change / observed.sigma) ** 2))
-    size = diagnosis_module.effect_size_mm(scale * change)
+    size = verdicts.effect_size_mm(scale * change)
     assert 0.0 < size < observed.floor_mm == 0.5, (scale, size)
     monkeypatch.setattr(diagnosis_module, "sensitivities", lambda *args, **kwargs: sens)
 

@@ -11,7 +11,8 @@ import re
 import pytest
 
 from BreastBiomechLib.discrepancy import verdicts
-from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings, effect_size_mm
+from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings
+from BreastBiomechLib.discrepancy.verdicts import effect_size_mm
 
 SETTINGS = DiagnosisSettings()
 FLOOR = 0.5
