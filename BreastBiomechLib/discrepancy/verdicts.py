@@ -293,21 +293,25 @@ def ambiguous_sentence(evidence: Evidence, best: dict, rivals: list[dict]) -> st
 
 
 def interval_phrase(refit: dict, unsettled: bool = False) -> str:
-    """"; 95 % interval 0.152 to 1.5 (...)" for a refit's record (its "interval", "interval_kind"
-    and "interval_open"; "" without an interval): an end that reaches the parameter's range is
-    said to be unbounded by the data there. Where the fit has not ``unsettled`` on the features
+    """"; 95 % interval 0.152 to 1.5 (...)" for a refit's record (its "interval", "interval_kind",
+    "interval_open" and "data_interval"; "" without an interval): an end that reaches the
+    parameter's range is said to be unbounded by the data there, and an interval the model-error
+    floor widened gives the data's own beside it. Where the fit has not ``unsettled`` on the features
     (the fitted parameters alone remove a share of the residual), the interval is said to hold
     for the fitted materials as they are: it leaves out how far they are from their own best."""
     bounds = refit.get("interval")
     if not bounds:
         return ""
     opened = refit.get("interval_open") or [[False, False]] * len(bounds)
+    data = refit.get("data_interval") or bounds
     parts = []
-    for (lo, hi), (open_low, open_high) in zip(bounds, opened):
+    for (lo, hi), (open_low, open_high), (data_lo, data_hi) in zip(bounds, opened, data):
         side = ("the data do not bound it" if open_low and open_high else
                 "bounded by the data from below only" if open_high else
                 "bounded by the data from above only" if open_low else "")
-        parts.append(f"{lo:.3g} to {hi:.3g}" + (f", {side}" if side else ""))
+        widened = (f"the data alone {data_lo:.3g} to {data_hi:.3g}, the rest within the model-error floor"
+                   if f"{data_lo:.3g} {data_hi:.3g}" != f"{lo:.3g} {hi:.3g}" else "")
+        parts.append(f"{lo:.3g} to {hi:.3g}" + "".join(f", {note}" for note in (side, widened) if note))
     kind = refit.get("interval_kind", "linearised")
     given = ", given the fitted materials, which have not settled" if unsettled else ""
     return f"; 95 % {kind} interval {'; '.join(parts)}{given}"

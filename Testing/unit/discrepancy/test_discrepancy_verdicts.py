@@ -202,6 +202,10 @@ def test_a_named_effect_is_said_with_its_interval():
     candidate["refit"].update(interval=[[-5.0, 0.2], [-5.0, 5.0]], interval_open=[[True, False], [True, True]])
     assert ("95 % profile interval -5 to 0.2, bounded by the data from above only; -5 to 5, the data do not bound it)"
             in verdicts.missing_effect_sentence(candidate))
+    # an interval the model-error floor widened says the data's own beside it
+    candidate["refit"].update(interval=[[0.25, 1.5]], interval_open=[[False, True]], data_interval=[[1.05, 1.5]])
+    assert ("(friction 0.55; 95 % profile interval 0.25 to 1.5, bounded by the data from below only, the data alone "
+            "1.05 to 1.5, the rest within the model-error floor). Score test" in verdicts.missing_effect_sentence(candidate))
 
 
 def test_an_effect_is_sized_where_it_acts():
