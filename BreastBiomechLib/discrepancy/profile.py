@@ -25,16 +25,18 @@ estimate's by less than the floor where they change (``tolerance`` times it:
 no model with this error could tell it from the estimate. Each parameter keeps the interval of
 the data alone (``data_interval``) beside it.
 
-Each side of each parameter is walked in at most :data:`STEPS` solves (batched over the
+Each side of each parameter is walked in at most :data:`STEPS` first values (batched over the
 parameters and sides): 2 linearised sd from the estimate (at least 2 % of the range), where the
 data reject it the side is done; else the range's end, where they do not the side is open; else
 four times as far as the first value (or halfway to the end) to bracket the bound, which is
 interpolated between the last value inside and the first outside linearly in the root deviance
 (linear in the parameter for a Gaussian likelihood). A well-determined parameter takes one solve
-a side, a saturating one two on its open side. Where the floor held a value the data reject, the
-bracket is halved until :data:`FLOOR_STEPS` values (the features then change little over a
-stretch and steeply past it, which one line brackets badly). Values whose solve fails are left
-out (counted in ``failed``)."""
+a side, a saturating one two on its open side. Where the first value outside lies far past the
+threshold (:data:`ROOT_JUMP`), the bracket is halved until :data:`MAX_STEPS` values: the
+features of a saturating parameter change little over a stretch and steeply past it, which one
+line through the stretch brackets badly (a friction refitted to the top of its range, whose
+first step down is the range's other end). Values whose solve fails are left out (counted in
+``failed``)."""
 
 from __future__ import annotations
 
@@ -51,8 +53,9 @@ from BreastBiomechLib.discrepancy.verdicts import floor_ratio
 from BreastBiomechLib.timing import staged
 
 CHI2_95 = 3.841458820694124  # the chi-square 95 % quantile with one degree of freedom
-STEPS = 3  # solves per side of a parameter where the data alone decide
-FLOOR_STEPS = 5  # solves per side at most where the model-error floor holds a value the data reject
+STEPS = 3  # the first values of a side at most: the first step, the range's end, a value between
+MAX_STEPS = 5  # solves per side at most, with the halvings of a bracket that jumps
+ROOT_JUMP = 2.0  # a bracket whose outside value's root score (1: the threshold) is past this is halved
 FIRST_STEP = (2.0, 0.02)  # the first value tried: this many linearised sd from the estimate, at least this share of the range
 SECOND_STEP = 4.0  # the second this many times as far
 
@@ -84,52 +87,56 @@ class ProfiledParameter:
 class _Side:
     """One side of one parameter's walk: the parameter's ``index`` in its effect and ``column``
     in the design, the ``direction`` (-1 down, +1 up), the ``values`` to try first
-    (:func:`side_values`' order), those ``walked`` [(value, rss, floor ratio)], the ``failed``
-    solves and whether the side is ``done``: its first value rejected, its range's end not
-    rejected (nothing between can be, for a profile that rises away from its least value), or
-    every value tried. A value is rejected where the data reject it and its features differ from
-    the estimate's by at least the floor (floor ratio >= 1). Where the floor held a value the data
-    rejected, the features change little over a stretch and then steeply (a saturating
-    parameter), which a line through two values brackets badly: the bracket is then halved up to
-    :data:`FLOOR_STEPS` values in all."""
+    (:func:`side_values`' order), the parameter's ``estimate``, the values ``walked`` [(value,
+    rss, floor ratio)], the ``failed`` solves and whether the side is ``done``. A value is
+    rejected where the data reject it and its features differ from the estimate's by at least
+    the floor (floor ratio >= 1). The first values end at the first rejected, or at the range's
+    end not rejected (nothing between can be, for a profile that rises away from its least
+    value: open), or after the third. Then, while the first value outside lies past
+    :data:`ROOT_JUMP` times the threshold (a line between it and the last value inside would
+    bracket the bound badly: a saturating parameter changes little over a stretch and steeply
+    past it), the bracket is halved, up to :data:`MAX_STEPS` values in all."""
 
     index: int
     column: int
     direction: int
     values: list[float]
+    estimate: float | None = None
     walked: list[tuple[float, float, float]] = field(default_factory=list)
     failed: int = 0
     done: bool = False
-    held_by_floor: bool = False  # some value the data rejected was inside the floor
-    _inside: list[bool] = field(default_factory=list)
+    _roots: list[float] = field(default_factory=list)  # each walked value's root score (1: the threshold)
+    _first_over: bool = False  # the first values are done with
 
     @property
     def _tried(self) -> int:
         return len(self.walked) + self.failed
 
-    def _bracket(self) -> tuple[float, float] | None:
-        """The farthest value inside before the first outside and that outside value, going
-        outwards from the estimate (None: no value inside or none outside)."""
-        inside = None
-        for (value, *_), ok in sorted(zip(self.walked, self._inside), key=lambda w: w[0][0] * self.direction):
-            if not ok:
-                return (inside, value) if inside is not None else None
+    def _bracket(self) -> tuple[float, float, float] | None:
+        """Going outwards from the estimate: the last value inside, the first outside and its
+        root score (None: none outside, or nothing inside before it)."""
+        inside = self.estimate
+        for (value, *_), root in sorted(zip(self.walked, self._roots), key=lambda w: w[0][0] * self.direction):
+            if root > 1.0:
+                return (inside, value, root) if inside is not None else None
             inside = value
         return None
+
+    def _halving(self) -> bool:
+        bracket = self._bracket()
+        return self._tried < MAX_STEPS and bracket is not None and bracket[2] > ROOT_JUMP
 
     @property
     def pending(self) -> bool:
         if self.done:
             return False
-        if self._tried < len(self.values):
-            return True
-        return self.held_by_floor and self._tried < FLOOR_STEPS and self._bracket() is not None
+        return self._tried < len(self.values) if not self._first_over else self._halving()
 
     @property
     def next_value(self) -> float:
-        if self._tried < len(self.values):
+        if not self._first_over:
             return self.values[self._tried]
-        inside, outside = self._bracket()
+        inside, outside, _ = self._bracket()
         return 0.5 * (inside + outside)
 
     def record(self, rss: float | None, rss_at_estimate: float, ratio: float = float("inf")) -> None:
@@ -139,20 +146,23 @@ class _Side:
         tried = self._tried
         if rss is None:
             self.failed += 1
+            if not self._first_over and self._tried >= len(self.values):
+                self._first_over = True
+            self.done = not self.pending
             return
         self.walked.append((self.next_value, rss, ratio))
-        by_data = rss - rss_at_estimate > CHI2_95
-        rejected = by_data and ratio >= 1.0
-        self._inside.append(not rejected)
-        self.held_by_floor = self.held_by_floor or (by_data and not rejected)
-        if tried >= 2:  # the bracketing value, or a halving of the bracket
-            self.done = not self.pending
-        elif len(self.values) == 1:  # the end alone
-            self.done = True
-        elif tried == 0:  # the first step
-            self.done = rejected
-        else:  # the range's end
-            self.done = not rejected
+        root = min(float(np.sqrt(max(rss - rss_at_estimate, 0.0) / CHI2_95)), ratio)
+        self._roots.append(root)
+        rejected = root > 1.0
+        if not self._first_over:
+            if len(self.values) == 1 or tried == 2:  # the end alone, or the bracketing value
+                self._first_over = True
+            elif tried == 0:  # the first step
+                self._first_over = rejected
+            elif not rejected:  # the range's end inside: open
+                self.done = True
+                return
+        self.done = not self.pending
 
 
 def side_values(estimate: float, sd: float, lower: float, upper: float, direction: int) -> list[float]:
@@ -238,13 +248,13 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
 
     columns = [keys.index(f"{effect_name}:{j}") for j in range(len(effect.parameters))]
     sides = [_Side(j, columns[j], direction,
-                   side_values(values[j], sd[columns[j]], parameter.lower, parameter.upper, direction))
+                   side_values(values[j], sd[columns[j]], parameter.lower, parameter.upper, direction), float(values[j]))
              for j, parameter in enumerate(effect.parameters) for direction in (-1, 1)]
-    for step in range(FLOOR_STEPS):
+    for step in range(MAX_STEPS):
         active = [side for side in sides if side.pending]
         if not active:
             break
-        say(f"profile interval of {effect.title}: {len(active)} solves (step {step + 1} of at most {FLOOR_STEPS})")
+        say(f"profile interval of {effect.title}: {len(active)} solves (step {step + 1} of at most {MAX_STEPS})")
         trials = []
         for side in active:
             moved = values.copy()

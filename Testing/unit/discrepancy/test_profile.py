@@ -106,13 +106,29 @@ def test_the_walk_goes_on_where_the_floor_holds_a_value_the_data_reject():
     side.record(10 * CHI2_95, 0.0, 0.2)
     assert side.next_value == pytest.approx(0.2425)
     side.record(10 * CHI2_95, 0.0, 1.5)
-    assert not side.pending and side.done  # five values: FLOOR_STEPS
+    assert not side.pending and side.done  # five values: MAX_STEPS
     assert bound(1.13, [(v, r, q) for v, r, q in side.walked], 0.0)[0] == pytest.approx(0.485 - 0.8 / 1.3 * 0.2425)
-    # where the data decide alone, the third value ends the walk as before
+    # a bracket whose outside value is not far past the threshold ends the walk at the third value
     plain = _Side(0, 0, -1, side_values(1.13, 0.02, 0.0, 1.5, -1))
-    for rss in (CHI2_95 / 2, 10 * CHI2_95, CHI2_95 / 2):
+    for rss in (CHI2_95 / 2, 1.5 ** 2 * CHI2_95, CHI2_95 / 2):
         plain.record(rss, 0.0)
     assert plain.done and len(plain.walked) == STEPS
+
+
+def test_an_estimate_at_the_top_of_its_range_is_bracketed_by_halving():
+    """A friction refitted to the top of its range (1.5, a 8 mm mesh of the segmentation): its
+    first step down is the range's other end, far outside; one line from there to the estimate
+    put the bound at 1.01 where the features change little down to 0.3."""
+    estimate = 1.5
+    side = _Side(0, 0, -1, side_values(estimate, 10.0, 0.0, 1.5, -1), estimate)
+    assert side.values == [0.0]
+    ratio = lambda v: 0.05 if v >= 0.3 else 0.05 + 20.0 * (0.3 - v)  # noqa: E731  (1 at 0.2525)
+    while side.pending:
+        value = side.next_value
+        side.record(158.0 * (1.0 - value / estimate) ** 2, 0.0, ratio(value))
+    assert [v for v, *_ in side.walked] == pytest.approx([0.0, 0.75, 0.375, 0.1875, 0.28125])
+    low, low_open = bound(estimate, side.walked, 0.0)
+    assert not low_open and low == pytest.approx(0.2525, abs=0.01)
 
 
 def test_the_floor_ratio_sizes_a_change_where_it_acts_against_the_floor_there():
