@@ -363,9 +363,11 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
         if design is None and candidate.name in sens.effects:  # not refined: the round's sensitivities
             design = np.hstack([sens.nuisance, sens.effects[candidate.name]])
         if design is not None:
-            profiled = profile_intervals(chosen.state, observations, candidate.name, design, chosen.rss_after, say,
-                                         residual_at_estimate=chosen.residual_after, tolerance=tolerance)
+            profiled, better = profile_intervals(chosen.state, observations, candidate.name, design, chosen.rss_after,
+                                                 say, residual_at_estimate=chosen.residual_after, tolerance=tolerance)
             chosen = replace(chosen, profile=[p.to_dict() for p in profiled])
+            if better is not None:
+                chosen = _moved_to_the_least(chosen, better, candidate.name, observations, say)
     candidate.refit = candidate.refit or {"status": chosen.status, "values": chosen.values.tolist(),
                                           "sd": chosen.sd.tolist(), "described": chosen.effect.describe(chosen.values),
                                           "rss_before": chosen.rss_before, "rss_after": chosen.rss_after}
@@ -379,6 +381,32 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
                             "rss_refined": chosen.rss_after,
                             "refine_iterations": candidate.refit.get("refine_iterations", 0) + iterations})
     return chosen
+
+
+def _moved_to_the_least(chosen: Refit, better: np.ndarray, name: str, observations: Observations,
+                        say: Callable[[str], None]) -> Refit:
+    """``chosen`` (the refined refit of effect ``name``, with its profile) moved to the value its
+    profile walked past that fitted the features better (``better``: every nuisance parameter
+    there, the others at their linearised re-fit), where a solve confirms that it does: the
+    Gauss-Newton refinement stopped short of the least, and the profile found it. Its intervals
+    stand (their deviances are counted from the least value walked); the profile records the
+    estimate it moved from (``moved_from``)."""
+    from BreastBiomechLib.discrepancy.variants import solve_variants
+
+    say(f"solving the {name} refit at the better value its profile found")
+    trial = chosen.state.with_nuisance(better)
+    fitted = trial.fitted
+    outcome = solve_variants([trial.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
+    if not outcome.ok:
+        return chosen
+    after = observations.residual(outcome.displacement)
+    rss = float(np.sum((after / observations.sigma) ** 2))
+    if not rss < chosen.rss_after:
+        return chosen
+    values = trial.added[name][1]
+    profile = [{**p, "moved_from": p["estimate"], "estimate": float(v)} for p, v in zip(chosen.profile, values)]
+    return replace(chosen, values=values, state=trial, displacement=outcome.displacement, residual_after=after,
+                   rss_after=rss, profile=profile)
 
 
 def diagnose(state: ModelState, observations: Observations, candidates: list[Effect],

@@ -206,14 +206,17 @@ def bound(estimate: float, walked: list[tuple], end: float) -> tuple[float, bool
 def profile_intervals(state: ModelState, observations: Observations, effect_name: str, design: np.ndarray,
                       rss_at_estimate: float, progress: Callable[[str], None] | None = None,
                       residual_at_estimate: np.ndarray | None = None,
-                      tolerance: float = 1.0) -> list[ProfiledParameter]:
+                      tolerance: float = 1.0) -> tuple[list[ProfiledParameter], np.ndarray | None]:
     """The profile intervals of the added effect ``effect_name``'s parameters at ``state`` (its
     refit), ``design`` (n, p) the features' change per unit of each of ``state.nuisance()``'s
     parameters (in that order; from the refit's last sensitivities) and ``rss_at_estimate`` the
     whitened residual sum of squares of ``state`` solved. With ``residual_at_estimate`` (n,) mm,
     that state's feature residual, a value whose features differ from the estimate's by less
     than ``tolerance`` times the model-error floor where they change is inside (see the module);
-    without it the data alone decide."""
+    without it the data alone decide. Returns the parameters' profiles and, where a value walked
+    fitted the features better than the estimate (its profiled residual sum of squares lower:
+    the refinement stopped short of the least), every parameter of ``state.nuisance()`` there
+    (the others at their linearised re-fit) for the caller to solve and adopt; else None."""
     say = progress or (lambda message: None)
     effect, values = state.added[effect_name]
     nuisance = state.nuisance()
@@ -232,24 +235,28 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
         raise ValueError(f"the residual at the estimate has shape {np.shape(residual_at_estimate)}; it needs one "
                          f"value per feature ({len(observations.measured)})")
 
-    def profiled(column: int, displacement: np.ndarray) -> tuple[float, float]:
-        """The residual sum of squares at the value solved, the other parameters re-fitted by one
-        linearised step within their ranges, and the features' change from the estimate's
-        against the floor (infinite without ``residual_at_estimate``)."""
+    def profiled(column: int, value: float, displacement: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """The residual sum of squares at ``value`` solved, the other parameters re-fitted by one
+        linearised step within their ranges, the features' change from the estimate's against
+        the floor (infinite without ``residual_at_estimate``) and every parameter there."""
         others = [k for k in range(len(keys)) if k != column]
         whitened = weights * observations.residual(displacement)
         a = whitened_design[:, others]
         step = lsq_linear(a, whitened, bounds=(lower[others] - current[others], upper[others] - current[others])).x
         left = whitened - a @ step
+        there = current.copy()
+        there[others] += step
+        there[column] = value
         if residual_at_estimate is None:
-            return float(np.sum(left ** 2)), float("inf")
+            return float(np.sum(left ** 2)), float("inf"), there
         change = np.asarray(residual_at_estimate, float) - observations.sigma * left
-        return float(np.sum(left ** 2)), floor_ratio(change, observations.feature_floor, tolerance)
+        return float(np.sum(left ** 2)), floor_ratio(change, observations.feature_floor, tolerance), there
 
     columns = [keys.index(f"{effect_name}:{j}") for j in range(len(effect.parameters))]
     sides = [_Side(j, columns[j], direction,
                    side_values(values[j], sd[columns[j]], parameter.lower, parameter.upper, direction), float(values[j]))
              for j, parameter in enumerate(effect.parameters) for direction in (-1, 1)]
+    better, least_walked = None, rss_at_estimate
     for step in range(MAX_STEPS):
         active = [side for side in sides if side.pending]
         if not active:
@@ -262,8 +269,11 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
             trials.append(state.with_effect(effect, moved).variant())
         outcomes = solve_variants(trials, state.fitted.mesh.nodes, state.fitted.relaxation, state.fitted.device)
         for side, outcome in zip(active, outcomes):
-            rss, ratio = profiled(side.column, outcome.displacement) if outcome.ok else (None, float("inf"))
+            rss, ratio, there = (profiled(side.column, side.next_value, outcome.displacement) if outcome.ok
+                                 else (None, float("inf"), None))
             side.record(rss, rss_at_estimate, ratio)
+            if rss is not None and rss < least_walked:
+                better, least_walked = there, rss
     least = min([rss_at_estimate] + [rss for side in sides for _, rss, _ in side.walked])
     out = []
     for j, parameter in enumerate(effect.parameters):
@@ -280,4 +290,4 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
                 opens.append(is_open)
         out.append(ProfiledParameter(keys[low_side.column], estimate, ends, opened, data_ends, data_opened,
                                      sorted(points), low_side.failed + high_side.failed))
-    return out
+    return out, better
