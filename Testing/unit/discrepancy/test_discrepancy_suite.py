@@ -214,6 +214,13 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
                                                  "interval": [[0.2, 1.5]]}), none])
     assert profiled["estimates"]["friction"]["in_interval"]
     assert profiled["estimates"]["friction"]["interval"] == [[0.2, 1.5]]
+    # an interval the model-error floor widened: the data's own is scored beside it
+    floored = result("friction", [_round("missing effect", "friction", "friction", after=(0.8, 1.26),
+                                         refit={"refined_values": [1.5], "sd": [0.01], "interval": [[0.09, 1.5]],
+                                                "data_interval": [[1.27, 1.5]]}), none])
+    assert floored["estimates"]["friction"]["in_interval"] and not floored["estimates"]["friction"]["in_data_interval"]
+    assert profiled["estimates"]["friction"]["in_data_interval"]  # none kept: the recorded interval
+    assert suite_scores([floored, profiled])["truth_in_data_interval"] == pytest.approx(1 / 2)
     later_scores = suite_scores(results[:7] + later + [narrow])
     assert later_scores["false_unexplained_after_right"] == pytest.approx(1 / 5)  # of the 5 with friction added
     assert later_scores["truth_in_interval"] == pytest.approx(4 / 5)
