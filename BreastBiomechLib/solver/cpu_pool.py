@@ -80,11 +80,23 @@ def _python_executable() -> bool:
 
 
 def _start_worker(fractions, cancel) -> None:
-    """A worker process's start: its standard output to standard error, the shared slots kept."""
+    """A worker process's start: its standard output to standard error, the shared slots kept,
+    and a watch that ends it when the process that started the pool ends."""
     global _worker_fractions, _worker_cancel
     os.dup2(2, 1)
     sys.stdout = sys.stderr
     _worker_fractions, _worker_cancel = fractions, cancel
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        threading.Thread(target=_end_with, args=(parent,), daemon=True, name="ends with its parent").start()
+
+
+def _end_with(parent) -> None:
+    """In a worker: wait until ``parent`` (the process that started the pool) has ended, then end
+    this process. A command killed mid-batch, or a Slicer panel's run cancelled by ending its
+    process, would otherwise leave its workers solving their chunks to the end, orphaned."""
+    parent.join()
+    os._exit(1)
 
 
 def _solve_chunk(slot: int, model, materials, plate_displacements, plates, options: dict) -> list:

@@ -4,6 +4,8 @@ crossing the processes, and the worker count read and checked from the environme
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -92,7 +94,6 @@ def test_a_script_without_a_main_guard_is_not_run_again_by_the_workers(tmp_path)
     library: the script's line is printed once, and its batch is solved; what the workers print
     goes to standard error."""
     import subprocess
-    import sys
 
     script = tmp_path / "plain_script.py"
     script.write_text(
@@ -114,3 +115,42 @@ def test_a_script_without_a_main_guard_is_not_run_again_by_the_workers(tmp_path)
     # the workers' own output (warp's start-up lines) goes to standard error: a command's
     # --progress json stream on standard output stays events only
     assert done.stdout.count("Warp 1.") <= 1 and done.stderr.count("Warp 1.") >= 2
+
+
+def _ended(pid: int) -> bool:
+    """Whether process ``pid`` has ended (gone, or a zombie nobody has reaped yet)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the process table in /proc")
+def test_workers_end_with_the_process_that_started_them(tmp_path):
+    """A command killed mid-batch (or a Slicer panel's run cancelled by ending its process) must
+    not leave its workers solving, orphaned: each worker ends when the pool's process has."""
+    import subprocess
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import os, time\n"
+        "from BreastBiomechLib.solver import cpu_pool\n"
+        "if __name__ == '__main__':\n"
+        "    pool = cpu_pool._pool_of(1)\n"
+        "    print(pool.submit(os.getpid).result(), flush=True)\n"
+        "    pool.submit(time.sleep, 600)\n"
+        "    time.sleep(600)\n")
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                              text=True)
+    try:
+        worker = int(parent.stdout.readline())
+        assert not _ended(worker)
+    finally:
+        parent.kill()
+        parent.wait()
+    deadline = time.monotonic() + 30.0
+    while not _ended(worker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _ended(worker), f"worker {worker} outlived the process that started it"
