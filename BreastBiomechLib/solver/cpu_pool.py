@@ -11,8 +11,9 @@ relaxation's tolerance, and are the same from run to run for the same number of 
 How many workers: ``BREASTBIOMECH_CPU_WORKERS`` (a whole number; 1 solves in this process as
 before), else the cores this process may use. The workers are started on the first batch
 (``spawn``: a fresh interpreter each, which imports warp and loads its kernel cache, about 2 s)
-and kept for the next ones; their standard output goes to standard error, so that a command's
-``--progress json`` stream stays events only. Never from inside the Slicer application's own
+and kept for the next ones, each ending when the process that started them ends (however it
+ends: a killed command leaves no worker solving); their standard output goes to standard error,
+so that a command's ``--progress json`` stream stays events only. Never from inside the Slicer application's own
 process (its executable is not a Python interpreter, and a spawned copy of it would be a second
 Slicer): there the batch is solved in one process, as the panels' long runs are in a process of
 their own (``PythonSlicer``) where the cores are used. Nor from a daemon process (a Dask cohort's
