@@ -40,6 +40,7 @@ from BreastBiomechLib.discrepancy.refit import Refit, refine, refit
 from BreastBiomechLib.discrepancy.regions import feature_regions as feature_regions_of
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
+from BreastBiomechLib.discrepancy.variants import solve_variants
 from BreastBiomechLib.timing import staged
 
 VERDICTS = verdicts.VERDICTS
@@ -391,8 +392,6 @@ def _moved_to_the_least(chosen: Refit, better: np.ndarray, name: str, observatio
     Gauss-Newton refinement stopped short of the least, and the profile found it. Its intervals
     stand (their deviances are counted from the least value walked); the profile records the
     estimate it moved from (``moved_from``)."""
-    from BreastBiomechLib.discrepancy.variants import solve_variants
-
     say(f"solving the {name} refit at the better value its profile found")
     trial = chosen.state.with_nuisance(better)
     fitted = trial.fitted

@@ -85,15 +85,18 @@ def estimates(case: SuiteCase, rounds: list[dict]) -> dict:
             continue
         error = [v - t for v, t in zip(values, truth)]
         within_sd = len(sd) == len(values) and all(abs(e) <= Z95 * s for e, s in zip(error, sd))
-
-        def holds(intervals: list) -> bool:
-            if len(intervals) == len(values):
-                return all(lo <= t <= hi for (lo, hi), t in zip(intervals, truth))
-            return within_sd
-
         out[effect] = {"values": values, "sd": sd, "interval": bounds, "truth": list(truth), "error": error,
-                       "in_interval": holds(bounds), "in_data_interval": holds(data_bounds)}
+                       "in_interval": _holds(bounds, truth, within_sd),
+                       "in_data_interval": _holds(data_bounds, truth, within_sd)}
     return out
+
+
+def _holds(intervals: list, truth, within_sd: bool) -> bool:
+    """Whether every parameter's ``truth`` lies in its interval; ``within_sd`` (the estimate
+    within 1.96 sd of it) where the record holds no interval for each parameter."""
+    if len(intervals) == len(truth):
+        return all(lo <= t <= hi for (lo, hi), t in zip(intervals, truth))
+    return within_sd
 
 
 def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared: dict, seconds: dict,
