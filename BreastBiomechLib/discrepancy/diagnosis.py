@@ -211,13 +211,13 @@ def _detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float) -> l
 def not_identifiable(candidate: dict, effect: Effect | None) -> bool:
     """Whether a round said of ``candidate`` (its record, :meth:`Candidate.to_dict`) that this
     case could not have shown it: at least :data:`ABSORBED` of its signature reproduced by the
-    fitted parameters, or (given its ``effect``) a parameter's smallest detectable size past both
-    ends of its range, or none."""
+    fitted parameters, or (given its ``effect``) every parameter's smallest detectable size past
+    both ends of its range, or none (an effect seen along one of its parameters could be shown)."""
     absorbed = candidate.get("absorbed")
     if absorbed is not None and absorbed == absorbed and absorbed >= ABSORBED:
         return True
-    return effect is not None and any(size is None or size > max(p.upper - p.off, p.off - p.lower)
-                                      for p, size in zip(effect.parameters, candidate.get("detectable") or []))
+    sizes = list(zip(effect.parameters, candidate.get("detectable") or [])) if effect is not None else []
+    return bool(sizes) and all(size is None or size > max(p.upper - p.off, p.off - p.lower) for p, size in sizes)
 
 
 def beyond_range(candidate: Candidate, effects: dict) -> list[str]:

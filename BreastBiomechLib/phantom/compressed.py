@@ -21,6 +21,7 @@ from BreastBiomechLib.landmarks import Landmarks, map_landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.phantom.generate import PhantomCase, _bias_field, _Grid
 from BreastBiomechLib.phantom.parameters import INTENSITY, PRONE_GRAVITY, TABLE1_COMPRESSION
+from BreastBiomechLib.phantom.skin_elements import skin_layer_figures, skin_surface_edge_mm, with_skin_elements
 from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
 from BreastBiomechLib.solver.placement import final_planes, posed_plate
 from BreastBiomechLib.solver.run_case import run_case
@@ -61,8 +62,9 @@ class TruthModel:
     ``chest_wall``: "fixed" (the seed's), "sliding" or "elastic" with ``chest_wall_stiffness``
     (normal, tangential; Pa/mm per area); ``plate_tilt_deg``: per plate two tilt angles (degrees,
     :func:`~BreastBiomechLib.solver.placement.posed_plate`), or None; ``skin``: (E in Pa,
-    thickness in mm) of a skin layer by partial-volume weighting (:mod:`BreastBiomechLib.mesh.skin`),
-    or None.
+    thickness in mm) of a skin layer of explicit elements (:mod:`BreastBiomechLib.phantom.skin_elements`:
+    the truth mesh's elements within the thickness of the skin surface, on a mesh made with skin
+    triangles fine enough to hold it), or None.
 
     Effects that the discrepancy workflow's candidate library does not hold (for the hidden-effect
     suite, where the right answer is "unexplained discrepancy"; off by default):
@@ -192,7 +194,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     """Simulate ``truth`` on ``case`` and image the result (see the module notes). ``mesh``: a
     truth mesh made already (``breastbiomech mesh`` of the case's labels at ``truth.edge_mm``;
     default: made here). Raises RuntimeError when the truth solve fails (it would not be a truth)."""
-    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+    from BreastBiomechLib.mesh.from_labels import mesh_labels
     from BreastBiomechLib.warping import ImageWarper
 
     truth = truth or TruthModel()
@@ -203,7 +205,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     started = time.perf_counter()
     if mesh is None:
         report(0.0, f"truth mesh ({truth.edge_mm:g} mm)")
-        mesh = mesh_labels(case.labels, MeshSettings(edge_mm=truth.edge_mm),
+        mesh = mesh_labels(case.labels, truth_mesh_settings(truth.edge_mm, truth.skin[1] if truth.skin else None),
                            nipple_mm=case.landmarks.position("nipple")).mesh
     report(0.3, "truth simulation")
     model, settings = truth_case(mesh, truth, device)
@@ -216,6 +218,8 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
     # from the imaged shape, not the stress-free one a pre-stressed solve starts from
     displacement = result.displacement
     model = result.model
+    # the imaged mesh with the truth's tissues (its skin elements, where it has a skin)
+    mesh = TetMesh(mesh.nodes, mesh.tets, mesh.point_data, {**mesh.cell_data, "tissue": model.mesh.cell_data["tissue"]})
 
     report(0.8, "imaging the compressed breast")
     grid = _measured_grid(case, mesh.nodes + displacement)
@@ -254,6 +258,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         "unloaded_state": None if result.reference_state is None else {
             key: result.reference_state[key] for key in ("iterations", "residual_mm", "largest_sag_mm")},
         "size_voxels": [int(n) for n in grid.size], "spacing_mm": [float(s) for s in grid.spacing],
+        "skin_layer": skin_layer_figures(mesh) if truth.skin is not None else None,
         "seconds": round(time.perf_counter() - started, 2),
     }
     report(1.0, "done")
@@ -276,10 +281,25 @@ def nominal_plates(mesh: TetMesh, truth: TruthModel) -> list:
     return _compression_description(mesh, truth).build(mesh)[0].loading.plates
 
 
+def truth_mesh_settings(edge_mm: float, skin_mm: float | None = None):
+    """How a truth mesh is made from a phantom's labels: at ``edge_mm``, with skin triangles fine
+    enough to hold a truth skin of ``skin_mm`` as elements where it has one
+    (:func:`~BreastBiomechLib.phantom.skin_elements.skin_surface_edge_mm`)."""
+    from BreastBiomechLib.mesh.from_labels import MeshSettings
+
+    return MeshSettings(edge_mm=edge_mm, surface_edge_mm=None if skin_mm is None else skin_surface_edge_mm(edge_mm, skin_mm))
+
+
 def truth_case(mesh: TetMesh, truth: TruthModel, device=None) -> tuple:
     """The truth's model and solver settings on its ``mesh`` (what :func:`compress_phantom` runs with
     :func:`~BreastBiomechLib.solver.run_case.run_case`): the seed's compression with the truth's
-    materials and hidden effects (:func:`with_hidden_effects`), on ``device``."""
+    materials and hidden effects (:func:`with_hidden_effects`), on ``device``. A truth with a
+    skin has it as elements of its own (:func:`~BreastBiomechLib.phantom.skin_elements.with_skin_elements`,
+    the skin's E in place of the materials' ``skin``)."""
+    if truth.skin is not None:
+        mesh = with_skin_elements(mesh, truth.skin[1])
+        skin = {**truth.materials.get("skin", {"nu": 0.495}), "E": truth.skin[0]}
+        truth = replace(truth, materials={**truth.materials, "skin": skin})
     model, settings = _compression_description(mesh, truth).build(mesh)
     model, unloaded = with_hidden_effects(model, truth)
     return model, replace(settings, device=device, unloaded=unloaded)
@@ -288,7 +308,7 @@ def truth_case(mesh: TetMesh, truth: TruthModel, device=None) -> tuple:
 def with_hidden_effects(model, truth: TruthModel) -> tuple:
     """``model`` (the seed's compression of a truth mesh) with the truth's hidden effects: plate
     friction and tilt, the chest-wall support (the field-of-view cut stays fixed and holds the
-    model), the skin layer, a stiff band, a chest-wall shift; with gravity, the loading's gravity
+    model), a stiff band, a chest-wall shift (a skin is the mesh's, :func:`truth_case`); with gravity, the loading's gravity
     ``truth.compression_gravity`` (None: ``truth.gravity``) and the request to start from the
     unloaded shape of the mesh imaged under ``truth.gravity``
     (:class:`~BreastBiomechLib.solver.settings.UnloadedRequest`, else None)."""
@@ -308,13 +328,6 @@ def with_hidden_effects(model, truth: TruthModel) -> tuple:
         others = [c for c in loading.constraints if not np.array_equal(np.unique(c.nodes), np.unique(chest))]
         loading = replace(loading, constraints=others + held, supports=supports, notes=[note])
     materials = model.materials
-    if truth.skin is not None:
-        from BreastBiomechLib.mesh.skin import skin_fraction
-        from BreastBiomechLib.solver.materials import Material
-
-        skin_nodes = model.mesh.node_set("skin" if "skin" in model.mesh.point_data else "surface")
-        nu = float(truth.materials.get("skin", {}).get("nu", 0.495))
-        materials = materials.with_skin(skin_fraction(model.mesh, skin_nodes, truth.skin[1]), Material(truth.skin[0], nu))
     if truth.stiff_band is not None:
         materials = _with_stiff_band(model.mesh, materials, truth.stiff_band, model.loading.plates)
     if truth.chest_wall_shift_mm is not None:

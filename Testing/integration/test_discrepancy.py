@@ -644,12 +644,12 @@ def test_a_design_starts_from_the_model_a_diagnosis_ended_with(null_case, tmp_pa
     with pytest.raises(FileNotFoundError, match="no diagnosis round"):
         last_round_state(fitted, folder)
     z = np.clip(fitted.z + 0.05, 0.0, 1.0)
-    for number, added in ((1, {"friction": [0.4]}), (2, {"friction": [0.5], "skin": [1.5]})):
+    for number, added in ((1, {"friction": [0.4]}), (2, {"friction": [0.5], "skin": [1.5, 0.0]})):
         (folder / f"round-{number}.json").write_text(json.dumps({"state_after": {"z": z.tolist(), "added": added}}))
     (folder / "diagnosis.json").write_text(json.dumps({"case_dir": str(case), "fit_dir": str(fit)}))
     state = last_round_state(fitted, folder)
     np.testing.assert_allclose(state.z, z)
-    assert {name: list(values) for name, (_, values) in state.added.items()} == {"friction": [0.5], "skin": [1.5]}
+    assert {name: list(values) for name, (_, values) in state.added.items()} == {"friction": [0.5], "skin": [1.5, 0.0]}
     (folder / "diagnosis.json").write_text(json.dumps({"case_dir": str(case), "fit_dir": str(tmp_path / "other")}))
     with pytest.raises(ValueError, match="is the diagnosis of fit"):
         last_round_state(fitted, folder)

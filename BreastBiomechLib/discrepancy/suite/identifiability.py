@@ -27,11 +27,12 @@ def truth_sizes(hidden: HiddenEffect) -> dict[str, float]:
     """Each library effect ``hidden`` hides: its size away from the candidate's off value, in
     the candidate's units. friction: the truth's mu. gravity: 1 (real gravity on fat of the
     truth's 10 kPa: the candidate's s). chest-wall: the hold h = k / (k + k_ref) of the truth's
-    tangential stiffness k (the candidate's springs). skin: ln(1 + (E/E_fat - 1) t / 2 mm), the
-    truth layer's excess membrane stiffness (E - E_fat) t spread over the candidate's 2 mm layer.
+    tangential stiffness k (the candidate's springs). skin: its outer shell's (the larger):
+    ln(1 + (E/E_fat - 1) min(t, d) / d) for the shell's depth d, the truth layer's excess
+    membrane stiffness (E - E_fat) t in that shell spread over the shell.
     plate-tilt: the largest of the truth's angles (deg)."""
     from BreastBiomechLib.discrepancy.effects.chest_wall import REFERENCE_STIFFNESS
-    from BreastBiomechLib.discrepancy.effects.skin import THICKNESS_MM
+    from BreastBiomechLib.discrepancy.effects.skin import SHELLS_MM
     from BreastBiomechLib.phantom.compressed import DEFAULT_TRUTH_MATERIALS
 
     fat = float(DEFAULT_TRUTH_MATERIALS["fat"]["E"])
@@ -46,7 +47,8 @@ def truth_sizes(hidden: HiddenEffect) -> dict[str, float]:
             sizes[name] = k / (k + REFERENCE_STIFFNESS)
         elif name == "skin":
             modulus, thickness = (float(v) for v in truth["skin"])
-            sizes[name] = math.log(1.0 + (modulus / fat - 1.0) * thickness / THICKNESS_MM)
+            (_, depth) = SHELLS_MM[0]
+            sizes[name] = math.log(1.0 + (modulus / fat - 1.0) * min(thickness, depth) / depth)
         elif name == "plate-tilt":
             sizes[name] = max(abs(float(a)) for plate in truth["plate_tilt_deg"] for a in plate)
     return sizes

@@ -203,11 +203,13 @@ def prepare_anatomy(number: int, out: Path, settings: SuiteSettings, device=None
         return figures
 
 
-def _truth_mesh(labels, nipple_mm, edge_mm: float):
-    """The truth mesh of a phantom's truth ``labels`` at ``edge_mm``."""
-    from BreastBiomechLib.mesh.from_labels import MeshSettings, mesh_labels
+def _truth_mesh(labels, nipple_mm, edge_mm: float, skin_mm: float | None = None):
+    """The truth mesh of a phantom's truth ``labels`` at ``edge_mm``, with skin triangles fine
+    enough for a truth skin of ``skin_mm`` (:func:`~BreastBiomechLib.phantom.compressed.truth_mesh_settings`)."""
+    from BreastBiomechLib.mesh.from_labels import mesh_labels
+    from BreastBiomechLib.phantom.compressed import truth_mesh_settings
 
-    return mesh_labels(labels, MeshSettings(edge_mm=edge_mm), nipple_mm=nipple_mm).mesh
+    return mesh_labels(labels, truth_mesh_settings(edge_mm, skin_mm), nipple_mm=nipple_mm).mesh
 
 
 def _fitting_mesh(segmentation_labels, nipple_mm, settings: SuiteSettings):
@@ -225,23 +227,25 @@ def case_settings(case: SuiteCase, settings: SuiteSettings) -> SuiteSettings:
     return replace(settings, **case.drawn) if case.drawn else settings
 
 
-def anatomy_mesh(anatomy: Path, kind: str, mine: SuiteSettings, run: SuiteSettings) -> Path:
+def anatomy_mesh(anatomy: Path, kind: str, mine: SuiteSettings, run: SuiteSettings, skin_mm: float | None = None) -> Path:
     """The path of anatomy folder ``anatomy``'s ``kind`` ("truth" or "fitting") mesh at the element
     size of a case's settings ``mine``: the prepared one where it is the run's (``run``), else
     ``<kind>_mesh-<edge>mm.vtu``, made once (under the anatomy's lock) from the phantom's truth
-    labels or the segmentation's labels."""
+    labels or the segmentation's labels; a truth mesh for a hidden skin of ``skin_mm`` with skin
+    triangles fine enough to hold it, ``truth_mesh-<edge>mm-skin<skin>mm.vtu``."""
     from BreastBiomechLib.io.images import read_image
     from BreastBiomechLib.io.meshes import write_vtu
 
     edge = mine.truth_edge_mm if kind == "truth" else mine.fit_edge_mm
-    if edge == (run.truth_edge_mm if kind == "truth" else run.fit_edge_mm):
+    skin_mm = skin_mm if kind == "truth" else None
+    if skin_mm is None and edge == (run.truth_edge_mm if kind == "truth" else run.fit_edge_mm):
         return anatomy / f"{kind}_mesh.vtu"
-    path = anatomy / f"{kind}_mesh-{edge:g}mm.vtu"
+    path = anatomy / f"{kind}_mesh-{edge:g}mm{'' if skin_mm is None else f'-skin{skin_mm:g}mm'}.vtu"
     with _Lock(anatomy / ".lock"):
         if not path.is_file():
             nipple = read_markups(anatomy / "phantom" / "landmarks.mrk.json").position("nipple")
             if kind == "truth":
-                mesh = _truth_mesh(read_image(anatomy / "phantom" / "labels.nrrd"), nipple, edge)
+                mesh = _truth_mesh(read_image(anatomy / "phantom" / "labels.nrrd"), nipple, edge, skin_mm)
             else:
                 mesh = _fitting_mesh(read_image(anatomy / "segmentation" / "labels.nrrd"), nipple, mine)
             write_vtu(path, mesh)
@@ -381,7 +385,8 @@ def _make_fit_and_diagnose(case: SuiteCase, out: Path, settings: SuiteSettings, 
                            chest_clearance_mm=settings.chest_clearance_mm, moving_plate=settings.moving_plate,
                            **hidden_truth(case, settings))
         compressed = compress_phantom(phantom, truth, device=device,
-                                      mesh=read_vtu(anatomy_mesh(anatomy, "truth", settings, run_settings)))
+                                      mesh=read_vtu(anatomy_mesh(anatomy, "truth", settings, run_settings,
+                                                                 skin_mm=truth.skin[1] if truth.skin else None)))
         for name in ("mr.nrrd", "landmarks.mrk.json", "seeds_muscle.mrk.json", "seeds_tumour.mrk.json"):
             if (anatomy / "phantom" / name).is_file():
                 truth_dir.mkdir(parents=True, exist_ok=True)
