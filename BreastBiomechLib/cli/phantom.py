@@ -50,11 +50,14 @@ def _truth_model(args):
     truth = table1_truth(args.case) if args.case else TruthModel()
     compression = truth.compression if args.compression is None else args.compression
     tilt = None if args.plate_tilt is None else [list(args.plate_tilt), [0.0, 0.0]]
+    if args.plate_pivot is not None and tilt is None:
+        raise ValueError("--plate-pivot is the pivot of a plate's turn: give the turn with --plate-tilt")
+    pivot = None if args.plate_pivot is None else [list(args.plate_pivot), [0.0, 0.0, 0.0]]
     return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm,  # checked again
                    chest_clearance_mm=args.chest_clearance_mm, moving_plate=args.moving_plate,
                    friction=args.friction, gravity=args.gravity, compression_gravity=args.compression_gravity,
                    chest_wall=args.chest_wall, chest_wall_stiffness=list(args.chest_wall_stiffness),
-                   plate_tilt_deg=tilt, skin=None if args.skin is None else list(args.skin),
+                   plate_tilt_deg=tilt, plate_pivot_mm=pivot, skin=None if args.skin is None else list(args.skin),
                    stiff_band=None if args.stiff_band is None else list(args.stiff_band),
                    chest_wall_shift_mm=None if args.chest_wall_shift is None else list(args.chest_wall_shift))
 
@@ -197,9 +200,13 @@ def add_parsers(sub) -> None:
     effects.add_argument("--chest-wall-stiffness", type=non_negative, nargs=2, default=[0.0, 0.0],
                          metavar=("NORMAL", "TANGENTIAL"), help="elastic or sliding chest wall's springs (Pa/mm)")
     effects.add_argument("--skin", type=positive, nargs=2, metavar=("E_PA", "THICKNESS_MM"),
-                         help="a skin layer of this Young's modulus and thickness (partial-volume weighting)")
+                         help="a skin layer of this Young's modulus and thickness (explicit elements of a truth "
+                              "mesh made fine enough to hold it)")
     effects.add_argument("--plate-tilt", type=finite, nargs=2, metavar=("DEG1", "DEG2"),
                          help="the first plate's tilt about its two tilt axes (degrees, at most 10)")
+    effects.add_argument("--plate-pivot", type=finite, nargs=3, metavar=("AXIS1", "AXIS2", "NORMAL"),
+                         help="the pivot of --plate-tilt from the plate's final point, mm along its two tilt axes and "
+                              "its normal (< 0 behind the plate; default: the point itself)")
     effects.add_argument("--stiff-band", type=positive, nargs=2, metavar=("FACTOR", "THICKNESS_MM"),
                          help="a stiff sheet the MR does not show: moduli times FACTOR in an oblique band "
                               "through the breast's centroid (not in the discrepancy library)")

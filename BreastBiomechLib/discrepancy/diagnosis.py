@@ -96,8 +96,9 @@ class Candidate:
     (:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable`, along its secant);
     ``separations`` its signature at its realistic size beyond the fitted parameters ("": alone)
     and beyond them and each other tested candidate (by name), in sigma of this round's noise:
-    what :mod:`~BreastBiomechLib.discrepancy.design` predicts for a further scan, realised; or
-    the reason it was ``skipped``."""
+    what :mod:`~BreastBiomechLib.discrepancy.design` predicts for a further scan, realised;
+    ``parameters`` the names of its parameters, in the order of its estimate; or the reason it
+    was ``skipped``."""
 
     name: str
     title: str
@@ -118,6 +119,7 @@ class Candidate:
     linear_delta_bic: float = float("nan")
     detectable: list = field(default_factory=list)
     separations: dict = field(default_factory=dict)
+    parameters: list = field(default_factory=list)
     skipped: str = ""
 
     def to_dict(self) -> dict:
@@ -476,7 +478,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                                 absorbed_by=_absorbed_by(b, nuisance, held, sens.nuisance_keys),
                                 channels=test["channels"],
                                 linear_delta_bic=-test["statistic"] + test["dof"] * np.log(n),
-                                detectable=_detectable(b, q_theta, settings.alpha / (m * (1 + len(test["channels"]))))))
+                                detectable=_detectable(b, q_theta, settings.alpha / (m * (1 + len(test["channels"])))),
+                                parameters=[p.name for p in effect.parameters]))
     rows = Rows.of(sens, observations)  # each signature at its realistic size, as the design's
     for c in ranked:
         c.separations = {rival or "": rows.separation(c.name, rival) for rival in [None, *rows.effects] if rival != c.name}

@@ -21,9 +21,10 @@ from BreastBiomechLib.landmarks import Landmarks, map_landmarks
 from BreastBiomechLib.mesh.tetmesh import TetMesh
 from BreastBiomechLib.phantom.generate import PhantomCase, _bias_field, _Grid
 from BreastBiomechLib.phantom.parameters import INTENSITY, PRONE_GRAVITY, TABLE1_COMPRESSION
+from BreastBiomechLib.phantom.plate_pose import turned_plate
 from BreastBiomechLib.phantom.skin_elements import skin_layer_figures, skin_surface_edge_mm, with_skin_elements
 from BreastBiomechLib.solver.placement import MOVING as MOVING_PLATES
-from BreastBiomechLib.solver.placement import final_planes, posed_plate
+from BreastBiomechLib.solver.placement import final_planes
 from BreastBiomechLib.solver.run_case import run_case
 from BreastBiomechLib.solver.settings import UnloadedRequest
 from BreastBiomechLib.solver.supports import chest_wall_support
@@ -61,7 +62,9 @@ class TruthModel:
     unloaded state, with ``compression_gravity`` (None: the same) while the plates close;
     ``chest_wall``: "fixed" (the seed's), "sliding" or "elastic" with ``chest_wall_stiffness``
     (normal, tangential; Pa/mm per area); ``plate_tilt_deg``: per plate two tilt angles (degrees,
-    :func:`~BreastBiomechLib.solver.placement.posed_plate`), or None; ``skin``: (E in Pa,
+    about the plate's tilt axes, :func:`~BreastBiomechLib.phantom.plate_pose.turned_plate`), or
+    None, with ``plate_pivot_mm``: per plate the pivot of that turn from the plate's final point in
+    its own frame (along its two tilt axes and its normal, mm; None: the final point itself); ``skin``: (E in Pa,
     thickness in mm) of a skin layer of explicit elements (:mod:`BreastBiomechLib.phantom.skin_elements`:
     the truth mesh's elements within the thickness of the skin surface, on a mesh made with skin
     triangles fine enough to hold it), or None.
@@ -90,6 +93,7 @@ class TruthModel:
     chest_wall: str = "fixed"
     chest_wall_stiffness: list = field(default_factory=lambda: [0.0, 0.0])
     plate_tilt_deg: list | None = None
+    plate_pivot_mm: list | None = None
     skin: list | None = None
     stiff_band: list | None = None
     chest_wall_shift_mm: list | None = None
@@ -119,6 +123,12 @@ class TruthModel:
             raise ValueError("the truth's chest_wall_stiffness is (normal, tangential) >= 0 in Pa/mm")
         if self.plate_tilt_deg is not None:
             self.plate_tilt_deg = [[float(a) for a in pair] for pair in self.plate_tilt_deg]
+        if self.plate_pivot_mm is not None:
+            self.plate_pivot_mm = [[float(a) for a in pivot] for pivot in self.plate_pivot_mm]
+            if self.plate_tilt_deg is None or len(self.plate_pivot_mm) != len(self.plate_tilt_deg) \
+                    or any(len(p) != 3 or not np.all(np.isfinite(p)) for p in self.plate_pivot_mm):
+                raise ValueError("the truth's plate_pivot_mm is, per plate of plate_tilt_deg, three finite numbers (mm "
+                                 f"along its tilt axes and normal), not {self.plate_pivot_mm}")
         if self.skin is not None:
             self.skin = [float(v) for v in self.skin]
             if len(self.skin) != 2 or not (self.skin[0] > 0 and 0 < self.skin[1] <= 5):
@@ -139,7 +149,8 @@ class TruthModel:
         effects = [(self.friction > 0, lambda: f"friction {self.friction:g}"),
                    (self.gravity is not None, lambda: f"gravity pre-stress {self.gravity}"),
                    (self.chest_wall != "fixed", lambda: f"{self.chest_wall} chest wall"),
-                   (self.plate_tilt_deg is not None, lambda: f"plate tilt {self.plate_tilt_deg}"),
+                   (self.plate_tilt_deg is not None, lambda: f"plate tilt {self.plate_tilt_deg}"
+                    + (f" about {self.plate_pivot_mm} mm" if self.plate_pivot_mm is not None else "")),
                    (self.skin is not None, lambda: f"skin {self.skin[0]:g} Pa, {self.skin[1]:g} mm"),
                    (self.stiff_band is not None,
                     lambda: f"stiff band x{self.stiff_band[0]:g}, {self.stiff_band[1]:g} mm"),
@@ -316,7 +327,9 @@ def with_hidden_effects(model, truth: TruthModel) -> tuple:
     if truth.plate_tilt_deg is not None:
         if len(truth.plate_tilt_deg) != len(plates):
             raise ValueError(f"the truth gives {len(truth.plate_tilt_deg)} plate tilts for {len(plates)} plates")
-        plates = [posed_plate(p, model.mesh.nodes, tilt) for p, tilt in zip(plates, truth.plate_tilt_deg)]
+        pivots = truth.plate_pivot_mm or [[0.0, 0.0, 0.0]] * len(plates)
+        plates = [turned_plate(p, model.mesh.nodes, tilt, pivot)
+                  for p, tilt, pivot in zip(plates, truth.plate_tilt_deg, pivots)]
     loading = replace(model.loading, plates=plates)
     if truth.chest_wall != "fixed":
         chest = model.mesh.node_set("chest_wall")

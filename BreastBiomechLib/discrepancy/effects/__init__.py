@@ -37,7 +37,7 @@ def library(fitted, names=None) -> list[Effect]:
     plates = max(len(fitted.plates), 1)
     made = {"friction": PlateFriction, "gravity": GravityPrestress, "chest-wall": ChestWallHold,
             "skin": SkinLayer, "anisotropy": Anisotropy, "heterogeneity": lambda: Heterogeneity.for_fit(fitted),
-            "tumour": TumourStiffness, "plate-tilt": lambda: PlateTilt(plates),
+            "tumour": TumourStiffness, "plate-tilt": lambda: PlateTilt(plates, offsets=not fitted.space.plates),
             "plate-offset": lambda: PlateOffset(plates)}
     return [made[name]() for name in NAMES if name in names]
 

@@ -30,7 +30,7 @@ def truth_sizes(hidden: HiddenEffect) -> dict[str, float]:
     tangential stiffness k (the candidate's springs). skin: its outer shell's (the larger):
     ln(1 + (E/E_fat - 1) min(t, d) / d) for the shell's depth d, the truth layer's excess
     membrane stiffness (E - E_fat) t in that shell spread over the shell.
-    plate-tilt: the largest of the truth's angles (deg)."""
+    plate-tilt: the largest of the truth's angles (deg), against the candidate's angles alone."""
     from BreastBiomechLib.discrepancy.effects.chest_wall import REFERENCE_STIFFNESS
     from BreastBiomechLib.discrepancy.effects.skin import SHELLS_MM
     from BreastBiomechLib.phantom.compressed import DEFAULT_TRUTH_MATERIALS
@@ -66,8 +66,20 @@ def not_identifiable(candidate: dict, name: str) -> bool:
 
     detectable = candidate.get("detectable") or []
     made = {"friction": effects.PlateFriction, "gravity": effects.GravityPrestress, "chest-wall": effects.ChestWallHold,
-            "skin": effects.SkinLayer, "plate-tilt": lambda: effects.PlateTilt(max(len(detectable) // 2, 1))}
+            # every plate parameter reaches 5 (deg or mm) either way: enough of them, in any order, say the same
+            "skin": effects.SkinLayer, "plate-tilt": lambda: effects.PlateTilt(max(len(detectable), 1))}
     return diagnosis.not_identifiable(candidate, made[name]() if name in made else None)
+
+
+def _parameters(candidate: dict) -> list[str]:
+    """The names of a candidate record's parameters ("" each where an older record has none)."""
+    return candidate.get("parameters") or [""] * len(candidate.get("detectable") or [])
+
+
+def _in_truth_units(name: str, parameter: str) -> bool:
+    """Whether candidate ``name``'s parameter ``parameter`` is in the units :func:`truth_sizes`
+    gives its size in: the plate tilt's angles, not the offsets its pose moves with."""
+    return name != "plate-tilt" or ".offset" not in parameter
 
 
 def identifiability(case: SuiteCase, rounds: list[dict]) -> dict:
@@ -82,7 +94,8 @@ def identifiability(case: SuiteCase, rounds: list[dict]) -> dict:
         candidate = _candidate(rounds[0], name)
         if candidate is None or candidate.get("skipped"):
             continue
-        sizes = [d for d in candidate.get("detectable") or [] if d is not None]
+        sizes = [d for d, parameter in zip(candidate.get("detectable") or [], _parameters(candidate))
+                 if d is not None and _in_truth_units(name, parameter)]
         smallest = min(sizes) if sizes else None
         hidden = not_identifiable(candidate, name)
         out[name] = {"size": size, "detectable": smallest, "absorbed": candidate.get("absorbed"),

@@ -258,7 +258,9 @@ def hidden_truth(case: SuiteCase, settings: SuiteSettings) -> dict:
     second one does (a held plate tilted about its final point would stand off the tissue)."""
     truth = dict(case.hidden.truth)
     if truth.get("plate_tilt_deg") is not None and settings.moving_plate == "second":
-        truth["plate_tilt_deg"] = list(reversed(truth["plate_tilt_deg"]))
+        for key in ("plate_tilt_deg", "plate_pivot_mm"):
+            if truth.get(key) is not None:
+                truth[key] = list(reversed(truth[key]))
     return truth
 
 

@@ -20,7 +20,9 @@ fit budget                  10, 20, 40, 60, 100 or 200 solves (population a thir
 fitting mesh                4, 5, 6, 8 or 10 mm elements
 truth mesh                  2 or 3 mm elements
 friction                    mu 0.2-1.0
-plate tilt                  0.5-4 degrees, either sign, about either tilt axis
+plate tilt                  0.5-4 degrees, either sign, about either tilt axis, about a pivot
+                            up to 60 mm from the plate's recorded point in its plane and up to
+                            20 mm behind it (a paddle turns about its mount)
 skin                        20-100 kPa, 1-3 mm thick
 gravity                     prone MR; compressed upright, the body leaning 0-30 degrees
 chest-wall hold             springs of 1.7-6.8 kPa/mm
@@ -48,6 +50,7 @@ NULL_SHARE = 3  # every third case is a null case
 FIT_BUDGETS = (10, 20, 40, 60, 100, 200)
 FIT_EDGES_MM = (4.0, 5.0, 6.0, 8.0, 10.0)
 TRUTH_EDGES_MM = (2.0, 3.0)
+PIVOT_IN_PLANE_MM, PIVOT_BEHIND_MM = 60.0, 20.0  # a hidden plate turn's pivot from the plate's recorded point
 # the settings a case draws, with the bins its scores are tabled by (lower edges; the last open)
 SETTING_BINS = {"compression": (0.2, 0.3, 0.4), "moving_plate": None, "landmark_noise_mm": (0.2, 0.5),
                 "fit_budget": (10, 40, 100), "fit_edge_mm": (4.0, 6.0, 8.0), "truth_edge_mm": None}
@@ -80,6 +83,8 @@ def sized_effect(name: str, rng: np.random.Generator) -> HiddenEffect:
         elif part == "plate-tilt":
             angle = round(float(rng.uniform(0.5, 4.0) * rng.choice((-1.0, 1.0))), 2)
             truth["plate_tilt_deg"] = [[angle, 0.0] if rng.random() < 0.5 else [0.0, angle], [0.0, 0.0]]
+            pivot = np.r_[rng.uniform(-PIVOT_IN_PLANE_MM, PIVOT_IN_PLANE_MM, 2), -rng.uniform(0.0, PIVOT_BEHIND_MM)]
+            truth["plate_pivot_mm"] = [np.round(pivot, 1).tolist(), [0.0, 0.0, 0.0]]
         elif part == "skin":
             truth["skin"] = [round(float(rng.uniform(20e3, 100e3)), -2), round(float(rng.uniform(1.0, 3.0)), 2)]
         elif part == "gravity":

@@ -91,6 +91,11 @@ def test_the_seed_s_rig_holds_one_plate_against_the_breast(compressed_case_dir):
     tilt = SuiteCase(1, HIDDEN_EFFECTS["plate-tilt"])
     assert hidden_truth(tilt, SuiteSettings())["plate_tilt_deg"] == [[4.0, 0.0], [0.0, 0.0]]
     assert hidden_truth(tilt, SuiteSettings(moving_plate="second"))["plate_tilt_deg"] == [[0.0, 0.0], [4.0, 0.0]]
+    from BreastBiomechLib.discrepancy.suite.varied import sized_effect
+
+    pivoted = SuiteCase(1, sized_effect("plate-tilt", np.random.default_rng(0)))  # its pivot goes with its turn
+    moved = hidden_truth(pivoted, SuiteSettings(moving_plate="second"))
+    assert moved["plate_pivot_mm"] == pivoted.hidden.truth["plate_pivot_mm"][::-1] != [[0.0, 0.0, 0.0]] * 2
     with pytest.raises(ValueError, match="moving plate is one of"):
         TruthModel(moving_plate="lateral")
     with pytest.raises(ValueError, match="moving_plate is one of"):

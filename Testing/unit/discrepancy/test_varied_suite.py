@@ -46,13 +46,17 @@ def test_each_effect_is_sized_across_its_published_range():
     assert all(e.values["friction"] == (e.truth["friction"],) for e in sizes["friction"])
     tilts = np.array([sum(e.truth["plate_tilt_deg"][0]) for e in sizes["plate-tilt"]])
     assert 0.5 <= np.abs(tilts).min() < 1.0 and 3.5 < np.abs(tilts).max() <= 4.0 and (tilts < 0).any()
+    pivots = np.array([e.truth["plate_pivot_mm"][0] for e in sizes["plate-tilt"]])  # a paddle's mount, not its point
+    assert np.abs(pivots[:, :2]).max() <= 60.0 and np.abs(pivots[:, :2]).max() > 50.0
+    assert -20.0 <= pivots[:, 2].min() < -15.0 and pivots[:, 2].max() <= 0.0
+    assert all(e.truth["plate_pivot_mm"][1] == [0.0, 0.0, 0.0] for e in sizes["plate-tilt"])
     skins = np.array([e.truth["skin"] for e in sizes["skin"]])
     assert skins[:, 0].min() >= 20e3 and skins[:, 0].max() <= 100e3 and 1.0 <= skins[:, 1].min() < 1.3
     for gravity in sizes["gravity"]:
         assert np.linalg.norm(gravity.truth["compression_gravity"]) == pytest.approx(9.81, abs=0.01)
     assert sized_effect("null", rng).truth == {} and sized_effect("stiff-band", rng).known is False
     both = sized_effect("friction+plate-tilt", rng)
-    assert set(both.truth) == {"friction", "plate_tilt_deg"} and both.expected == ("friction", "plate-tilt")
+    assert set(both.truth) == {"friction", "plate_tilt_deg", "plate_pivot_mm"} and both.expected == ("friction", "plate-tilt")
 
 
 def test_anatomies_beyond_table_1_are_sweep_variants_and_unknown_ones_are_refused():

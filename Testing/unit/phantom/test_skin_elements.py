@@ -3,13 +3,8 @@ discrepancy workflow's skin candidate (issue 77, point 5)."""
 
 from __future__ import annotations
 
-import ast
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-LIBRARY = Path(__file__).resolve().parents[3] / "BreastBiomechLib"
 
 
 def test_the_distance_to_a_triangle_is_exact():
@@ -103,24 +98,3 @@ def test_a_truth_with_a_skin_solves_it_as_elements_of_the_skin_modulus(compresse
     assert layer.any() and not np.any(mesh.cell_data["tissue"] == SKIN.label)
     np.testing.assert_allclose(model.materials.mu[layer], 77e3 / (2 * 1.495))
     np.testing.assert_allclose(model.materials.mu[~layer], plain.materials.mu[~layer])
-
-
-def _imports(path: Path) -> set[str]:
-    """The modules ``path`` imports (absolute names), at any depth of its code."""
-    names = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            names |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module:
-            names |= {node.module} | {f"{node.module}.{alias.name}" for alias in node.names}
-    return names
-
-
-def test_the_suite_truths_and_the_candidates_share_no_effect_implementation():
-    """The hidden skin of a truth and the skin candidate are made by separate code: the truth's
-    (phantom.compressed, phantom.skin_elements) imports neither the candidate nor its
-    partial-volume weighting (mesh.skin), and the candidates import nothing of the phantom."""
-    truth = _imports(LIBRARY / "phantom" / "compressed.py") | _imports(LIBRARY / "phantom" / "skin_elements.py")
-    assert not {n for n in truth if n.startswith(("BreastBiomechLib.mesh.skin", "BreastBiomechLib.discrepancy"))}
-    for path in (LIBRARY / "discrepancy" / "effects").glob("*.py"):
-        assert not {n for n in _imports(path) if n.startswith("BreastBiomechLib.phantom")}, path
