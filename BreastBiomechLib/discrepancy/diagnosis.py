@@ -92,8 +92,8 @@ class Candidate:
     (:func:`~BreastBiomechLib.discrepancy.statistics.absorbed_share`) and ``absorbed_by`` the
     fitted parameter that alone reproduces most of it ({"name", "correlation"}); ``detectable``
     the smallest size of each of its parameters (its units, away from the off value; None: none)
-    its score test would see at this case's noise with 80 % power at the verdict's level
-    (:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable`, along its secant);
+    the verdict would name at this case's noise and model floor with 80 % power (:func:`_detectable`,
+    along its secant);
     ``separations`` its signature at its realistic size beyond the fitted parameters ("": alone)
     and beyond them and each other tested candidate (by name), in sigma of this round's noise:
     what :mod:`~BreastBiomechLib.discrepancy.design` predicts for a further scan, realised;
@@ -203,10 +203,23 @@ def edges_sentence(edges: list[dict]) -> str:
             f"pectoral muscle) - check the range before trusting the verdict.{pushed}")
 
 
-def _detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float) -> list:
-    """:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable` at 80 % power as a
-    record's list (None where nothing is)."""
-    sizes = statistics.minimum_detectable(sensitivity, q_theta, alpha, power=0.8)
+def _detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float, observations: Observations,
+                settings: DiagnosisSettings) -> list:
+    """The smallest size of each of a candidate's parameters (whitened ``sensitivity`` (n, k) per
+    unit) the verdict would name, as a record's list (None where none would be): its score test
+    at level ``alpha`` and its likelihood ratio past the BIC threshold
+    (:func:`~BreastBiomechLib.discrepancy.statistics.minimum_detectable`, 80 % power), and its
+    change of the features beyond what the fitted parameters take up (``q_theta``) at least
+    ``min_effect`` x the model floor where it acts (:func:`~BreastBiomechLib.discrepancy.verdicts.floor_ratio`):
+    the larger of the two, so that an effect hidden at that size is named, not only seen."""
+    b = np.atleast_2d(sensitivity.T).T
+    n, k = b.shape
+    sizes = statistics.minimum_detectable(b, q_theta, alpha, power=0.8,
+                                          least_statistic=-settings.bic_threshold + k * np.log(max(n, 1)))
+    beyond = statistics.project_off(b, q_theta) * observations.sigma[:, None]  # mm per unit of each parameter
+    for j in range(k):
+        ratio = verdicts.floor_ratio(beyond[:, j], observations.feature_floor, settings.min_effect)
+        sizes[j] = max(sizes[j], 1.0 / ratio if ratio > 0 else np.inf)
     return [float(v) if np.isfinite(v) else None for v in sizes]
 
 
@@ -478,7 +491,8 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
                                 absorbed_by=_absorbed_by(b, nuisance, held, sens.nuisance_keys),
                                 channels=test["channels"],
                                 linear_delta_bic=-test["statistic"] + test["dof"] * np.log(n),
-                                detectable=_detectable(b, q_theta, settings.alpha / (m * (1 + len(test["channels"])))),
+                                detectable=_detectable(b, q_theta, settings.alpha / (m * (1 + len(test["channels"]))),
+                                                       observations, settings),
                                 parameters=[p.name for p in effect.parameters]))
     rows = Rows.of(sens, observations)  # each signature at its realistic size, as the design's
     for c in ranked:

@@ -142,14 +142,15 @@ def canonical_correlation(a: np.ndarray, b: np.ndarray, q_theta: np.ndarray) -> 
     return float(min(np.linalg.svd(qa.T @ qb, compute_uv=False).max(), 1.0))
 
 
-def detectable_noncentrality(dof: int, alpha: float, power: float = 0.8) -> float:
+def detectable_noncentrality(dof: int, alpha: float, power: float = 0.8, least_statistic: float = 0.0) -> float:
     """The noncentrality lambda at which a chi-square test of ``dof`` degrees of freedom at level
-    ``alpha`` rejects with probability ``power`` (inf without degrees of freedom)."""
+    ``alpha`` - and its statistic at least ``least_statistic``, where a verdict asks more of it
+    (a BIC threshold) - rejects with probability ``power`` (inf without degrees of freedom)."""
     from scipy.optimize import brentq
 
     if dof < 1:
         return float("inf")
-    critical = stats.chi2.isf(alpha, dof)
+    critical = max(stats.chi2.isf(alpha, dof), least_statistic)
     reach = lambda lam: stats.ncx2.sf(critical, dof, lam) - power  # noqa: E731
     high = 1.0
     while reach(high) < 0:
@@ -157,16 +158,18 @@ def detectable_noncentrality(dof: int, alpha: float, power: float = 0.8) -> floa
     return float(brentq(reach, 0.0, high, xtol=1e-10))
 
 
-def minimum_detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float, power: float = 0.8) -> np.ndarray:
+def minimum_detectable(sensitivity: np.ndarray, q_theta: np.ndarray, alpha: float, power: float = 0.8,
+                       least_statistic: float = 0.0) -> np.ndarray:
     """The smallest size (k,) of each of a candidate's parameters, in the units of its whitened
     ``sensitivity`` (n, k) (per unit of the parameter), at which its score test - the signature
     projected off span(``q_theta``), the fitted parameters profiled out - reaches level ``alpha``
-    with ``power``, the other parameters at their off values (inf where the projected signature
-    is zero: the fitted parameters take the effect up whole)."""
+    (and a statistic of ``least_statistic``) with ``power``, the other parameters at their off
+    values (inf where the projected signature is zero: the fitted parameters take the effect up
+    whole)."""
     b = project_off(np.atleast_2d(sensitivity.T).T, q_theta)
     original = np.atleast_2d(sensitivity.T).T
     dof = basis(b, np.linalg.norm(original, 2)).shape[1]
-    lam = detectable_noncentrality(dof, alpha, power)
+    lam = detectable_noncentrality(dof, alpha, power, least_statistic)
     norms = np.linalg.norm(b, axis=0)
     with np.errstate(divide="ignore"):
         return np.where(norms > RANK_TOLERANCE * max(np.linalg.norm(original), 1e-300), np.sqrt(lam) / norms, np.inf)
