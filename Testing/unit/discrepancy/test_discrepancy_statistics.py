@@ -183,3 +183,36 @@ def test_an_effect_at_its_minimum_detectable_size_is_seen_four_times_in_five(k):
     assert power(0.5 * sizes[0]) < 0.4
     # a signature the fitted parameters reproduce whole cannot be seen at any size
     assert np.all(np.isinf(statistics.minimum_detectable(nuisance[:, :k] @ np.eye(k), q_theta, alpha)))
+
+
+def test_the_detectable_size_is_the_one_the_verdict_would_name():
+    """A record's ``detectable`` is the size the verdict would name: never below the score test's
+    (the BIC threshold can only raise it); with a model floor the change beyond the fitted
+    parameters must reach min_effect x the floor where it acts, so at the reported size it does
+    exactly that, and a larger floor asks proportionally more."""
+    from BreastBiomechLib.discrepancy import statistics, verdicts
+    from BreastBiomechLib.discrepancy.diagnosis import DiagnosisSettings, _detectable
+    from BreastBiomechLib.discrepancy.observations import Observations
+
+    rng = np.random.default_rng(11)
+    n = 200
+    sigma = np.full(n, 0.5)
+    nuisance = rng.normal(size=(n, 3))
+    signature = rng.normal(size=(n, 2)) * 0.3
+    q_theta = statistics.basis(nuisance)
+
+    def observed(floor):
+        return Observations([f"f{i}" for i in range(n)], np.array(["landmarks"] * n), np.zeros(n), sigma,
+                            np.zeros((n, 3)), floor_mm=0.0, measurement_sd=sigma, floor=np.full(n, floor))
+
+    settings = DiagnosisSettings()
+    score_only = statistics.minimum_detectable(signature, q_theta, 1e-3, power=0.8)
+    quiet = _detectable(signature, q_theta, 1e-3, observed(1e-9), settings)
+    assert np.all(np.array(quiet) >= score_only - 1e-12)
+    loud = _detectable(signature, q_theta, 1e-3, observed(2.0), settings)
+    beyond = statistics.project_off(signature, q_theta) * sigma[:, None]
+    for j, size in enumerate(loud):
+        assert size > quiet[j]
+        assert verdicts.floor_ratio(beyond[:, j] * size, np.full(n, 2.0), settings.min_effect) == pytest.approx(1.0)
+    louder = _detectable(signature, q_theta, 1e-3, observed(4.0), settings)
+    np.testing.assert_allclose(louder, 2 * np.array(loud))
