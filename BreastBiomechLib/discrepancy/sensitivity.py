@@ -65,6 +65,7 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
         variants.append(state.variant(z, values))
         roles.append(("nuisance", key, None, moved - value))
     skipped = {}
+    shared, aliases = {}, []  # column keys -> the variant's index; (effect, parameter, index) solved by another
     for effect in candidates:
         say(f"building the {effect.title} variants")
         built = []
@@ -78,6 +79,12 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             skipped[effect.name] = f"could not be built: {error}"
             continue
         for variant, j, step in built:
+            key = effect.column_key(j)
+            if key is not None and key in shared:  # another effect's secant model: solved once
+                aliases.append((effect.name, j, shared[key]))
+                continue
+            if key is not None:
+                shared[key] = len(variants)
             variants.append(variant)
             roles.append(("effect", effect.name, j, step))
     say(f"solving {len(variants)} variants")
@@ -101,20 +108,22 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
                 raise RuntimeError(f"the current model with {key} moved does not solve ({outcome.status}: "
                                    f"{outcome.message})")
             nuisance[:, keys.index(key)] = (observations.predicted(outcome.displacement) - features) / step
-            continue
-        if key in skipped:
+    # each candidate parameter's column from its secant model's solve (another effect's, where shared)
+    columns = [(name, j, i) for i, (kind, name, j, _) in enumerate(roles) if kind == "effect"] + aliases
+    for name, j, i in columns:
+        outcome, step = outcomes[i], roles[i][3]
+        if name in skipped:
             continue
         if not outcome.ok:
-            skipped[key] = f"its variant did not solve ({outcome.status}: {outcome.message})"
-            effects.pop(key, None)
-            fields.pop(key, None)
-            steps.pop(key, None)
+            skipped[name] = f"its variant did not solve ({outcome.status}: {outcome.message})"
+            for table in (effects, fields, steps):
+                table.pop(name, None)
             continue
-        effects.setdefault(key, np.zeros((len(features), sizes[key])))
-        fields.setdefault(key, np.zeros((sizes[key], *base.displacement.shape)))
-        effects[key][:, j] = (observations.predicted(outcome.displacement) - features) / step
-        fields[key][j] = (outcome.displacement - base.displacement) / step
-        steps.setdefault(key, np.zeros(sizes[key]))[j] = step
+        effects.setdefault(name, np.zeros((len(features), sizes[name])))[:, j] = \
+            (observations.predicted(outcome.displacement) - features) / step
+        fields.setdefault(name, np.zeros((sizes[name], *base.displacement.shape)))[j] = \
+            (outcome.displacement - base.displacement) / step
+        steps.setdefault(name, np.zeros(sizes[name]))[j] = step
     return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, steps, skipped, solves)
 
 

@@ -54,6 +54,31 @@ def test_every_effect_at_its_off_values_is_the_fitted_model(null_case):
         assert changed, effect.name
 
 
+def test_a_secant_model_two_candidates_share_is_solved_once(null_case):
+    """The plate tilt's offsets move an untilted plate as the plate offset does (the same code):
+    their secant models are solved once and both candidates take the columns, which are those
+    the plate offset's own solves give."""
+    from BreastBiomechLib.discrepancy import ModelState, NoiseModel, load_fitted_case, observations_of
+    from BreastBiomechLib.discrepancy.effects import PlateOffset, PlateTilt
+    from BreastBiomechLib.discrepancy.sensitivity import sensitivities
+    from BreastBiomechLib.io.meshes import read_vtu
+
+    case, fit = null_case
+    fitted = load_fitted_case(case, fit, device="cpu")
+    observations = observations_of(fitted, read_vtu(fit / "deformed_mesh.vtu").point_data["displacement"],
+                                   NoiseModel(floor="fixed"))
+    state = ModelState(fitted, fitted.z)
+    plates = len(fitted.plates)
+    offset = PlateOffset(plates)
+    both = sensitivities(state, observations, [PlateTilt(plates, offsets=True), offset])
+    alone = sensitivities(state, observations, [offset])
+    assert not both.skipped and both.solves == alone.solves + 2 * plates  # the tilt's angles alone added
+    np.testing.assert_array_equal(both.effects["plate-offset"], both.effects["plate-tilt"][:, 2::3])
+    np.testing.assert_array_equal(both.steps["plate-offset"], both.steps["plate-tilt"][2::3])
+    np.testing.assert_allclose(both.effects["plate-offset"], alone.effects["plate-offset"], rtol=1e-5, atol=1e-7)
+    assert np.abs(both.effects["plate-offset"]).max() > 0.1
+
+
 def test_the_gravity_effect_unloads_in_the_first_scan_s_posture_and_compresses_in_the_second(null_case):
     """The case records the compressed scan's posture (plates.json ``gravity``; the phantoms are
     prone); the gravity effect estimates the unloaded state under the undeformed scan's gravity

@@ -78,6 +78,12 @@ class Effect(ABC):
     def apply(self, variant, values: np.ndarray, fitted):
         """The ``variant`` with this effect at parameter ``values`` (one per parameter)."""
 
+    def column_key(self, j: int):
+        """An identity of parameter ``j``'s secant model that another effect's parameter shares
+        (the same model, built by the same code), so that the sensitivities solve it once; None
+        (the default) where it is this effect's own."""
+        return None
+
     def describe(self, values) -> str:
         """The values in words, e.g. "mu 0.42"."""
         return ", ".join(f"{p.name} {v:.3g}{' ' + p.unit if p.unit else ''}" for p, v in zip(self.parameters, values))

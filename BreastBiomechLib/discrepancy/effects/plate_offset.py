@@ -31,5 +31,18 @@ class PlateOffset(Effect):
     def apply(self, variant: Variant, values, fitted) -> Variant:
         if len(values) != len(variant.plates):
             raise ValueError(f"plate offset: {len(values)} offsets for {len(variant.plates)} plates")
-        return replace(variant, plates=[replace(p, displacement=p.displacement + float(v) * p.normal)
-                                        for p, v in zip(variant.plates, values)])
+        return replace(variant, plates=[offset_plate(p, v) for p, v in zip(variant.plates, values)])
+
+    def column_key(self, j: int):
+        return offset_key(j, self.parameters[j])
+
+
+def offset_plate(plate, offset_mm: float):
+    """``plate`` with its final position moved ``offset_mm`` along its normal, its start kept."""
+    return replace(plate, displacement=plate.displacement + float(offset_mm) * plate.normal)
+
+
+def offset_key(plate: int, parameter: EffectParameter) -> tuple:
+    """The identity of a secant model that moves plate ``plate`` alone along its normal by
+    ``parameter``'s step (:meth:`Effect.column_key`): the plate tilt's offsets share it."""
+    return ("plate offset", plate, parameter.stepped(parameter.off))

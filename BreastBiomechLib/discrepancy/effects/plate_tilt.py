@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
+from BreastBiomechLib.discrepancy.effects.plate_offset import offset_key, offset_plate
 from BreastBiomechLib.discrepancy.variants import Variant
 from BreastBiomechLib.solver.placement import posed_plate
 
@@ -50,6 +51,17 @@ class PlateTilt(Effect):
         if len(poses) != len(variant.plates):
             raise ValueError(f"plate tilt: {len(poses)} poses for {len(variant.plates)} plates")
         start = variant.model.start_positions
-        plates = [posed_plate(p, start, pose[:2], offset_mm=pose[2] if self.offsets else 0.0) if np.any(pose) else p
-                  for p, pose in zip(variant.plates, poses)]
+        plates = []
+        for plate, pose in zip(variant.plates, poses):
+            offset = pose[2] if self.offsets else 0.0
+            if np.any(pose[:2]):
+                plate = posed_plate(plate, start, pose[:2], offset_mm=offset)
+            elif offset:  # untilted: the plate offset's own move, so that the two share their secant models
+                plate = offset_plate(plate, offset)
+            plates.append(plate)
         return replace(variant, plates=plates)
+
+    def column_key(self, j: int):
+        if not self.offsets or j % self.per_plate != 2:
+            return None
+        return offset_key(j // self.per_plate, self.parameters[j])
