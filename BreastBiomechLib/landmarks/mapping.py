@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from BreastBiomechLib.landmarks.points import Landmarks
+from BreastBiomechLib.mesh.distance import point_triangle_distance
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
 
 _CANDIDATES = 32  # tets searched for the nearest one to a point outside the mesh
@@ -79,38 +80,8 @@ def locate_points(mesh: TetMesh, points: np.ndarray) -> PointLocation:
 
 def _distance_to_tet(p: np.ndarray, corners: np.ndarray) -> float:
     """Distance from p to the closest point of the tet's faces (p outside it)."""
-    best = np.inf
-    for face in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
-        a, b, c = corners[list(face)]
-        best = min(best, _distance_to_triangle(p, a, b, c))
-    return best
-
-
-def _distance_to_triangle(p, a, b, c) -> float:
-    """Euclidean distance from p to triangle abc (Ericson's closest-point regions)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = ab @ ap, ac @ ap
-    if d1 <= 0 and d2 <= 0:
-        return float(np.linalg.norm(ap))
-    bp = p - b
-    d3, d4 = ab @ bp, ac @ bp
-    if d3 >= 0 and d4 <= d3:
-        return float(np.linalg.norm(bp))
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0 and d1 >= 0 and d3 <= 0:
-        return float(np.linalg.norm(p - (a + d1 / (d1 - d3) * ab)))
-    cp = p - c
-    d5, d6 = ab @ cp, ac @ cp
-    if d6 >= 0 and d5 <= d6:
-        return float(np.linalg.norm(cp))
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0 and d2 >= 0 and d6 <= 0:
-        return float(np.linalg.norm(p - (a + d2 / (d2 - d6) * ac)))
-    va = d3 * d6 - d5 * d4
-    if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
-        return float(np.linalg.norm(p - (b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b))))
-    denom = 1.0 / (va + vb + vc)
-    return float(np.linalg.norm(p - (a + ab * vb * denom + ac * vc * denom)))
+    faces = corners[[(0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)]]
+    return float(point_triangle_distance(np.tile(p, (4, 1)), faces[:, 0], faces[:, 1], faces[:, 2]).min())
 
 
 def outside_tolerance_mm(mesh: TetMesh) -> float:

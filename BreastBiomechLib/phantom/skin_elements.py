@@ -18,9 +18,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from BreastBiomechLib.labels import MUSCLE, SKIN
+from BreastBiomechLib.mesh.distance import point_triangle_distance
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces
 
-LAYERS = 1.5  # surface triangles per skin thickness on a truth mesh that holds a skin
+LAYERS = 1.5  # a truth skin's thickness over the size of the skin triangles of the mesh that holds it
 FINEST_SURFACE_MM = 1.0  # the finest skin triangles a truth mesh is made with (a 1 mm skin)
 
 
@@ -29,35 +30,6 @@ def skin_surface_edge_mm(edge_mm: float, thickness_mm: float) -> float:
     ``edge_mm``: the thickness over :data:`LAYERS`, at least :data:`FINEST_SURFACE_MM`, at most
     the mesh's own size, so that the surface elements are thinner than the skin."""
     return float(min(edge_mm, max(FINEST_SURFACE_MM, thickness_mm / LAYERS)))
-
-
-def point_triangle_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Distance (N,) of each point (N, 3) to its triangle (a, b, c: each (N, 3)): the closest
-    point by the Voronoi regions of the triangle's vertices, edges and face."""
-    ab, ac, ap = b - a, c - a, points - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp, cp = points - b, points - c
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denominator = va + vb + vc
-        v_face, w_face = vb / denominator, vc / denominator
-        t_ab = d1 / (d1 - d3)
-        t_ac = d2 / (d2 - d6)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-    closest = a + v_face[:, None] * ab + w_face[:, None] * ac  # inside the face
-    regions = [  # (where, closest point); a later entry wins, the reverse of the tests' usual order
-        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), b + t_bc[:, None] * (c - b)),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + t_ac[:, None] * ac),
-        ((d6 >= 0) & (d5 <= d6), c),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + t_ab[:, None] * ab),
-        ((d3 >= 0) & (d4 <= d3), b),
-        ((d1 <= 0) & (d2 <= 0), a),
-    ]
-    for where, point in regions:
-        closest = np.where(where[:, None], point, closest)
-    return np.linalg.norm(points - closest, axis=1)
 
 
 def _skin_faces(mesh: TetMesh, skin_set: str) -> np.ndarray:
