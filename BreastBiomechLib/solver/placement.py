@@ -211,6 +211,7 @@ def compression_plates(mesh: TetMesh, axis="LR", compression: float = 0.25, slav
 
 
 MAX_TILT_DEG = 10.0  # paddles tilt 0.04-0.7 deg; larger is a wrong sign or unit, not a pose
+MAX_OFFSET_MM = 10.0  # plates read off an image are out by a voxel or two; larger is a wrong unit or frame
 
 
 def tilt_axes(plate: Plate) -> tuple[np.ndarray, np.ndarray]:
@@ -235,19 +236,13 @@ def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
 
 
-def _ends_touching(plate: Plate, contacts: np.ndarray) -> bool:
-    """Whether ``plate`` in its final pose (``point + displacement``) reaches no further than the
-    undeformed ``contacts`` (N, 3) mm, to :data:`TOUCH_TOLERANCE_MM`: a held plate, onto which the
-    other plate pushes the breast (it may have travelled to get there)."""
+def _reaches_tissue(plate: Plate, contacts: np.ndarray) -> bool:
+    """Whether ``plate`` in its final pose (``point + displacement``) reaches the undeformed
+    ``contacts`` (N, 3) mm, to :data:`TOUCH_TOLERANCE_MM`: touching them (a held plate, onto
+    which the other plate pushes the breast) or pressed into them (a moving plate)."""
     gaps = Plate(plate.point + plate.displacement, plate.normal, np.zeros(3), [], plate.name, plate.edge).gaps(contacts)
     gaps = gaps[np.isfinite(gaps)]
-    return len(gaps) > 0 and float(gaps.min()) >= -TOUCH_TOLERANCE_MM
-
-
-def _turned_away(contacts: np.ndarray, final: np.ndarray, old_normal: np.ndarray, new_normal: np.ndarray) -> float:
-    """How far (mm) turning a plate's plane about its point ``final`` from ``old_normal`` to
-    ``new_normal`` moved it at the farthest of the ``contacts`` (N, 3) mm."""
-    return float(np.abs((contacts - final) @ (new_normal - old_normal)).max())
+    return len(gaps) > 0 and float(gaps.min()) <= TOUCH_TOLERANCE_MM
 
 
 def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_mm: float = 0.0) -> Plate:
@@ -256,10 +251,10 @@ def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_
     ``offset_mm`` along its new normal (> 0: further into the tissue). It starts where it just
     touches the first of its contact nodes (``slave_nodes`` of the mesh nodes ``nodes_mm``, LPS
     mm) and travels along its new normal to the final pose (plus the turned in-plane part of
-    its old travel, if any). A held plate (its final pose just touches the undeformed tissue) that
-    the turn lifts off that tissue ends at its turned final pose without travel: the other plate
-    pushes the breast onto it; a stand-off larger than the turn itself made, or with an offset
-    away from the tissue (another frame, a wrong offset), is refused.
+    its old travel, if any). A plate whose final pose reached the undeformed tissue (touching it, or
+    pressed into it) and that the turn or an offset away from the tissue (< 0) lifts off it ends
+    at its new final pose without travel: the other plate pushes the breast onto it. A plate
+    whose recorded final pose already stood off the tissue (another frame) is refused.
     Edge, friction, name and contact nodes are kept (the edge turned with the plate). The pose a fit or a hidden-effect phantom gives a plate: paddles tilt by
     0.04-0.7 degrees."""
     tilt = np.asarray(tilt_deg, float).reshape(-1)
@@ -269,6 +264,9 @@ def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_
     if np.any(np.abs(tilt) > MAX_TILT_DEG):
         raise ValueError(f"plate {plate.name!r}: a tilt of {np.abs(tilt).max():g} degrees is more than "
                          f"{MAX_TILT_DEG:g}; paddles tilt by under a degree - check the unit (degrees) and sign")
+    if abs(offset_mm) > MAX_OFFSET_MM:
+        raise ValueError(f"plate {plate.name!r}: an offset of {abs(offset_mm):g} mm is more than {MAX_OFFSET_MM:g}; "
+                         "a plate read off an image is out by a voxel or two - check the unit (mm) and the frame")
     first, second = tilt_axes(plate)
     turn = _rotation(second, np.radians(tilt[1])) @ _rotation(first, np.radians(tilt[0]))
     normal = turn @ plate.normal
@@ -289,11 +287,12 @@ def posed_plate(plate: Plate, nodes_mm: np.ndarray, tilt_deg=(0.0, 0.0), offset_
     travel = -float(gaps.min())
     if -TOUCH_TOLERANCE_MM <= travel < 0:  # a held plate placed onto the tissue, to rounding
         travel = 0.0
-    if travel < 0 and offset_mm >= 0 and _ends_touching(plate, contacts) \
-            and -travel <= _turned_away(contacts, final, plate.normal, normal) + TOUCH_TOLERANCE_MM:
-        # a held plate (its final pose just touches the undeformed tissue) turned about its final
-        # point off that tissue by no more than the turn moved its plane there: it ends there
-        # without travel, and the other plate pushes the breast onto it
+    if travel < 0 and _reaches_tissue(plate, contacts):
+        # a plate that reached the undeformed tissue (a held one touching it, or one pressed a
+        # little into it, as a fitting mesh's held plate is) and that the pose change lifted off
+        # it (turned about its final point, its rounded edge with it, or moved away along its
+        # normal: a candidate's secant, a refit): it ends there without travel, and the other
+        # plate pushes the breast onto it. Its stand-off is the pose change's own.
         travel = 0.0
     if travel < 0:
         raise ValueError(f"plate {plate.name!r}: in that pose it ends {-travel:.2f} mm short of the tissue and would "

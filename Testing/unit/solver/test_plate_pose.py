@@ -64,7 +64,7 @@ def test_a_held_plate_placed_onto_the_tissue_to_rounding_takes_a_pose():
 
 @pytest.mark.parametrize("tilt, offset, match", [((11.0, 0.0), 0.0, "more than 10"), ((0.0,), 0.0, "two finite"),
                                                  ((float("nan"), 0.0), 0.0, "two finite"),
-                                                 ((0.0, 0.0), -20.0, "short of the tissue")])
+                                                 ((0.0, 0.0), -20.0, "20 mm is more than 10")])
 def test_bad_poses_are_refused(tilt, offset, match):
     mesh = box_mesh((10.0, 10.0, 10.0), (2, 2, 2))
     with pytest.raises(ValueError, match=match):
@@ -156,7 +156,7 @@ def test_niftysim_and_the_static_reference_refuse_friction(tmp_path):
         solve_static(model)
 
 
-def test_a_held_plate_turned_off_a_curved_breast_stays_put_for_the_other_plate_to_push_onto():
+def test_a_plate_a_pose_change_lifts_off_a_curved_breast_stays_put_for_the_other_plate_to_push_onto():
     from BreastBiomechLib.solver.placement import posed_plate
 
     # a dome: the held plate above it touches its top node only, its point 30 mm to the side
@@ -168,11 +168,26 @@ def test_a_held_plate_turned_off_a_curved_breast_stays_put_for_the_other_plate_t
     held = Plate([50.0, 20.0, nodes[top, 2].max()], [0, 0, -1], [0, 0, 0], top, "held")
     assert abs(held.gaps(nodes[top]).min()) < 1e-9
     # turned 1 degree about its point: its plane rises over the dome's top by about 30 mm x 1 degree
-    turned = posed_plate(held, nodes, (1.0, 0.0))
-    turned = turned if turned.gaps(nodes[top]).min() > 0 else posed_plate(held, nodes, (-1.0, 0.0))
+    tilt = (1.0, 0.0) if posed_plate(held, nodes, (1.0, 0.0)).gaps(nodes[top]).min() > 0 else (-1.0, 0.0)
+    turned = posed_plate(held, nodes, tilt)
     stand_off = turned.gaps(nodes[top]).min()
     assert 0.2 < stand_off < 0.6 and np.allclose(turned.displacement, 0.0)
     np.testing.assert_allclose(turned.point, held.point)
-    # lifted further than the turn did (an offset away from the tissue): refused as before
-    with pytest.raises(ValueError, match="short of the tissue"):
-        posed_plate(held, nodes, (1.0, 0.0), offset_mm=-2.0)
+    # turned and moved 2 mm away from the tissue (a tilt candidate's secant, a refit): it stays
+    # there too, its stand-off the turn's and the offset's
+    away = posed_plate(held, nodes, tilt, offset_mm=-2.0)
+    assert np.allclose(away.displacement, 0.0)
+    assert away.gaps(nodes[top]).min() == pytest.approx(stand_off + 2.0, abs=0.01)
+    untilted_away = posed_plate(held, nodes, (0.0, 0.0), offset_mm=-2.0)
+    assert untilted_away.gaps(nodes[top]).min() == pytest.approx(2.0, abs=1e-9)
+    # a fitting mesh's held plate, which travels the little its recorded plane lies inside the
+    # mesh (0.1 mm here), turned off the tissue by more than that: it ends there, without travel
+    pressed = Plate(held.point, held.normal, 0.1 * held.normal, top, "held")
+    pressed_turned = posed_plate(pressed, nodes, tilt)
+    assert np.allclose(pressed_turned.displacement, 0.0)
+    assert pressed_turned.gaps(nodes[top]).min() == pytest.approx(stand_off - 0.1, abs=0.01)
+    # a plate recorded off the tissue (another frame) is refused, turned or not
+    off = Plate([50.0, 20.0, nodes[top, 2].max() + 3.0], [0, 0, -1], [0, 0, 0], top, "held")
+    for pose in ((0.0, 0.0), (1.0, 0.0), (-1.0, 0.0)):
+        with pytest.raises(ValueError, match="short of the tissue"):
+            posed_plate(off, nodes, pose)
