@@ -156,7 +156,7 @@ def cmd_table1_cases(args) -> int:
     tasks = table1_tasks(args.out, args.cases, truth_edge_mm=args.truth_edge_mm, overview=not args.no_overview)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     outcomes = run_tasks(tasks, place(args.scheduler, args.workers, args.device), progress=cohort_progress(args.quiet),
-                         on_outcome=lambda o: None if o.ok else log_failure(Path(args.out) / "failures.log", o))
+                         on_outcome=lambda o: log_failure(Path(args.out) / "failures.log", o))
     failed = [o for o in outcomes if not o.ok]
     report_failures(failed, Path(args.out) / "failures.log")
     print(f"{len(args.cases) - len(tasks)} case(s) already in {args.out}, {len(outcomes) - len(failed)} made, "

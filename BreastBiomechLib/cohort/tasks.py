@@ -44,7 +44,9 @@ class TaskOutcome:
     message") and where it was raised (``traceback``, for a log file); ``seconds`` of wall time in
     the worker (0 where it never started), the ``worker`` that ran it (its Dask name; "here" for
     a run in one process) and when it started (``started_at``, Unix time in s) — what a benchmark
-    needs to say how busy each worker was (a task that raised on a cluster has neither: "", 0)."""
+    needs to say how busy each worker was (a task that raised on a cluster has neither: "", 0);
+    ``earlier_errors``: the error and traceback of each earlier try that failed in a way worth
+    trying again (:func:`~BreastBiomechLib.cohort.runner.transient_device_error`)."""
 
     key: str
     label: str
@@ -55,6 +57,7 @@ class TaskOutcome:
     traceback: str = ""
     worker: str = ""
     started_at: float = 0.0
+    earlier_errors: tuple[str, ...] = ()
 
 
 def ordered(tasks: list[Task]) -> list[Task]:

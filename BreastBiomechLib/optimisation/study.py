@@ -256,8 +256,7 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
                                                        "fits": [r.to_dict() for r in read_study(out)]})
 
         def ended(outcome) -> None:
-            if not outcome.ok:
-                log_failure(out / "failures.log", outcome)
+            log_failure(out / "failures.log", outcome)
             summarise()
 
         outcomes = run_tasks(tasks, placement, progress=progress, on_outcome=ended)
@@ -266,10 +265,18 @@ def run_study(case_dirs, out_dir: str | Path, settings: StudySettings | None = N
 
 
 def log_failure(path: Path, outcome) -> None:
-    """Append a failed task's key, error and traceback to the log file ``path``."""
+    """Append to the log file ``path`` a task's tries that failed: the errors and tracebacks of
+    those run again (``earlier_errors``) and, where it failed, its own. Nothing for a task that
+    went through at its first try."""
+    if outcome.ok and not outcome.earlier_errors:
+        return
+    now = datetime.datetime.now().isoformat(timespec="seconds")
     with open(path, "a") as stream:
-        stream.write(f"--- {datetime.datetime.now().isoformat(timespec='seconds')} {outcome.key}: {outcome.error}\n"
-                     f"{outcome.traceback}\n")
+        for n, earlier in enumerate(outcome.earlier_errors, 1):
+            stream.write(f"--- {now} {outcome.key}: try {n} of {len(outcome.earlier_errors) + 1}, run again after: "
+                         f"{earlier}\n")
+        if not outcome.ok:
+            stream.write(f"--- {now} {outcome.key}: {outcome.error}\n{outcome.traceback}\n")
 
 
 ROW_FILE = "study_row.json"

@@ -46,3 +46,18 @@ def pause(seconds: float, device=None, progress=None) -> dict:
 def environment(name: str, device=None, progress=None) -> dict:
     """The worker's value of the environment variable ``name`` (None: not set)."""
     return {"value": os.environ.get(name)}
+
+
+def capture_fails_once(out: str, device=None, progress=None) -> dict:
+    """Fail its first try as a broken CUDA graph capture does (warp's words), then succeed."""
+    marker = Path(out) / "capture-failed-once"
+    if not marker.exists():
+        marker.write_text(str(os.getpid()))
+        raise RuntimeError("Error launching kernel: energies on device cuda:0: Warp CUDA error 901: operation failed "
+                           "due to a previous error during capture")
+    return {"pid": os.getpid()}
+
+
+def capture_always_fails(device=None, progress=None) -> dict:
+    """Fail every try as a broken CUDA graph capture does."""
+    raise RuntimeError("Warp CUDA error 900: operation not permitted when stream is capturing")

@@ -559,4 +559,4 @@ def run_suite(out, cases: list[SuiteCase], settings: SuiteSettings | None = None
     if recorded is None:
         write_json(settings_path, mine)
     return run_tasks(suite_tasks(out, cases, settings), placement or place(), progress=progress,
-                     on_outcome=lambda o: None if o.ok else log_failure(out / "failures.log", o))
+                     on_outcome=lambda o: log_failure(out / "failures.log", o))

@@ -153,6 +153,27 @@ def test_a_worker_lost_mid_task_costs_only_that_task(tmp_path):
 
 
 @pytest.mark.parametrize("placement", [HERE, TWO_CPU_WORKERS], ids=["in-process", "two-workers"])
+def test_a_task_whose_cuda_graph_capture_broke_runs_once_more_and_its_log_keeps_the_first_error(placement,
+                                                                                                tmp_path):
+    from BreastBiomechLib.optimisation.study import log_failure
+
+    tasks = [Task("square/0", cohort_tasks.square, {"x": 0, "out": str(tmp_path)}),
+             Task("capture-once", cohort_tasks.capture_fails_once, {"out": str(tmp_path)}),
+             Task("capture-always", cohort_tasks.capture_always_fails), Task("three", cohort_tasks.square,
+                                                                             {"x": 3, "out": str(tmp_path)})]
+    log = tmp_path / "failures.log"
+    outcomes = {o.key: o for o in run_tasks(tasks, placement, dashboard=None, on_outcome=lambda o: log_failure(log, o))}
+    once, always, three = outcomes["capture-once"], outcomes["capture-always"], outcomes["three"]
+    assert once.ok and len(once.earlier_errors) == 1 and "error 901" in once.earlier_errors[0]
+    assert not always.ok and "error 900" in always.error and len(always.earlier_errors) == 1  # one retry only
+    assert not three.ok and three.earlier_errors == ()  # any other error: not run again
+    assert outcomes["square/0"].ok and outcomes["square/0"].earlier_errors == ()
+    text = log.read_text()
+    assert text.count("capture-once: try 1 of 2, run again after: RuntimeError") == 1
+    assert "capture-always: RuntimeError" in text and "square/0" not in text
+
+
+@pytest.mark.parametrize("placement", [HERE, TWO_CPU_WORKERS], ids=["in-process", "two-workers"])
 def test_cancel_keeps_what_finished_and_a_rerun_resumes(placement, tmp_path):
     tasks = [t for t in _square_tasks(tmp_path) if t.key != "square/3" and "three" not in t.key]
     with pytest.raises(CohortCancelled, match="rerun to resume"):
