@@ -308,15 +308,29 @@ def with_rivals(diagnosis: dict, names: list[str]) -> list[str]:
     return list(dict.fromkeys([*names, *[rivals[n][0] for n in names if n in rivals]]))
 
 
+def acquisition_effects(now: Rows, names: list[str], designed_for=None) -> tuple[list[str], dict, list[str]]:
+    """(the effects among ``names`` designed for: ``designed_for``'s, default all; the closest
+    rival of each in the measured states' rows ``now``, for those it tested; the effects each
+    simulated acquisition solves: those designed for and their rivals, in ``names``' order)."""
+    chosen = list(names) if designed_for is None else [n for n in names if n in set(designed_for)]
+    rivals = {name: now.closest_rival(name) for name in chosen if name in now.effects}
+    solved = [n for n in names if n in chosen or n in rivals.values()]
+    return chosen, rivals, solved
+
+
 def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acquisition] | None = None,
            noise: NoiseModel | None = None, alpha: float = 0.01, state: ModelState | None = None,
-           progress: Callable[[str], None] | None = None) -> Design:
+           progress: Callable[[str], None] | None = None, designed_for=None) -> Design:
     """The :class:`Design` of the fitted case's next measurement for the candidate ``effects``
     (names; default the whole library, less those ``state`` has added) over ``acquisitions``
     (default :func:`acquisition_library`'s of ``kinds``: kinds or names), at the model ``state``
     (default the fit's; a diagnosis round's, with its added effects and refitted parameters),
     with the ``noise`` model's fixed floor (a measured floor is not simulated: it is replaced by
-    the fixed one) and the diagnosis level ``alpha``."""
+    the fixed one) and the diagnosis level ``alpha``. ``designed_for`` (names among ``effects``;
+    default all of them): the effects whose acquisitions are ranked; every candidate is a rival
+    in the measured states, and each acquisition solves only these and their closest rivals there
+    (a diagnosis designs for the few it could not tell apart: each acquisition's solves are as
+    many fewer as the other candidates have parameters)."""
     from dataclasses import replace
 
     say = progress or (lambda message: None)
@@ -335,6 +349,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     observations = observations_of(fitted, base, noise)
     say("sensitivities in the measured states")
     now = Rows.of(sensitivities(state, observations, candidates, progress=say), observations)
+    chosen, rivals, solved = acquisition_effects(now, names, designed_for)
     stacks, failed, made = {}, {}, []
     for acquisition in acquisitions:
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
@@ -342,7 +357,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
             simulated, u = simulated_state(fitted, acquisition, state)
             seen = observations_of(simulated, u, noise)
             rows = Rows.of(sensitivities(ModelState(simulated, state.z, state.added), seen,
-                                         library(simulated, names), progress=say), seen)
+                                         library(simulated, solved), progress=say), seen)
         except RuntimeError as error:
             failed[acquisition.name] = str(error)
             continue
@@ -353,6 +368,8 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     records = []
     for effect in candidates:
         name = effect.name
+        if name not in chosen:
+            continue
         record = {"effect": name, "title": titles[name],
                   "size": {p.name: p.step for p in effect.parameters},
                   "detectable_sigma": math.sqrt(detectable_noncentrality(1, alpha, POWER))}
@@ -360,7 +377,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
             records.append({**record, "skipped": now.skipped.get(name, "not tested"), "rival": None, "now_sigma": 0.0,
                             "acquisitions": []})
             continue
-        rival = now.closest_rival(name)
+        rival = rivals[name]
         record.update(rival=rival, rival_title=titles.get(rival), now_sigma=now.separation(name, rival))
         ranked = [{"name": a["name"], "description": a["description"],
                    "separation_sigma": stacks[a["name"]].separation(name, rival)}

@@ -457,7 +457,7 @@ class DiagnosisSession:
             if self.floor is not None:
                 noise = replace(noise, model_sd_mm=max(noise.model_sd_mm, self.floor.summary()["rms_mm"]))
             made = design(self.fitted, with_rivals(last["diagnosis"], wanted), tuple(kinds or KINDS), noise=noise,
-                          alpha=self.settings.alpha, state=self.state, progress=say)
+                          alpha=self.settings.alpha, state=self.state, progress=say, designed_for=wanted)
             record.update(made.only(wanted).to_dict())
             write_text_atomically(self.out / DESIGN_MARKDOWN, made.only(wanted).markdown())
         else:

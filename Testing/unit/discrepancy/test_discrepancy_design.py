@@ -52,6 +52,25 @@ def test_a_further_state_never_lowers_a_separation_and_is_stacked_parameter_by_p
     assert stacked.separation("chest-wall", None) > 3 * now.separation("chest-wall", None)
 
 
+def test_each_acquisition_solves_only_the_effects_designed_for_and_their_closest_rivals():
+    """A diagnosis designs for the few candidates it could not tell apart: every candidate is a
+    rival in the measured states, but an acquisition need only solve those and their closest
+    rivals (the plate tilt's six parameters are not solved again for the chest-wall hold)."""
+    from BreastBiomechLib.discrepancy.design import acquisition_effects
+
+    rng = np.random.default_rng(5)
+    rows = _rows(rng)
+    rows.effects["gravity"] = rows.effects["chest-wall"] + 0.2 * rng.standard_normal(rows.n)  # the hold's rival
+    names = ["chest-wall", "plate-tilt", "plate-offset", "gravity", "skin"]  # skin: not tested (no rows)
+    chosen, rivals, solved = acquisition_effects(rows, names, ["chest-wall"])
+    assert chosen == ["chest-wall"] and rivals == {"chest-wall": "gravity"} and solved == ["chest-wall", "gravity"]
+    chosen, rivals, solved = acquisition_effects(rows, names, ["plate-offset", "skin"])
+    assert chosen == ["plate-offset", "skin"] and rivals == {"plate-offset": "plate-tilt"}
+    assert solved == ["plate-tilt", "plate-offset", "skin"]
+    chosen, rivals, solved = acquisition_effects(rows, names)  # designed for all: all solved
+    assert chosen == solved == names and set(rivals) == {"chest-wall", "plate-tilt", "plate-offset", "gravity"}
+
+
 def _candidate(name, absorbed, detectable, skipped=""):
     return {"name": name, "title": name, "absorbed": absorbed, "detectable": detectable, "skipped": skipped}
 
