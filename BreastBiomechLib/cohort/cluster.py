@@ -95,6 +95,18 @@ def place(scheduler: str | None = None, workers: int | None = None, device: str 
     return Placement(None, count, gpus, "cuda" if gpus else "cpu")
 
 
+# Dask's sampling profiler takes the running task's frames from the worker's event-loop thread;
+# a frame it still holds when its function returns keeps the function's locals, which are then
+# freed in that thread - warp arrays and CUDA graphs among them, released by warp at whatever
+# moment, also while the task's thread is opening or closing a CUDA graph capture, where warp's
+# own check of "a capture is on" races (CUDA error 906, "operation would make the legacy stream
+# depend on a capturing blocking stream", in warp's release_now, then 901 in the task's
+# capture: the varied suite lost 4 of 20 cases to it on 2026-12-07). The workers of a local
+# cluster run without it; those of a cluster the user starts need the same setting
+# (docs/cohorts.md).
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+
+
 def _local_cluster(placement: Placement, dashboard: str | None):
     """A Dask cluster on this machine with ``placement.workers`` single-threaded worker
     processes, worker i pinned to GPU ``gpus[i % len(gpus)]``, host memory and ITK's threads
@@ -113,7 +125,8 @@ def _local_cluster(placement: Placement, dashboard: str | None):
             env["CUDA_VISIBLE_DEVICES"] = str(placement.gpus[i % len(placement.gpus)])
         workers[f"breastbiomech-{i}"] = {"cls": Nanny, "options": {"nthreads": 1, "env": env,
                                                                    "memory_limit": memory,
-                                                                   "silence_logs": logging.CRITICAL}}
+                                                                   "silence_logs": logging.CRITICAL,
+                                                                   "config": WORKER_CONFIG}}
     scheduler = {"cls": Scheduler, "options": {"dashboard_address": dashboard or ":0",
                                                "dashboard": dashboard is not None}}
     # a worker is sent a task only when it is free, so a long task never waits in a busy worker's

@@ -32,8 +32,8 @@ REPORT_EVERY_S = 1.0  # a task's progress lines reach the client at most this of
 # CUDA's words for a graph capture that an operation broke (errors 900, 901 and 906). The varied
 # discrepancy suite lost 4 of 20 cases to them on 2026-12-07 (one H100, five workers sharing it),
 # each at the first launch of a capture, and all four ran through when run again: a failure of
-# one try, not of the task (its cause is not established: warp defers the frees and module
-# unloads a capture forbids, and the captures pause Python's cyclic collector).
+# one try, not of the task. Its likely cause, a warp object freed in another thread of the
+# worker, is removed for local clusters (cluster.WORKER_CONFIG); a user's cluster may still have it.
 TRANSIENT_DEVICE_ERRORS = ("error during capture", "when stream is capturing", "depend on a capturing")
 RETRIES_AFTER_A_TRANSIENT_DEVICE_ERROR = 1
 

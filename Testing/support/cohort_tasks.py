@@ -61,3 +61,10 @@ def capture_fails_once(out: str, device=None, progress=None) -> dict:
 def capture_always_fails(device=None, progress=None) -> dict:
     """Fail every try as a broken CUDA graph capture does."""
     raise RuntimeError("Warp CUDA error 900: operation not permitted when stream is capturing")
+
+
+def dask_setting(key: str, device=None, progress=None) -> dict:
+    """The worker's value of the Dask configuration ``key`` (dotted)."""
+    import dask
+
+    return {"value": dask.config.get(key)}

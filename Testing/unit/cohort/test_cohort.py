@@ -107,13 +107,22 @@ def test_a_tasks_dependents_go_to_whichever_worker_is_free(tmp_path):
     assert min(fits.values()) >= 3, fits
 
 
-def test_local_workers_share_the_cores_out_for_itk():
-    """Each of two local workers runs ITK's filters on half the cores (not one thread per core each)."""
+def test_local_workers_share_the_cores_out_for_itk_and_run_without_dasks_sampling_profiler():
+    """Each of two local workers runs ITK's filters on half the cores (not one thread per core
+    each), and without Dask's profiler, whose hold on a task's frames frees the task's warp
+    objects in another thread (cohort/cluster.py, WORKER_CONFIG)."""
     import os
 
-    outcomes = run_tasks([Task(f"env/{k}", cohort_tasks.environment, {"name": "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"})
-                          for k in range(2)], TWO_CPU_WORKERS, dashboard=None)
-    assert {o.result["value"] for o in outcomes} == {str(max(1, len(os.sched_getaffinity(0)) // 2))}
+    import dask
+
+    tasks = [Task(f"env/{k}", cohort_tasks.environment, {"name": "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"})
+             for k in range(2)] + [Task(f"profile/{k}", cohort_tasks.dask_setting,
+                                        {"key": "distributed.worker.profile.enabled"}) for k in range(2)]
+    outcomes = {o.key: o for o in run_tasks(tasks, TWO_CPU_WORKERS, dashboard=None)}
+    assert {outcomes[f"env/{k}"].result["value"] for k in range(2)} == {
+        str(max(1, len(os.sched_getaffinity(0)) // 2))}
+    assert dask.config.get("distributed.worker.profile.enabled") is True  # Dask's default, here
+    assert [outcomes[f"profile/{k}"].result["value"] for k in range(2)] == [False, False]
 
 
 def test_a_studys_meshes_go_first_then_its_longest_fits():
