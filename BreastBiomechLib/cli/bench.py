@@ -184,6 +184,9 @@ def _bench_effects(args) -> dict:
     return figures
 
 
+SUITE_CASE_DEFAULTS = {"truth_edge_mm": 3.0, "fit_edge_mm": 6.0, "fit_budget": 60}  # effects, diagnose, cohort
+
+
 def _bench_demo(args) -> dict:
     """`breastbiomech demo` timed stage by stage (:mod:`~BreastBiomechLib.timing`) in ``--out``
     (replaced as the demo replaces its results) or a temporary folder: the wall seconds of each
@@ -193,8 +196,9 @@ def _bench_demo(args) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-demo-") as scratch:
         out = Path(args.out) if args.out else Path(scratch) / "demo"
         with contextlib.redirect_stdout(sys.stderr):  # the demo's progress; stdout keeps the figures
-            clock = run_demo(out, args.device, None)
+            clock = run_demo(out, args.device, args.fit_budget, args.truth_edge_mm, args.fit_edge_mm)
         return {"benchmark": "demo", "version": __version__, "device": args.device or "default",
+                "meshes": json.loads((out / "stages.json").read_text()).get("meshes"),
                 **staged_figures(clock, out / "diagnosis")}
 
 
@@ -550,6 +554,10 @@ def cmd_bench(args) -> int:
                             args.compression, args.device, args.family or "anatomy")
         print(json.dumps(figures) if args.json else "\n".join(f"{k:24s} {v}" for k, v in figures.items() if k != "rows"))
         return 0
+    if args.what != "demo":  # the demo's meshes and budget default to its device's (cli/demo.py, DemoMeshes)
+        for name, default in SUITE_CASE_DEFAULTS.items():
+            if getattr(args, name) is None:
+                setattr(args, name, default)
     if args.what in ("mesh", "segment", "warp", "optimise", "unloaded", "effects", "demo", "diagnose", "cohort"):
         figures = {"mesh": _bench_mesh, "segment": _bench_segment, "warp": _bench_warp, "optimise": _bench_optimise,
                    "unloaded": _bench_unloaded, "effects": _bench_effects, "demo": _bench_demo,
@@ -584,13 +592,17 @@ def add_parsers(sub) -> None:
                                     "demo", "diagnose", "cohort"], help="what to time")
     p.add_argument("--cases", type=int, nargs="+", default=[1, 2, 3, 4, 5], choices=range(1, 6),
                    help="Table 1 cases (phantom; effects, diagnose: the first)")
-    p.add_argument("--truth-edge-mm", type=positive, default=3.0,
-                   help="effects, diagnose: the truth mesh's element size (mm)")
+    p.add_argument("--truth-edge-mm", type=positive,
+                   help="effects, diagnose: the truth mesh's element size (mm; default 3); demo: its truth mesh's "
+                        "(default its device's)")
     p.add_argument("--hidden", choices=sorted(HIDDEN), default="friction",
                    help="diagnose: the effect hidden in the truth (a suite case's, default friction)")
-    p.add_argument("--fit-edge-mm", type=positive, default=6.0,
-                   help="diagnose, cohort: the fitting mesh's element size (mm)")
-    p.add_argument("--fit-budget", type=positive_int, default=60, help="diagnose: the material fit's forward solves")
+    p.add_argument("--fit-edge-mm", type=positive,
+                   help="diagnose, cohort: the fitting mesh's element size (mm; default 6); demo: its fitting "
+                        "mesh's (default its device's)")
+    p.add_argument("--fit-budget", type=positive_int,
+                   help="diagnose: the material fit's forward solves (default 60); demo: its fit's (default its "
+                        "device's)")
     p.add_argument("--rounds", type=positive_int, default=3, help="diagnose: rounds at most")
     p.add_argument("--tets", type=positive_int, default=160_000, help="solver, warp: about this many tets (hemi-ellipsoid)")
     p.add_argument("--repeat", type=positive_int, default=10, help="warp: timed calls (median and best reported)")

@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from BreastBiomechLib import __version__
-from BreastBiomechLib.cli.common import device_argument, positive_int
+from BreastBiomechLib.cli.common import device_argument, positive, positive_int
 from BreastBiomechLib.io.atomic import write_text_atomically
 from BreastBiomechLib.timing import StageClock, clocked, stage
 
@@ -30,14 +31,49 @@ def cmd_demo(args) -> int:
     """The main job on the built-in phantom: phantom and its compressed "measured" scan,
     segmentation from seed points, FE mesh of the segmentation, a simulation with the starting
     materials, the material fit, and a Markdown report (out/demo/report.md)."""
-    run_demo(Path(args.out), args.device, args.budget)
+    run_demo(Path(args.out), args.device, args.budget, args.truth_edge_mm, args.fit_edge_mm)
     return 0
 
 
-def run_demo(out: Path, device: str | None = None, budget: int | None = None) -> StageClock:
+@dataclass(frozen=True)
+class DemoMeshes:
+    """The demo's meshes (element sizes in mm) and the fit's forward solves, by device: on a
+    GPU a 2 mm truth mesh and a 4 mm fitting mesh with a 2 mm skin and refined tissue interfaces
+    (about 230k tets), 200 solves of CMA-ES; on a CPU coarser voxels (1.5 x 1.5 x 3 mm), a 6 mm
+    truth mesh and a 5 mm fitting mesh of a smoother surface (3 mm blur), its skin as coarse as
+    its inside and no interface refinement (tissues by voxel majority; about 27k tets), 19 solves
+    (two generations of five, then three batched gradients). The CPU mesh's elements stay 5 mm
+    deep inside, where the pectoral muscle is: an 8 mm mesh with a 4 mm skin (45k tets, its
+    inside 8 mm) fitted the muscle 45-60 % stiffer than the GPU's 4 mm mesh of the same case
+    (docs/journal/2026-12-06-demo-fitting-mesh-and-stage-times.md)."""
+
+    truth_edge_mm: float
+    fit_edge_mm: float
+    fit_skin_mm: float
+    refine_interfaces: bool
+    blur_mm: float
+    spacing_mm: tuple[float, float, float]
+    budget: int
+
+    @classmethod
+    def for_device(cls, gpu: bool, truth_edge_mm: float | None = None, fit_edge_mm: float | None = None,
+                   budget: int | None = None) -> "DemoMeshes":
+        """The device's defaults, with any of ``truth_edge_mm``, ``fit_edge_mm`` (its skin at the
+        device's ratio: half of it on a GPU, all of it on a CPU) and ``budget`` given instead."""
+        for name, value in (("truth_edge_mm", truth_edge_mm), ("fit_edge_mm", fit_edge_mm), ("budget", budget)):
+            if value is not None and not value > 0:
+                raise ValueError(f"the demo's {name} must be positive, not {value}")
+        fit = fit_edge_mm or (4.0 if gpu else 5.0)
+        return cls(truth_edge_mm or (2.0 if gpu else 6.0), fit, fit / 2 if gpu else fit, gpu, 0.8 if gpu else 3.0,
+                   (1.0, 1.0, 2.5) if gpu else (1.5, 1.5, 3.0), budget or (200 if gpu else 19))
+
+
+def run_demo(out: Path, device: str | None = None, budget: int | None = None, truth_edge_mm: float | None = None,
+             fit_edge_mm: float | None = None) -> StageClock:
     """:func:`cmd_demo`'s work in ``out`` on ``device`` (default the GPU when there is one) with
-    ``budget`` forward solves for the fit (default the device's); returns the wall seconds per
-    stage (:mod:`~BreastBiomechLib.timing`; also written to out/stages.json and the report)."""
+    ``budget`` forward solves for the fit and the meshes of ``truth_edge_mm`` and ``fit_edge_mm``
+    (each default the device's: :class:`DemoMeshes`); returns the wall seconds per stage
+    (:mod:`~BreastBiomechLib.timing`; also written to out/stages.json and the report)."""
     with clocked() as clock:
         with stage("imports"):
             import warp as wp
@@ -46,12 +82,13 @@ def run_demo(out: Path, device: str | None = None, budget: int | None = None) ->
         gpu = (device or ("cuda" if wp.get_cuda_device_count() else "cpu")).startswith("cuda")
         if gpu:  # each stage holds its own kernels' time
             clock.synchronise = wp.synchronize
-        _demo(out, device, budget, gpu, clock)
-    write_text_atomically(out / "stages.json", json.dumps(clock.to_dict(), indent=2))
+        meshes = DemoMeshes.for_device(gpu, truth_edge_mm, fit_edge_mm, budget)
+        _demo(out, device, meshes, gpu, clock)
+    write_text_atomically(out / "stages.json", json.dumps({**clock.to_dict(), "meshes": asdict(meshes)}, indent=2))
     return clock
 
 
-def _demo(out: Path, device: str | None, budget: int | None, gpu: bool, clock: StageClock) -> None:
+def _demo(out: Path, device: str | None, meshes: DemoMeshes, gpu: bool, clock: StageClock) -> None:
     with stage("imports"):
         from BreastBiomechLib.discrepancy import DiagnosisSettings, NoiseModel, run_diagnosis
         from BreastBiomechLib.io.images import read_image
@@ -67,16 +104,8 @@ def _demo(out: Path, device: str | None, budget: int | None, gpu: bool, clock: S
         from BreastBiomechLib.segmentation import dice_per_tissue, segment_tissues
         from BreastBiomechLib.visualisation import save_overview
 
-    # on a CPU: coarser voxels (1.5 x 1.5 x 3 mm), a 6 mm truth mesh, and a 5 mm fitting mesh of a
-    # smoother surface (3 mm blur), its skin as coarse as its inside, without refinement at the
-    # tissue interfaces (tissues by voxel majority): some 27k tets instead of 230k; a 19-solve fit
-    # (two generations of five, then three batched gradients). Its elements stay 5 mm deep inside,
-    # where the pectoral muscle is: an 8 mm mesh with a 4 mm skin (45k tets, its inside 8 mm) fitted
-    # the muscle 45-60 % stiffer than the GPU's 4 mm mesh of the same case (docs/discrepancy.md)
-    truth_mm, fit_mm, default_budget = (2.0, 4.0, 200) if gpu else (6.0, 5.0, 19)
-    skin_mm = fit_mm / 2 if gpu else fit_mm
-    spacing = (1.0, 1.0, 2.5) if gpu else (1.5, 1.5, 3.0)
-    budget = budget or default_budget
+    truth_mm, fit_mm, skin_mm = meshes.truth_edge_mm, meshes.fit_edge_mm, meshes.fit_skin_mm
+    spacing, budget = meshes.spacing_mm, meshes.budget
     report = {"steps": []}
     started = time.perf_counter()
 
@@ -114,9 +143,9 @@ def _demo(out: Path, device: str | None, budget: int | None, gpu: bool, clock: S
     print("    Dice vs the ground truth: " + ", ".join(f"{k} {v:.3f}" for k, v in dice.items()))
 
     step(f"4/7 tetrahedral fitting mesh of the segmentation ({fit_mm:g} mm, skin {skin_mm:g} mm"
-         + (")" if gpu else ", tissues by voxel majority)"))
-    mesh = mesh_labels(result.labels, MeshSettings(edge_mm=fit_mm, surface_edge_mm=skin_mm, refine_interfaces=gpu,
-                                                   blur_mm=0.8 if gpu else 3.0),
+         + (")" if meshes.refine_interfaces else ", tissues by voxel majority)"))
+    mesh = mesh_labels(result.labels, MeshSettings(edge_mm=fit_mm, surface_edge_mm=skin_mm,
+                                                   refine_interfaces=meshes.refine_interfaces, blur_mm=meshes.blur_mm),
                        nipple_mm=case.landmarks.position("nipple"))
     mesh_path = write_vtu(out / "mesh" / "mesh.vtu", mesh.mesh)
     m = mesh.summary()
@@ -361,4 +390,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     p.add_argument("--device", type=device_argument, help="warp device (default: the GPU when there is one)")
     p.add_argument("--budget", type=positive_int, help="forward solves of the fit (default 19 on a CPU, 200 on a GPU)")
+    p.add_argument("--truth-edge-mm", type=positive, help="the truth mesh's element size (mm; default 6 on a CPU, "
+                                                          "2 on a GPU)")
+    p.add_argument("--fit-edge-mm", type=positive, help="the fitting mesh's element size (mm; default 5 on a CPU, "
+                                                        "4 on a GPU, its skin half of it there)")
     p.set_defaults(func=cmd_demo)

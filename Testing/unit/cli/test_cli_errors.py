@@ -107,3 +107,29 @@ def test_a_number_out_of_range_is_refused_with_the_option_named(capsys, words, o
     assert stop.value.code == 2
     line = _error_line(capsys)
     assert f"argument {option}: must be " in line and bad in line
+
+
+def test_the_demos_meshes_default_to_the_devices_and_take_the_sizes_given():
+    """`demo --truth-edge-mm/--fit-edge-mm/--budget` (and `bench demo`'s, whose suite defaults do
+    not apply to it): the device's meshes unless given; the fitting mesh's skin at the device's
+    ratio; nonsense refused."""
+    from BreastBiomechLib.cli.demo import DemoMeshes
+
+    gpu, cpu = DemoMeshes.for_device(True), DemoMeshes.for_device(False)
+    assert (gpu.truth_edge_mm, gpu.fit_edge_mm, gpu.fit_skin_mm, gpu.refine_interfaces, gpu.budget) == (2.0, 4.0, 2.0,
+                                                                                                       True, 200)
+    assert (cpu.truth_edge_mm, cpu.fit_edge_mm, cpu.fit_skin_mm, cpu.refine_interfaces, cpu.budget) == (6.0, 5.0, 5.0,
+                                                                                                       False, 19)
+    like_cpu = DemoMeshes.for_device(True, truth_edge_mm=3.0, fit_edge_mm=5.0)
+    assert (like_cpu.truth_edge_mm, like_cpu.fit_edge_mm, like_cpu.fit_skin_mm, like_cpu.budget) == (3.0, 5.0, 2.5, 200)
+    assert like_cpu.spacing_mm == gpu.spacing_mm and like_cpu.blur_mm == gpu.blur_mm
+    with pytest.raises(ValueError, match="fit_edge_mm must be positive, not -4"):
+        DemoMeshes.for_device(False, fit_edge_mm=-4.0)
+
+
+@pytest.mark.parametrize("argv, message", [(["demo", "--fit-edge-mm", "0"], "--fit-edge-mm"),
+                                           (["bench", "demo", "--truth-edge-mm", "-2"], "--truth-edge-mm")])
+def test_the_demos_mesh_options_are_checked_by_the_parser(capsys, argv, message):
+    with pytest.raises(SystemExit):
+        main(argv)
+    assert message in capsys.readouterr().err
