@@ -251,18 +251,23 @@ def beyond_range(candidate: Candidate, effects: dict) -> list[str]:
     return out
 
 
-def absorbed_sentence(candidates: list[Candidate], effects: dict | None = None) -> str:
+def absorbed_sentence(candidates: list[Candidate], effects: dict | None = None, missing: bool = False) -> str:
     """The tested candidates this case could not have shown ("" when none): those whose signature
     the fitted parameters reproduce (at least :data:`ABSORBED` of it), and those (with
-    ``effects``, name -> :class:`Effect`) whose smallest detectable size lies beyond their range."""
+    ``effects``, name -> :class:`Effect`) whose smallest detectable size lies beyond their range.
+    ``missing``: said after an unexplained discrepancy, where such an effect may be what is
+    missing (and a further measured state is what would tell)."""
     tested = [c for c in candidates if not c.skipped]
     hidden = [c for c in tested if c.absorbed >= ABSORBED]
     parts = []
     if hidden:
         listed = "; ".join(f"{c.title} ({c.absorbed:.0%} of its signature, chiefly by {c.absorbed_by['name']}, "
                            f"correlation {c.absorbed_by['correlation']:.2f})" for c in hidden)
+        consequence = ("such an effect may be what is missing here, fitted in part as those parameters; a further "
+                       "measured state would tell (`diagnose --design`)" if missing else
+                       "such an effect, if present, has been fitted as those parameters")
         parts.append(f"What this case could not have shown, since the fitted parameters reproduce what it would "
-                     f"change: {listed}; such an effect, if present, has been fitted as those parameters.")
+                     f"change: {listed}; {consequence}.")
     small = [(c, beyond_range(c, effects or {})) for c in tested if c not in hidden]
     small = [(c, ends) for c, ends in small if ends]
     if small:
@@ -434,7 +439,8 @@ def diagnose(state: ModelState, observations: Observations, candidates: list[Eff
     result = _decide(state, observations, candidates, settings, progress, excluded)
     result.edges = parameters_at_edges(state, result.held)
     by_name = {effect.name: effect for effect in candidates}
-    hidden = absorbed_sentence(result.candidates, by_name) if result.verdict == verdicts.NONE else ""
+    hidden = (absorbed_sentence(result.candidates, by_name, missing=result.verdict == verdicts.UNEXPLAINED)
+              if result.verdict in (verdicts.NONE, verdicts.UNEXPLAINED) else "")
     if hidden:
         result.sentence = f"{result.sentence} {hidden}"
     if result.edges:

@@ -261,7 +261,8 @@ def unexplained_sentence(evidence: Evidence, refitted: list[dict], best: dict | 
         text = (f"{head}, but no candidate effect explains it (refitted: {tried}). Nearest: {nearest['title']}"
                 f"{_needs(nearest)}.")
     else:
-        text = f"{head}, but no candidate's score test is significant: the library holds nothing that would change it."
+        text = (f"{head}, but no candidate's score test is significant: no effect of the library that this case "
+                "could show would change it.")
     return text + landmarks_alone_phrase(evidence, settings.alpha) + _unconverged(evidence, settings)
 
 

@@ -8,9 +8,10 @@ out on a round that added an effect, so that nothing tested the model with it). 
 **right** when: null - nothing added and finally "none"; one or two library effects - the rounds
 add exactly those effects and the last then says "none" (a right first round followed by a
 false "unexplained" is wrong: the verdict a user reads is the last); a one-scan case hiding the
-chest-wall hold is also right when nothing is added, the last round says "none" and it calls the
-hold not identifiable here, taken up by the muscle's modulus (issue 78's rule: one scan cannot
-tell them apart, a verdict that says so is not a miss; with two scans only naming it is right);
+chest-wall hold is also right when nothing is added, the last round says "none" or "unexplained"
+and it calls the hold not identifiable here, taken up by the muscle's modulus (issue 78's rule:
+one scan cannot tell them apart, a verdict that says so is not a miss - an unexplained
+discrepancy says the hold may be what is missing; with two scans only naming it is right);
 an effect outside the
 library - finally "unexplained discrepancy" with nothing added. Where the right effects were
 added and the last round still says "unexplained", the case counts among the **false
@@ -119,9 +120,11 @@ def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared:
         correct = final == "unexplained" and not added
     else:
         correct = right_added and final == "none"
-        if case.states == 1 and case.hidden.expected == ("chest-wall",) and not added and final == "none":
+        if case.states == 1 and case.hidden.expected == ("chest-wall",) and not added \
+                and final in ("none", "unexplained"):
             # one scan: right when the verdict says the hold is not identifiable here and names
-            # the muscle's modulus as what takes it up (issue 78's rule)
+            # the muscle's modulus as what takes it up (issue 78's rule; said after an unexplained
+            # discrepancy as what may be missing since 2026-12-07)
             correct = told_absorbed_by_muscle(rounds[-1], "chest-wall")
     before = rounds[0]["before"]
     last = next((r["after"] for r in reversed(rounds) if r.get("after")), None)

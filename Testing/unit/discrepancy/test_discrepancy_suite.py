@@ -448,6 +448,13 @@ def test_the_identifiability_statements_are_scored_against_the_truth_s_size():
     seen_low["diagnosis"]["candidates"] = [_tested("chest-wall", absorbed=0.3, detectable=(0.5,))]
     told, wrong_parameter, plainly_missed = (result("chest-wall", [r]) for r in (hold, other, seen_low))
     assert [told["correct"], wrong_parameter["correct"], plainly_missed["correct"]] == [True, False, False]
+    # an unexplained discrepancy that says the muscle takes the hold up (it may be what is missing)
+    # is right too; one that says nothing of it is not
+    unexplained = _round("unexplained discrepancy")
+    unexplained["diagnosis"]["candidates"] = hold["diagnosis"]["candidates"]
+    silent = _round("unexplained discrepancy")
+    silent["diagnosis"]["candidates"] = seen_low["diagnosis"]["candidates"]
+    assert result("chest-wall", [unexplained])["correct"] and not result("chest-wall", [silent])["correct"]
     assert told["identifiability"]["chest-wall"]["not_identifiable"]
     assert told["identifiability"]["chest-wall"]["size"] == pytest.approx(3400.0 / 3740.0)
     assert plainly_missed["identifiability"]["chest-wall"]["at_or_above_detectable"]  # h 0.91 >= 0.5

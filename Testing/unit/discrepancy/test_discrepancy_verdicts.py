@@ -269,6 +269,11 @@ def test_what_this_case_could_not_have_shown_names_absorbed_and_too_small_effect
     assert "Too small to see at this case's noise, whatever its size within its range: plate friction (smallest " \
            "size its test would see: mu 2.1, its range 0 to 1.5)" in sentence
     assert absorbed_sentence([seen], {"friction": friction}) == ""
+    assert "such an effect, if present, has been fitted as those parameters" in sentence
+    # after an unexplained discrepancy such an effect may be what is missing
+    after_unexplained = absorbed_sentence([absorbed], {"friction": friction}, missing=True)
+    assert "chest-wall hold (85% of its signature" in after_unexplained
+    assert "may be what is missing here, fitted in part as those parameters" in after_unexplained
 
 
 def test_the_pairs_a_case_cannot_tell_apart_follow_from_their_correlations():
