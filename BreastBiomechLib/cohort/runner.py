@@ -44,6 +44,11 @@ def transient_device_error(error: str) -> bool:
     return any(words in error for words in TRANSIENT_DEVICE_ERRORS)
 
 
+def _runs_again(error: str, earlier) -> bool:
+    """Whether a task that failed with ``error`` after the ``earlier`` failed tries is run once more."""
+    return transient_device_error(error) and len(earlier) < RETRIES_AFTER_A_TRANSIENT_DEVICE_ERROR
+
+
 class CohortCancelled(Exception):
     """The run was cancelled; what finished is on disk and a rerun resumes."""
 
@@ -130,7 +135,7 @@ def _run_here(tasks, device, state, progress, on_outcome) -> list[TaskOutcome]:
                     result = task.function(**task.kwargs, device=device, progress=report)
                 except Exception as error:  # noqa: BLE001 - reported, and the run goes on
                     text = f"{type(error).__name__}: {error}"
-                    if transient_device_error(text) and len(earlier) < RETRIES_AFTER_A_TRANSIENT_DEVICE_ERROR:
+                    if _runs_again(text, earlier):
                         earlier.append(f"{text}\n{traceback.format_exc()}")
                         continue
                     failed.add(task.key)
@@ -253,7 +258,7 @@ def _run_on(client, tasks, device, state, progress, on_outcome, poll_s) -> list[
                                           earlier_errors=tried)
                 else:
                     error, where = _failure(future.exception()), "".join(traceback.format_tb(future.traceback()))
-                    if transient_device_error(error) and len(tried) < RETRIES_AFTER_A_TRANSIENT_DEVICE_ERROR:
+                    if _runs_again(error, tried):
                         earlier.setdefault(task.key, []).append(f"{error}\n{where}")
                         submit(task)
                         continue
