@@ -345,10 +345,12 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         [outcome] = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)
         if not outcome.ok:
             raise RuntimeError(f"the model does not solve ({outcome.status}: {outcome.message})")
-        base = outcome.displacement
+        base, current = outcome.displacement, outcome
+    else:
+        current = None
     observations = observations_of(fitted, base, noise)
     say("sensitivities in the measured states")
-    now = Rows.of(sensitivities(state, observations, candidates, progress=say), observations)
+    now = Rows.of(sensitivities(state, observations, candidates, progress=say, current=current), observations)
     chosen, rivals, solved = acquisition_effects(now, names, designed_for)
     stacks, failed, made = {}, {}, []
     for acquisition in acquisitions:

@@ -215,7 +215,7 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
     sens = None
     for iteration in range(iterations):
         say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: sensitivities")
-        sens = sensitivities(state, observations, [], say)
+        sens = sensitivities(state, observations, [], say, current=current)
         nuisance = state.nuisance()
         values = np.array([v for _, v, _, _ in nuisance])
         lower = np.array([lo for _, _, lo, _ in nuisance]) - values
@@ -228,7 +228,8 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
         for halving in range(HALVINGS + 1):
             say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: trial step" + (f" / {2 ** halving}" if halving else ""))
             trial = state.with_nuisance(values + delta / 2 ** halving)
-            outcome = solve_variants([trial.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
+            outcome = solve_variants([trial.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device,
+                                     start=current)[0]
             if outcome.ok:
                 trial_rss = float(np.sum((weights * observations.residual(outcome.displacement)) ** 2))
                 if trial_rss < rss:

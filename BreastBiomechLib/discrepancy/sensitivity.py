@@ -2,7 +2,8 @@
 parameters by a forward difference, each candidate effect's parameters by a secant from their
 off value to a realistic step (:class:`~BreastBiomechLib.discrepancy.effects.EffectParameter`).
 Every variant is built first and solved together: one batched launch for all that change only
-materials and plates, one per effect that changes the loading.
+materials and plates, one per effect that changes the loading; on a CPU the current model first
+and the variants started at its equilibrium (:func:`~BreastBiomechLib.discrepancy.variants.starts_pay`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import FIT_STEP, ModelState
-from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants, starts_pay
 from BreastBiomechLib.timing import stage, staged
 
 
@@ -43,13 +44,14 @@ class Sensitivities:
 
 @staged("sensitivities")
 def sensitivities(state: ModelState, observations: Observations, candidates: list[Effect],
-                  progress: Callable[[str], None] | None = None) -> Sensitivities:
+                  progress: Callable[[str], None] | None = None, current: Outcome | None = None) -> Sensitivities:
     """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects
     not yet added, each available for this fit). A model that inverts an element is solved again
     alone with a slower load (:func:`solve_variants`); a nuisance difference that still fails is
     taken on the other side, an effect's secant to half its step (a candidate still failing is
     skipped with the reason); raises a RuntimeError
-    when the current model or a nuisance variant still fails to solve."""
+    when the current model or a nuisance variant still fails to solve. ``current``: the solve of
+    ``state.variant()`` where the caller has it (not solved again; ``solves`` leaves it out)."""
     fitted = state.fitted
     say = progress or (lambda message: None)
     variants, roles = [state.variant()], [("base", None, None, 0.0)]
@@ -88,8 +90,18 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             variants.append(variant)
             roles.append(("effect", effect.name, j, step))
     say(f"solving {len(variants)} variants")
-    outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
-    solves = sum(outcome.attempts for outcome in outcomes)
+    warm, solves = starts_pay(fitted.device), 0
+    if current is None and warm:  # on a CPU: the current model first, its variants started from it
+        [current] = solve_variants(variants[:1], fitted.mesh.nodes, fitted.relaxation, fitted.device)
+        solves += current.attempts
+    if current is None:
+        outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
+        solves += sum(outcome.attempts for outcome in outcomes)
+    else:
+        rest = solve_variants(variants[1:], fitted.mesh.nodes, fitted.relaxation, fitted.device,
+                              start=current if warm else None) if current.ok else []
+        outcomes = [current, *rest]
+        solves += sum(outcome.attempts for outcome in rest)
     base = outcomes[0]
     if not base.ok:
         raise RuntimeError(f"the current model does not solve ({base.status}: {base.message})")
@@ -170,7 +182,8 @@ def _solve_again(state: ModelState, redo, variants, roles, outcomes) -> int:
     failed, its replacement takes its place if it solves (variant, outcome and step in
     ``variants``, ``outcomes`` and ``roles``). Returns the number of solves made."""
     fitted = state.fitted
-    retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
+    retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device,
+                             start=outcomes[0])
     for (i, variant, step), outcome in zip(redo, retried):
         if outcome.ok and not outcomes[i].ok:
             variants[i], outcomes[i] = variant, outcome

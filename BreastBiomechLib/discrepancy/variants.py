@@ -9,6 +9,12 @@ model of its own. Displacements come back from the mesh as imaged (LPS mm), also
 pre-stressed model whose mesh is its unloaded shape. A fit of several measured states solves each
 variant in every state (:attr:`Variant.others`): its displacement is the states' one after the
 other (:meth:`~BreastBiomechLib.discrepancy.fitted.FittedCase.split`).
+
+On a CPU a batch costs the sum of its models' iterations, so variants near a solved model (the
+current one, moved by a step) start at its equilibrium (:mod:`~BreastBiomechLib.solver.warm`:
+the same equilibrium within the relaxation's tolerance, in about half the iterations); on a GPU
+a batch costs little more than its slowest model, and one launch of every variant is faster than
+the current model first and its variants after it (:func:`starts_pay`).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import Plate
 from BreastBiomechLib.solver.run_case import CaseVariant, run_variants
 from BreastBiomechLib.solver.settings import SolverSettings
+from BreastBiomechLib.solver.warm import WarmStart, started_plates
 
 
 @dataclass
@@ -41,25 +48,42 @@ class Variant:
 class Outcome:
     """A variant's solve: ``displacement`` (N, 3) mm from the mesh as imaged, ``status`` and
     ``message`` of the solver (``ok`` when it completed), and the forward solves it took
-    (``attempts``: more than 1 where it was solved again with a slower load)."""
+    (``attempts``: more than 1 where it was solved again with a slower load); ``starts``: for
+    each model it was solved with that completed (the first state's and each further state's),
+    the warm start at its equilibrium (id of the model -> (model, start))."""
 
     displacement: np.ndarray
     status: str
     message: str
     attempts: int = 1
+    starts: dict[int, tuple[Model, WarmStart]] = field(default_factory=dict, repr=False)
 
     @property
     def ok(self) -> bool:
         return self.status == "completed"
 
 
+def starts_pay(device=None) -> bool:
+    """Whether solving the current model first and starting its variants at its equilibrium
+    pays on warp ``device`` (None: warp's default): on a CPU, not on a GPU (see the module
+    notes)."""
+    import warp as wp
+
+    wp.init()
+    return wp.get_device(device).is_cpu
+
+
 def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation: DynamicRelaxation,
-                   device=None) -> list[Outcome]:
+                   device=None, start: Outcome | None = None) -> list[Outcome]:
     """Solve every variant (one batched launch per distinct ``model``) to static equilibrium by
     dynamic ``relaxation`` (:func:`~BreastBiomechLib.solver.run_case.run_variants`: a variant that
     inverts an element is solved again alone with a slower load); the outcomes in the variants'
     order. A variant with :attr:`Variant.others` is solved in every state: its outcome's
-    displacement is the states' stacked (first state first), its status the first failed state's."""
+    displacement is the states' stacked (first state first), its status the first failed state's.
+    ``start``: a solved variant's outcome; the variants of a model it was solved with, whose
+    plates differ from that solve's in travel only and have no friction (the warm start's
+    conditions, :func:`~BreastBiomechLib.solver.warm.started_plates`), start at its equilibrium,
+    in a launch of their own; the rest start at rest."""
     flat = [(i, part) for i, variant in enumerate(variants) for part in (variant, *variant.others)]
     solved: list[Outcome | None] = [None] * len(flat)
     groups: dict[int, list[int]] = {}
@@ -67,12 +91,20 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
         groups.setdefault(id(part.model), []).append(k)
     settings = SolverSettings(method="relaxation", device=device, relaxation=relaxation)
     for members in groups.values():
-        results = run_variants(flat[members[0]][1].model,
-                               [CaseVariant(flat[k][1].materials, flat[k][1].plates) for k in members], settings,
-                               imaged_nodes=imaged_nodes)
-        for k, result in zip(members, results):
-            solved[k] = Outcome(result.displacement, result.solution.status, result.solution.message,
-                                result.solution.attempts)
+        model = flat[members[0]][1].model
+        warm = _warm_start(start, model)
+        warmed = [k for k in members if warm is not None and _starts_warm(model, warm, flat[k][1].plates)]
+        for launch, launch_start in ((warmed, warm), ([k for k in members if k not in warmed], None)):
+            if not launch:
+                continue
+            results = run_variants(model, [CaseVariant(flat[k][1].materials, flat[k][1].plates) for k in launch],
+                                   settings, imaged_nodes=imaged_nodes, warm_start=launch_start)
+            for k, result in zip(launch, results):
+                solution, plates = result.solution, flat[k][1].plates
+                starts = {} if not solution.ok else {id(model): (model, WarmStart.from_solution(
+                    solution, np.array([p.displacement for p in plates]).reshape(-1, 3)))}
+                solved[k] = Outcome(result.displacement, solution.status, solution.message, solution.attempts,
+                                    starts)
     parts_of: dict[int, list[Outcome]] = {}
     for (owner, _), outcome in zip(flat, solved):
         parts_of.setdefault(owner, []).append(outcome)
@@ -85,5 +117,24 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
         failed = next((p for p in parts if not p.ok), None)
         outcomes.append(Outcome(np.concatenate([p.displacement for p in parts]),
                                 failed.status if failed else parts[0].status,
-                                failed.message if failed else parts[0].message, sum(p.attempts for p in parts)))
+                                failed.message if failed else parts[0].message, sum(p.attempts for p in parts),
+                                {key: value for p in parts for key, value in p.starts.items()}))
     return outcomes
+
+
+def _warm_start(start: Outcome | None, model: Model) -> WarmStart | None:
+    """``start``'s warm start for ``model`` (None: none, or it was not solved with that model)."""
+    if start is None or id(model) not in start.starts:
+        return None
+    owner, warm = start.starts[id(model)]
+    return warm if owner is model else None
+
+
+def _starts_warm(model: Model, warm: WarmStart, plates: list[Plate]) -> bool:
+    """Whether a variant of ``model`` with ``plates`` may start at ``warm``: the plates differ
+    from the start's in travel only and have no friction."""
+    try:
+        started_plates(model, warm, [plates])
+    except ValueError:
+        return False
+    return True

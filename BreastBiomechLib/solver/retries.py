@@ -28,20 +28,22 @@ def slower(relaxation, factor: int = SLOWER):
 
 def solve_batch_with_retries(model: Model, materials: list[ElementMaterials], relaxation,
                              plates: list[list[Plate]] | None = None, plate_displacements: list | None = None,
-                             device=None, retries: int = RETRIES, progress=None) -> list:
+                             device=None, retries: int = RETRIES, progress=None, warm_start=None) -> list:
     """:func:`~BreastBiomechLib.solver.solve_batch` of the variants (``materials[b]``, optionally
     ``plates[b]`` or ``plate_displacements[b]``) by dynamic ``relaxation``; then each variant that
     inverted an element is solved again alone, its load :data:`SLOWER` times slower each time,
     ``retries`` times at most. The solutions in the variants' order, each with the number of solves it took (``attempts``); a
     variant that never passes keeps its last solution (status "inverted elements").
-    ``progress(fraction)`` follows (and, returning False, cancels) the first, batched solve."""
+    ``progress(fraction)`` follows (and, returning False, cancels) the first, batched solve;
+    ``warm_start`` (:class:`~BreastBiomechLib.solver.warm.WarmStart`) starts it, the retries
+    start at rest."""
     from BreastBiomechLib.solver import solve_batch
 
     def one(items, b):
         return None if items is None else [items[b]]
 
     solutions = solve_batch(model, materials, plate_displacements, device=device, relaxation=relaxation,
-                            plates=plates, progress=progress)
+                            plates=plates, progress=progress, warm_start=warm_start)
     for b, solution in enumerate(solutions):
         patient, attempts = relaxation, 1
         while solution.status == "inverted elements" and attempts <= retries:

@@ -73,11 +73,13 @@ def run_case(model: Model, settings: SolverSettings | None = None,
 def run_variants(model: Model, variants: list[CaseVariant], settings: SolverSettings | None = None,
                  progress: Callable[[float], bool | None] | None = None,
                  reference_progress: Callable[[int, float], None] | None = None,
-                 ke_ie_limit: float = KE_IE_LIMIT, imaged_nodes: np.ndarray | None = None) -> list[CaseResult]:
+                 ke_ie_limit: float = KE_IE_LIMIT, imaged_nodes: np.ndarray | None = None,
+                 warm_start=None) -> list[CaseResult]:
     """Run the ``variants`` of ``model`` with ``settings`` in one batched launch (the static
     method: one after the other); the results in the variants' order. ``imaged_nodes`` (N, 3) mm:
     the mesh as imaged, for a model pre-stressed already (its mesh the unloaded shape; default:
-    the model's mesh). See :func:`run_case`."""
+    the model's mesh). ``warm_start`` (dynamic relaxation only, no reference state): a
+    :class:`~BreastBiomechLib.solver.warm.WarmStart` every variant starts at. See :func:`run_case`."""
     from BreastBiomechLib.solver.unloaded import displacement_from_imaged, start_from_reference_state
 
     settings = settings or SolverSettings()
@@ -85,6 +87,8 @@ def run_variants(model: Model, variants: list[CaseVariant], settings: SolverSett
         raise ValueError("run_variants needs at least one variant")
     imaged = model.mesh.nodes if imaged_nodes is None else np.asarray(imaged_nodes, float)
     reference_state = None
+    if warm_start is not None and (settings.method != "relaxation" or settings.unloaded is not None):
+        raise ValueError("a warm start applies to dynamic relaxation of a model without a reference-state solve")
     if settings.unloaded is not None:
         model, reference_state = start_from_reference_state(
             model, settings.unloaded, settings.device, progress=reference_progress,
@@ -92,13 +96,13 @@ def run_variants(model: Model, variants: list[CaseVariant], settings: SolverSett
     materials = [model.materials if v.materials is None else v.materials for v in variants]
     plates = None if all(v.plates is None for v in variants) else [
         model.loading.plates if v.plates is None else v.plates for v in variants]
-    solutions = _solve(model, materials, plates, settings, progress, ke_ie_limit)
+    solutions = _solve(model, materials, plates, settings, progress, ke_ie_limit, warm_start)
     return [CaseResult(s, model, imaged, displacement_from_imaged(model, s.displacement, imaged), reference_state)
             for s in solutions]
 
 
 def _solve(model: Model, materials: list[ElementMaterials], plates: list[list[Plate]] | None,
-           settings: SolverSettings, progress, ke_ie_limit: float) -> list[Solution]:
+           settings: SolverSettings, progress, ke_ie_limit: float, warm_start=None) -> list[Solution]:
     """The solutions of the variants by the settings' method."""
     if settings.method == "static":
         from BreastBiomechLib.solver.static import solve_static
@@ -111,7 +115,7 @@ def _solve(model: Model, materials: list[ElementMaterials], plates: list[list[Pl
         from BreastBiomechLib.solver.retries import solve_batch_with_retries
 
         return solve_batch_with_retries(model, materials, settings.relaxation, plates=plates, device=settings.device,
-                                        progress=progress)
+                                        progress=progress, warm_start=warm_start)
     from BreastBiomechLib.solver.tled import solve_batch
 
     return solve_batch(model, materials, device=settings.device, plates=plates, progress=progress,

@@ -83,3 +83,39 @@ def test_warm_starts_refuse_what_they_cannot_do(coarse):
         WarmStart(np.full((3, 3), np.nan))
     with pytest.raises(ValueError, match="completed solve"):
         WarmStart.from_solution(replace(start, status="inverted elements"))
+
+
+def test_the_diagnosis_variants_start_where_they_may_and_end_where_cold_solves_do(coarse, monkeypatch):
+    """`solve_variants(..., start=outcome)` (the diagnosis's variants on a CPU, started at the
+    current model's equilibrium): the variants of that model with other materials or plate
+    travel start warm, in a launch of their own, and end where their cold solves do; one with
+    plate friction (whose equilibrium depends on the path) or of another model object starts at
+    rest."""
+    from BreastBiomechLib.discrepancy import variants as variants_module
+    from BreastBiomechLib.discrepancy.variants import Variant, solve_variants, starts_pay
+
+    assert starts_pay("cpu")
+    model, _ = coarse
+    plates = model.loading.plates
+    [current] = solve_variants([Variant(model, model.materials, plates)], model.mesh.nodes, RELAXATION, device="cpu")
+    assert current.ok and set(current.starts) == {id(model)}
+    further = [replace(p, displacement=p.displacement * 1.05) for p in plates]
+    rough = [replace(p, friction=0.3) for p in plates]
+    other = replace(model)  # the same loading in another model object (an effect's own model)
+    variants = [Variant(model, softer(model.materials, 0.7), plates), Variant(model, model.materials, further),
+                Variant(model, model.materials, rough), Variant(other, softer(model.materials, 0.7), plates)]
+    cold = solve_variants(variants, model.mesh.nodes, RELAXATION, device="cpu")
+    launches, run_variants = [], variants_module.run_variants
+
+    def recorded(model, cases, settings, **options):
+        launches.append((model, [c.plates[0].friction for c in cases], options["warm_start"] is not None))
+        return run_variants(model, cases, settings, **options)
+
+    monkeypatch.setattr(variants_module, "run_variants", recorded)
+    warm = solve_variants(variants, model.mesh.nodes, RELAXATION, device="cpu", start=current)
+    assert [(m is model, frictions, started) for m, frictions, started in launches] == [
+        (True, [0.0, 0.0], True), (True, [0.3], False), (False, [0.0], False)]
+    for c, w in zip(cold, warm):
+        assert c.ok and w.ok, (c.message, w.message)
+        assert np.abs(w.displacement - c.displacement).max() < 0.015  # both within 0.01 mm of rest
+    assert set(warm[3].starts) == {id(other)} and set(warm[0].starts) == {id(model)}
