@@ -3,7 +3,8 @@ parameters by a forward difference, each candidate effect's parameters by a seca
 off value to a realistic step (:class:`~BreastBiomechLib.discrepancy.effects.EffectParameter`).
 Every variant is built first and solved together: one batched launch for all that change only
 materials and plates, one per effect that changes the loading; on a CPU the current model first
-and the variants started at its equilibrium (:func:`~BreastBiomechLib.discrepancy.variants.starts_pay`).
+(with the variants that cannot start from it) and the rest started at its equilibrium
+(:func:`~BreastBiomechLib.discrepancy.variants.starts_pay`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import FIT_STEP, ModelState
-from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants, starts_pay
+from BreastBiomechLib.discrepancy.variants import Outcome, may_start_from, solve_variants, starts_pay
 from BreastBiomechLib.timing import stage, staged
 
 
@@ -91,13 +92,26 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             roles.append(("effect", effect.name, j, step))
     say(f"solving {len(variants)} variants")
     warm, solves = starts_pay(fitted.device), 0
-    if current is None and warm:  # on a CPU: the current model first, its variants started from it
-        [current] = solve_variants(variants[:1], fitted.mesh.nodes, fitted.relaxation, fitted.device)
-        solves += current.attempts
-    if current is None:
+    if current is None and warm:
+        # on a CPU: the current model with the variants that must start at rest (friction, another
+        # plate pose, a model of their own), then the others started at its equilibrium
+        later = [i for i in range(1, len(variants)) if may_start_from(variants[0], variants[i])]
+        first = [i for i in range(len(variants)) if i not in later]
+        outcomes: list[Outcome | None] = [None] * len(variants)
+        for i, outcome in zip(first, solve_variants([variants[i] for i in first], fitted.mesh.nodes,
+                                                    fitted.relaxation, fitted.device)):
+            outcomes[i] = outcome
+        current = outcomes[0]
+        if not current.ok:
+            raise RuntimeError(f"the current model does not solve ({current.status}: {current.message})")
+        for i, outcome in zip(later, solve_variants([variants[i] for i in later], fitted.mesh.nodes,
+                                                    fitted.relaxation, fitted.device, start=current)):
+            outcomes[i] = outcome
+        solves += sum(outcome.attempts for outcome in outcomes)
+    elif current is None:
         outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
         solves += sum(outcome.attempts for outcome in outcomes)
-    else:
+    else:  # the caller's solve of the current model
         rest = solve_variants(variants[1:], fitted.mesh.nodes, fitted.relaxation, fitted.device,
                               start=current if warm else None) if current.ok else []
         outcomes = [current, *rest]

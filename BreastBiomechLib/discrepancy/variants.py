@@ -122,6 +122,16 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
     return outcomes
 
 
+def may_start_from(base: Variant, variant: Variant) -> bool:
+    """Whether ``variant`` may start at ``base``'s equilibrium once that is solved (in its first
+    state): the same model object, plates that differ from the base's in travel only and no plate
+    friction (:func:`~BreastBiomechLib.solver.warm.started_plates`)."""
+    if variant.model is not base.model:
+        return False
+    travel = np.array([p.displacement for p in base.plates]).reshape(-1, 3)
+    return _starts_warm(base.model, WarmStart(np.zeros((len(base.model.mesh.nodes), 3)), travel), variant.plates)
+
+
 def _warm_start(start: Outcome | None, model: Model) -> WarmStart | None:
     """``start``'s warm start for ``model`` (None: none, or it was not solved with that model)."""
     if start is None or id(model) not in start.starts:
