@@ -75,7 +75,10 @@ def test_a_secant_model_two_candidates_share_is_solved_once(null_case):
     assert not both.skipped and both.solves == alone.solves + 2 * plates  # the tilt's angles alone added
     np.testing.assert_array_equal(both.effects["plate-offset"], both.effects["plate-tilt"][:, 2::3])
     np.testing.assert_array_equal(both.steps["plate-offset"], both.steps["plate-tilt"][2::3])
-    np.testing.assert_allclose(both.effects["plate-offset"], alone.effects["plate-offset"], rtol=1e-5, atol=1e-7)
+    # two sets of solves: on a CPU the current model is solved beside the tilt's cold variants in
+    # one and alone in the other, and the offsets start at its equilibrium (the relaxation's
+    # tolerance apart: 1e-5 mm per mm here, against columns of up to 0.2)
+    np.testing.assert_allclose(both.effects["plate-offset"], alone.effects["plate-offset"], rtol=1e-3, atol=1e-4)
     assert np.abs(both.effects["plate-offset"]).max() > 0.1
 
 
