@@ -102,12 +102,11 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
                                                     fitted.relaxation, fitted.device)):
             outcomes[i] = outcome
         current = outcomes[0]
-        if not current.ok:
-            raise RuntimeError(f"the current model does not solve ({current.status}: {current.message})")
-        for i, outcome in zip(later, solve_variants([variants[i] for i in later], fitted.mesh.nodes,
-                                                    fitted.relaxation, fitted.device, start=current)):
-            outcomes[i] = outcome
-        solves += sum(outcome.attempts for outcome in outcomes)
+        if current.ok:  # else the check below says so before any later variant is read
+            for i, outcome in zip(later, solve_variants([variants[i] for i in later], fitted.mesh.nodes,
+                                                        fitted.relaxation, fitted.device, start=current)):
+                outcomes[i] = outcome
+        solves += sum(outcome.attempts for outcome in outcomes if outcome is not None)
     elif current is None:
         outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
         solves += sum(outcome.attempts for outcome in outcomes)

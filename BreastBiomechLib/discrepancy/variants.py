@@ -28,7 +28,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import Plate
 from BreastBiomechLib.solver.run_case import CaseVariant, run_variants
 from BreastBiomechLib.solver.settings import SolverSettings
-from BreastBiomechLib.solver.warm import WarmStart, started_plates
+from BreastBiomechLib.solver.warm import WarmStart, plates_refusal, started_plates
 
 
 @dataclass
@@ -126,10 +126,7 @@ def may_start_from(base: Variant, variant: Variant) -> bool:
     """Whether ``variant`` may start at ``base``'s equilibrium once that is solved (in its first
     state): the same model object, plates that differ from the base's in travel only and no plate
     friction (:func:`~BreastBiomechLib.solver.warm.started_plates`)."""
-    if variant.model is not base.model:
-        return False
-    travel = np.array([p.displacement for p in base.plates]).reshape(-1, 3)
-    return _starts_warm(base.model, WarmStart(np.zeros((len(base.model.mesh.nodes), 3)), travel), variant.plates)
+    return variant.model is base.model and plates_refusal(base.model, variant.plates) is None
 
 
 def _warm_start(start: Outcome | None, model: Model) -> WarmStart | None:

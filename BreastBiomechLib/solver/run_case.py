@@ -88,7 +88,9 @@ def run_variants(model: Model, variants: list[CaseVariant], settings: SolverSett
     imaged = model.mesh.nodes if imaged_nodes is None else np.asarray(imaged_nodes, float)
     reference_state = None
     if warm_start is not None and (settings.method != "relaxation" or settings.unloaded is not None):
-        raise ValueError("a warm start applies to dynamic relaxation of a model without a reference-state solve")
+        raise ValueError("a warm start applies to dynamic relaxation of a model without a reference-state solve "
+                         f"(method {settings.method!r}, unloaded state {'asked' if settings.unloaded else 'not asked'}): "
+                         "solve it cold (warm_start=None), or use method='relaxation' without settings.unloaded")
     if settings.unloaded is not None:
         model, reference_state = start_from_reference_state(
             model, settings.unloaded, settings.device, progress=reference_progress,

@@ -89,17 +89,25 @@ def started_plates(model: Model, warm: WarmStart, plate_sets: list[list[Plate]])
         raise ValueError(f"the warm start's plate travel has {start.shape[0]} plates, the model {len(own)}")
     moved = []
     for plates in plate_sets:
-        row = []
-        for p, o, travel in zip(plates, own, start):
-            if p.friction > 0:
-                raise ValueError(f"plate {p.name!r} has friction {p.friction}: its equilibrium depends on the loading "
-                                 "path, so it cannot start from another solve's; solve it cold")
-            if not (np.allclose(p.point, o.point) and np.allclose(p.normal, o.normal) and _same_edge(p.edge, o.edge)):
-                raise ValueError(f"plate {p.name!r} has another pose or edge than the model's: a warm start may only "
-                                 "change the plates' travel")
-            row.append(replace(p, point=p.point + travel, displacement=p.displacement - travel))
-        moved.append(row)
+        refusal = plates_refusal(model, plates)
+        if refusal:
+            raise ValueError(refusal)
+        moved.append([replace(p, point=p.point + travel, displacement=p.displacement - travel)
+                      for p, travel in zip(plates, start)])
     return moved
+
+
+def plates_refusal(model: Model, plates: list[Plate]) -> str | None:
+    """Why a variant of ``model`` with ``plates`` cannot start from another solve of it (plate
+    friction, another pose or edge than the model's plates), or None where it may."""
+    for p, o in zip(plates, model.loading.plates):
+        if p.friction > 0:
+            return (f"plate {p.name!r} has friction {p.friction}: its equilibrium depends on the loading "
+                    "path, so it cannot start from another solve's; solve it cold")
+        if not (np.allclose(p.point, o.point) and np.allclose(p.normal, o.normal) and _same_edge(p.edge, o.edge)):
+            return (f"plate {p.name!r} has another pose or edge than the model's: a warm start may only "
+                    "change the plates' travel")
+    return None
 
 
 def _same_edge(a, b) -> bool:

@@ -9,6 +9,8 @@ import pytest
 
 from BreastBiomechLib.solver import DynamicRelaxation, solve_batch
 from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+from BreastBiomechLib.solver.run_case import CaseVariant, run_variants
+from BreastBiomechLib.solver.settings import SolverSettings, UnloadedRequest
 from BreastBiomechLib.solver.warm import WarmStart
 
 RELAXATION = DynamicRelaxation(tolerance_mm=0.01)
@@ -79,6 +81,10 @@ def test_warm_starts_refuse_what_they_cannot_do(coarse):
     with pytest.raises(ValueError, match="the warm start has 3 nodes"):
         solve_batch(model, [model.materials], device="cpu", relaxation=RELAXATION,
                     warm_start=WarmStart(np.zeros((3, 3))))
+    for settings in (SolverSettings(method="static", device="cpu"),
+                     SolverSettings(device="cpu", relaxation=RELAXATION, unloaded=UnloadedRequest((0.0, -9.81, 0.0)))):
+        with pytest.raises(ValueError, match="reference-state solve.*solve it cold"):
+            run_variants(model, [CaseVariant()], settings, warm_start=warm)
     with pytest.raises(ValueError, match="non-finite"):
         WarmStart(np.full((3, 3), np.nan))
     with pytest.raises(ValueError, match="completed solve"):
