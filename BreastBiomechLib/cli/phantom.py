@@ -55,7 +55,8 @@ def _truth_model(args):
     pivot = None if args.plate_pivot is None else [list(args.plate_pivot), [0.0, 0.0, 0.0]]
     return replace(truth, compression=compression, axis=args.axis, edge_mm=args.truth_edge_mm,  # checked again
                    chest_clearance_mm=args.chest_clearance_mm, moving_plate=args.moving_plate,
-                   friction=args.friction, gravity=args.gravity, compression_gravity=args.compression_gravity,
+                   friction=args.friction[0] if len(args.friction) == 1 else list(args.friction),
+                   gravity=args.gravity, compression_gravity=args.compression_gravity,
                    chest_wall=args.chest_wall, chest_wall_stiffness=list(args.chest_wall_stiffness),
                    plate_tilt_deg=tilt, plate_pivot_mm=pivot, skin=None if args.skin is None else list(args.skin),
                    stiff_band=None if args.stiff_band is None else list(args.stiff_band),
@@ -70,7 +71,7 @@ def cmd_phantom(args) -> int:
         raise ValueError("--compression applies to a compressed case: add --compressed")
     effects = {"--chest-clearance-mm": args.chest_clearance_mm is not None or None,
                "--moving-plate": args.moving_plate != "both" or None,
-               "--friction": args.friction, "--gravity": args.gravity, "--compression-gravity": args.compression_gravity,
+               "--friction": any(args.friction) or None, "--gravity": args.gravity, "--compression-gravity": args.compression_gravity,
                "--plate-tilt": args.plate_tilt, "--chest-wall": args.chest_wall != "fixed" or None,
                "--skin": args.skin, "--stiff-band": args.stiff_band, "--chest-wall-shift": args.chest_wall_shift}
     given = [name for name, value in effects.items() if value]
@@ -189,7 +190,8 @@ def add_parsers(sub) -> None:
     _state_option(p)
     p.add_argument("--device", type=device_argument, help="warp device of the truth simulation (cuda, cpu; default: warp's)")
     effects = p.add_argument_group("hidden effects of the truth simulation (recorded in truth.json only)")
-    effects.add_argument("--friction", type=non_negative, default=0.0, help="the plates' Coulomb friction mu")
+    effects.add_argument("--friction", type=non_negative, nargs="+", default=[0.0], metavar="MU",
+                         help="the plates' Coulomb friction mu: one for all plates, or one per plate (first, second)")
     effects.add_argument("--gravity", type=finite, nargs=3, metavar=("GX", "GY", "GZ"),
                          help="gravity the scan was imaged under (m/s^2, LPS; prone: 0 -9.81 0): the truth starts "
                               "pre-stressed from its unloaded state")

@@ -462,7 +462,7 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
     testable = []
     for effect in candidates:
         reason = ("already added" if effect.name in state.added else (excluded or {}).get(effect.name)
-                  or effect.unavailable(fitted))
+                  or effect.unavailable_at(fitted, state.added))
         if reason:
             skipped[effect.name] = reason
         else:

@@ -57,7 +57,8 @@ class TruthModel:
     the plates end, as an image shows them: a fit finds the held plate's travel to be zero.
 
     Effects the seed's model leaves out, hidden in the truth (each off by default):
-    ``friction``: the plates' Coulomb mu; ``gravity``: the gravity (m/s^2, LPS) the undeformed
+    ``friction``: the plates' Coulomb mu, one for all plates or a list of one per plate
+    (:meth:`plate_frictions`); ``gravity``: the gravity (m/s^2, LPS) the undeformed
     scan was imaged under (prone: (0, -9.81, 0)): the truth starts pre-stressed from that shape's
     unloaded state, with ``compression_gravity`` (None: the same) while the plates close;
     ``chest_wall``: "fixed" (the seed's), "sliding" or "elastic" with ``chest_wall_stiffness``
@@ -87,7 +88,7 @@ class TruthModel:
     seed: int = 1000
     chest_clearance_mm: float | None = None
     moving_plate: str = "both"
-    friction: float = 0.0
+    friction: float | list = 0.0
     gravity: list | None = None
     compression_gravity: list | None = None
     chest_wall: str = "fixed"
@@ -105,8 +106,10 @@ class TruthModel:
             raise ValueError("the truth mesh's element size must be positive (mm)")
         if self.moving_plate not in MOVING_PLATES:
             raise ValueError(f"the truth's moving plate is one of {MOVING_PLATES}, not {self.moving_plate!r}")
-        if not (np.isfinite(self.friction) and self.friction >= 0):
-            raise ValueError(f"the truth's plate friction must be a finite number >= 0, not {self.friction}")
+        mu = np.asarray(self.friction, float) if np.ndim(self.friction) <= 1 else np.array([np.nan])
+        if mu.size < 1 or not (np.all(np.isfinite(mu)) and np.all(mu >= 0)):
+            raise ValueError(f"the truth's plate friction must be a finite number >= 0, or one such number per plate, "
+                             f"not {self.friction}")
         for name in ("gravity", "compression_gravity"):
             value = getattr(self, name)
             if value is not None:
@@ -143,10 +146,22 @@ class TruthModel:
                 raise ValueError(f"the truth's chest_wall_shift_mm is three finite numbers (mm, LPS), "
                                  f"not {self.chest_wall_shift_mm}")
 
+    def plate_frictions(self, plates: int) -> list[float]:
+        """The Coulomb mu of each of ``plates`` plates (in the model's order)."""
+        mu = np.atleast_1d(np.asarray(self.friction, float))
+        if mu.size == 1:
+            return [float(mu[0])] * plates
+        if mu.size != plates:
+            raise ValueError(f"the truth gives {mu.size} plate frictions for {plates} plates: give one for all or one "
+                             "per plate")
+        return mu.tolist()
+
     @property
     def hidden_effects(self) -> list[str]:
         """The effects beyond the seed's model that this truth holds (names)."""
-        effects = [(self.friction > 0, lambda: f"friction {self.friction:g}"),
+        effects = [(np.any(np.asarray(self.friction) > 0),
+                    lambda: (f"friction {self.friction:g}" if np.ndim(self.friction) == 0
+                             else f"friction per plate {[float(mu) for mu in self.friction]}")),
                    (self.gravity is not None, lambda: f"gravity pre-stress {self.gravity}"),
                    (self.chest_wall != "fixed", lambda: f"{self.chest_wall} chest wall"),
                    (self.plate_tilt_deg is not None, lambda: f"plate tilt {self.plate_tilt_deg}"
@@ -323,7 +338,8 @@ def with_hidden_effects(model, truth: TruthModel) -> tuple:
     ``truth.compression_gravity`` (None: ``truth.gravity``) and the request to start from the
     unloaded shape of the mesh imaged under ``truth.gravity``
     (:class:`~BreastBiomechLib.solver.settings.UnloadedRequest`, else None)."""
-    plates = [replace(p, friction=truth.friction) for p in model.loading.plates]
+    plates = [replace(p, friction=mu)
+              for p, mu in zip(model.loading.plates, truth.plate_frictions(len(model.loading.plates)))]
     if truth.plate_tilt_deg is not None:
         if len(truth.plate_tilt_deg) != len(plates):
             raise ValueError(f"the truth gives {len(truth.plate_tilt_deg)} plate tilts for {len(plates)} plates")

@@ -54,6 +54,33 @@ def test_every_effect_at_its_off_values_is_the_fitted_model(null_case):
         assert changed, effect.name
 
 
+def test_friction_per_plate_refines_the_friction_the_model_has(null_case):
+    """Friction differing between the plates is a candidate only once the model has friction
+    (the one-coefficient candidate first); at its off value it is that model, and its factors
+    keep the coefficients' geometric mean."""
+    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case
+    from BreastBiomechLib.discrepancy.effects.friction_per_plate import plate_factors
+
+    fitted = load_fitted_case(*null_case, device="cpu")
+    by_name = {effect.name: effect for effect in library(fitted)}
+    friction, per_plate = by_name["friction"], by_name["friction-per-plate"]
+    state = ModelState(fitted, fitted.z)
+    assert "the friction candidate (one mu for all plates) comes first" in per_plate.unavailable_at(fitted, state.added)
+    with_friction = state.with_effect(friction, [0.5])
+    assert per_plate.unavailable_at(fitted, with_friction.added) is None
+    assert "comes first" in per_plate.unavailable_at(fitted, state.with_effect(friction, [0.0]).added)
+    base = with_friction.variant()
+    assert [p.friction for p in base.plates] == [0.5, 0.5]
+    assert [p.friction for p in per_plate.apply(base, per_plate.off, fitted).plates] == [0.5, 0.5]
+    ratio = np.log(4.0)
+    mu = [p.friction for p in with_friction.variant(values={per_plate.name: (per_plate, [ratio])}).plates]
+    np.testing.assert_allclose(mu, [1.0, 0.25])  # four times, the geometric mean kept
+    np.testing.assert_allclose(np.prod(plate_factors(np.array([0.3, -1.1]))), 1.0)
+    assert per_plate.describe([ratio]) == "plate 1's mu x2, plate 2's mu x0.5"
+    with pytest.raises(ValueError, match="one fewer than the plates"):
+        per_plate.apply(base, [0.1, 0.2], fitted)
+
+
 def test_a_secant_model_two_candidates_share_is_solved_once(null_case):
     """The plate tilt's offsets move an untilted plate as the plate offset does (the same code):
     their secant models are solved once and both candidates take the columns, which are those

@@ -74,6 +74,12 @@ class Effect(ABC):
         or None when it can."""
         return None
 
+    def unavailable_at(self, fitted, added) -> str | None:
+        """Why this effect cannot apply to ``fitted`` with the effects ``added`` in earlier rounds
+        ({name: (effect, values)}, :attr:`~BreastBiomechLib.discrepancy.state.ModelState.added`),
+        or None: :meth:`unavailable`, unless the effect refines one that must be added first."""
+        return self.unavailable(fitted)
+
     @abstractmethod
     def apply(self, variant, values: np.ndarray, fitted):
         """The ``variant`` with this effect at parameter ``values`` (one per parameter)."""

@@ -127,6 +127,23 @@ def test_hidden_effects_change_the_truth_model_and_are_recorded():
             TruthModel(**bad)
 
 
+def test_a_truth_may_give_each_plate_its_own_friction():
+    from BreastBiomechLib.phantom.compressed import TruthModel, with_hidden_effects
+    from BreastBiomechLib.solver.cases import hemi_ellipsoid_compression
+
+    seed = hemi_ellipsoid_compression(10.0)
+    truth = TruthModel(friction=[0.8, 0.0])
+    assert truth.hidden_effects == ["friction per plate [0.8, 0.0]"]
+    model, _ = with_hidden_effects(seed, truth)
+    assert [p.friction for p in model.loading.plates] == [0.8, 0.0]
+    assert TruthModel(friction=0.3).plate_frictions(2) == [0.3, 0.3]
+    with pytest.raises(ValueError, match="3 plate frictions for 2 plates"):
+        with_hidden_effects(seed, TruthModel(friction=[0.1, 0.2, 0.3]))
+    for bad in ([0.5, -0.1], [], [[0.1]], [0.2, float("nan")]):
+        with pytest.raises(ValueError, match="one such number per plate"):
+            TruthModel(friction=bad)
+
+
 def test_hidden_effect_options_need_a_compressed_case(tmp_path, capsys):
     from BreastBiomechLib.cli import main
 
