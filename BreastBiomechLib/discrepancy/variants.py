@@ -36,12 +36,15 @@ class Variant:
     """One model to solve: ``model`` (loading and mesh), ``materials`` per element, ``plates``
     (the model's plates in number and order, with their contact nodes); in a fit of several
     measured states this is the first state's, and ``others`` the same model in each further
-    state, solved with it."""
+    state, solved with it. ``compressed_gravity``: the compressed scan's gravity (m/s^2, LPS)
+    where an effect turned the recorded posture (None: the fitted case's), for the gravity
+    pre-stress to load with."""
 
     model: Model
     materials: ElementMaterials
     plates: list[Plate]
     others: list["Variant"] = field(default_factory=list)
+    compressed_gravity: np.ndarray | None = None
 
 
 @dataclass

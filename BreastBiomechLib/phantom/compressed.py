@@ -60,7 +60,9 @@ class TruthModel:
     ``friction``: the plates' Coulomb mu, one for all plates or a list of one per plate
     (:meth:`plate_frictions`); ``gravity``: the gravity (m/s^2, LPS) the undeformed
     scan was imaged under (prone: (0, -9.81, 0)): the truth starts pre-stressed from that shape's
-    unloaded state, with ``compression_gravity`` (None: the same) while the plates close;
+    unloaded state, with ``compression_gravity`` (None: the same) while the plates close, and
+    ``recorded_gravity``: the compressed scan's posture as the case records it (None: the truth's
+    own, :attr:`scan_gravity`; e.g. upright where the truth leans, a posture known by name only);
     ``chest_wall``: "fixed" (the seed's), "sliding" or "elastic" with ``chest_wall_stiffness``
     (normal, tangential; Pa/mm per area); ``plate_tilt_deg``: per plate two tilt angles (degrees,
     about the plate's tilt axes, :func:`~BreastBiomechLib.phantom.plate_pose.turned_plate`), or
@@ -91,6 +93,7 @@ class TruthModel:
     friction: float | list = 0.0
     gravity: list | None = None
     compression_gravity: list | None = None
+    recorded_gravity: list | None = None
     chest_wall: str = "fixed"
     chest_wall_stiffness: list = field(default_factory=lambda: [0.0, 0.0])
     plate_tilt_deg: list | None = None
@@ -110,7 +113,7 @@ class TruthModel:
         if mu.size < 1 or not (np.all(np.isfinite(mu)) and np.all(mu >= 0)):
             raise ValueError(f"the truth's plate friction must be a finite number >= 0, or one such number per plate, "
                              f"not {self.friction}")
-        for name in ("gravity", "compression_gravity"):
+        for name in ("gravity", "compression_gravity", "recorded_gravity"):
             value = getattr(self, name)
             if value is not None:
                 value = [float(g) for g in value]
@@ -119,6 +122,8 @@ class TruthModel:
                 setattr(self, name, value)
         if self.compression_gravity is not None and self.gravity is None:
             raise ValueError("a compression_gravity needs the gravity the scan was imaged under (gravity)")
+        if self.recorded_gravity is not None and self.gravity is None:
+            raise ValueError("a recorded_gravity is the posture a case records for a truth with gravity: give gravity")
         if self.chest_wall not in ("fixed", "sliding", "elastic"):
             raise ValueError(f"the truth's chest wall is fixed, sliding or elastic, not {self.chest_wall!r}")
         self.chest_wall_stiffness = [float(k) for k in self.chest_wall_stiffness]
@@ -177,6 +182,12 @@ class TruthModel:
         """The compressed scan's posture as gravity (m/s^2, LPS): the compression's gravity, else
         the imaged one, else prone (the phantoms are prone MR scans)."""
         return list(self.compression_gravity or self.gravity or PRONE_GRAVITY)
+
+    @property
+    def recorded_scan_gravity(self) -> list[float]:
+        """The compressed scan's posture as the case records it (m/s^2, LPS): ``recorded_gravity``,
+        else :attr:`scan_gravity`."""
+        return list(self.recorded_gravity or self.scan_gravity)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -288,7 +299,7 @@ def compress_phantom(case: PhantomCase, truth: TruthModel | None = None, device=
         "seconds": round(time.perf_counter() - started, 2),
     }
     report(1.0, "done")
-    return CompressedCase(image, landmarks, recorded_plates, truth, truth_mesh, summary, truth.scan_gravity)
+    return CompressedCase(image, landmarks, recorded_plates, truth, truth_mesh, summary, truth.recorded_scan_gravity)
 
 
 def _compression_description(mesh: TetMesh, truth: TruthModel):

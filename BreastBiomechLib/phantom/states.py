@@ -61,6 +61,7 @@ class StateSpec:
                 changed[key] = getattr(self, key)
         if self.compression_gravity is not None:
             changed["compression_gravity"] = list(self.compression_gravity)
+            changed["recorded_gravity"] = None  # the state's own posture, as given
         return replace(first, **changed)
 
 

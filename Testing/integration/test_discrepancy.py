@@ -124,6 +124,51 @@ def test_the_gravity_effect_unloads_in_the_first_scan_s_posture_and_compresses_i
     np.testing.assert_allclose(variant.model.loading.gravity, [0.0, 0.0, -0.5 * 9.81])
 
 
+def test_gravity_turned_from_the_recorded_posture_refines_the_gravity_the_model_has(null_case, monkeypatch):
+    """Gravity's direction at the compressed scan is a candidate only once gravity is in the
+    model; its turn acts while the plates close (the unloaded shape, estimated from the undeformed
+    scan, is shared with the unturned model's: estimated once), by the given angles about axes
+    perpendicular to the recorded posture."""
+    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case
+    from BreastBiomechLib.discrepancy.effects.gravity_direction import turn_axes, turned_gravity
+    from BreastBiomechLib.solver import unloaded as unloaded_module
+
+    upright = np.array([0.0, 0.0, -9.81])
+    axes = turn_axes(upright)
+    np.testing.assert_allclose(axes @ axes.T, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(axes @ upright, 0.0, atol=1e-12)
+    turned = turned_gravity(upright, [10.0, 0.0])
+    assert np.linalg.norm(turned) == pytest.approx(9.81)
+    assert np.degrees(np.arccos(turned @ upright / 9.81 ** 2)) == pytest.approx(10.0)
+    assert abs(turned @ axes[0]) < 1e-9  # turned about the first axis
+
+    fitted = load_fitted_case(*null_case, device="cpu")
+    fitted.compressed_gravity = upright
+    by_name = {effect.name: effect for effect in library(fitted)}
+    gravity, direction = by_name["gravity"], by_name["gravity-direction"]
+    state = ModelState(fitted, fitted.z)
+    assert "the gravity candidate comes first" in direction.unavailable_at(fitted, state.added)
+    with_gravity = state.with_effect(gravity, [0.5])
+    assert direction.unavailable_at(fitted, with_gravity.added) is None
+    estimated = []
+    original = unloaded_module.unloaded_shape
+
+    def counted(*args, **kwargs):  # the gravity effect imports it where it uses it: each estimate counted
+        estimated.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(unloaded_module, "unloaded_shape", counted)
+    plain = with_gravity.variant()
+    off = with_gravity.variant(values={direction.name: (direction, direction.off)})
+    on = with_gravity.variant(values={direction.name: (direction, [0.0, 10.0])})
+    assert len(estimated) == 1  # one unloaded shape for the three
+    np.testing.assert_array_equal(off.model.mesh.nodes, plain.model.mesh.nodes)
+    np.testing.assert_allclose(off.model.loading.gravity, 0.5 * upright)
+    np.testing.assert_allclose(on.model.loading.gravity, 0.5 * turned_gravity(upright, [0.0, 10.0]))
+    np.testing.assert_allclose(on.model.prestate.gravity, plain.model.prestate.gravity)
+    np.testing.assert_array_equal(on.model.mesh.nodes, plain.model.mesh.nodes)
+
+
 def test_inputs_the_diagnosis_cannot_use_are_refused(null_case, tmp_path, capsys):
     from BreastBiomechLib.cli import main
     from BreastBiomechLib.discrepancy import load_fitted_case

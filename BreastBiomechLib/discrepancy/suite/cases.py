@@ -44,13 +44,22 @@ class HiddenEffect:
     where a library effect's parameters measure the quantity the truth sets, their true values
     (``values``: {effect name: values in the effect's parameter order and units}), against which
     the suite scores the refitted estimate (not the plate tilt's: which plate the truth tilts
-    depends on the case's rig)."""
+    depends on the case's rig). ``optional``: refinements of an expected effect that the truth
+    also holds, at a size the case may or may not show (gravity turned from the recorded posture
+    by the drawn lean): right whether named or not, never a false naming."""
 
     name: str
     truth: dict = field(default_factory=dict)
     expected: tuple[str, ...] = ()
     known: bool = True
     values: dict = field(default_factory=dict)
+    optional: tuple[str, ...] = ()
+
+    def added_right(self, added) -> bool:
+        """Whether the effects ``added`` over a diagnosis's rounds are this truth's: every
+        expected one, and nothing beyond them but :attr:`optional` refinements."""
+        added = set(added)
+        return set(self.expected) <= added <= set(self.expected) | set(self.optional)
 
     @property
     def kind(self) -> str:

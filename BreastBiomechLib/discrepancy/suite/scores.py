@@ -6,7 +6,9 @@ A round's **answer** is what it says: the named effect, "ambiguous", "unexplaine
 round is scored: a case's **final** answer is its last round's ("unconfirmed" where the rounds ran
 out on a round that added an effect, so that nothing tested the model with it). A case is
 **right** when: null - nothing added and finally "none"; one or two library effects - the rounds
-add exactly those effects and the last then says "none" (a right first round followed by a
+add exactly those effects (and, where the truth also holds a refinement of one at a size the case
+may not show, such as gravity leaning from the recorded posture, that refinement or not) and the
+last then says "none" (a right first round followed by a
 false "unexplained" is wrong: the verdict a user reads is the last); a one-scan case hiding the
 chest-wall hold is also right when nothing is added, the last round says "none" or "unexplained"
 and it calls the hold not identifiable here, taken up by the muscle's modulus (issue 78's rule:
@@ -113,7 +115,7 @@ def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared:
     first = answer(rounds[0]["diagnosis"])
     final = final_answer(rounds)
     kind = case.hidden.kind
-    right_added = sorted(added) == sorted(case.hidden.expected)
+    right_added = case.hidden.added_right(added)
     if kind == "null":
         correct = final == "none" and not added
     elif kind == "unknown":
@@ -129,7 +131,8 @@ def case_result(case: SuiteCase, rounds: list[dict], truth_nmi: float, prepared:
     before = rounds[0]["before"]
     last = next((r["after"] for r in reversed(rounds) if r.get("after")), None)
     out = {"case": case.name, "anatomy": case.anatomy, "hidden": case.hidden.name, "kind": kind,
-           "expected": list(case.hidden.expected), "right_verdict": case.hidden.right_verdict,
+           "expected": list(case.hidden.expected), "optional": list(case.hidden.optional),
+           "right_verdict": case.hidden.right_verdict,
            "answer": first, "final": final, "rounds": len(rounds), "verdicts": verdicts, "added": added,
            "correct": bool(correct),
            "false_unexplained_after_right": bool(kind in ("single", "two") and right_added and final == "unexplained"),
@@ -160,7 +163,8 @@ def suite_scores(results: list[dict]) -> dict:
     hidden = [r for r in done if r["kind"] != "null"]
     null = [r for r in done if r["kind"] == "null"]
     named = [r for r in done if r["kind"] in ("single", "two") and r["correct"]]
-    right_added = [r for r in done if r["kind"] in ("single", "two") and sorted(r["added"]) == sorted(r["expected"])]
+    right_added = [r for r in done if r["kind"] in ("single", "two")
+                   and set(r["expected"]) <= set(r["added"]) <= set(r["expected"]) | set(r.get("optional", ()))]
     answers = sorted({r["answer"] for r in done})
     confusion = {}
     for name in HIDDEN_EFFECTS:
@@ -242,10 +246,14 @@ def by_setting(results: list[dict]) -> dict:
 
 def false_naming(results: list[dict]) -> dict:
     """Per library effect (:data:`~BreastBiomechLib.discrepancy.effects.NAMES`): in how many of the
-    finished cases whose truth does not hide it some round added it ({name: [named, such cases]})."""
+    finished cases whose truth does not hide it (neither expected nor an optional refinement)
+    some round added it ({name: [named, such cases]})."""
     done = [r for r in results if "error" not in r]
-    return {name: [sum(name in r["added"] for r in done if name not in r["expected"]),
-                   sum(name not in r["expected"] for r in done)] for name in EFFECT_NAMES}
+    def hides(r, name):
+        return name in r["expected"] or name in r.get("optional", ())
+
+    return {name: [sum(name in r["added"] for r in done if not hides(r, name)),
+                   sum(not hides(r, name) for r in done)] for name in EFFECT_NAMES}
 
 
 def wilson_interval(successes: int, trials: int, z: float = Z95) -> tuple[float, float]:

@@ -24,7 +24,8 @@ plate tilt                  0.5-4 degrees, either sign, about either tilt axis, 
                             up to 60 mm from the plate's recorded point in its plane and up to
                             20 mm behind it (a paddle turns about its mount)
 skin                        20-100 kPa, 1-3 mm thick
-gravity                     prone MR; compressed upright, the body leaning 0-30 degrees
+gravity                     prone MR; compressed upright, the body leaning 0-30 degrees (the
+                            case records "upright": the lean is for the diagnosis to find)
 chest-wall hold             springs of 1.7-6.8 kPa/mm
 stiff band (unknown)        2.5-6 times stiffer, 10-20 mm thick
 chest-wall shift (unknown)  the thorax 2-6 mm anterior
@@ -92,6 +93,7 @@ def sized_effect(name: str, rng: np.random.Generator) -> HiddenEffect:
             truth["gravity"] = [0.0, -9.81, 0.0]
             truth["compression_gravity"] = [0.0, round(float(-9.81 * np.sin(lean)), 3),
                                             round(float(-9.81 * np.cos(lean)), 3)]
+            truth["recorded_gravity"] = [0.0, 0.0, -9.81]  # the case says "upright", not the lean
         elif part == "chest-wall":
             truth["chest_wall"] = "sliding"
             truth["chest_wall_stiffness"] = [0.0, round(float(rng.uniform(1.7e3, 6.8e3)), -1)]
@@ -101,7 +103,9 @@ def sized_effect(name: str, rng: np.random.Generator) -> HiddenEffect:
             truth["chest_wall_shift_mm"] = [0.0, round(float(-rng.uniform(2.0, 6.0)), 2), 0.0]
         elif part != "null":
             raise ValueError(f"no size range for the hidden effect {part!r}")
-    return HiddenEffect(base.name, truth, base.expected, base.known, values)
+    optional = ("gravity-direction",) if "recorded_gravity" in truth and truth["recorded_gravity"] != \
+        truth["compression_gravity"] else ()
+    return HiddenEffect(base.name, truth, base.expected, base.known, values, optional)
 
 
 def drawn_settings(rng: np.random.Generator) -> dict:

@@ -251,6 +251,30 @@ def test_cases_are_scored_against_the_effect_their_truth_hides():
     assert "of 2 (95 % CI 9%-91%)" in text  # the false alarms: 1 of 2 null cases
 
 
+def test_a_refinement_the_truth_holds_is_right_named_or_not_and_wrong_where_it_does_not():
+    """The varied suite's gravity truths lean from the posture their case records ("upright"):
+    gravity turned from it is then right whether a round names it or not; in a truth that does
+    not lean it is a false naming."""
+    from BreastBiomechLib.discrepancy.suite.scores import false_naming
+    from BreastBiomechLib.discrepancy.suite.varied import varied_cases
+
+    leaning = next(c for c in varied_cases(20) if c.hidden.name == "gravity")
+    assert leaning.hidden.optional == ("gravity-direction",)
+    assert leaning.hidden.truth["recorded_gravity"] == [0.0, 0.0, -9.81] != leaning.hidden.truth["compression_gravity"]
+    assert TruthModel(**leaning.hidden.truth).recorded_scan_gravity == [0.0, 0.0, -9.81]
+    upright = SuiteCase(1, HIDDEN_EFFECTS["gravity"])  # the fixed suite's: compressed exactly upright, so recorded
+    assert upright.hidden.optional == ()
+    gravity = _round("missing effect", "gravity", "gravity", after=(0.8, 1.26))
+    turned = _round("missing effect", "gravity-direction", "gravity-direction", after=(0.5, 1.27))
+    none = _round("no significant discrepancy")
+    scored = [case_result(case, rounds, 1.3, {}, {}) for case, rounds in
+              ((leaning, [gravity, none]), (leaning, [gravity, turned, none]), (leaning, [turned, none]),
+               (upright, [gravity, turned, none]))]
+    assert [r["correct"] for r in scored] == [True, True, False, False]
+    assert false_naming(scored)["gravity-direction"] == [1, 1]  # only where the truth does not lean
+    assert suite_scores(scored)["right_added_cases"] == 2
+
+
 def test_wilson_intervals_bound_a_rate_honestly():
     """0 of 5 has an upper 95 % bound of 43 % (the issue's "0/5 bounds nothing"), 30 of 30 a
     lower one of 89 %; the interval holds the rate and stays in [0, 1]."""
