@@ -61,6 +61,7 @@ def cmd_suite(args) -> int:
 def add_parsers(sub) -> None:
     """Register the ``discrepancy-suite`` command on ``sub`` (argparse sub-parsers)."""
     from BreastBiomechLib.discrepancy.suite import HIDDEN_EFFECTS, SuiteSettings
+    from BreastBiomechLib.discrepancy.suite.cases import BY_REQUEST, DEFAULT_HIDDEN
 
     d = SuiteSettings()
     p = sub.add_parser("discrepancy-suite", help="hidden-effect suite: make, fit and diagnose phantom cases "
@@ -70,7 +71,8 @@ def add_parsers(sub) -> None:
                    help="anatomies: the Table 1 presets 1-5 (default all five); with --varied also the sweep "
                         "variants 6-11 (default all eleven)")
     p.add_argument("--hidden", nargs="+", choices=list(HIDDEN_EFFECTS),
-                   help="hidden effects (default all: " + ", ".join(HIDDEN_EFFECTS) + ")")
+                   help="hidden effects (default all but " + ", ".join(BY_REQUEST) + ": "
+                        + ", ".join(DEFAULT_HIDDEN) + ")")
     p.add_argument("--varied", type=positive_int, metavar="N",
                    help="the varied suite's first N cases instead: each draws its anatomy, compression, rig, "
                         "landmark noise, fit budget, fitting and truth mesh sizes and its effect's size (a third "

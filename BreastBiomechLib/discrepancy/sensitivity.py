@@ -70,6 +70,10 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
     skipped = {}
     shared, aliases = {}, []  # column keys -> the variant's index; (effect, parameter, index) solved by another
     for effect in candidates:
+        reason = effect.unavailable_at(fitted, state.added)
+        if reason:  # e.g. a refinement of an effect this model does not have (the design's candidates)
+            skipped[effect.name] = reason
+            continue
         say(f"building the {effect.title} variants")
         built = []
         try:

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from BreastBiomechLib.discrepancy import effects
 from BreastBiomechLib.discrepancy.suite.cases import HiddenEffect, SuiteCase
 
@@ -30,16 +32,27 @@ def truth_sizes(hidden: HiddenEffect) -> dict[str, float]:
     tangential stiffness k (the candidate's springs). skin: its outer shell's (the larger):
     ln(1 + (E/E_fat - 1) min(t, d) / d) for the shell's depth d, the truth layer's excess
     membrane stiffness (E - E_fat) t in that shell spread over the shell.
-    plate-tilt: the largest of the truth's angles (deg), against the candidate's angles alone."""
+    plate-tilt: the largest of the truth's angles (deg), against the candidate's angles alone.
+    The refinements the truth holds (:attr:`~BreastBiomechLib.discrepancy.suite.cases.HiddenEffect.optional`):
+    friction-per-plate: the largest |ln(mu_i / mu_P)|; gravity-direction: the angle (deg) between
+    the truth's gravity at the compressed scan and the one its case records (the candidate's two
+    angles compose to it)."""
     from BreastBiomechLib.discrepancy.effects.chest_wall import REFERENCE_STIFFNESS
     from BreastBiomechLib.discrepancy.effects.skin import SHELLS_MM
     from BreastBiomechLib.phantom.compressed import DEFAULT_TRUTH_MATERIALS
 
     fat = float(DEFAULT_TRUTH_MATERIALS["fat"]["E"])
     truth, sizes = hidden.truth, {}
-    for name in hidden.expected:
-        if name == "friction":
-            sizes[name] = float(truth["friction"])
+    for name in (*hidden.expected, *hidden.optional):
+        if name == "friction":  # one mu, or per plate their geometric mean (what friction per plate keeps)
+            sizes[name] = float(np.exp(np.mean(np.log(np.atleast_1d(truth["friction"])))))
+        elif name == "friction-per-plate":
+            mu = np.atleast_1d(np.asarray(truth["friction"], float))
+            sizes[name] = float(np.max(np.abs(np.log(mu[:-1] / mu[-1])))) if mu.size > 1 else 0.0
+        elif name == "gravity-direction":
+            turned, recorded = (np.asarray(truth[key], float) for key in ("compression_gravity", "recorded_gravity"))
+            cosine = turned @ recorded / (np.linalg.norm(turned) * np.linalg.norm(recorded))
+            sizes[name] = float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
         elif name == "gravity":
             sizes[name] = 1.0
         elif name == "chest-wall":
@@ -66,6 +79,8 @@ def not_identifiable(candidate: dict, name: str) -> bool:
 
     detectable = candidate.get("detectable") or []
     made = {"friction": effects.PlateFriction, "gravity": effects.GravityPrestress, "chest-wall": effects.ChestWallHold,
+            "friction-per-plate": lambda: effects.FrictionPerPlate(len(detectable) + 1),
+            "gravity-direction": effects.GravityDirection,
             # every plate parameter reaches 5 (deg or mm) either way: enough of them, in any order, say the same
             "skin": effects.SkinLayer, "plate-tilt": lambda: effects.PlateTilt(max(len(detectable), 1))}
     return diagnosis.not_identifiable(candidate, made[name]() if name in made else None)
@@ -83,16 +98,18 @@ def _in_truth_units(name: str, parameter: str) -> bool:
 
 
 def identifiability(case: SuiteCase, rounds: list[dict]) -> dict:
-    """Per library effect the case hides (with a size, :func:`truth_sizes`), what its first round
-    said: {name: {"size", "detectable" (the smallest of its parameters'; None: none), "absorbed",
-    "not_identifiable", "at_or_above_detectable" (identifiable and the size at least the
-    detectable one: the two are never both true), "named" (some round added it)}}; an effect the
-    first round did not test (skipped, not chosen) is left out."""
+    """Per library effect the case hides (with a size, :func:`truth_sizes`), what the first round
+    that tested it said (the first round for all but a refinement, which is tested once the
+    effect it refines was added): {name: {"size", "detectable" (the smallest of its parameters';
+    None: none), "absorbed", "not_identifiable", "at_or_above_detectable" (identifiable and the
+    size at least the detectable one: the two are never both true), "named" (some round added
+    it)}}; an effect no round tested (skipped, not chosen) is left out."""
     added = {r["added"] for r in rounds if r.get("added")}
     out = {}
     for name, size in truth_sizes(case.hidden).items():
-        candidate = _candidate(rounds[0], name)
-        if candidate is None or candidate.get("skipped"):
+        candidate = next((c for c in (_candidate(r, name) for r in rounds) if c is not None and not c.get("skipped")),
+                         None)
+        if candidate is None:
             continue
         sizes = [d for d, parameter in zip(candidate.get("detectable") or [], _parameters(candidate))
                  if d is not None and _in_truth_units(name, parameter)]

@@ -20,6 +20,8 @@ fit budget                  10, 20, 40, 60, 100 or 200 solves (population a thir
 fitting mesh                4, 5, 6, 8 or 10 mm elements
 truth mesh                  2 or 3 mm elements
 friction                    mu 0.2-1.0
+friction per plate          their geometric mean 0.2-1.0, one plate's 2-5 times the other's
+                            (only where asked for by name, ``--hidden friction-per-plate``)
 plate tilt                  0.5-4 degrees, either sign, about either tilt axis, about a pivot
                             up to 60 mm from the plate's recorded point in its plane and up to
                             20 mm behind it (a paddle turns about its mount)
@@ -41,7 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from BreastBiomechLib.discrepancy.suite.cases import ANATOMIES, HIDDEN_EFFECTS, HiddenEffect, SuiteCase
+from BreastBiomechLib.discrepancy.suite.cases import ANATOMIES, DEFAULT_HIDDEN, HIDDEN_EFFECTS, HiddenEffect, SuiteCase
 
 # anatomies beyond the Table 1 presets: number -> (sweep family, variant index)
 EXTRA_ANATOMIES = {6: ("anatomy", 0), 7: ("tumour", 1), 8: ("anatomy", 3), 9: ("tumour", 4), 10: ("anatomy", 6),
@@ -81,6 +83,11 @@ def sized_effect(name: str, rng: np.random.Generator) -> HiddenEffect:
         if part == "friction":
             mu = round(float(rng.uniform(0.2, 1.0)), 3)
             truth["friction"], values["friction"] = mu, (mu,)
+        elif part == "friction-per-plate":
+            mu = float(rng.uniform(0.2, 1.0))
+            ratio = float(rng.uniform(np.log(2.0), np.log(5.0)) * rng.choice((-1.0, 1.0)))
+            pair = [round(mu * np.exp(ratio / 2), 3), round(mu * np.exp(-ratio / 2), 3)]
+            truth["friction"], values["friction-per-plate"] = pair, (round(float(np.log(pair[0] / pair[1])), 4),)
         elif part == "plate-tilt":
             angle = round(float(rng.uniform(0.5, 4.0) * rng.choice((-1.0, 1.0))), 2)
             truth["plate_tilt_deg"] = [[angle, 0.0] if rng.random() < 0.5 else [0.0, angle], [0.0, 0.0]]
@@ -103,8 +110,8 @@ def sized_effect(name: str, rng: np.random.Generator) -> HiddenEffect:
             truth["chest_wall_shift_mm"] = [0.0, round(float(-rng.uniform(2.0, 6.0)), 2), 0.0]
         elif part != "null":
             raise ValueError(f"no size range for the hidden effect {part!r}")
-    optional = ("gravity-direction",) if "recorded_gravity" in truth and truth["recorded_gravity"] != \
-        truth["compression_gravity"] else ()
+    optional = base.optional + (("gravity-direction",) if "recorded_gravity" in truth and truth["recorded_gravity"] !=
+                                truth["compression_gravity"] else ())
     return HiddenEffect(base.name, truth, base.expected, base.known, values, optional)
 
 
@@ -122,11 +129,11 @@ def drawn_settings(rng: np.random.Generator) -> dict:
 def varied_cases(count: int, seed: int = 0, anatomies=VARIED_ANATOMIES, effects=None) -> list[SuiteCase]:
     """The first ``count`` cases of the varied suite ``seed``: case ``k`` a null case when k is
     a multiple of :data:`NULL_SHARE`, else the next of ``effects`` (names of :data:`HIDDEN_EFFECTS`
-    other than null; default all), on the next of ``anatomies``, its effect's size and its
-    settings drawn from random numbers seeded by (``seed``, ``k``)."""
+    other than null; default all but those made by request), on the next of ``anatomies``, its
+    effect's size and its settings drawn from random numbers seeded by (``seed``, ``k``)."""
     if count < 1:
         raise ValueError("the varied suite needs at least one case")
-    names = [n for n in (effects or HIDDEN_EFFECTS) if n != "null"]
+    names = [n for n in (effects or DEFAULT_HIDDEN) if n != "null"]
     unknown = sorted(set(names) - set(HIDDEN_EFFECTS))
     if unknown:
         raise ValueError(f"unknown hidden effects {unknown}; the suite has {list(HIDDEN_EFFECTS)}")

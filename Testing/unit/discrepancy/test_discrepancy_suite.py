@@ -12,12 +12,15 @@ import pytest
 
 from BreastBiomechLib.discrepancy.suite import (HIDDEN_EFFECTS, MEASURED_FILES, SuiteCase, SuiteSettings, case_result,
                                                 measured_copy, scores_markdown, suite_cases, suite_scores)
+from BreastBiomechLib.discrepancy.suite.cases import BY_REQUEST
 from BreastBiomechLib.phantom.compressed import TruthModel
 
 
 def test_the_suite_holds_null_single_two_and_unknown_effects_on_five_anatomies():
     cases = suite_cases()
-    assert len(cases) == 5 * len(HIDDEN_EFFECTS)
+    assert len(cases) == 5 * (len(HIDDEN_EFFECTS) - len(BY_REQUEST))  # those by request only when named
+    assert not {c.hidden.name for c in cases} & set(BY_REQUEST)
+    assert {c.hidden.name for c in suite_cases(effects=BY_REQUEST)} == set(BY_REQUEST)
     assert len({c.name for c in cases}) == len({c.seed for c in cases}) == len(cases)
     kinds = {h.name: h.kind for h in HIDDEN_EFFECTS.values()}
     assert list(kinds.values()).count("unknown") >= 2 and "null" in kinds.values() and "two" in kinds.values()
@@ -490,6 +493,25 @@ def test_the_identifiability_statements_are_scored_against_the_truth_s_size():
     text = scores_markdown(scores, [seen, missed])
     assert "| effects named, of those hidden at or above the smallest size the case said it could detect | 50% of 2" in text
     assert "| effects named, of those the case called not identifiable | 0% of 3" in text
+    # a refinement is scored where it was first tested (after the effect it refines was added):
+    # friction 0.9 and 0.3 is friction of geometric mean 0.52 and a log ratio ln 3 between the plates
+    rough = _round("missing effect", "friction", "friction", after=(0.8, 1.26), refit={"refined_values": [0.5]})
+    rough["diagnosis"]["candidates"] = [_tested("friction", detectable=(0.2,)) | {"refit": {}},
+                                        _tested("friction-per-plate") | {"skipped": "comes first"}]
+    apart = _round("no significant discrepancy")
+    apart["diagnosis"]["candidates"] = [_tested("friction-per-plate", detectable=(13.4,))]
+    per_plate = result("friction-per-plate", [rough, apart])
+    assert per_plate["correct"] and per_plate["optional"] == ["friction-per-plate"]
+    assert per_plate["identifiability"]["friction"]["size"] == pytest.approx(np.sqrt(0.27))
+    row = per_plate["identifiability"]["friction-per-plate"]
+    assert row["size"] == pytest.approx(np.log(3.0)) and row["detectable"] == 13.4 and row["not_identifiable"]
+    # a leaning gravity's size is the angle between the truth's gravity and the one its case records
+    from BreastBiomechLib.discrepancy.suite.identifiability import truth_sizes
+    from BreastBiomechLib.discrepancy.suite.varied import varied_cases
+
+    leaning = next(c for c in varied_cases(20) if c.hidden.name == "gravity").hidden
+    g = np.array(leaning.truth["compression_gravity"])
+    assert truth_sizes(leaning)["gravity-direction"] == pytest.approx(np.degrees(np.arccos(-g[2] / np.linalg.norm(g))))
 
 
 def test_a_two_state_case_s_copy_holds_its_further_scan_and_the_first_scan_unchanged(two_state_case, tmp_path):

@@ -55,6 +55,15 @@ def test_each_effect_is_sized_across_its_published_range():
     for gravity in sizes["gravity"]:
         assert np.linalg.norm(gravity.truth["compression_gravity"]) == pytest.approx(9.81, abs=0.01)
     assert sized_effect("null", rng).truth == {} and sized_effect("stiff-band", rng).known is False
+    per_plate = [sized_effect("friction-per-plate", rng) for _ in range(200)]
+    pairs = np.array([e.truth["friction"] for e in per_plate])
+    ratios = np.log(pairs[:, 0] / pairs[:, 1])
+    assert np.log(2.0) - 0.01 <= np.abs(ratios).min() < 0.9 and 1.5 < np.abs(ratios).max() <= np.log(5.0) + 0.01
+    assert (ratios < 0).any() and 0.2 <= np.sqrt(pairs.prod(axis=1)).min() < 0.3
+    assert all(e.expected == ("friction",) and e.optional == ("friction-per-plate",) for e in per_plate)
+    np.testing.assert_allclose([e.values["friction-per-plate"][0] for e in per_plate], ratios, atol=1e-4)
+    assert not any(c.hidden.name == "friction-per-plate" for c in varied_cases(90))  # only where asked for
+    assert {c.hidden.name for c in varied_cases(6, effects=["friction-per-plate"])} == {"null", "friction-per-plate"}
     both = sized_effect("friction+plate-tilt", rng)
     assert set(both.truth) == {"friction", "plate_tilt_deg", "plate_pivot_mm"} and both.expected == ("friction", "plate-tilt")
 
