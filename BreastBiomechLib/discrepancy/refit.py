@@ -30,6 +30,7 @@ from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants
 from BreastBiomechLib.timing import staged
 
 HALVINGS = 3
+TRIALS_TOGETHER = 2  # a Gauss-Newton step and its half solved at once where two models cost about one
 ACCEPTED_RATIO = 0.5  # a step that removes at least this share of its predicted reduction stands
 
 
@@ -201,7 +202,9 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
            progress: Callable[[str], None] | None = None) -> Refined:
     """Gauss-Newton iterations of every fitted parameter of ``state`` (the fit's and the added
     effects'), each from fresh sensitivities and checked by a forward solve (halved while it does
-    not lower the residual; stopped when it no longer does): a :class:`Refined`, the standard
+    not lower the residual; stopped when it no longer does; where two models of a batch cost
+    about one, :func:`side_by_side`, a step and its half are solved at once and the longer that
+    lowers the residual taken): a :class:`Refined`, the standard
     deviations from the last iteration's linearised information ({} with no iteration).
     ``progress(message)`` is called before each batch of solves."""
     say = progress or (lambda message: None)
@@ -225,16 +228,34 @@ def refine(state: ModelState, observations: Observations, iterations: int = 1,
         sd = {key: float(np.sqrt(max(covariance[k, k], 0.0))) for k, (key, *_) in enumerate(nuisance)}
         delta = lsq_linear(design, weights * (observations.measured - sens.features), bounds=(lower, upper)).x
         improved = False
-        for halving in range(HALVINGS + 1):
-            say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: trial step" + (f" / {2 ** halving}" if halving else ""))
-            trial = state.with_nuisance(values + delta / 2 ** halving)
-            outcome = solve_variants([trial.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device,
-                                     start=current)[0]
-            if outcome.ok:
-                trial_rss = float(np.sum((weights * observations.residual(outcome.displacement)) ** 2))
-                if trial_rss < rss:
-                    state, current, rss, improved = trial, outcome, trial_rss, True
-                    break
+        together = TRIALS_TOGETHER if side_by_side(fitted.device) else 1
+        for first in range(0, HALVINGS + 1, together):
+            halvings = range(first, min(first + together, HALVINGS + 1))
+            say(f"Gauss-Newton iteration {iteration + 1} of {iterations}: trial step "
+                + " and ".join("1" if h == 0 else f"1/{2 ** h}" for h in halvings))
+            trials = [state.with_nuisance(values + delta / 2 ** h) for h in halvings]
+            outcomes = solve_variants([trial.variant() for trial in trials], fitted.mesh.nodes, fitted.relaxation,
+                                      fitted.device, start=current)
+            for trial, outcome in zip(trials, outcomes):  # the longest step that lowers the residual
+                if outcome.ok:
+                    trial_rss = float(np.sum((weights * observations.residual(outcome.displacement)) ** 2))
+                    if trial_rss < rss:
+                        state, current, rss, improved = trial, outcome, trial_rss, True
+                        break
+            if improved:
+                break
         if not improved:
             break
     return Refined(state, current, sd, sens)
+
+
+def side_by_side(device) -> bool:
+    """Whether two models of one batch take about the time of one on warp ``device``: a GPU (one
+    launch), or a CPU whose batches are split over two or more worker processes
+    (:func:`~BreastBiomechLib.solver.cpu_pool.cpu_workers`)."""
+    import warp as wp
+
+    from BreastBiomechLib.solver.cpu_pool import cpu_workers
+
+    wp.init()
+    return not wp.get_device(device).is_cpu or cpu_workers(TRIALS_TOGETHER) >= TRIALS_TOGETHER

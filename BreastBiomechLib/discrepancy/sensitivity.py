@@ -1,10 +1,9 @@
 """How the features move with each parameter at the current model: the fitted (nuisance)
 parameters by a forward difference, each candidate effect's parameters by a secant from their
 off value to a realistic step (:class:`~BreastBiomechLib.discrepancy.effects.EffectParameter`).
-Every variant is built first and solved together: one batched launch for all that change only
-materials and plates, one per effect that changes the loading; on a CPU the current model first
-(with the variants that cannot start from it) and the rest started at its equilibrium
-(:func:`~BreastBiomechLib.discrepancy.variants.starts_pay`).
+Every variant is built first and solved together from rest: one batched launch for all that
+change only materials and plates, one per effect that changes the loading (why not from the
+current model's equilibrium: :mod:`~BreastBiomechLib.discrepancy.variants`).
 """
 
 from __future__ import annotations
@@ -17,7 +16,7 @@ import numpy as np
 from BreastBiomechLib.discrepancy.effects import Effect
 from BreastBiomechLib.discrepancy.observations import Observations
 from BreastBiomechLib.discrepancy.state import FIT_STEP, ModelState
-from BreastBiomechLib.discrepancy.variants import Outcome, may_start_from, solve_variants, starts_pay
+from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants
 from BreastBiomechLib.timing import stage, staged
 
 
@@ -95,30 +94,12 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             variants.append(variant)
             roles.append(("effect", effect.name, j, step))
     say(f"solving {len(variants)} variants")
-    warm, solves = starts_pay(fitted.device), 0
-    if current is None and warm:
-        # on a CPU: the current model with the variants that must start at rest (friction, another
-        # plate pose, a model of their own), then the others started at its equilibrium
-        later = [i for i in range(1, len(variants)) if may_start_from(variants[0], variants[i])]
-        first = [i for i in range(len(variants)) if i not in later]
-        outcomes: list[Outcome | None] = [None] * len(variants)
-        for i, outcome in zip(first, solve_variants([variants[i] for i in first], fitted.mesh.nodes,
-                                                    fitted.relaxation, fitted.device)):
-            outcomes[i] = outcome
-        current = outcomes[0]
-        if current.ok:  # else the check below says so before any later variant is read
-            for i, outcome in zip(later, solve_variants([variants[i] for i in later], fitted.mesh.nodes,
-                                                        fitted.relaxation, fitted.device, start=current)):
-                outcomes[i] = outcome
-        solves += sum(outcome.attempts for outcome in outcomes if outcome is not None)
-    elif current is None:
+    if current is None:
         outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
-        solves += sum(outcome.attempts for outcome in outcomes)
     else:  # the caller's solve of the current model
-        rest = solve_variants(variants[1:], fitted.mesh.nodes, fitted.relaxation, fitted.device,
-                              start=current if warm else None) if current.ok else []
-        outcomes = [current, *rest]
-        solves += sum(outcome.attempts for outcome in rest)
+        outcomes = [current, *(solve_variants(variants[1:], fitted.mesh.nodes, fitted.relaxation, fitted.device)
+                               if current.ok else [])]
+    solves = sum(outcome.attempts for outcome in outcomes[0 if current is None else 1:])
     base = outcomes[0]
     if not base.ok:
         raise RuntimeError(f"the current model does not solve ({base.status}: {base.message})")
@@ -199,8 +180,7 @@ def _solve_again(state: ModelState, redo, variants, roles, outcomes) -> int:
     failed, its replacement takes its place if it solves (variant, outcome and step in
     ``variants``, ``outcomes`` and ``roles``). Returns the number of solves made."""
     fitted = state.fitted
-    retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device,
-                             start=outcomes[0])
+    retried = solve_variants([v for _, v, _ in redo], fitted.mesh.nodes, fitted.relaxation, fitted.device)
     for (i, variant, step), outcome in zip(redo, retried):
         if outcome.ok and not outcomes[i].ok:
             variants[i], outcomes[i] = variant, outcome

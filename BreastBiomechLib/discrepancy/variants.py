@@ -10,11 +10,13 @@ pre-stressed model whose mesh is its unloaded shape. A fit of several measured s
 variant in every state (:attr:`Variant.others`): its displacement is the states' one after the
 other (:meth:`~BreastBiomechLib.discrepancy.fitted.FittedCase.split`).
 
-On a CPU a batch costs the sum of its models' iterations, so variants near a solved model (the
-current one, moved by a step) start at its equilibrium (:mod:`~BreastBiomechLib.solver.warm`:
-the same equilibrium within the relaxation's tolerance, in about half the iterations); on a GPU
-a batch costs little more than its slowest model, and one launch of every variant is faster than
-the current model first and its variants after it (:func:`starts_pay`).
+A variant may start at a solved variant's equilibrium (``start``: a Gauss-Newton refinement's trial
+steps, each near the current model): :mod:`~BreastBiomechLib.solver.warm`, the same equilibrium
+within the relaxation's tolerance, mostly in fewer iterations; one that has not converged in twice
+its start's iterations is solved again from rest. The diagnosis's sensitivities start every
+variant at rest: on a CPU, where a batch costs the sum of its models' iterations, warm starts of
+their variants saved 14-29 % on two cases and cost twice the time on a third (a plate offset's
+variant oscillating at a contact for 50 000 iterations; docs/discrepancy.md, "Candidate effects").
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from BreastBiomechLib.solver.materials import ElementMaterials
 from BreastBiomechLib.solver.model import Plate
 from BreastBiomechLib.solver.run_case import CaseVariant, run_variants
 from BreastBiomechLib.solver.settings import SolverSettings
-from BreastBiomechLib.solver.warm import WarmStart, plates_refusal, started_plates
+from BreastBiomechLib.solver.warm import WarmStart, started_plates
 
 
 @dataclass
@@ -66,16 +68,6 @@ class Outcome:
         return self.status == "completed"
 
 
-def starts_pay(device=None) -> bool:
-    """Whether solving the current model first and starting its variants at its equilibrium
-    pays on warp ``device`` (None: warp's default): on a CPU, not on a GPU (see the module
-    notes)."""
-    import warp as wp
-
-    wp.init()
-    return wp.get_device(device).is_cpu
-
-
 def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation: DynamicRelaxation,
                    device=None, start: Outcome | None = None) -> list[Outcome]:
     """Solve every variant (one batched launch per distinct ``model``) to static equilibrium by
@@ -86,7 +78,9 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
     ``start``: a solved variant's outcome; the variants of a model it was solved with, whose
     plates differ from that solve's in travel only and have no friction (the warm start's
     conditions, :func:`~BreastBiomechLib.solver.warm.started_plates`), start at its equilibrium,
-    in a launch of their own; the rest start at rest."""
+    in a launch of their own, and those of them that do not converge there
+    (:meth:`~BreastBiomechLib.solver.warm.WarmStart.bounded`) are solved again from rest with the
+    rest (their ``attempts`` count both)."""
     flat = [(i, part) for i, variant in enumerate(variants) for part in (variant, *variant.others)]
     solved: list[Outcome | None] = [None] * len(flat)
     groups: dict[int, list[int]] = {}
@@ -97,17 +91,23 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
         model = flat[members[0]][1].model
         warm = _warm_start(start, model)
         warmed = [k for k in members if warm is not None and _starts_warm(model, warm, flat[k][1].plates)]
-        for launch, launch_start in ((warmed, warm), ([k for k in members if k not in warmed], None)):
+        cold = [k for k in members if k not in warmed]
+        for launch, launch_start in ((warmed, warm), (cold, None)):
             if not launch:
                 continue
             results = run_variants(model, [CaseVariant(flat[k][1].materials, flat[k][1].plates) for k in launch],
                                    settings, imaged_nodes=imaged_nodes, warm_start=launch_start)
             for k, result in zip(launch, results):
                 solution, plates = result.solution, flat[k][1].plates
+                if launch_start is not None and solution.status == "not converged":
+                    cold.append(k)  # solved again from rest, below
+                    solved[k] = Outcome(result.displacement, solution.status, solution.message, solution.attempts)
+                    continue
                 starts = {} if not solution.ok else {id(model): (model, WarmStart.from_solution(
-                    solution, np.array([p.displacement for p in plates]).reshape(-1, 3)))}
-                solved[k] = Outcome(result.displacement, solution.status, solution.message, solution.attempts,
-                                    starts)
+                    solution, np.array([p.displacement for p in plates]).reshape(-1, 3), launch_start))}
+                tried = solved[k].attempts if solved[k] is not None else 0
+                solved[k] = Outcome(result.displacement, solution.status, solution.message,
+                                    solution.attempts + tried, starts)
     parts_of: dict[int, list[Outcome]] = {}
     for (owner, _), outcome in zip(flat, solved):
         parts_of.setdefault(owner, []).append(outcome)
@@ -123,13 +123,6 @@ def solve_variants(variants: list[Variant], imaged_nodes: np.ndarray, relaxation
                                 failed.message if failed else parts[0].message, sum(p.attempts for p in parts),
                                 {key: value for p in parts for key, value in p.starts.items()}))
     return outcomes
-
-
-def may_start_from(base: Variant, variant: Variant) -> bool:
-    """Whether ``variant`` may start at ``base``'s equilibrium once that is solved (in its first
-    state): the same model object, plates that differ from the base's in travel only and no plate
-    friction (:func:`~BreastBiomechLib.solver.warm.started_plates`)."""
-    return variant.model is base.model and plates_refusal(base.model, variant.plates) is None
 
 
 def _warm_start(start: Outcome | None, model: Model) -> WarmStart | None:

@@ -53,8 +53,9 @@ class FitWarmStarts:
             self._written = [path]
             with np.load(path) as data:
                 plates = data["plate_displacements"] if data["plate_displacements"].size else None
+                iterations = int(data["iterations"]) if "iterations" in data and data["iterations"] > 0 else None
                 self.current = WarmStart(data["displacement"], plates, float(data["lowest_eigenvalue"]),
-                                         float(data["shear_speed_squared"]))
+                                         float(data["shear_speed_squared"]), iterations)
         self.objective = float(best.objective)
 
     def offer(self, z, objective: float, solution, plate_displacements: np.ndarray | None) -> None:
@@ -62,7 +63,8 @@ class FitWarmStarts:
         its ``objective`` is lower than the current start's (kept in the folder first)."""
         if not (solution.ok and objective < self.objective):
             return
-        start = WarmStart.from_solution(solution, plate_displacements)
+        # the current start's iterations carried (the batch began there, unless it was solved cold)
+        start = WarmStart.from_solution(solution, plate_displacements, self.current)
         if self.folder is not None:
             self.folder.mkdir(parents=True, exist_ok=True)
             path = self.folder / _file_name(z)
@@ -71,7 +73,8 @@ class FitWarmStarts:
                     np.savez(stream, displacement=start.displacement,
                              plate_displacements=np.zeros((0, 3)) if plate_displacements is None
                              else np.asarray(plate_displacements, float),
-                             lowest_eigenvalue=start.lowest_eigenvalue, shear_speed_squared=start.shear_speed_squared)
+                             lowest_eigenvalue=start.lowest_eigenvalue, shear_speed_squared=start.shear_speed_squared,
+                             iterations=start.iterations or 0)
             self._written = [p for p in self._written if p != path][-(KEPT - 1):] + [path]
             for old in set(self.folder.glob("*.npz")) - set(self._written):
                 old.unlink()

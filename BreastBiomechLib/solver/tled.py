@@ -117,8 +117,9 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     ``warm_start`` (dynamic relaxation, frictionless plates): every variant starts at that
     nearby equilibrium (:class:`~BreastBiomechLib.solver.warm.WarmStart`) with the constraints
     and gravity in full and the plates moving only by their travel's difference from the
-    start's; the static solution is the same within the tolerance, reached in fewer iterations.
-    Every ``sample_every`` steps the energies, plate forces and the stable step are sampled and
+    start's; the static solution is the same within the tolerance, reached in fewer iterations,
+    or "not converged" past twice the start's iterations (:meth:`WarmStart.bounded`: solve
+    those cold). Every ``sample_every`` steps the energies, plate forces and the stable step are sampled and
     ``progress(fraction done)`` is called; returning False cancels the solve (status "cancelled",
     the displacement returned is the last configuration). Dynamic relaxation finds the
     equilibrium, so visco materials enter it fully relaxed. A variant in which an element
@@ -152,6 +153,8 @@ def solve_batch(model: Model, materials: list[ElementMaterials], plate_displacem
     (:mod:`~BreastBiomechLib.solver.cpu_pool`)."""
     wp.init()
     device = _device(device)
+    if warm_start is not None and relaxation is not None:
+        relaxation = warm_start.bounded(relaxation)
     classes = (anp_partition_classes(materials) if anp_mode(model) == k.ANP_WITHIN_MATERIALS
                else np.zeros(len(materials), np.int64))
     if classes.max() > 0:  # sets whose own ANP partitions differ: one launch per partition

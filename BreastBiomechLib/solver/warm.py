@@ -30,6 +30,7 @@ import numpy as np
 from BreastBiomechLib.solver.model import Model, Plate
 
 DAMPING_MARGIN = 0.85  # of the carried critical damping: below it is slower but safe, above it is not
+ITERATIONS_FACTOR = 2.0  # a warm start that has not converged in this many times its start's iterations stops
 
 
 @dataclass
@@ -39,21 +40,42 @@ class WarmStart:
     travel ``plate_displacements`` (P, 3) mm (None: the model's own plates' travel);
     ``lowest_eigenvalue`` (1/s^2) and ``shear_speed_squared`` (m^2/s^2): that solve's
     :class:`~BreastBiomechLib.solver.Solution` figures (NaN: unknown, the damping then adapts
-    as after a cold load, slower and less safely). Made by :meth:`from_solution`."""
+    as after a cold load, slower and less safely); ``iterations``: the most a solve on the way to
+    it took (the cold solve it began from, or a warm one that took more; None: unknown), which
+    bound a warm start's own (:meth:`bounded`). Made by :meth:`from_solution`."""
 
     displacement: np.ndarray
     plate_displacements: np.ndarray | None = None
     lowest_eigenvalue: float = float("nan")
     shear_speed_squared: float = float("nan")
+    iterations: int | None = None
 
     @classmethod
-    def from_solution(cls, solution, plate_displacements: np.ndarray | None = None) -> "WarmStart":
+    def from_solution(cls, solution, plate_displacements: np.ndarray | None = None,
+                      started: "WarmStart | None" = None) -> "WarmStart":
         """The warm start at a completed relaxation ``solution`` reached with the plates' travel
-        ``plate_displacements`` (P, 3) mm (None: the model's own)."""
+        ``plate_displacements`` (P, 3) mm (None: the model's own); ``started``: the warm start
+        that solution began from, if any (its :attr:`iterations` carried where larger: a warm
+        solve takes fewer than a cold one, and a chain of warm starts must not tighten the
+        bound)."""
         if not solution.ok:
             raise ValueError(f"a warm start needs a completed solve, not one that ended {solution.status!r}")
+        before = started.iterations if started is not None and started.iterations is not None else 0
         return cls(solution.displacement, plate_displacements, solution.lowest_eigenvalue,
-                   solution.shear_speed_squared)
+                   solution.shear_speed_squared, max(int(solution.steps), int(before)))
+
+    def bounded(self, relaxation):
+        """``relaxation`` (a :class:`~BreastBiomechLib.solver.settings.DynamicRelaxation`) with
+        its iterations bounded by :data:`ITERATIONS_FACTOR` times the start's: a warm start that
+        has not converged by then has met what it cannot do quickly (on a diagnosis's 12 mm mesh,
+        a plate pushed 1 mm further than its start's set a contact oscillating that the start's
+        damping did not settle in 50 000 iterations, where a cold solve took 2 800) and ends "not
+        converged", for the caller to solve it cold. Unchanged where the start's iterations are
+        unknown."""
+        if self.iterations is None:
+            return relaxation
+        bound = max(int(np.ceil(ITERATIONS_FACTOR * self.iterations)), relaxation.load_iterations + 1)
+        return replace(relaxation, max_iterations=min(relaxation.max_iterations, bound))
 
     def critical_damping(self, shear_speed_squared: np.ndarray) -> np.ndarray:
         """(B,) the damping (1/s) the warm start allows models whose mean mu / rho is

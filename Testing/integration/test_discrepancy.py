@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -414,6 +415,45 @@ def test_a_refit_takes_the_shorter_step_where_the_full_one_overshoots(null_case,
         np.testing.assert_allclose(result.values, [step * taken])
         np.testing.assert_allclose(result.displacement, base + gain * taken * shift)
         assert result.rss_after < 0.05 * result.rss_before  # 0.01 and 0.04 of before
+
+
+@pytest.mark.parametrize("workers, launches", [("1", [[0.0], [0.3], [0.15]]), ("2", [[0.0], [0.3, 0.15]])])
+def test_a_gauss_newton_step_and_its_half_are_solved_at_once_where_two_models_cost_one(null_case, monkeypatch,
+                                                                                        workers, launches):
+    """A refinement's trial step that overshoots (the solved response 2.5 times the linear one)
+    is halved. On a CPU with one worker process the half is solved after the full step has
+    failed; where a batch's models run side by side (two worker processes, or a GPU) the two are
+    solved in one launch; either way the half step stands."""
+    from BreastBiomechLib.discrepancy import refit as refit_module
+    from BreastBiomechLib.discrepancy.observations import Observations
+    from BreastBiomechLib.discrepancy.variants import Outcome
+
+    step = 0.3
+    state, observed, friction, base, shift, secant_features, sens = _friction_secant(null_case, step)
+    state = state.with_effect(friction, [0.0])
+    keys = [k for k, *_ in state.nuisance()]
+    column = (secant_features - observed.predicted(base)) / step
+    nuisance = np.zeros((len(column), len(keys)))
+    nuisance[:, keys.index("friction:0")] = column
+    measured = Observations(observed.labels, observed.channel, secant_features, observed.sigma,
+                            observed.points, observed._parts)
+    solved = []
+
+    def overshooting(variants, *args, **kwargs):
+        mu = [v.plates[0].friction for v in variants]
+        solved.append(mu)
+        return [Outcome(base + 2.5 * (m / step) * shift, "completed", "") for m in mu]
+
+    def linear(state_, observations, candidates, say=None, current=None):
+        return replace(sens, displacement=base, features=observed.predicted(base), nuisance_keys=keys,
+                       nuisance=nuisance, effects={}, fields={}, steps={})
+
+    monkeypatch.setenv("BREASTBIOMECH_CPU_WORKERS", workers)
+    monkeypatch.setattr(refit_module, "solve_variants", overshooting)
+    monkeypatch.setattr(refit_module, "sensitivities", linear)
+    refined = refit_module.refine(state, measured, iterations=1)
+    assert [np.round(mu, 6).tolist() for mu in solved] == launches
+    assert refined.state.added["friction"][1][0] == pytest.approx(0.15)
 
 
 def test_an_effect_is_not_credited_with_what_the_fitted_parameters_alone_remove(null_case, monkeypatch):

@@ -91,16 +91,14 @@ def test_warm_starts_refuse_what_they_cannot_do(coarse):
         WarmStart.from_solution(replace(start, status="inverted elements"))
 
 
-def test_the_diagnosis_variants_start_where_they_may_and_end_where_cold_solves_do(coarse, monkeypatch):
-    """`solve_variants(..., start=outcome)` (the diagnosis's variants on a CPU, started at the
-    current model's equilibrium): the variants of that model with other materials or plate
-    travel start warm, in a launch of their own, and end where their cold solves do; one with
-    plate friction (whose equilibrium depends on the path) or of another model object starts at
-    rest."""
+def test_variants_start_where_they_may_and_end_where_cold_solves_do(coarse, monkeypatch):
+    """`solve_variants(..., start=outcome)` (a refinement's trial steps, started at the current
+    model's equilibrium): the variants of that model with other materials or plate travel start
+    warm, in a launch of their own, and end where their cold solves do; one with plate friction
+    (whose equilibrium depends on the path) or of another model object starts at rest."""
     from BreastBiomechLib.discrepancy import variants as variants_module
-    from BreastBiomechLib.discrepancy.variants import Variant, solve_variants, starts_pay
+    from BreastBiomechLib.discrepancy.variants import Variant, solve_variants
 
-    assert starts_pay("cpu")
     model, _ = coarse
     plates = model.loading.plates
     [current] = solve_variants([Variant(model, model.materials, plates)], model.mesh.nodes, RELAXATION, device="cpu")
@@ -124,4 +122,40 @@ def test_the_diagnosis_variants_start_where_they_may_and_end_where_cold_solves_d
     for c, w in zip(cold, warm):
         assert c.ok and w.ok, (c.message, w.message)
         assert np.abs(w.displacement - c.displacement).max() < 0.015  # both within 0.01 mm of rest
+        assert w.attempts == 1
     assert set(warm[3].starts) == {id(other)} and set(warm[0].starts) == {id(model)}
+
+
+def test_a_warm_start_that_does_not_converge_in_twice_its_start_s_iterations_is_solved_cold(coarse, monkeypatch):
+    """A warm start is bounded by twice its start's iterations (on a diagnosis's 12 mm mesh a
+    plate pushed 1 mm further set a contact oscillating for 50 000 iterations where the cold
+    solve took 2 800): past that it ends "not converged" and `solve_variants` solves it again
+    from rest, counting both attempts. Here the start says it took 60 iterations, too few for
+    the three times softer tissue to settle."""
+    from BreastBiomechLib.discrepancy import variants as variants_module
+    from BreastBiomechLib.discrepancy.variants import Variant, solve_variants
+
+    model, start = coarse
+    warm = WarmStart.from_solution(start)
+    assert warm.iterations == start.steps
+    bounded = warm.bounded(RELAXATION)
+    assert bounded.max_iterations == 2 * start.steps and RELAXATION.max_iterations == 50_000
+    assert WarmStart(start.displacement).bounded(RELAXATION) == RELAXATION  # iterations unknown: unchanged
+    short = replace(warm, iterations=60)
+    assert short.bounded(RELAXATION).max_iterations == RELAXATION.load_iterations + 1 > 120
+    quick = replace(RELAXATION, load_iterations=2)  # a minimum: the cold load still goes at its speed limit
+    [stopped] = solve_batch(model, [softer(model.materials, 0.3)], device="cpu", relaxation=quick, warm_start=short)
+    assert stopped.status == "not converged" and stopped.steps < start.steps  # (stopped at its next check)
+    plates = model.loading.plates
+    [current] = solve_variants([Variant(model, model.materials, plates)], model.mesh.nodes, quick, device="cpu")
+    current.starts[id(model)] = (model, replace(current.starts[id(model)][1], iterations=60))
+    launches, run_variants = [], variants_module.run_variants
+
+    def recorded(model, cases, settings, **options):
+        launches.append(options["warm_start"] is not None)
+        return run_variants(model, cases, settings, **options)
+
+    monkeypatch.setattr(variants_module, "run_variants", recorded)
+    [outcome] = solve_variants([Variant(model, softer(model.materials, 0.3), plates)], model.mesh.nodes, quick,
+                               device="cpu", start=current)
+    assert launches == [True, False] and outcome.ok and outcome.attempts == 2, outcome.message
