@@ -77,15 +77,16 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
         built = []
         try:
             with stage(f"building variants: {effect.name}"):
-                for j, parameter in enumerate(effect.parameters):
-                    values = effect.off.copy()
-                    values[j] = parameter.stepped(parameter.off)
-                    built.append((state.variant(values={effect.name: (effect, values)}), j, values[j] - parameter.off))
+                for j in range(len(effect.parameters)):
+                    variant, step = _secant_model(state, effect, j)
+                    built.append((variant, j, step))
         except ValueError as error:
             skipped[effect.name] = f"could not be built: {error}"
             continue
         for variant, j, step in built:
-            key = effect.column_key(j)
+            parameter = effect.parameters[j]
+            # a secant model another effect shares is the one at the step's usual side
+            key = effect.column_key(j) if step == parameter.stepped(parameter.off) - parameter.off else None
             if key is not None and key in shared:  # another effect's secant model: solved once
                 aliases.append((effect.name, j, shared[key]))
                 continue
@@ -135,6 +136,27 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
             (outcome.displacement - base.displacement) / step
         steps.setdefault(name, np.zeros(sizes[name]))[j] = step
     return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, steps, skipped, solves)
+
+
+def _secant_model(state: ModelState, effect: Effect, j: int):
+    """(variant, step): ``state`` with ``effect``'s parameter ``j`` moved by its step from the off
+    value (:meth:`EffectParameter.stepped`); where that model cannot be built (a held plate
+    tilted away from the tissue by the step would never touch it), the step to the other side,
+    within the range. Raises the first ValueError where neither can be built."""
+    parameter = effect.parameters[j]
+    tried = [parameter.stepped(parameter.off)]
+    other = 2 * parameter.off - tried[0]
+    if parameter.lower <= other <= parameter.upper:
+        tried.append(other)
+    first = None
+    for value in tried:
+        values = effect.off.copy()
+        values[j] = value
+        try:
+            return state.variant(values={effect.name: (effect, values)}), value - parameter.off
+        except ValueError as error:
+            first = first or error
+    raise first
 
 
 def _retry_nuisance(state: ModelState, variants, roles, outcomes, bounds, say) -> int:

@@ -82,6 +82,38 @@ def test_friction_per_plate_refines_the_friction_the_model_has(null_case):
         per_plate.apply(base, [0.1, 0.2], fitted)
 
 
+def test_a_secant_model_that_cannot_be_built_at_its_step_is_built_at_the_other_side(null_case):
+    """A held plate tilted by the secant's step away from the tissue would never touch it (the
+    varied suite's case 7, 2026-12-07: its tilt candidate skipped as "could not be built"); the
+    secant model is then the step to the other side, and where neither side builds the first
+    reason is given."""
+    from BreastBiomechLib.discrepancy import ModelState, load_fitted_case
+    from BreastBiomechLib.discrepancy.effects import Effect, EffectParameter
+    from BreastBiomechLib.discrepancy.sensitivity import _secant_model
+
+    class Lifting(Effect):
+        name, title = "lifting", "a plate lifted"
+        parameters = (EffectParameter("lift", "mm", 0.0, -2.0, 2.0, 1.0),)
+
+        def __init__(self, refuse_below: float):
+            self.refuse_below = refuse_below
+
+        def apply(self, variant, values, fitted):
+            if values[0] > self.refuse_below:
+                raise ValueError(f"plate 'right': in that pose it ends {values[0]:.2f} mm short of the tissue")
+            return replace(variant, plates=[replace(p, displacement=p.displacement + values[0] * p.normal)
+                                            for p in variant.plates])
+
+    fitted = load_fitted_case(*null_case, device="cpu")
+    state = ModelState(fitted, fitted.z)
+    variant, step = _secant_model(state, Lifting(refuse_below=0.5), 0)
+    assert step == -1.0
+    np.testing.assert_allclose(variant.plates[0].displacement, fitted.plates[0].displacement - fitted.plates[0].normal)
+    assert _secant_model(state, Lifting(refuse_below=5.0), 0)[1] == 1.0  # the usual side where it builds
+    with pytest.raises(ValueError, match="ends 1.00 mm short"):
+        _secant_model(state, Lifting(refuse_below=-5.0), 0)
+
+
 def test_a_secant_model_two_candidates_share_is_solved_once(null_case):
     """The plate tilt's offsets move an untilted plate as the plate offset does (the same code):
     their secant models are solved once and both candidates take the columns, which are those
