@@ -93,3 +93,10 @@ class Effect(ABC):
     def describe(self, values) -> str:
         """The values in words, e.g. "mu 0.42"."""
         return ", ".join(f"{p.name} {v:.3g}{' ' + p.unit if p.unit else ''}" for p, v in zip(self.parameters, values))
+
+
+def switched_on(added, name: str) -> bool:
+    """Whether effect ``name`` is among the effects ``added`` ({name: (effect, values)}) with its
+    first parameter above zero (friction's mu, gravity's s): what a refinement of it needs."""
+    entry = added.get(name)
+    return entry is not None and float(np.asarray(entry[1])[0]) > 0

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
+from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter, switched_on
 from BreastBiomechLib.discrepancy.variants import Variant
 
 RATIO_STEP = float(np.log(3.0))  # the secant's step: one plate's mu three times another's
@@ -47,8 +47,7 @@ class FrictionPerPlate(Effect):
             if all(p.friction > 0 for p in fitted.plates):
                 return None
             return "the fit has friction on some plates only: their ratio to a frictionless plate is undefined"
-        friction = added.get("friction")
-        if friction is not None and float(np.asarray(friction[1])[0]) > 0:
+        if switched_on(added, "friction"):
             return None
         return "the model has no plate friction yet: the friction candidate (one mu for all plates) comes first"
 

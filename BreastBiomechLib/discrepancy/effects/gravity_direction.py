@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter
+from BreastBiomechLib.discrepancy.effects.base import Effect, EffectParameter, switched_on
 from BreastBiomechLib.discrepancy.variants import Variant
 
 
@@ -39,8 +39,7 @@ class GravityDirection(Effect):
     def unavailable_at(self, fitted, added) -> str | None:
         if not np.any(fitted.imaged_gravity) or not np.any(fitted.compressed_gravity):
             return "the scans' postures (gravity) are not known"
-        gravity = added.get("gravity")
-        if gravity is not None and float(np.asarray(gravity[1])[0]) > 0:
+        if switched_on(added, "gravity"):
             return None
         return "the model has no gravity pre-stress yet: the gravity candidate comes first"
 
