@@ -46,6 +46,8 @@ from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivitie
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.statistics import detectable_noncentrality
 from BreastBiomechLib.discrepancy.variants import solve_variants
+from BreastBiomechLib.io.case_layout import CaseLayout
+from BreastBiomechLib.io.images import read_image
 
 GRID_MARGIN_MM = 10.0  # around the compressed breast, of a simulated acquisition's image
 POWER = 0.8  # of the detectable separation
@@ -63,44 +65,44 @@ def covering_grid(points_mm: np.ndarray, spacing_mm, margin_mm: float = GRID_MAR
     return grid
 
 
-def simulated_state(fitted: FittedCase, acquisition: Acquisition,
-                    state: ModelState | None = None) -> tuple[FittedCase, np.ndarray]:
-    """(the measured state ``acquisition`` would give, the model's solution (N, 3) mm in it):
-    the model ``state`` (default the fit's; a diagnosis round's, with the effects it added)
-    solved with the acquisition's plates, its predicted image and landmarks as that state's
-    measurement. Raises a RuntimeError when the model does not solve there."""
-    from BreastBiomechLib.io.case_layout import CaseLayout
-    from BreastBiomechLib.io.images import read_image
+def placed_case(fitted: FittedCase, acquisition: Acquisition, undeformed: sitk.Image, z: np.ndarray) -> FittedCase:
+    """The fitted case at the parameters ``z`` with ``acquisition``'s plates on its mesh (its
+    measured image still the fit's, no landmarks): the model whose solve
+    :func:`simulated_measurement` images. ``undeformed``: the case's undeformed MR."""
+    return _with_plates(fitted, acquisition, undeformed, z, fitted.measured_image, None)
+
+
+def simulated_measurement(fitted: FittedCase, acquisition: Acquisition, undeformed: sitk.Image, z: np.ndarray,
+                          displacement_mm: np.ndarray) -> FittedCase:
+    """The measured state ``acquisition`` would give where the fitted model's solution with its
+    plates (:func:`placed_case`) is ``displacement_mm`` (N, 3): ``undeformed`` warped through it
+    onto a grid covering the compressed breast at the measured image's spacing, and the fit's
+    reference landmarks mapped through it, taken as that state's measurement."""
     from BreastBiomechLib.landmarks import map_landmarks
-    from BreastBiomechLib.optimisation.forward import FittingProblem
     from BreastBiomechLib.warping import ImageWarper
 
-    state = state or ModelState(fitted, fitted.z)
-    z = state.z
-    undeformed = read_image(CaseLayout(fitted.case_dir).mr)
+    grid = covering_grid(fitted.mesh.nodes + displacement_mm, fitted.measured_image.GetSpacing())
+    predicted = ImageWarper(fitted.mesh, undeformed, grid, device=fitted.device).predict(displacement_mm).image
+    landmarks = (map_landmarks(fitted.mesh, displacement_mm, fitted.reference)
+                 if fitted.reference is not None else None)
+    return _with_plates(fitted, acquisition, undeformed, z, predicted, landmarks)
+
+
+def _with_plates(fitted: FittedCase, acquisition: Acquisition, undeformed: sitk.Image, z: np.ndarray,
+                 measured_image: sitk.Image, landmarks) -> FittedCase:
+    """``fitted`` at ``z`` with ``acquisition``'s plates and ``measured_image`` and ``landmarks``
+    (None: none) as its measurement."""
+    from BreastBiomechLib.optimisation.forward import FittingProblem
+
     planes = [dict(p) for p in acquisition.planes]
-
-    def measured(measured_image, landmarks=None) -> FittedCase:
-        problem = FittingProblem(fitted.space, fitted.mesh, undeformed, measured_image, planes,
-                                 landmarks=(fitted.reference, landmarks) if landmarks is not None else None,
-                                 relaxation=fitted.relaxation, device=fitted.device)
-        made = FittedCase(problem, z, fitted.reference if landmarks is not None else None, landmarks, measured_image,
-                          fitted.case_dir, fitted.fit_dir, fitted.imaged_gravity, fitted.compressed_gravity,
-                          fitted.relaxation, fitted.device, acquisition.name)
-        made._skin = fitted._skin  # one mesh: each element's skin share is computed once
-        return made
-
-    placed = measured(fitted.measured_image)  # the plates on the mesh; its image is not used
-    [outcome] = solve_variants([ModelState(placed, z, state.added).variant()], fitted.mesh.nodes, fitted.relaxation,
-                               fitted.device)
-    if not outcome.ok:
-        raise RuntimeError(f"the fitted model does not solve in acquisition {acquisition.name} ({outcome.status}: "
-                           f"{outcome.message})")
-    u = outcome.displacement
-    grid = covering_grid(fitted.mesh.nodes + u, fitted.measured_image.GetSpacing())
-    predicted = ImageWarper(fitted.mesh, undeformed, grid, device=fitted.device).predict(u).image
-    landmarks = map_landmarks(fitted.mesh, u, fitted.reference) if fitted.reference is not None else None
-    return measured(predicted, landmarks), u
+    problem = FittingProblem(fitted.space, fitted.mesh, undeformed, measured_image, planes,
+                             landmarks=(fitted.reference, landmarks) if landmarks is not None else None,
+                             relaxation=fitted.relaxation, device=fitted.device)
+    made = FittedCase(problem, z, fitted.reference if landmarks is not None else None, landmarks,
+                      measured_image, fitted.case_dir, fitted.fit_dir, fitted.imaged_gravity,
+                      fitted.compressed_gravity, fitted.relaxation, fitted.device, acquisition.name)
+    made._skin = fitted._skin  # one mesh: each element's skin share is computed once
+    return made
 
 
 def last_round_state(fitted: FittedCase, folder) -> ModelState:
@@ -353,16 +355,22 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     now = Rows.of(sensitivities(state, observations, candidates, progress=say, current=current), observations)
     chosen, rivals, solved = acquisition_effects(now, names, designed_for)
     stacks, failed, made = {}, {}, []
+    undeformed = read_image(CaseLayout(fitted.case_dir).mr)
     for acquisition in acquisitions:
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
-        try:
-            simulated, u = simulated_state(fitted, acquisition, state)
-            seen = observations_of(simulated, u, noise)
-            rows = Rows.of(sensitivities(ModelState(simulated, state.z, state.added), seen,
-                                         library(simulated, solved), progress=say), seen)
+        placed, seen = placed_case(fitted, acquisition, undeformed, state.z), []
+
+        def measurement(u, acquisition=acquisition, seen=seen):  # the model's own prediction there, as measured
+            seen.append(observations_of(simulated_measurement(fitted, acquisition, undeformed, state.z, u), u, noise))
+            return seen[0]
+
+        try:  # the model there solved in one launch with its variants
+            sens = sensitivities(ModelState(placed, state.z, state.added), measurement, library(placed, solved),
+                                 progress=say)
         except RuntimeError as error:
-            failed[acquisition.name] = str(error)
+            failed[acquisition.name] = f"in acquisition {acquisition.name}: {error}"
             continue
+        rows = Rows.of(sens, seen[0])
         stacks[acquisition.name] = now.stacked(rows)
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped})

@@ -43,10 +43,14 @@ class Sensitivities:
 
 
 @staged("sensitivities")
-def sensitivities(state: ModelState, observations: Observations, candidates: list[Effect],
-                  progress: Callable[[str], None] | None = None, current: Outcome | None = None) -> Sensitivities:
+def sensitivities(state: ModelState, observations: Observations | Callable[[np.ndarray], Observations],
+                  candidates: list[Effect], progress: Callable[[str], None] | None = None,
+                  current: Outcome | None = None) -> Sensitivities:
     """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects
-    not yet added, each available for this fit). A model that inverts an element is solved again
+    not yet added, each available for this fit). ``observations``: the measured features, or a
+    function of the current model's displacement (N, 3) mm that makes them (a simulated
+    acquisition, whose measurement is that solve's prediction: the current model is solved in the
+    variants' launch, not before it). A model that inverts an element is solved again
     alone with a slower load (:func:`solve_variants`); a nuisance difference that still fails is
     taken on the other side, an effect's secant to half its step (a candidate still failing is
     skipped with the reason); raises a RuntimeError
@@ -106,6 +110,8 @@ def sensitivities(state: ModelState, observations: Observations, candidates: lis
         raise RuntimeError(f"the current model does not solve ({base.status}: {base.message})")
     solves += _retry_nuisance(state, variants, roles, outcomes, bounds, say)
     solves += _retry_effects(state, {e.name: e for e in candidates}, variants, roles, outcomes, say)
+    if not isinstance(observations, Observations):  # made from the current model's solve
+        observations = observations(base.displacement)
     features = observations.predicted(base.displacement)
     keys = [key for kind, key, _, _ in roles if kind == "nuisance"]
     nuisance = np.zeros((len(features), len(keys)))
