@@ -369,7 +369,7 @@ def adopt(state: ModelState, observations: Observations, sens: Sensitivities, ca
     design = None  # the features' change per unit of each of the refit's parameters, for its profile
     if iterations > 0:
         say(f"refining the refit with {candidate.name}")
-        refined = refine(chosen.state, observations, iterations, say)
+        refined = refine(chosen.state, observations, iterations, say, current=chosen.outcome)
         weights = 1.0 / observations.sigma
         after = observations.residual(refined.outcome.displacement)
         values = refined.state.added[candidate.name][1]

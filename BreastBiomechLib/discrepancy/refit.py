@@ -16,7 +16,7 @@ that step with no effect added, and an effect is only credited with what it remo
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -46,8 +46,9 @@ class Refit:
     units) and their standard deviations ``sd`` (from the linearised information), the refitted
     ``state``, whitened residual sums of squares ``rss_before`` and ``rss_after`` (solved) and
     ``rss_linear`` (predicted by the linearisation), the ``displacement`` (N, 3) mm after, the
-    features' ``residual_after`` (mm), the solver's ``status`` and a ``note`` on how it was made
-    when not by the Gauss-Newton step."""
+    features' ``residual_after`` (mm), the solver's ``status``, a ``note`` on how it was made
+    when not by the Gauss-Newton step, and the ``outcome`` of the solve it was checked by (None
+    where it was not solved: a secant model's linear prediction, or kept from an earlier run)."""
 
     effect: Effect | None
     values: np.ndarray
@@ -61,6 +62,7 @@ class Refit:
     status: str
     note: str = ""
     profile: list[dict] | None = None  # the added effect's profile intervals (discrepancy.profile)
+    outcome: Outcome | None = field(default=None, repr=False, compare=False)
 
     @property
     def ok(self) -> bool:
@@ -130,7 +132,7 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities,
                     # the shorter step too (a step from the secant overshoots where the effect
                     # saturates, as a chest-wall hold does)
                     best[name] = Refit(effect, values, sd, trial, rss_before, rss_after, rss_linear,
-                                       outcome.displacement, after, outcome.status)
+                                       outcome.displacement, after, outcome.status, outcome=outcome)
                     predicted = _predicted_reduction(rss_before, rss_linear, fraction[name])
                     if last or rss_before - rss_after >= ACCEPTED_RATIO * predicted:
                         results[name] = best[name]
@@ -138,7 +140,8 @@ def refit(state: ModelState, observations: Observations, sens: Sensitivities,
                     continue
                 if name in best or last:
                     results[name] = best.get(name) or Refit(effect, values, sd, trial, rss_before, rss_after,
-                                                            rss_linear, outcome.displacement, after, outcome.status)
+                                                            rss_linear, outcome.displacement, after, outcome.status,
+                                                            outcome=outcome)
                     continue
             elif name in best:
                 results[name] = best[name]
@@ -199,18 +202,20 @@ class Refined(NamedTuple):
 
 @staged("refits")
 def refine(state: ModelState, observations: Observations, iterations: int = 1,
-           progress: Callable[[str], None] | None = None) -> Refined:
+           progress: Callable[[str], None] | None = None, current: Outcome | None = None) -> Refined:
     """Gauss-Newton iterations of every fitted parameter of ``state`` (the fit's and the added
     effects'), each from fresh sensitivities and checked by a forward solve (halved while it does
     not lower the residual; stopped when it no longer does; where two models of a batch cost
     about one, :func:`side_by_side`, a step and its half are solved at once and the longer that
     lowers the residual taken): a :class:`Refined`, the standard
     deviations from the last iteration's linearised information ({} with no iteration).
-    ``progress(message)`` is called before each batch of solves."""
+    ``progress(message)`` is called before each batch of solves. ``current``: the solve of
+    ``state`` where the caller has it (a refit's :attr:`Refit.outcome`; not solved again)."""
     say = progress or (lambda message: None)
     fitted = state.fitted
     weights = 1.0 / observations.sigma
-    current = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
+    if current is None:
+        current = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)[0]
     if not current.ok:
         raise RuntimeError(f"the model to refine does not solve ({current.status}: {current.message})")
     rss = float(np.sum((weights * observations.residual(current.displacement)) ** 2))

@@ -455,7 +455,8 @@ def test_a_gauss_newton_step_and_its_half_are_solved_at_once_where_two_models_co
     """A refinement's trial step that overshoots (the solved response 2.5 times the linear one)
     is halved. On a CPU with one worker process the half is solved after the full step has
     failed; where a batch's models run side by side (two worker processes, or a GPU) the two are
-    solved in one launch; either way the half step stands."""
+    solved in one launch; either way the half step stands. Given the solve of the model it starts
+    from (the refit's being refined), that model is not solved again."""
     from BreastBiomechLib.discrepancy import refit as refit_module
     from BreastBiomechLib.discrepancy.observations import Observations
     from BreastBiomechLib.discrepancy.variants import Outcome
@@ -486,6 +487,11 @@ def test_a_gauss_newton_step_and_its_half_are_solved_at_once_where_two_models_co
     refined = refit_module.refine(state, measured, iterations=1)
     assert [np.round(mu, 6).tolist() for mu in solved] == launches
     assert refined.state.added["friction"][1][0] == pytest.approx(0.15)
+    # given the solve of the model it starts from (a refit's), it does not solve that again
+    solved.clear()
+    again = refit_module.refine(state, measured, iterations=1, current=Outcome(base, "completed", ""))
+    assert [np.round(mu, 6).tolist() for mu in solved] == launches[1:]
+    assert again.state.added["friction"][1][0] == pytest.approx(0.15)
 
 
 def test_an_effect_is_not_credited_with_what_the_fitted_parameters_alone_remove(null_case, monkeypatch):
