@@ -36,7 +36,10 @@ threshold (:data:`ROOT_JUMP`), the bracket is halved until :data:`MAX_STEPS` val
 features of a saturating parameter change little over a stretch and steeply past it, which one
 line through the stretch brackets badly (a friction refitted to the top of its range, whose
 first step down is the range's other end). Values whose solve fails are left out (counted in
-``failed``)."""
+``failed``). Where a launch has room for more models than the sides walking need (a GPU, or a
+CPU with more worker processes than sides: :func:`room`), the values each side would try next
+are solved beside them (:func:`walk`): the walk and its interval are the same, in fewer
+launches."""
 
 from __future__ import annotations
 
@@ -185,6 +188,64 @@ def side_values(estimate: float, sd: float, lower: float, upper: float, directio
     return [float(near), float(end), float(inner)]
 
 
+def next_values(side: _Side, rss_at_estimate: float) -> list[float]:
+    """The values ``side`` would try after its pending one, were that one inside (the walk goes
+    on outwards) or far outside (past :data:`ROOT_JUMP`: the bracket is halved), in that order,
+    each once; [] where neither would be tried."""
+    import copy
+
+    out = []
+    for rss in (rss_at_estimate, rss_at_estimate + CHI2_95 * (2.0 * ROOT_JUMP) ** 2):
+        twin = copy.deepcopy(side)
+        twin.record(rss, rss_at_estimate)
+        if twin.pending and twin.next_value not in out and twin.next_value != side.next_value:
+            out.append(twin.next_value)
+    return out
+
+
+def walk(sides: list[_Side], rss_at_estimate: float, solve: Callable[[list[tuple[_Side, float]]], list],
+         room: int = 1) -> int:
+    """Walk every side (:class:`_Side`) to its end: each launch ``solve([(side, value), ...])``
+    (a result per pair: (rss, floor ratio), or None where the solve failed) holds the value each
+    walking side needs, and, up to ``room`` models in all, the values those sides would try next
+    (:func:`next_values`, the nearest side's first); a value solved ahead is recorded when its
+    side reaches it, unsolved by then. Returns the number of launches."""
+    solved: dict[tuple[int, float], object] = {}
+    launches = 0
+    while any(side.pending for side in sides):
+        active = [side for side in sides if side.pending]
+        needed = [(side, side.next_value) for side in active if (id(side), side.next_value) not in solved]
+        if needed:
+            ahead = [(side, value) for side in active for value in next_values(side, rss_at_estimate)
+                     if (id(side), value) not in solved]
+            ahead.sort(key=lambda pair: len(pair[0].walked) + pair[0].failed)
+            batch = needed + ahead[:max(room - len(needed), 0)]
+            for (side, value), result in zip(batch, solve(batch)):
+                solved[(id(side), value)] = result
+            launches += 1
+        for side in active:
+            result = solved[(id(side), side.next_value)]
+            if result is None:
+                side.record(None, rss_at_estimate)
+            else:
+                side.record(result[0], rss_at_estimate, result[1])
+    return launches
+
+
+def room(device, walking: int) -> int:
+    """How many models a launch of the profile's ``walking`` sides holds at about the cost of
+    those alone: on a GPU twice as many (a batch's models share the launch), on a CPU its worker
+    processes (:func:`~BreastBiomechLib.solver.cpu_pool.cpu_workers`), at least ``walking``."""
+    import warp as wp
+
+    from BreastBiomechLib.solver.cpu_pool import cpu_workers
+
+    wp.init()
+    if not wp.get_device(device).is_cpu:
+        return 2 * walking
+    return max(walking, cpu_workers(3 * walking))
+
+
 def bound(estimate: float, walked: list[tuple], end: float) -> tuple[float, bool]:
     """One end of the interval from a side's walk ``walked`` [(value, deviance[, floor ratio]),
     ...] (any order) from ``estimate`` (deviance 0): going outwards, where the root deviance
@@ -256,24 +317,32 @@ def profile_intervals(state: ModelState, observations: Observations, effect_name
     sides = [_Side(j, columns[j], direction,
                    side_values(values[j], sd[columns[j]], parameter.lower, parameter.upper, direction), float(values[j]))
              for j, parameter in enumerate(effect.parameters) for direction in (-1, 1)]
-    better, least_walked = None, rss_at_estimate
-    for step in range(MAX_STEPS):
-        active = [side for side in sides if side.pending]
-        if not active:
-            break
-        say(f"profile interval of {effect.title}: {len(active)} solves (step {step + 1} of at most {MAX_STEPS})")
+    parameters_at = {}  # (side, value) solved -> every parameter there (the others re-fitted)
+
+    def solve(batch: list[tuple[_Side, float]]) -> list:
+        say(f"profile interval of {effect.title}: {len(batch)} solves")
         trials = []
-        for side in active:
+        for side, value in batch:
             moved = values.copy()
-            moved[side.index] = side.next_value
+            moved[side.index] = value
             trials.append(state.with_effect(effect, moved).variant())
         outcomes = solve_variants(trials, state.fitted.mesh.nodes, state.fitted.relaxation, state.fitted.device)
-        for side, outcome in zip(active, outcomes):
-            rss, ratio, there = (profiled(side.column, side.next_value, outcome.displacement) if outcome.ok
-                                 else (None, float("inf"), None))
-            side.record(rss, rss_at_estimate, ratio)
-            if rss is not None and rss < least_walked:
-                better, least_walked = there, rss
+        results = []
+        for (side, value), outcome in zip(batch, outcomes):
+            if not outcome.ok:
+                results.append(None)
+                continue
+            rss, ratio, parameters_at[(id(side), value)] = profiled(side.column, value, outcome.displacement)
+            results.append((rss, ratio))
+        return results
+
+    walking = sum(side.pending for side in sides)
+    walk(sides, rss_at_estimate, solve, room(state.fitted.device, walking) if walking else 1)
+    better, least_walked = None, rss_at_estimate  # a value walked that fits better than the estimate
+    for side in sides:
+        for value, rss, _ in side.walked:
+            if rss < least_walked:
+                better, least_walked = parameters_at[(id(side), value)], rss
     least = min([rss_at_estimate] + [rss for side in sides for _, rss, _ in side.walked])
     out = []
     for j, parameter in enumerate(effect.parameters):

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from BreastBiomechLib.discrepancy.profile import CHI2_95, STEPS, _Side, bound, side_values
+from BreastBiomechLib.discrepancy.profile import CHI2_95, STEPS, _Side, bound, next_values, side_values, walk
 from BreastBiomechLib.discrepancy.verdicts import floor_ratio
 
 
@@ -140,3 +140,53 @@ def test_the_floor_ratio_sizes_a_change_where_it_acts_against_the_floor_there():
     assert floor_ratio(change, floor, factor=2.0) == pytest.approx(1.0)
     assert floor_ratio(change, np.zeros(100)) == float("inf")
     assert floor_ratio(np.zeros(100), np.zeros(100)) == 0.0
+
+
+def _sides(estimate, sd, lower, upper):
+    return [_Side(0, 0, direction, side_values(estimate, sd, lower, upper, direction), estimate)
+            for direction in (-1, 1)]
+
+
+@pytest.mark.parametrize("estimate, deviance", [
+    (0.32, lambda v: 0.0 if v >= 0.25 else (40.0 * (0.25 - v)) ** 2),  # saturating: flat above sticking
+    (1.5, lambda v: 0.0 if v >= 0.25 else (40.0 * (0.25 - v)) ** 2),  # refitted to the top of its range
+    (0.6, lambda v: ((v - 0.6) / 0.05) ** 2),  # Gaussian
+    (1.13, lambda v: (40.0 * (1.13 - v)) ** 2 if v < 1.13 else 0.0),  # steep below, flat above
+])
+def test_values_solved_ahead_leave_the_walk_as_it_was_in_fewer_launches(estimate, deviance):
+    """Where a launch has room, the values each side would try next are solved beside the ones
+    it needs: every side walks the same values to the same interval, in no more launches (fewer
+    where a side walks several values), and a value solved ahead that the walk never reaches is
+    not recorded."""
+    walks, launches, solved = {}, {}, {}
+    for room in (1, 2, 4):
+        sides, asked = _sides(estimate, 0.01, 0.0, 1.5), []
+
+        def solve(batch, asked=asked):
+            asked.extend(value for _, value in batch)
+            return [(deviance(value), float("inf")) for _, value in batch]
+
+        launches[room] = walk(sides, 0.0, solve, room)
+        walks[room] = [side.walked for side in sides]
+        solved[room] = asked
+    assert walks[2] == walks[1] and walks[4] == walks[1]
+    assert launches[4] <= launches[2] <= launches[1] == max(len(w) for w in walks[1])
+    longest = max(len(w) for w in walks[1])
+    if longest >= 2 and sum(len(w) > 0 for w in walks[1]) == 1:  # one side walking several values
+        assert launches[2] < launches[1]
+    recorded = {v for w in walks[4] for v, *_ in w}
+    assert recorded <= set(solved[4]) and len(solved[4]) >= len(recorded)
+
+
+def test_a_side_s_next_values_are_those_it_would_try_either_way():
+    side = _Side(0, 0, -1, side_values(1.5, 0.01, 0.0, 1.5, -1), 1.5)  # the first step 1.47, the end 0, then 1.38
+    assert side.next_value == pytest.approx(1.47)
+    assert next_values(side, 0.0) == pytest.approx([0.0, 1.485])  # inside: the end; far outside: halved
+    side.record(0.0, 0.0)  # 1.47 inside
+    assert next_values(side, 0.0) == pytest.approx([1.38])  # the end inside: done; outside: between
+    side.record(100.0, 0.0)  # the end far outside
+    side.record(0.0, 0.0)  # 1.38 inside: the bracket (1.38, 0) is halved
+    assert side.next_value == pytest.approx(0.69)
+    assert next_values(side, 0.0) == pytest.approx([0.345, 1.035])
+    side.record(0.0, 0.0)
+    assert next_values(side, 0.0) == []  # the fifth value is the last
