@@ -21,9 +21,10 @@ The closest rival of an effect is the other candidate whose signature, beyond th
 parameters, is most nearly parallel to it (none where it is the only candidate tested); the
 fitted parameters themselves are always rivals (an effect they absorb has no separation).
 
-Linear: the signatures are the secants at this fit, the noise the fixed floor's
-(:class:`~BreastBiomechLib.discrepancy.observations.NoiseModel`; a measured floor needs a refined
-solve per acquisition). Not in the library yet: a posture change (the gravity model's reference
+Linear: the signatures are the secants at this fit; the noise the diagnosis's: where it measured
+the model-error floor from the case, each simulated acquisition's floor is measured too (one
+refined solve each), else the fixed floor
+(:class:`~BreastBiomechLib.discrepancy.observations.NoiseModel`). Not in the library yet: a posture change (the gravity model's reference
 state in the new posture) and a measured plate force (the diagnosis has no force channel).
 
 Frames and units: LPS millimetres; separations in sigma.
@@ -45,7 +46,6 @@ from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, 
 from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.statistics import detectable_noncentrality
-from BreastBiomechLib.discrepancy.variants import solve_variants
 from BreastBiomechLib.io.case_layout import CaseLayout
 from BreastBiomechLib.io.images import read_image
 
@@ -320,19 +320,52 @@ def acquisition_effects(now: Rows, names: list[str], designed_for=None) -> tuple
     return chosen, rivals, solved
 
 
+class _MadeFromTheSolve:
+    """Observations made from the current model's solve (:func:`sensitivities` calls it with the
+    displacement (N, 3) mm), kept as ``made`` for the rows."""
+
+    def __init__(self, make: Callable[[np.ndarray], Observations]):
+        self.make, self.made = make, None
+
+    def __call__(self, displacement_mm: np.ndarray) -> Observations:
+        self.made = self.make(displacement_mm)
+        return self.made
+
+
+def _with_measured_floor(simulated: ModelState, features: Observations, displacement_mm: np.ndarray,
+                         lower_bound_mm: float) -> Observations:
+    """A simulated acquisition's ``features`` with the model-error floor measured there as the
+    diagnosis measures it (:func:`~BreastBiomechLib.discrepancy.floor.measure_floor`: the model
+    ``simulated``, with the acquisition's plates and its simulated measurement, solved on the
+    refined mesh; its solution on the fitting mesh ``displacement_mm``). Raises RuntimeError
+    where the refined model does not solve."""
+    from BreastBiomechLib.discrepancy.floor import measure_floor
+    from BreastBiomechLib.discrepancy.regions import feature_regions
+
+    regions = feature_regions(simulated.fitted, features, displacement_mm)
+    return features.with_floor(measure_floor(simulated, features, displacement_mm, regions, lower_bound_mm).floor)
+
+
 def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acquisition] | None = None,
            noise: NoiseModel | None = None, alpha: float = 0.01, state: ModelState | None = None,
-           progress: Callable[[str], None] | None = None, designed_for=None) -> Design:
+           progress: Callable[[str], None] | None = None, designed_for=None,
+           observations: Observations | None = None) -> Design:
     """The :class:`Design` of the fitted case's next measurement for the candidate ``effects``
     (names; default the whole library, less those ``state`` has added) over ``acquisitions``
     (default :func:`acquisition_library`'s of ``kinds``: kinds or names), at the model ``state``
-    (default the fit's; a diagnosis round's, with its added effects and refitted parameters),
-    with the ``noise`` model's fixed floor (a measured floor is not simulated: it is replaced by
-    the fixed one) and the diagnosis level ``alpha``. ``designed_for`` (names among ``effects``;
-    default all of them): the effects whose acquisitions are ranked; every candidate is a rival
-    in the measured states, and each acquisition solves only these and their closest rivals there
-    (a diagnosis designs for the few it could not tell apart: each acquisition's solves are as
-    many fewer as the other candidates have parameters)."""
+    (default the fit's; a diagnosis round's, with its added effects and refitted parameters) and
+    the diagnosis level ``alpha``. The noise: ``observations``, the measured states' features as
+    a diagnosis has them (default: made from the model's solution with the ``noise`` model's
+    fixed floor); where they carry a floor measured from the case
+    (:meth:`~BreastBiomechLib.discrepancy.observations.Observations.with_floor`), each simulated
+    acquisition's floor is measured the same way (its model solved on the refined mesh,
+    :func:`~BreastBiomechLib.discrepancy.floor.measure_floor`, ``noise.model_sd_mm`` its lower
+    bound), so that the separations are predicted in the units a diagnosis of both scans
+    realises them; else the ``noise`` model's fixed floor. ``designed_for`` (names among
+    ``effects``; default all of them): the effects whose acquisitions are ranked; every candidate
+    is a rival in the measured states, and each acquisition solves only these and their closest
+    rivals there (a diagnosis designs for the few it could not tell apart: each acquisition's
+    solves are as many fewer as the other candidates have parameters)."""
     from dataclasses import replace
 
     say = progress or (lambda message: None)
@@ -341,36 +374,38 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     candidates = [e for e in library(fitted, effects) if e.name not in state.added]
     names = [e.name for e in candidates]
     acquisitions = acquisition_library(fitted, state, kinds) if acquisitions is None else acquisitions
-    base = recorded_solution(fitted) if not state.added and np.array_equal(state.z, fitted.z) else None
-    if base is None:  # a diagnosis round's model, or a fit folder without its solutions
-        say("solving the model in the measured states")
-        [outcome] = solve_variants([state.variant()], fitted.mesh.nodes, fitted.relaxation, fitted.device)
-        if not outcome.ok:
-            raise RuntimeError(f"the model does not solve ({outcome.status}: {outcome.message})")
-        base, current = outcome.displacement, outcome
-    else:
-        current = None
-    observations = observations_of(fitted, base, noise)
+    measured_floor = observations is not None and observations.floor is not None
+    if observations is None:
+        base = recorded_solution(fitted) if not state.added and np.array_equal(state.z, fitted.z) else None
+        observations = observations_of(fitted, base, noise) if base is not None else _MadeFromTheSolve(
+            lambda u: observations_of(fitted, u, noise))  # a diagnosis round's model: solved with its variants
     say("sensitivities in the measured states")
-    now = Rows.of(sensitivities(state, observations, candidates, progress=say, current=current), observations)
+    sens = sensitivities(state, observations, candidates, progress=say)
+    now = Rows.of(sens, observations if isinstance(observations, Observations) else observations.made)
     chosen, rivals, solved = acquisition_effects(now, names, designed_for)
     stacks, failed, made = {}, {}, []
     undeformed = read_image(CaseLayout(fitted.case_dir).mr)
     for acquisition in acquisitions:
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
-        placed, seen = placed_case(fitted, acquisition, undeformed, state.z), []
+        placed, simulated = placed_case(fitted, acquisition, undeformed, state.z), {}
 
-        def measurement(u, acquisition=acquisition, seen=seen):  # the model's own prediction there, as measured
-            seen.append(observations_of(simulated_measurement(fitted, acquisition, undeformed, state.z, u), u, noise))
-            return seen[0]
+        def observed(u, acquisition=acquisition, simulated=simulated):
+            simulated["case"] = simulated_measurement(fitted, acquisition, undeformed, state.z, u)
+            return observations_of(simulated["case"], u, noise)
 
-        try:  # the model there solved in one launch with its variants
-            sens = sensitivities(ModelState(placed, state.z, state.added), measurement, library(placed, solved),
+        seen = _MadeFromTheSolve(observed)
+        try:  # the model there solved in one launch with its variants; its prediction taken as measured
+            sens = sensitivities(ModelState(placed, state.z, state.added), seen, library(placed, solved),
                                  progress=say)
+            features = seen.made
+            if measured_floor:
+                say(f"measuring the model-error floor in acquisition {acquisition.name}")
+                features = _with_measured_floor(ModelState(simulated["case"], state.z, state.added), features,
+                                                sens.displacement, noise.model_sd_mm)
         except RuntimeError as error:
             failed[acquisition.name] = f"in acquisition {acquisition.name}: {error}"
             continue
-        rows = Rows.of(sens, seen[0])
+        rows = Rows.of(sens, features)
         stacks[acquisition.name] = now.stacked(rows)
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped})
@@ -395,5 +430,6 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         record["acquisitions"] = sorted(ranked, key=lambda a: -a["separation_sigma"])
         records.append(record)
     return Design(records, made, failed, alpha, {"landmark_sd_mm": noise.landmark_sd_mm,
-                                                 "model_sd_mm": noise.model_sd_mm, "channels": list(noise.channels)},
+                                                 "model_sd_mm": noise.model_sd_mm, "channels": list(noise.channels),
+                                                 "floor": "measured" if measured_floor else "fixed"},
                   state.to_dict())

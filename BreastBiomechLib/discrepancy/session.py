@@ -431,8 +431,8 @@ class DiagnosisSession:
         it could not tell apart (:func:`~BreastBiomechLib.discrepancy.design.undecided`), each
         acquisition of the library's ``kinds`` (kinds or names; default all) simulated from the
         current model and its separation from the closest rival and the fitted parameters, with
-        the session's noise model at a fixed floor: the RMS of the floor measured from the case
-        where there is one (a simulated acquisition has no refined solve), else the fixed one.
+        the session's features and noise model: where the floor was measured from the case, each
+        simulated acquisition's floor is measured there too (:func:`~BreastBiomechLib.discrepancy.design.design`).
         Written as design.json and design.md and
         added to the report; returns design.json's record: ``undecided`` the round's candidates it
         could not tell apart, ``designed_for`` those among the session's effects (empty, and
@@ -453,11 +453,10 @@ class DiagnosisSession:
         record = {"round": last["round"], "undecided": unresolved, "designed_for": wanted}
         if wanted:
             say(f"designing the next measurement for {', '.join(wanted)}")
-            noise = self.noise
-            if self.floor is not None:
-                noise = replace(noise, model_sd_mm=max(noise.model_sd_mm, self.floor.summary()["rms_mm"]))
-            made = design(self.fitted, with_rivals(last["diagnosis"], wanted), tuple(kinds or KINDS), noise=noise,
-                          alpha=self.settings.alpha, state=self.state, progress=say, designed_for=wanted)
+            # the diagnosis's own features and noise: its measured floor, each acquisition's measured there
+            made = design(self.fitted, with_rivals(last["diagnosis"], wanted), tuple(kinds or KINDS), noise=self.noise,
+                          alpha=self.settings.alpha, state=self.state, progress=say, designed_for=wanted,
+                          observations=self.observations)
             record.update(made.only(wanted).to_dict())
             write_text_atomically(self.out / DESIGN_MARKDOWN, made.only(wanted).markdown())
         else:

@@ -308,8 +308,10 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     assert lower.floor.min() >= 0.2 and np.all(lower.floor <= floor.floor)
     # the next measurement, designed once the rounds are done (`--resume --design`) for what the
     # round could not tell apart (the chest-wall hold, which the fitted muscle takes up), with one
-    # acquisition (the second plate alone), at the measured floor's RMS: the summary, design.json
-    # and the report's section say it; asked again after the same round, it is kept, not made again
+    # acquisition (the second plate alone), with the diagnosis's own features and measured floor
+    # (the acquisition's floor measured there too), so that its separation in this scan is the one
+    # the round recorded: the summary, design.json and the report's section say it; asked again
+    # after the same round, it is kept, not made again
     from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case
     from BreastBiomechLib.discrepancy.design import undecided
 
@@ -325,9 +327,11 @@ def test_the_null_case_raises_no_alarm(null_case, tmp_path, capsys):
     assert summary["design"]["designed_for"] == record["designed_for"] == record["undecided"] == undecided(
         last, {e.name: e for e in library(fitted)})
     assert "chest-wall" in record["designed_for"] and [a["name"] for a in record["acquisitions"]] == [second]
-    assert record["noise"]["model_sd_mm"] == pytest.approx(floor.summary()["rms_mm"])
+    assert record["noise"]["floor"] == "measured" and record["noise"]["model_sd_mm"] == 0.5  # its lower bound
     hold = next(r for r in record["effects"] if r["effect"] == "chest-wall")
     assert hold["now_sigma"] < hold["detectable_sigma"]  # taken up by the muscle in this scan
+    tested = next(c for c in last["candidates"] if c["name"] == "chest-wall")
+    assert hold["now_sigma"] == pytest.approx(tested["separations"][hold["rival"] or ""], rel=1e-3)
     assert len(summary["design"]["sentences"]) == len(record["effects"])
     section = (out / "report.md").read_text().split("## The next measurement")[1]
     assert "chest-wall hold" in section and second in section

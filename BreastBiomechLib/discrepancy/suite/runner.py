@@ -494,17 +494,19 @@ def _library_design(case: SuiteCase, folder: Path, diagnosis_dir: Path, settings
     diagnosis's last model (where its rounds told every candidate apart), kept as
     design-library.json in the case's folder."""
     from BreastBiomechLib.discrepancy.acquisitions import KINDS
-    from BreastBiomechLib.discrepancy.design import design, last_round_state
-    from BreastBiomechLib.discrepancy.fitted import load_fitted_case
+    from BreastBiomechLib.discrepancy.design import design
+    from BreastBiomechLib.discrepancy.session import DiagnosisSession
 
     path = folder / "design-library.json"
     if path.is_file():
         return json.loads(path.read_text())
     say(f"{case.name}: designing the second scan over the whole library")
-    fitted = load_fitted_case(folder / "measured", folder / "fit", device=device)
-    state = last_round_state(fitted, diagnosis_dir)
-    made = design(fitted, settings.effects, KINDS, noise=NoiseModel(landmark_sd_mm=settings.landmark_noise_mm),
-                  state=state, progress=lambda message: say(f"{case.name}: {message}"))
+    # the diagnosis's last model, features and noise (its measured floor, read from its folder)
+    session = DiagnosisSession(folder / "measured", folder / "fit", diagnosis_dir, effects=settings.effects,
+                               noise=NoiseModel(landmark_sd_mm=settings.landmark_noise_mm), device=device,
+                               resume=True, registration=None)
+    made = design(session.fitted, settings.effects, KINDS, noise=session.noise, state=session.state,
+                  observations=session.observations, progress=lambda message: say(f"{case.name}: {message}"))
     record = {"undecided": [], "designed_for": [r["effect"] for r in made.effects], **made.to_dict()}
     write_json(path, record)
     return record
