@@ -375,6 +375,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     names = [e.name for e in candidates]
     acquisitions = acquisition_library(fitted, state, kinds) if acquisitions is None else acquisitions
     measured_floor = observations is not None and observations.floor is not None
+    observations_floor = observations.floor if measured_floor else None
     if observations is None:
         base = recorded_solution(fitted) if not state.added and np.array_equal(state.z, fitted.z) else None
         observations = observations_of(fitted, base, noise) if base is not None else _MadeFromTheSolve(
@@ -397,18 +398,24 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         try:  # the model there solved in one launch with its variants; its prediction taken as measured
             sens = sensitivities(ModelState(placed, state.z, state.added), seen, library(placed, solved),
                                  progress=say)
-            features = seen.made
-            if measured_floor:
-                say(f"measuring the model-error floor in acquisition {acquisition.name}")
-                features = _with_measured_floor(ModelState(simulated["case"], state.z, state.added), features,
-                                                sens.displacement, noise.model_sd_mm)
         except RuntimeError as error:
             failed[acquisition.name] = f"in acquisition {acquisition.name}: {error}"
             continue
+        features, floor_note = seen.made, "measured" if measured_floor else "fixed"
+        if measured_floor:
+            say(f"measuring the model-error floor in acquisition {acquisition.name}")
+            try:
+                features = _with_measured_floor(ModelState(simulated["case"], state.z, state.added), features,
+                                                sens.displacement, noise.model_sd_mm)
+            except RuntimeError as error:  # the measured states' RMS floor stands in for it
+                rms = float(np.sqrt(np.mean(observations_floor ** 2)))
+                features = features.with_floor(np.full(len(features), rms))
+                floor_note = f"the measured states' RMS floor ({rms:.2f} mm): {error}"
         rows = Rows.of(sens, features)
         stacks[acquisition.name] = now.stacked(rows)
         made.append({"name": acquisition.name, "description": acquisition.description,
-                     "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped})
+                     "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped,
+                     "floor": floor_note})
     titles = {e.name: e.title for e in candidates}
     records = []
     for effect in candidates:

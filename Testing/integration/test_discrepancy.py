@@ -812,6 +812,40 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     assert "unknown acquisitions ['sideways']" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_a_design_with_a_measured_floor_measures_each_acquisition_s_or_says_what_stood_in(null_case, monkeypatch):
+    """Given the diagnosis's features with a floor measured from the case, the design's
+    separations now are in that floor's units (smaller than at the fixed 0.5 mm where the floor
+    is larger), and each simulated acquisition's floor is measured there too; where its refined
+    model does not solve, the measured states' RMS floor stands in, the acquisition's record says
+    so, and it is still ranked."""
+    from BreastBiomechLib.discrepancy import ModelState, load_fitted_case
+    from BreastBiomechLib.discrepancy import floor as floor_module
+    from BreastBiomechLib.discrepancy.design import design
+    from BreastBiomechLib.discrepancy.fitted import recorded_solution
+    from BreastBiomechLib.discrepancy.observations import observations_of
+
+    case, fit = null_case
+    fitted = load_fitted_case(case, fit, device="cpu")
+    observations = observations_of(fitted, recorded_solution(fitted))
+    floor = np.linspace(0.5, 1.5, len(observations))
+    second = f"only-{ModelState(fitted, fitted.z).variant().plates[1].name}"
+
+    def refused(*args, **kwargs):
+        raise RuntimeError("the fitted model on its refined mesh did not solve (inverted)")
+
+    monkeypatch.setattr(floor_module, "discretisation_error", refused)
+    made = design(fitted, ["chest-wall"], (second,), observations=observations.with_floor(floor))
+    [acquisition] = made.acquisitions
+    rms = float(np.sqrt(np.mean(floor ** 2)))
+    assert acquisition["floor"].startswith(f"the measured states' RMS floor ({rms:.2f} mm)")
+    assert "inverted" in acquisition["floor"] and made.noise["floor"] == "measured" and not made.failed
+    [hold] = made.effects
+    assert [a["name"] for a in hold["acquisitions"]] == [second] and hold["acquisitions"][0]["separation_sigma"] > 0
+    fixed = design(fitted, ["chest-wall"], acquisitions=[])  # the fixed 0.5 mm floor, no acquisition
+    assert fixed.noise["floor"] == "fixed" and 0.0 < hold["now_sigma"] < fixed.effects[0]["now_sigma"]
+
+
 def test_a_design_starts_from_the_model_a_diagnosis_ended_with(null_case, tmp_path):
     """`design --diagnosis DIR` designs from the last round's model (its refitted parameters and
     added effects; the added ones are no longer candidates); a folder without a round, or the
