@@ -24,8 +24,9 @@ fitted parameters themselves are always rivals (an effect they absorb has no sep
 Linear: the signatures are the secants at this fit; the noise the diagnosis's: where it measured
 the model-error floor from the case, each simulated acquisition's floor is measured too (one
 refined solve each), else the fixed floor
-(:class:`~BreastBiomechLib.discrepancy.observations.NoiseModel`). Not in the library yet: a posture change (the gravity model's reference
-state in the new posture) and a measured plate force (the diagnosis has no force channel).
+(:class:`~BreastBiomechLib.discrepancy.observations.NoiseModel`). Not in the library yet: a
+posture change (the gravity model's reference state in the new posture) and a measured plate
+force (the diagnosis has no force channel).
 
 Frames and units: LPS millimetres; separations in sigma.
 """
@@ -375,7 +376,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     names = [e.name for e in candidates]
     acquisitions = acquisition_library(fitted, state, kinds) if acquisitions is None else acquisitions
     measured_floor = observations is not None and observations.floor is not None
-    observations_floor = observations.floor if measured_floor else None
+    rms_floor = float(np.sqrt(np.mean(observations.floor ** 2))) if measured_floor else None
     if observations is None:
         base = recorded_solution(fitted) if not state.added and np.array_equal(state.z, fitted.z) else None
         observations = observations_of(fitted, base, noise) if base is not None else _MadeFromTheSolve(
@@ -408,9 +409,8 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
                 features = _with_measured_floor(ModelState(simulated["case"], state.z, state.added), features,
                                                 sens.displacement, noise.model_sd_mm)
             except RuntimeError as error:  # the measured states' RMS floor stands in for it
-                rms = float(np.sqrt(np.mean(observations_floor ** 2)))
-                features = features.with_floor(np.full(len(features), rms))
-                floor_note = f"the measured states' RMS floor ({rms:.2f} mm): {error}"
+                features = features.with_floor(np.full(len(features), rms_floor))
+                floor_note = f"the measured states' RMS floor ({rms_floor:.2f} mm): {error}"
         rows = Rows.of(sens, features)
         stacks[acquisition.name] = now.stacked(rows)
         made.append({"name": acquisition.name, "description": acquisition.description,

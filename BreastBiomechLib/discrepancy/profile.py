@@ -43,6 +43,7 @@ launches."""
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -192,8 +193,6 @@ def next_values(side: _Side, rss_at_estimate: float) -> list[float]:
     """The values ``side`` would try after its pending one, were that one inside (the walk goes
     on outwards) or far outside (past :data:`ROOT_JUMP`: the bracket is halved), in that order,
     each once; [] where neither would be tried."""
-    import copy
-
     out = []
     for rss in (rss_at_estimate, rss_at_estimate + CHI2_95 * (2.0 * ROOT_JUMP) ** 2):
         twin = copy.deepcopy(side)
@@ -208,7 +207,7 @@ def walk(sides: list[_Side], rss_at_estimate: float, solve: Callable[[list[tuple
     """Walk every side (:class:`_Side`) to its end: each launch ``solve([(side, value), ...])``
     (a result per pair: (rss, floor ratio), or None where the solve failed) holds the value each
     walking side needs, and, up to ``room`` models in all, the values those sides would try next
-    (:func:`next_values`, the nearest side's first); a value solved ahead is recorded when its
+    (:func:`next_values`; those of the sides with the fewest values tried first); a value solved ahead is recorded when its
     side reaches it, unsolved by then. Returns the number of launches."""
     solved: dict[tuple[int, float], object] = {}
     launches = 0
