@@ -1,7 +1,10 @@
 """The acquisitions a design may recommend (:mod:`BreastBiomechLib.discrepancy.design`): further
 scans of the same breast on the fitted case's two-plate rig, each as its final plate planes on the
 fitting mesh - the plates closing 10 or 20 % of the breast's thickness further or less, all of the
-closure by one plate, or the same closure along the other axis (LR and SI swapped).
+closure by one plate, or the same closure along the other axis (LR and SI swapped); and, where a
+one-plate push does not solve at this fit (an element inverted on the way: the breast pushed
+sideways against its chest wall by the whole closure), the same plate alone closing half as far
+(:func:`half_push`).
 
 Frames and units: LPS millimetres, the imaged (undeformed) frame.
 """
@@ -16,6 +19,7 @@ KINDS = ("compression", "one-plate", "rotated")  # the library's acquisitions, b
 COMPRESSION_CHANGES = (-0.2, -0.1, 0.1, 0.2)  # of the breast's thickness between the plates at the start
 MOST_COMPRESSION = 0.7  # a closure beyond this fraction of the thickness is not an acquisition made
 ONE_PLATE_SHARE = 0.95  # a plate with this share of the closure or more is the one that moved
+HALF = "-half"  # the suffix of a one-plate push made half as far (:func:`half_push`)
 SWAPPED_AXES = {0: "SI", 1: "LR", 2: "LR"}  # the rotated acquisition's axis, by the plates' present axis (L, P, S)
 
 
@@ -39,26 +43,17 @@ def acquisition_library(fitted, state=None, kinds=KINDS) -> list[Acquisition]:
     :data:`COMPRESSION_CHANGES` of the thickness (shared between the plates as now), all of it
     by one plate (each plate not already moving alone), and the same closure along the other
     axis (LR becomes SI, SI and AP become LR; plates touching the breast skin, ending where the
-    present plates end: :func:`_edge_kept`).
+    present plates end: :func:`_edge_kept`); a one-plate push half as far
+    (``only-<plate>-half``, :func:`half_push`) where asked for by name.
     Refuses a rig of other than two facing plates, and a kind or name the library does not
     have for this rig."""
-    from BreastBiomechLib.discrepancy.state import ModelState
     from BreastBiomechLib.solver.placement import compression_plates
 
-    plates = (state or ModelState(fitted, fitted.z)).variant().plates
-    if len(plates) != 2 or plates[0].normal @ plates[1].normal > -0.99:
-        raise ValueError(f"{fitted.case_dir}: the acquisition library is made for two facing plates; this case has "
-                         f"{len(plates)} plate(s){'' if len(plates) != 2 else ' that do not face each other'}")
-    travel = np.array([max(float(p.displacement @ p.normal), 0.0) for p in plates])
-    closure = float(travel.sum())
-    thickness = float((plates[1].point - plates[0].point) @ plates[0].normal)
-    if not (closure > 0 and thickness > closure):
-        raise ValueError(f"{fitted.case_dir}: the plates close {closure:.1f} mm of a {thickness:.1f} mm breast; a "
-                         "compression is needed to design the next one")
+    plates, travel, closure, thickness = _rig(fitted, state)
     shares = travel / closure
 
     def planes(travels):
-        return tuple(_plane(p, p.point + t * p.normal) for p, t in zip(plates, travels))
+        return _planes(plates, travels)
 
     out = []
     for change in COMPRESSION_CHANGES:
@@ -70,8 +65,9 @@ def acquisition_library(fitted, state=None, kinds=KINDS) -> list[Acquisition]:
                                    planes(travel * now / closure), "compression"))
     for k, plate in enumerate(plates):
         if shares[k] < ONE_PLATE_SHARE:
-            out.append(Acquisition(f"only-{plate.name}", f"compress again as far with only the {plate.name} plate moving",
-                                   planes(np.where(np.arange(2) == k, closure, 0.0)), "one-plate"))
+            out.append(_one_plate(plates, k, closure, thickness))
+            if f"only-{plate.name}{HALF}" in kinds:  # asked for by name only
+                out.append(_one_plate(plates, k, closure, thickness, half=True))
     axis = SWAPPED_AXES[int(np.argmax(np.abs(plates[0].normal)))]
     moving = "both" if shares.max() < ONE_PLATE_SHARE else ("first" if shares[0] > shares[1] else "second")
     turned = compression_plates(fitted.mesh, axis, closure / thickness, names=(f"{axis}-1", f"{axis}-2"),
@@ -86,6 +82,55 @@ def acquisition_library(fitted, state=None, kinds=KINDS) -> list[Acquisition]:
                          f"({', '.join(a.name for a in out)})")
     out = [a for a in out if a.kind in wanted or a.name in wanted]
     return out
+
+
+def half_push(fitted, state, acquisition: Acquisition) -> Acquisition | None:
+    """The one-plate ``acquisition`` of :func:`acquisition_library` made half as far: the same
+    plate alone closing half the present closure (``only-<plate>-half``), the push a design
+    simulates where the whole one does not solve at the fit ``state`` (default the fit's); None
+    for an acquisition of another kind or one halved already."""
+    if acquisition.kind != "one-plate" or acquisition.name.endswith(HALF):
+        return None
+    plates, _, closure, thickness = _rig(fitted, state)
+    k = [p.name for p in plates].index(acquisition.name[len("only-"):])
+    return _one_plate(plates, k, closure, thickness, half=True)
+
+
+def _rig(fitted, state):
+    """The fitted case's two facing plates at the model ``state`` (default the fit's), each
+    plate's travel towards the tissue (mm), their closure (mm) and the breast's thickness
+    between them at rest (mm). Refuses another rig, or plates that do not compress."""
+    from BreastBiomechLib.discrepancy.state import ModelState
+
+    plates = (state or ModelState(fitted, fitted.z)).variant().plates
+    if len(plates) != 2 or plates[0].normal @ plates[1].normal > -0.99:
+        raise ValueError(f"{fitted.case_dir}: the acquisition library is made for two facing plates; this case has "
+                         f"{len(plates)} plate(s){'' if len(plates) != 2 else ' that do not face each other'}")
+    travel = np.array([max(float(p.displacement @ p.normal), 0.0) for p in plates])
+    closure = float(travel.sum())
+    thickness = float((plates[1].point - plates[0].point) @ plates[0].normal)
+    if not (closure > 0 and thickness > closure):
+        raise ValueError(f"{fitted.case_dir}: the plates close {closure:.1f} mm of a {thickness:.1f} mm breast; a "
+                         "compression is needed to design the next one")
+    return plates, travel, closure, thickness
+
+
+def _planes(plates, travels) -> tuple[dict, ...]:
+    """The final planes of ``plates`` each moved its travel (mm) towards the tissue."""
+    return tuple(_plane(p, p.point + t * p.normal) for p, t in zip(plates, travels))
+
+
+def _one_plate(plates, k: int, closure: float, thickness: float, half: bool = False) -> Acquisition:
+    """Plate ``k`` of the two alone closing the present ``closure`` (mm; the other at rest):
+    ``only-<plate>``, or half as far ``only-<plate>-half``. ``thickness``: the breast's between the
+    plates at rest (mm)."""
+    name, travel = plates[k].name, closure / 2 if half else closure
+    planes = _planes(plates, np.where(np.arange(2) == k, travel, 0.0))
+    if not half:
+        return Acquisition(f"only-{name}", f"compress again as far with only the {name} plate moving", planes,
+                           "one-plate")
+    return Acquisition(f"only-{name}{HALF}", f"compress again with only the {name} plate moving, half as far "
+                       f"({100 * travel / thickness:.0f} % of the breast's thickness)", planes, "one-plate")
 
 
 def _edge_kept(plate, turned):

@@ -40,11 +40,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import SimpleITK as sitk
 
-from BreastBiomechLib.discrepancy.acquisitions import KINDS, Acquisition, acquisition_library
+from BreastBiomechLib.discrepancy.acquisitions import KINDS, Acquisition, acquisition_library, half_push
 from BreastBiomechLib.discrepancy.effects import library
 from BreastBiomechLib.discrepancy.fitted import FittedCase, recorded_solution
 from BreastBiomechLib.discrepancy.observations import NoiseModel, Observations, observations_of
-from BreastBiomechLib.discrepancy.sensitivity import Sensitivities, sensitivities
+from BreastBiomechLib.discrepancy.sensitivity import UNSOLVED, Sensitivities, sensitivities
 from BreastBiomechLib.discrepancy.state import ModelState
 from BreastBiomechLib.discrepancy.statistics import detectable_noncentrality
 from BreastBiomechLib.io.case_layout import CaseLayout
@@ -347,6 +347,15 @@ def _with_measured_floor(simulated: ModelState, features: Observations, displace
     return features.with_floor(measure_floor(simulated, features, displacement_mm, regions, lower_bound_mm).floor)
 
 
+def _halved(fitted: FittedCase, state: ModelState, acquisition: Acquisition, queue) -> list[Acquisition]:
+    """The one-plate ``acquisition``'s push half as far
+    (:func:`~BreastBiomechLib.discrepancy.acquisitions.half_push`), to be simulated where the
+    whole push does not solve at this fit (the model, or a variant the design needs); none for
+    another kind, a push halved already or one in the ``queue``."""
+    half = half_push(fitted, state, acquisition)
+    return [half] if half is not None and half.name not in {a.name for a in queue} else []
+
+
 def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acquisition] | None = None,
            noise: NoiseModel | None = None, alpha: float = 0.01, state: ModelState | None = None,
            progress: Callable[[str], None] | None = None, designed_for=None,
@@ -366,7 +375,10 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     ``effects``; default all of them): the effects whose acquisitions are ranked; every candidate
     is a rival in the measured states, and each acquisition solves only these and their closest
     rivals there (a diagnosis designs for the few it could not tell apart: each acquisition's
-    solves are as many fewer as the other candidates have parameters)."""
+    solves are as many fewer as the other candidates have parameters). A one-plate push whose
+    model, or a variant of those, does not solve (an element inverted, also with a slower load)
+    is simulated half as far too (``only-<plate>-half``); an acquisition whose model does not
+    solve is in the design's ``failed``."""
     from dataclasses import replace
 
     say = progress or (lambda message: None)
@@ -387,7 +399,8 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     chosen, rivals, solved = acquisition_effects(now, names, designed_for)
     stacks, failed, made = {}, {}, []
     undeformed = read_image(CaseLayout(fitted.case_dir).mr)
-    for acquisition in acquisitions:
+    queue = list(acquisitions)
+    for acquisition in queue:  # a one-plate push that does not solve here adds its half to the queue
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
         placed, simulated = placed_case(fitted, acquisition, undeformed, state.z), {}
 
@@ -401,6 +414,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
                                  progress=say)
         except RuntimeError as error:
             failed[acquisition.name] = f"in acquisition {acquisition.name}: {error}"
+            queue += _halved(fitted, state, acquisition, queue)
             continue
         features, floor_note = seen.made, "measured" if measured_floor else "fixed"
         if measured_floor:
@@ -416,6 +430,8 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped,
                      "floor": floor_note})
+        if any(why.startswith(UNSOLVED) for name, why in rows.skipped.items() if name in solved):
+            queue += _halved(fitted, state, acquisition, queue)
     titles = {e.name: e.title for e in candidates}
     records = []
     for effect in candidates:

@@ -19,6 +19,8 @@ from BreastBiomechLib.discrepancy.state import FIT_STEP, ModelState
 from BreastBiomechLib.discrepancy.variants import Outcome, solve_variants
 from BreastBiomechLib.timing import stage, staged
 
+UNSOLVED = "its variant did not solve"  # how a skipped effect whose model failed is said
+
 
 @dataclass
 class Sensitivities:
@@ -132,7 +134,7 @@ def sensitivities(state: ModelState, observations: Observations | Callable[[np.n
         if name in skipped:
             continue
         if not outcome.ok:
-            skipped[name] = f"its variant did not solve ({outcome.status}: {outcome.message})"
+            skipped[name] = f"{UNSOLVED} ({outcome.status}: {outcome.message})"
             for table in (effects, fields, steps):
                 table.pop(name, None)
             continue

@@ -775,7 +775,7 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     folder and an acquisition the library does not have are refused."""
     from BreastBiomechLib.cli import main
     from BreastBiomechLib.discrepancy import ModelState, load_fitted_case
-    from BreastBiomechLib.discrepancy.acquisitions import acquisition_library
+    from BreastBiomechLib.discrepancy.acquisitions import acquisition_library, half_push
 
     case, fit = null_case
     fitted = load_fitted_case(case, fit, device="cpu")
@@ -794,6 +794,12 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     assert gap(acquisitions[f"only-{plates[0].name}"]) == pytest.approx(thickness - closure)
     np.testing.assert_allclose(acquisitions[f"only-{plates[0].name}"].planes[1]["point"], plates[1].point, atol=1e-9)
     np.testing.assert_allclose(np.abs(acquisitions["rotated-SI"].planes[0]["normal"]), [0.0, 0.0, 1.0])
+    half = half_push(fitted, None, acquisitions[f"only-{plates[0].name}"])  # where the whole push does not solve
+    assert half.name == f"only-{plates[0].name}-half" and gap(half) == pytest.approx(thickness - closure / 2)
+    np.testing.assert_allclose(half.planes[1]["point"], plates[1].point, atol=1e-9)
+    assert half_push(fitted, None, half) is None and half_push(fitted, None, acquisitions["compression+10"]) is None
+    asked = acquisition_library(fitted, kinds=(half.name,))  # by name
+    assert [a.name for a in asked] == [half.name] and asked[0].planes == half.planes
     out = tmp_path / "design"
     second = f"only-{plates[1].name}"
     command = ["design", str(case), "--fit", str(fit), "--out", str(out), "--effects", "chest-wall",
@@ -818,8 +824,10 @@ def test_a_design_with_a_measured_floor_measures_each_acquisition_s_or_says_what
     separations now are in that floor's units (smaller than at the fixed 0.5 mm where the floor
     is larger), and each simulated acquisition's floor is measured there too; where its refined
     model does not solve, the measured states' RMS floor stands in, the acquisition's record says
-    so, and it is still ranked."""
+    so, and it is still ranked. A one-plate push whose model does not solve (made to fail here)
+    is said failed and simulated half as far instead."""
     from BreastBiomechLib.discrepancy import ModelState, load_fitted_case
+    from BreastBiomechLib.discrepancy import design as design_module
     from BreastBiomechLib.discrepancy import floor as floor_module
     from BreastBiomechLib.discrepancy.design import design
     from BreastBiomechLib.discrepancy.fitted import recorded_solution
@@ -834,14 +842,25 @@ def test_a_design_with_a_measured_floor_measures_each_acquisition_s_or_says_what
     def refused(*args, **kwargs):
         raise RuntimeError("the fitted model on its refined mesh did not solve (inverted)")
 
+    real = design_module.sensitivities
+
+    def inverting(state, *args, **kwargs):  # the whole push inverts an element of this model
+        if state.fitted.name == second:
+            raise RuntimeError("the current model does not solve (inverted elements: 1 element(s) inverted)")
+        return real(state, *args, **kwargs)
+
     monkeypatch.setattr(floor_module, "discretisation_error", refused)
+    monkeypatch.setattr(design_module, "sensitivities", inverting)
     made = design(fitted, ["chest-wall"], (second,), observations=observations.with_floor(floor))
+    assert list(made.failed) == [second] and "inverted" in made.failed[second]
     [acquisition] = made.acquisitions
+    assert acquisition["name"] == f"{second}-half" and "half as far" in acquisition["description"]
     rms = float(np.sqrt(np.mean(floor ** 2)))
     assert acquisition["floor"].startswith(f"the measured states' RMS floor ({rms:.2f} mm)")
-    assert "inverted" in acquisition["floor"] and made.noise["floor"] == "measured" and not made.failed
+    assert "inverted" in acquisition["floor"] and made.noise["floor"] == "measured"
     [hold] = made.effects
-    assert [a["name"] for a in hold["acquisitions"]] == [second] and hold["acquisitions"][0]["separation_sigma"] > 0
+    assert [a["name"] for a in hold["acquisitions"]] == [f"{second}-half"]
+    assert hold["acquisitions"][0]["separation_sigma"] > 0
     fixed = design(fitted, ["chest-wall"], acquisitions=[])  # the fixed 0.5 mm floor, no acquisition
     assert fixed.noise["floor"] == "fixed" and 0.0 < hold["now_sigma"] < fixed.effects[0]["now_sigma"]
 

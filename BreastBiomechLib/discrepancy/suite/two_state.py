@@ -6,7 +6,8 @@ the whole library where the rounds left nothing undecided) and its recommended a
 
 The acquisition the design names is turned into the phantom's state settings
 (:func:`state_spec`): a closure changed by a fraction of the thickness is another compression,
-a closure by one plate is that plate moving alone, the plates turned is the other axis. The
+a closure by one plate is that plate moving alone (half as far: at half the first compression),
+the plates turned is the other axis. The
 choice is the design's, made from the measured scan and the fit: the suite never picks the
 state by what its truth hides.
 
@@ -30,6 +31,7 @@ def state_spec(acquisition: dict, first_compression: float) -> StateSpec:
     The state takes the acquisition's name where it is a state name ("compression+10" becomes
     "compression-up10", "compression-10" "compression-down10"). Raises ValueError for an
     acquisition the phantom cannot make."""
+    from BreastBiomechLib.discrepancy.acquisitions import HALF
     from BreastBiomechLib.phantom.states import StateSpec  # the phantom: SimpleITK
 
     name = acquisition["name"]
@@ -39,10 +41,12 @@ def state_spec(acquisition: dict, first_compression: float) -> StateSpec:
         return StateSpec(state, compression=round(first_compression + change, 6))
     if name.startswith(ONE_PLATE_PREFIX):
         plates = [plane["name"] for plane in acquisition["planes"]]
-        plate = name[len(ONE_PLATE_PREFIX):]
+        plate = name[len(ONE_PLATE_PREFIX):].removesuffix(HALF)
         if plate not in plates or len(plates) != 2:
             raise ValueError(f"acquisition {name!r}: no plate {plate!r} among the rig's {plates}")
-        return StateSpec(name, moving_plate=("first", "second")[plates.index(plate)])
+        half = name.endswith(HALF)
+        return StateSpec(name, moving_plate=("first", "second")[plates.index(plate)],
+                         compression=round(first_compression / 2, 6) if half else None)
     if name.startswith(ROTATED_PREFIX):
         return StateSpec(name, axis=name[len(ROTATED_PREFIX):])
     raise ValueError(f"acquisition {name!r}: the phantom makes compressions, one plate moving and plates turned; "

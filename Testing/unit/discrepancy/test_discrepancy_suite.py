@@ -544,6 +544,9 @@ def test_a_design_s_acquisition_becomes_the_phantom_state_that_makes_it():
     lateral = state_spec({"name": "only-right", "planes": planes}, 0.25)
     assert (lateral.name, lateral.moving_plate, lateral.compression) == ("only-right", "second", None)
     assert state_spec({"name": "only-left", "planes": planes}, 0.25).moving_plate == "first"
+    half = state_spec({"name": "only-left-half", "planes": planes}, 0.25)  # the push a design halved
+    assert (half.name, half.moving_plate, half.compression) == ("only-left-half", "first", pytest.approx(0.125))
+    check_states([half])
     assert state_spec({"name": "rotated-SI", "planes": planes}, 0.25).axis == "SI"
     with pytest.raises(ValueError, match="no plate 'top'"):
         state_spec({"name": "only-top", "planes": planes}, 0.25)
