@@ -207,8 +207,10 @@ def scans(results: list[dict]) -> dict:
     """Two-state cases against themselves with one scan (their ``one_state`` records):
     {"one": [right, hidden-effect cases], "two": [...], "null_one": [false alarms, null cases],
     "null_two": [...], "acquisitions": {the designed second scan: cases}, "design_within_30":
-    [separations the design predicted within 30 % of the one the two scans realised, effects]}
-    (all 0 without two-state cases)."""
+    [separations the design predicted within 30 % of the one the two scans realised, effects],
+    "predicted_told": [hidden-effect cases whose second scan the design predicted to tell their
+    effect apart (its separation at least the needed one), hidden-effect cases], "right_where_told":
+    [right, of those]} (all 0 without two-state cases)."""
     both = [r for r in results if r.get("one_state")]
     hidden = [r for r in both if r["kind"] != "null"]
     null = [r for r in both if r["kind"] == "null"]
@@ -219,11 +221,21 @@ def scans(results: list[dict]) -> dict:
     pairs = [(p, r["second_state"].get("realised_sigma", {}).get(effect)) for r in both
              for effect, p in r.get("second_state", {}).get("predicted_sigma", {}).items()]
     pairs = [(p, q) for p, q in pairs if p is not None and q is not None and q > 0]
+    told = [r for r in hidden if _predicted_told(r)]
     return {"one": [sum(r["one_state"]["correct"] for r in hidden), len(hidden)],
+            "predicted_told": [len(told), len(hidden)], "right_where_told": [sum(r["correct"] for r in told), len(told)],
             "design_within_30": [sum(abs(p / q - 1.0) <= 0.3 for p, q in pairs), len(pairs)],
             "two": [sum(r["correct"] for r in hidden), len(hidden)],
             "null_one": [sum(not r["one_state"]["correct"] for r in null), len(null)],
             "null_two": [sum(not r["correct"] for r in null), len(null)], "acquisitions": chosen}
+
+
+def _predicted_told(result: dict) -> bool:
+    """Whether the design predicted the case's second scan to tell one of the effects its truth
+    hides apart from its rival (a separation at least the needed one)."""
+    second = result.get("second_state") or {}
+    needed, predicted = second.get("needed_sigma"), second.get("predicted_sigma") or {}
+    return needed is not None and any((predicted.get(effect) or 0.0) >= needed for effect in result["expected"])
 
 
 def by_setting(results: list[dict]) -> dict:
@@ -329,7 +341,9 @@ def _scans_rows(scores: dict) -> list[str]:
             f"| false alarms of the two-state null cases: first scan alone / both | {_count(found['null_one'])} / "
             f"{_count(found['null_two'])} | ≤ 5 % |",
             f"| the design's predicted separations within ±30 % of those the two scans realised | "
-            f"{_count(found.get('design_within_30', [0, 0]))} | |"]
+            f"{_count(found.get('design_within_30', [0, 0]))} | |",
+            f"| hidden-effect cases whose designed second scan was predicted to tell the effect apart; right of "
+            f"those | {_count(found.get('predicted_told', [0, 0]))}; {_count(found.get('right_where_told', [0, 0]))} | |"]
 
 
 def scores_markdown(scores: dict, results: list[dict]) -> str:

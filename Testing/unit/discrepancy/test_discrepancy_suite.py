@@ -584,14 +584,21 @@ def test_two_state_cases_are_named_by_their_second_scan_and_scored_against_their
     with pytest.raises(ValueError, match="one or two"):
         SuiteCase(1, HIDDEN_EFFECTS["null"], states=3)
     null = case_result(SuiteCase(2, HIDDEN_EFFECTS["null"], states=2), [_round("no significant discrepancy")], 1.3, {}, {})
-    results = [told | {"one_state": one_scan | {"correct": False}, "second_state": {"acquisition": "only-right"}},
-               still_absorbed | {"one_state": one_scan, "second_state": {"acquisition": "only-right"}},
+    # the design predicted the first case's scan to tell the hold apart (4.1 sigma, 3.4 needed), not the second's
+    results = [told | {"one_state": one_scan | {"correct": False},
+                       "second_state": {"acquisition": "only-right", "predicted_sigma": {"chest-wall": 4.1},
+                                        "needed_sigma": 3.4}},
+               still_absorbed | {"one_state": one_scan,
+                                 "second_state": {"acquisition": "only-right-half", "needed_sigma": 3.4,
+                                                  "predicted_sigma": {"chest-wall": 2.0, "gravity": 5.0}}},
                null | {"one_state": null, "second_state": {"acquisition": "compression+10"}}]
     scores = suite_scores(results)
     assert scores["scans"] == {"one": [1, 2], "two": [1, 2], "null_one": [0, 1], "null_two": [0, 1],
-                               "acquisitions": {"only-right": 2, "compression+10": 1}, "design_within_30": [0, 0]}
+                               "acquisitions": {"only-right": 1, "only-right-half": 1, "compression+10": 1},
+                               "design_within_30": [0, 0], "predicted_told": [1, 2], "right_where_told": [1, 1]}
     text = scores_markdown(scores, results)
-    assert "| the same cases with the designed second scan (compression+10 1, only-right 2) | 50% of 2" in text
+    assert "| the same cases with the designed second scan (compression+10 1, only-right 1, only-right-half 1) | 50% of 2" in text
+    assert "predicted to tell the effect apart; right of those | 50% of 2" in text
 
 
 def test_the_design_s_predicted_separations_are_set_against_those_the_two_scans_realised():
