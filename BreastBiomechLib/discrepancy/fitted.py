@@ -107,12 +107,15 @@ class FittedCase:
         return self.problem.model.loading.plates
 
     def skin_fraction(self, thickness_mm: float) -> np.ndarray:
-        """Each element's share of volume within ``thickness_mm`` of the skin surface (cached)."""
-        from BreastBiomechLib.mesh.skin import skin_fraction
+        """Each element's share of volume within ``thickness_mm`` of the skin surface (cached,
+        as is the nodes' depth under it that every thickness's share is counted from)."""
+        from BreastBiomechLib.mesh.skin import skin_fraction, surface_distance
 
         if thickness_mm not in self._skin:
             nodes = self.mesh.node_set("skin" if "skin" in self.mesh.point_data else "surface")
-            self._skin[thickness_mm] = skin_fraction(self.mesh, nodes, thickness_mm)
+            if "depth" not in self._skin:
+                self._skin["depth"] = surface_distance(self.mesh, nodes)
+            self._skin[thickness_mm] = skin_fraction(self.mesh, nodes, thickness_mm, self._skin["depth"])
         return self._skin[thickness_mm]
 
 

@@ -50,12 +50,14 @@ def surface_distance(mesh: TetMesh, skin_nodes, spacing_mm: float = 0.5) -> np.n
     return cKDTree(np.concatenate(samples)).query(mesh.nodes, workers=-1)[0]  # on every core: deep nodes query slowly
 
 
-def skin_fraction(mesh: TetMesh, skin_nodes, thickness_mm: float) -> np.ndarray:
+def skin_fraction(mesh: TetMesh, skin_nodes, thickness_mm: float, depth_mm: np.ndarray | None = None) -> np.ndarray:
     """Each element's share (M,) in [0, 1] of its volume within ``thickness_mm`` of the skin
-    surface (the distance linear over the element, its share counted on a 165-point lattice)."""
+    surface (the distance linear over the element, its share counted on a 165-point lattice).
+    ``depth_mm``: the nodes' :func:`surface_distance` from ``skin_nodes`` where it is known
+    (shares at several thicknesses measure it once)."""
     if not (np.isfinite(thickness_mm) and thickness_mm > 0):
         raise ValueError(f"the skin thickness must be a positive number of millimetres, not {thickness_mm}")
-    depth = surface_distance(mesh, skin_nodes)
+    depth = surface_distance(mesh, skin_nodes) if depth_mm is None else depth_mm
     inside = (_lattice_weights() @ depth[mesh.tets].T) < thickness_mm  # (P, M)
     return inside.mean(axis=0)
 
