@@ -51,10 +51,6 @@ def acquisition_library(fitted, state=None, kinds=KINDS) -> list[Acquisition]:
 
     plates, travel, closure, thickness = _rig(fitted, state)
     shares = travel / closure
-
-    def planes(travels):
-        return _planes(plates, travels)
-
     out = []
     for change in COMPRESSION_CHANGES:
         now = closure + change * thickness
@@ -62,7 +58,7 @@ def acquisition_library(fitted, state=None, kinds=KINDS) -> list[Acquisition]:
             out.append(Acquisition(f"compression{100 * change:+.0f}",
                                    f"compress again {abs(100 * change):.0f} % of the breast's thickness "
                                    f"{'further' if change > 0 else 'less'} ({100 * now / thickness:.0f} % in all)",
-                                   planes(travel * now / closure), "compression"))
+                                   _planes(plates, travel * now / closure), "compression"))
     for k, plate in enumerate(plates):
         if shares[k] < ONE_PLATE_SHARE:
             out.append(_one_plate(plates, k, closure, thickness))
