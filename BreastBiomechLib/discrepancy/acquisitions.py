@@ -112,8 +112,27 @@ def _rig(fitted, state):
 
 
 def _planes(plates, travels) -> tuple[dict, ...]:
-    """The final planes of ``plates`` each moved its travel (mm) towards the tissue."""
-    return tuple(_plane(p, p.point + t * p.normal) for p, t in zip(plates, travels))
+    """The final planes of ``plates`` each moved its travel (mm) towards the tissue. Where the
+    larger travel exceeds the measured scan's, plates that end before the chest (a rounded edge)
+    end as much further from it and round as much more (:func:`_grown`): the rule by which the
+    library places plates for any closure (:func:`~BreastBiomechLib.solver.placement.plate_contacts`:
+    the flat faces end the larger travel anterior to the chest, rounded by as much), applied to
+    the measured plates. The measured scan's edges kept for a longer push wrap the pushed tissue
+    round a corner too sharp for a fitting mesh: one plate pushing the whole closure so inverted
+    elements of every fitting mesh of the two-state suite's chest-wall cases (2026-12-07)."""
+    grow = max(0.0, float(np.max(travels)) - max(float(p.displacement @ p.normal) for p in plates))
+    return tuple(_plane(replace(p, edge=_grown(p.edge, grow)), p.point + t * p.normal) for p, t in zip(plates, travels))
+
+
+def _grown(edge, grow_mm: float):
+    """``edge`` (:class:`~BreastBiomechLib.solver.model.PlateEdge`, or None: unbounded) ending
+    ``grow_mm`` further from the chest (its direction points towards it) with a radius that
+    much larger."""
+    from BreastBiomechLib.solver.model import PlateEdge
+
+    if edge is None or grow_mm == 0:
+        return edge
+    return PlateEdge(edge.direction, edge.distance - grow_mm, edge.radius + grow_mm)
 
 
 def _one_plate(plates, k: int, closure: float, thickness: float, half: bool = False) -> Acquisition:

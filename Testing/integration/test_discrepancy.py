@@ -793,7 +793,18 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     assert gap(acquisitions["compression+20"]) == pytest.approx(thickness - closure - 0.2 * thickness)
     assert gap(acquisitions[f"only-{plates[0].name}"]) == pytest.approx(thickness - closure)
     np.testing.assert_allclose(acquisitions[f"only-{plates[0].name}"].planes[1]["point"], plates[1].point, atol=1e-9)
-    np.testing.assert_allclose(np.abs(acquisitions["rotated-SI"].planes[0]["normal"]), [0.0, 0.0, 1.0])
+    # a longer push than the first scan's: the plates end further from the chest and round more, by
+    # as much as the larger travel grew (the library's rule for placing plates); a shorter one keeps them
+    first_travel = max(p.displacement @ p.normal for p in plates)
+    first_end = plates[0].point @ plates[0].edge.direction + plates[0].edge.distance
+    for name, travel in (("compression-10", first_travel), ("compression+20", (closure + 0.2 * thickness) / 2),
+                         (f"only-{plates[0].name}", closure)):
+        for plane in acquisitions[name].planes:
+            edge = plane["edge"]
+            grown = max(0.0, travel - first_travel)
+            assert edge["radius"] == pytest.approx(plates[0].edge.radius + grown, abs=0.3)
+            assert np.asarray(plane["point"]) @ np.asarray(edge["direction"]) + edge["distance"] == pytest.approx(
+                first_end - grown, abs=0.3)
     half = half_push(fitted, None, acquisitions[f"only-{plates[0].name}"])  # where the whole push does not solve
     assert half.name == f"only-{plates[0].name}-half" and gap(half) == pytest.approx(thickness - closure / 2)
     np.testing.assert_allclose(half.planes[1]["point"], plates[1].point, atol=1e-9)
