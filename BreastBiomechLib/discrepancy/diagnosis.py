@@ -46,6 +46,7 @@ from BreastBiomechLib.timing import staged
 VERDICTS = verdicts.VERDICTS
 EDGE = 0.005  # a fitted parameter this close to an end of its range (unit coordinates) is at it
 ABSORBED = 0.8  # a candidate this much of whose signature the fitted parameters reproduce is hard to see
+TAKEN_UP = 0.5  # a candidate too small to see is said taken up by the parameter reproducing this much of it
 # two candidates whose signatures correlate this much once the fitted parameters are accounted for
 # cannot be told apart by this case: the part of one the other cannot reproduce is sqrt(1 - 0.8^2),
 # 0.6 of it
@@ -254,9 +255,11 @@ def beyond_range(candidate: Candidate, effects: dict) -> list[str]:
 def absorbed_sentence(candidates: list[Candidate], effects: dict | None = None, missing: bool = False) -> str:
     """The tested candidates this case could not have shown ("" when none): those whose signature
     the fitted parameters reproduce (at least :data:`ABSORBED` of it), and those (with
-    ``effects``, name -> :class:`Effect`) whose smallest detectable size lies beyond their range.
-    ``missing``: said after an unexplained discrepancy, where such an effect may be what is
-    missing (and a further measured state is what would tell)."""
+    ``effects``, name -> :class:`Effect`) whose smallest detectable size lies beyond their range,
+    each with the fitted parameter that would take it up where the fitted parameters reproduce
+    at least :data:`TAKEN_UP` of its signature. ``missing``: said after an unexplained
+    discrepancy, where such an effect may be what is missing (and a further measured state is
+    what would tell)."""
     tested = [c for c in candidates if not c.skipped]
     hidden = [c for c in tested if c.absorbed >= ABSORBED]
     parts = []
@@ -271,9 +274,19 @@ def absorbed_sentence(candidates: list[Candidate], effects: dict | None = None, 
     small = [(c, beyond_range(c, effects or {})) for c in tested if c not in hidden]
     small = [(c, ends) for c, ends in small if ends]
     if small:
-        listed = "; ".join(f"{c.title} (smallest size its test would see: {'; '.join(ends)})" for c, ends in small)
+        listed = "; ".join(f"{c.title} (smallest size its test would see: {'; '.join(ends)}{_taken_up(c)})"
+                           for c, ends in small)
         parts.append(f"Too small to see at this case's noise, whatever its size within its range: {listed}.")
     return " ".join(parts)
+
+
+def _taken_up(candidate: Candidate) -> str:
+    """", X % of it would be taken up as P" where the fitted parameters reproduce at least
+    :data:`TAKEN_UP` of ``candidate``'s signature, P the one that chiefly does ("" otherwise)."""
+    name = (candidate.absorbed_by or {}).get("name")
+    if not name or not candidate.absorbed >= TAKEN_UP:
+        return ""
+    return f"; {candidate.absorbed:.0%} of it would be taken up as {name}"
 
 
 def closest_rivals(candidates: list[dict], correlations: dict) -> dict[str, tuple[str, float]]:

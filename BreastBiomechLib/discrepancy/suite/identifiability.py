@@ -123,13 +123,18 @@ def identifiability(case: SuiteCase, rounds: list[dict]) -> dict:
 
 
 def told_absorbed_by_muscle(record: dict, name: str) -> bool:
-    """Whether round ``record`` said candidate ``name`` is not identifiable here because the
+    """Whether round ``record`` said candidate ``name`` is not identifiable here and that the
     fitted pectoral muscle's parameters take it up (issue 78's rule for a one-scan chest-wall
-    case: right when the verdict says so)."""
-    from BreastBiomechLib.discrepancy.diagnosis import ABSORBED
+    case: right when the verdict says so): not identifiable (its signature reproduced at least
+    :data:`~BreastBiomechLib.discrepancy.diagnosis.ABSORBED` by the fitted parameters, or its
+    smallest detectable size beyond its range), the larger part of it (at least
+    :data:`~BreastBiomechLib.discrepancy.diagnosis.TAKEN_UP`) reproduced, chiefly by a muscle
+    parameter - what the verdict then says of it."""
+    from BreastBiomechLib.discrepancy.diagnosis import TAKEN_UP
 
     candidate = _candidate(record, name)
-    return (candidate is not None and candidate.get("absorbed", float("nan")) >= ABSORBED
+    return (candidate is not None and not candidate.get("skipped") and not_identifiable(candidate, name)
+            and candidate.get("absorbed", float("nan")) >= TAKEN_UP
             and str((candidate.get("absorbed_by") or {}).get("name", "")).startswith("muscle."))
 
 

@@ -11,7 +11,8 @@ may not show, such as gravity leaning from the recorded posture, that refinement
 last then says "none" (a right first round followed by a
 false "unexplained" is wrong: the verdict a user reads is the last); a one-scan case hiding the
 chest-wall hold is also right when nothing is added, the last round says "none" or "unexplained"
-and it calls the hold not identifiable here, taken up by the muscle's modulus (issue 78's rule:
+and it calls the hold not identifiable here, taken up by the muscle's modulus
+(:func:`~BreastBiomechLib.discrepancy.suite.identifiability.told_absorbed_by_muscle`; issue 78's rule:
 one scan cannot tell them apart, a verdict that says so is not a miss - an unexplained
 discrepancy says the hold may be what is missing; with two scans only naming it is right);
 an effect outside the

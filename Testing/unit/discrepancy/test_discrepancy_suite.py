@@ -475,6 +475,12 @@ def test_the_identifiability_statements_are_scored_against_the_truth_s_size():
     seen_low["diagnosis"]["candidates"] = [_tested("chest-wall", absorbed=0.3, detectable=(0.5,))]
     told, wrong_parameter, plainly_missed = (result("chest-wall", [r]) for r in (hold, other, seen_low))
     assert [told["correct"], wrong_parameter["correct"], plainly_missed["correct"]] == [True, False, False]
+    # too small to see within its range (h 0 to 0.99): right where the verdict says the muscle takes most of it up
+    for absorbed, detectable, right in ((0.78, 4.7, True), (0.43, 17.9, False), (0.78, 0.5, False)):
+        small = _round("no significant discrepancy")
+        small["diagnosis"]["candidates"] = [_tested("chest-wall", absorbed=absorbed, detectable=(detectable,),
+                                                    absorbed_by="muscle.E")]
+        assert result("chest-wall", [small])["correct"] is right
     # an unexplained discrepancy that says the muscle takes the hold up (it may be what is missing)
     # is right too; one that says nothing of it is not
     unexplained = _round("unexplained discrepancy")

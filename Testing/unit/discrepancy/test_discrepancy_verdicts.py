@@ -269,6 +269,12 @@ def test_what_this_case_could_not_have_shown_names_absorbed_and_too_small_effect
     assert "Too small to see at this case's noise, whatever its size within its range: plate friction (smallest " \
            "size its test would see: mu 2.1, its range 0 to 1.5)" in sentence
     assert absorbed_sentence([seen], {"friction": friction}) == ""
+    # too small to see, the larger part of it reproduced: what would take it up is named
+    mostly = Candidate("friction", "plate friction", "", absorbed=0.78,
+                       absorbed_by={"name": "glandular.E", "correlation": 0.88}, detectable=[2.1])
+    assert "(smallest size its test would see: mu 2.1, its range 0 to 1.5; 78% of it would be taken up as " \
+           "glandular.E)" in absorbed_sentence([mostly], {"friction": friction})
+    assert "taken up" not in absorbed_sentence([small], {"friction": friction})
     assert "such an effect, if present, has been fitted as those parameters" in sentence
     # after an unexplained discrepancy such an effect may be what is missing
     after_unexplained = absorbed_sentence([absorbed], {"friction": friction}, missing=True)
