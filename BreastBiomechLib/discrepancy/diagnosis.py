@@ -281,7 +281,7 @@ def absorbed_sentence(candidates: list[Candidate], effects: dict | None = None, 
 
 
 def _taken_up(candidate: Candidate) -> str:
-    """", X % of it would be taken up as P" where the fitted parameters reproduce at least
+    """"; X % of it would be taken up as P" where the fitted parameters reproduce at least
     :data:`TAKEN_UP` of ``candidate``'s signature, P the one that chiefly does ("" otherwise)."""
     name = (candidate.absorbed_by or {}).get("name")
     if not name or not candidate.absorbed >= TAKEN_UP:
