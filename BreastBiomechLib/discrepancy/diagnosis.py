@@ -480,7 +480,10 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
             skipped[effect.name] = reason
         else:
             testable.append(effect)
-    sens = sensitivities(state, observations, testable, say)
+    # fitted moduli beyond their published range: each also solved held at its range's end
+    keys = {key for key, *_ in state.nuisance()}
+    conflicts = [c for c in priors.prior_conflicts(fitted.space, state.z) if c["name"] in keys]
+    sens = sensitivities(state, observations, testable, say, held={c["name"]: c["z_bound"] for c in conflicts})
     sens.skipped = {**skipped, **sens.skipped}
     weights = 1.0 / observations.sigma
     residual = observations.measured - sens.features
@@ -526,14 +529,16 @@ def _decide(state: ModelState, observations: Observations, candidates: list[Effe
         for b in tested[i + 1:]:
             correlations[f"{a.name}|{b.name}"] = statistics.canonical_correlation(
                 weights[:, None] * sens.effects[a.name], weights[:, None] * sens.effects[b.name], q_theta)
-    # fitted moduli beyond their published range: the tests again with each held at its range's end
-    conflicts = [c for c in priors.prior_conflicts(fitted.space, state.z) if c["name"] in sens.nuisance_keys]
+    # the tests again with each conflicting modulus held at its range's end: the residual of the
+    # model solved there (linearised where that model did not solve)
     signatures = {e.name: weights[:, None] * sens.effects[e.name] for e in tested} if conflicts else {}
     for conflict in conflicts:
+        there = sens.held.get(conflict["name"])
+        solved = None if there is None else weights * (observations.measured - observations.predicted(there))
         conflict["retest"] = priors.held_in_range(whitened, nuisance, ~held, sens.nuisance_keys.index(conflict["name"]),
                                                   conflict["z_bound"] - state.z[conflict["index"]], signatures,
                                                   observations.channel, settings.alpha,
-                                                  {c.name: c.p_adjusted for c in ranked})
+                                                  {c.name: c.p_adjusted for c in ranked}, solved)
     regions = region_summary(observations, residual, feature_regions)
     base = dict(overall=overall, candidates=ranked, regions=regions, correlations=correlations,
                 sensitivities=sens, feature_regions=feature_regions, refits={},

@@ -25,9 +25,10 @@ The ranges are wide on purpose (they span the studies, not one study's mean +- s
 from the sources alone, never from the phantom's truth. A fitted modulus outside its range is a
 *prior-data conflict*: a missing effect may be absorbed there (a chest wall that holds the breast
 fits as a stiffer pectoral muscle). The diagnosis then tests the candidates again with that
-modulus held at the nearest end of its range (:func:`held_in_range`, linearised: the residual
-moved by the modulus's sensitivity times the step back into the range, the modulus taken out of
-the fitted span), and a candidate that explains the residual only then is reported as
+modulus held at the nearest end of its range (:func:`held_in_range`: the residual of the model
+solved with the modulus there, in the launch of the round's sensitivities; linearised, the
+residual moved by the modulus's sensitivity times the step back, only where that model does not
+solve; the modulus taken out of the fitted span), and a candidate that explains the residual only then is reported as
 *ambiguous*: that effect, or the modulus outside its plausible range (one already significant at
 the fit is the verdict's business, not the conflict's).
 
@@ -91,17 +92,22 @@ def prior_conflicts(space, z) -> list[dict]:
 
 
 def held_in_range(whitened: np.ndarray, nuisance: np.ndarray, free: np.ndarray, column: int, step: float,
-                  signatures: dict[str, np.ndarray], channels, alpha: float, before: dict[str, float]) -> dict:
-    """The tests again with one fitted parameter held inside its plausible range, linearised:
+                  signatures: dict[str, np.ndarray], channels, alpha: float, before: dict[str, float],
+                  solved: np.ndarray | None = None) -> dict:
+    """The tests again with one fitted parameter held inside its plausible range:
     ``whitened`` (n,) the whitened residual, ``nuisance`` (n, p) the whitened sensitivities of
     the fitted parameters, ``free`` (p,) bool which of them the tests take as free, ``column``
     the parameter held and ``step`` its change (unit coordinates) back to its range's end.
+    ``solved`` (n,): the whitened residual of the model solved with the parameter held there;
+    without it the residual is linearised (moved by the parameter's sensitivity times ``step``),
+    which a large step back (a modulus fitted several times past its range) makes poor.
     ``signatures`` {name: (n, k)} the candidates' whitened sensitivities, ``before`` {name: their
     corrected p at the fit}. Returns {"overall": the overall test per channel, "candidates":
     {name: {"p_adjusted", "explained_fraction", "statistic", "dof"}}, "significant": the names
-    significant at ``alpha`` (Bonferroni over the candidates), best first, and "explains" those
-    of them that were not significant at the fit: what the parameter was taking up}."""
-    residual = whitened - nuisance[:, column] * step
+    significant at ``alpha`` (Bonferroni over the candidates), best first, "explains" those
+    of them that were not significant at the fit: what the parameter was taking up, and
+    "solved" whether the residual was solved}."""
+    residual = whitened - nuisance[:, column] * step if solved is None else np.asarray(solved, float)
     kept = np.asarray(free, bool).copy()
     kept[column] = False
     span = nuisance[:, kept]
@@ -114,7 +120,8 @@ def held_in_range(whitened: np.ndarray, nuisance: np.ndarray, free: np.ndarray, 
                        "statistic": test["statistic"], "dof": test["dof"]}
     significant = sorted((n for n, t in tests.items() if t["p_adjusted"] < alpha), key=lambda n: tests[n]["p_adjusted"])
     explains = [n for n in significant if before.get(n, 1.0) >= alpha]
-    return {"overall": overall, "candidates": tests, "significant": significant, "explains": explains}
+    return {"overall": overall, "candidates": tests, "significant": significant, "explains": explains,
+            "solved": solved is not None}
 
 
 def conflict_sentence(conflicts: list[dict], named: str | None, titles: dict[str, str]) -> str:

@@ -31,7 +31,9 @@ class Sensitivities:
     {name: (k,)} the secant step each was taken over from its off value (each secant model, the
     current one with that one parameter moved by its step, solved: its displacement is
     ``displacement + fields[name][j] * steps[name][j]``); ``skipped`` {name: reason} the
-    candidates that could not be evaluated; ``solves`` how many forward solves it took."""
+    candidates that could not be evaluated; ``solves`` how many forward solves it took;
+    ``held`` {nuisance key: displacement (N, 3) mm, None where it did not solve} of the current
+    model with that parameter held at a value asked for (:func:`sensitivities`' ``held``)."""
 
     displacement: np.ndarray
     features: np.ndarray
@@ -42,12 +44,13 @@ class Sensitivities:
     steps: dict[str, np.ndarray] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     solves: int = 0
+    held: dict[str, np.ndarray | None] = field(default_factory=dict)
 
 
 @staged("sensitivities")
 def sensitivities(state: ModelState, observations: Observations | Callable[[np.ndarray], Observations],
                   candidates: list[Effect], progress: Callable[[str], None] | None = None,
-                  current: Outcome | None = None) -> Sensitivities:
+                  current: Outcome | None = None, held: dict[str, float] | None = None) -> Sensitivities:
     """The :class:`Sensitivities` of ``observations`` at ``state`` for the ``candidates`` (effects
     not yet added, each available for this fit). ``observations``: the measured features, or a
     function of the current model's displacement (N, 3) mm that makes them (a simulated
@@ -57,7 +60,10 @@ def sensitivities(state: ModelState, observations: Observations | Callable[[np.n
     taken on the other side, an effect's secant to half its step (a candidate still failing is
     skipped with the reason); raises a RuntimeError
     when the current model or a nuisance variant still fails to solve. ``current``: the solve of
-    ``state.variant()`` where the caller has it (not solved again; ``solves`` leaves it out)."""
+    ``state.variant()`` where the caller has it (not solved again; ``solves`` leaves it out).
+    ``held`` {nuisance key: value}: the current model with each of those parameters at that value
+    (its nuisance coordinate, e.g. a modulus held at its plausible range's end) solved in the same
+    launch, returned as :attr:`Sensitivities.held`."""
     fitted = state.fitted
     say = progress or (lambda message: None)
     variants, roles = [state.variant()], [("base", None, None, 0.0)]
@@ -100,6 +106,10 @@ def sensitivities(state: ModelState, observations: Observations | Callable[[np.n
                 shared[key] = len(variants)
             variants.append(variant)
             roles.append(("effect", effect.name, j, step))
+    for key, value in (held or {}).items():
+        z, values = state.moved(key, value)
+        variants.append(state.variant(z, values))
+        roles.append(("held", key, None, value))
     say(f"solving {len(variants)} variants")
     if current is None:
         outcomes = solve_variants(variants, fitted.mesh.nodes, fitted.relaxation, fitted.device)
@@ -143,7 +153,10 @@ def sensitivities(state: ModelState, observations: Observations | Callable[[np.n
         fields.setdefault(name, np.zeros((sizes[name], *base.displacement.shape)))[j] = \
             (outcome.displacement - base.displacement) / step
         steps.setdefault(name, np.zeros(sizes[name]))[j] = step
-    return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, steps, skipped, solves)
+    solved_held = {key: outcome.displacement if outcome.ok else None
+                   for (kind, key, _, _), outcome in zip(roles, outcomes) if kind == "held"}
+    return Sensitivities(base.displacement, features, keys, nuisance, effects, fields, steps, skipped, solves,
+                         solved_held)
 
 
 def _secant_model(state: ModelState, effect: Effect, j: int):

@@ -876,6 +876,32 @@ def test_a_design_with_a_measured_floor_measures_each_acquisition_s_or_says_what
     assert fixed.noise["floor"] == "fixed" and 0.0 < hold["now_sigma"] < fixed.effects[0]["now_sigma"]
 
 
+def test_a_modulus_beyond_its_published_range_is_retested_on_the_model_solved_at_the_range_s_end(null_case):
+    """A fit whose muscle modulus lies beyond its published range (the null case's fit with the
+    muscle moved to the top of the fit's range): the round solves the model with the muscle held
+    at the range's end in the launch of its sensitivities and retests the candidates on that
+    solve's residual, not on the linearised step back (a modulus fitted several times past its
+    range is far from where the linearisation holds); the verdict says the conflict."""
+    from BreastBiomechLib.discrepancy import ModelState, library, load_fitted_case, priors
+    from BreastBiomechLib.discrepancy.diagnosis import diagnose
+    from BreastBiomechLib.discrepancy.fitted import recorded_solution
+    from BreastBiomechLib.discrepancy.observations import observations_of
+
+    case, fit = null_case
+    fitted = load_fitted_case(case, fit, device="cpu")
+    observations = observations_of(fitted, recorded_solution(fitted))
+    z = fitted.z.copy()
+    z[fitted.space.keys.index("muscle.E")] = 1.0
+    [expected] = priors.prior_conflicts(fitted.space, z)
+    result = diagnose(ModelState(fitted, z), observations, library(fitted, ["anisotropy"]))
+    [conflict] = result.conflicts
+    assert conflict["name"] == expected["name"] == "muscle.E" and conflict["retest"]["solved"]
+    held = result.sensitivities.held["muscle.E"]
+    assert held is not None and np.isfinite(held).all()
+    assert np.abs(held - result.sensitivities.displacement).max() > 0.1  # the softer muscle moved the breast
+    assert "Prior-data conflict: muscle E" in result.sentence
+
+
 def test_a_design_starts_from_the_model_a_diagnosis_ended_with(null_case, tmp_path):
     """`design --diagnosis DIR` designs from the last round's model (its refitted parameters and
     added effects; the added ones are no longer candidates); a folder without a round, or the

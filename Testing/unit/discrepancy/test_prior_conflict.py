@@ -78,6 +78,15 @@ def test_a_candidate_taken_up_by_an_out_of_range_modulus_explains_the_residual_o
     known = held_in_range(whitened, nuisance, free, 0, step_back, signatures, channels, alpha=0.01,
                           before={"hidden": 1e-6, "unrelated": 1.0})
     assert known["significant"] == ["hidden"] and known["explains"] == []
+    # the residual of the model solved with the modulus held takes the linearised one's place
+    assert not retest["solved"]
+    same = held_in_range(whitened, nuisance, free, 0, step_back, signatures, channels, alpha=0.01,
+                         before={"hidden": at_fit["p_combined"] * 2, "unrelated": 1.0},
+                         solved=whitened - nuisance[:, 0] * step_back)
+    assert same["solved"] and same["candidates"] == retest["candidates"]
+    nothing_there = held_in_range(whitened, nuisance, free, 0, step_back, signatures, channels, alpha=0.01,
+                                  before={"hidden": at_fit["p_combined"] * 2, "unrelated": 1.0}, solved=noise)
+    assert nothing_there["explains"] == []  # solved, the modulus held did not bring the signature back
 
 
 def test_the_sentence_says_the_conflict_and_the_ambiguity_only_where_the_retest_found_one():
