@@ -119,7 +119,9 @@ def _planes(plates, travels) -> tuple[dict, ...]:
     the flat faces end the larger travel anterior to the chest, rounded by as much), applied to
     the measured plates. The measured scan's edges kept for a longer push wrap the pushed tissue
     round a corner too sharp for a fitting mesh: one plate pushing the whole closure so inverted
-    elements of every fitting mesh of the two-state suite's chest-wall cases (2026-12-07)."""
+    elements of every fitting mesh of the two-state suite's chest-wall cases (2026-12-07). A real
+    rig's plates do not change with the travel: the edges model the support band the library's
+    way, not a given rig's."""
     grow = max(0.0, float(np.max(travels)) - max(float(p.displacement @ p.normal) for p in plates))
     return tuple(_plane(replace(p, edge=_grown(p.edge, grow)), p.point + t * p.normal) for p, t in zip(plates, travels))
 
