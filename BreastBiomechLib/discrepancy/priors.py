@@ -28,9 +28,9 @@ fits as a stiffer pectoral muscle). The diagnosis then tests the candidates agai
 modulus held at the nearest end of its range (:func:`held_in_range`: the residual of the model
 solved with the modulus there, in the launch of the round's sensitivities; linearised, the
 residual moved by the modulus's sensitivity times the step back, only where that model does not
-solve; the modulus taken out of the fitted span), and a candidate that explains the residual only then is reported as
-*ambiguous*: that effect, or the modulus outside its plausible range (one already significant at
-the fit is the verdict's business, not the conflict's).
+solve; the modulus taken out of the fitted span), and a candidate that explains the residual
+only then is reported as *ambiguous*: that effect, or the modulus outside its plausible range
+(one already significant at the fit is the verdict's business, not the conflict's).
 
 Units: moduli in Pa; unit coordinates those of the fit's space (log E).
 """
