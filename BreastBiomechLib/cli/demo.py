@@ -280,7 +280,7 @@ def _next_measurement_section(diagnosis, device: str) -> str:
             "(compressions of -20 to +20 %, each plate moving alone, the plates turned) with the sensitivities of "
             "the candidates it would tell apart: 16 minutes on two cores for the CPU demo's case. `breastbiomech diagnose "
             "out/demo/case --fit out/demo/fit --out out/demo/diagnosis --resume --design --floor fixed` adds it to "
-            "diagnosis/report.md (docs/discrepancy.md, \"The next measurement\").")
+            "diagnosis/report.md (docs/design.md).")
 
 
 def _fit_note(fit, diagnosis) -> str:
