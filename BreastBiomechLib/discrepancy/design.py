@@ -34,6 +34,7 @@ Frames and units: LPS millimetres; separations in sigma.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -402,6 +403,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     queue = list(acquisitions)
     for acquisition in queue:  # a one-plate push that does not solve here adds its half to the queue
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
+        started = time.perf_counter()
         placed, simulated = placed_case(fitted, acquisition, undeformed, state.z), {}
 
         def observed(u, acquisition=acquisition, simulated=simulated):
@@ -417,6 +419,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
             queue += _halved(fitted, state, acquisition, queue)
             continue
         features, floor_note = seen.made, "measured" if measured_floor else "fixed"
+        solved_s = time.perf_counter() - started
         if measured_floor:
             say(f"measuring the model-error floor in acquisition {acquisition.name}")
             try:
@@ -429,7 +432,9 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         stacks[acquisition.name] = now.stacked(rows)
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped,
-                     "floor": floor_note})
+                     "floor": floor_note, "solves": sens.solves,
+                     "seconds": {"sensitivities": round(solved_s, 1),
+                                 "total": round(time.perf_counter() - started, 1)}})
         if any(why.startswith(UNSOLVED) for name, why in rows.skipped.items() if name in solved):
             queue += _halved(fitted, state, acquisition, queue)
     titles = {e.name: e.title for e in candidates}

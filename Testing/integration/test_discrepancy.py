@@ -869,6 +869,8 @@ def test_a_design_with_a_measured_floor_measures_each_acquisition_s_or_says_what
     rms = float(np.sqrt(np.mean(floor ** 2)))
     assert acquisition["floor"].startswith(f"the measured states' RMS floor ({rms:.2f} mm)")
     assert "inverted" in acquisition["floor"] and made.noise["floor"] == "measured"
+    assert acquisition["solves"] >= 2  # the model and the hold's secant, timed for the bench
+    assert 0 < acquisition["seconds"]["sensitivities"] <= acquisition["seconds"]["total"]
     [hold] = made.effects
     assert [a["name"] for a in hold["acquisitions"]] == [f"{second}-half"]
     assert hold["acquisitions"][0]["separation_sigma"] > 0
