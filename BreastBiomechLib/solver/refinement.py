@@ -8,7 +8,10 @@ A midpoint takes a node set (a constraint's nodes, a plate's contact nodes, a su
 nodes) where both ends of its edge are in the set and, where both ends lie on the boundary, the
 edge does too (a chord through the volume between two surface nodes is not on the surface);
 its prescribed values and reference-state displacement are the mean of the two ends'; its
-constrained components those constrained at both ends. Frames and units: LPS millimetres.
+constrained components those constrained at both ends. A plate's rounded edge is convex, so the
+chord between two contact nodes clear of it (one on the flat face, one on the fillet) may pass
+behind it: a midpoint that starts behind a plate is left out of that plate's contact nodes, as
+the coarse mesh's face between those nodes is free there. Frames and units: LPS millimetres.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ import numpy as np
 from BreastBiomechLib.mesh.refine import midpoint_edges, refine_uniform
 from BreastBiomechLib.mesh.tetmesh import TetMesh, boundary_faces, boundary_nodes
 from BreastBiomechLib.solver.materials import ElementMaterials
-from BreastBiomechLib.solver.model import Constraint, Model, Plate, ReferenceState, SurfaceSupport
+from BreastBiomechLib.solver.model import (PENETRATION_TOLERANCE_MM, Constraint, Model, Plate, ReferenceState,
+                                           SurfaceSupport)
 from BreastBiomechLib.solver.supports import surface_normals_and_areas
 
 CHILDREN = 8  # tets per tet of a uniform refinement
@@ -70,8 +74,15 @@ class Refinement:
         values = self._set_values(c.nodes, c.values, edges, lambda a, b: 0.5 * (a + b))
         return Constraint(nodes, mask, values, c.load_shape)
 
-    def plate(self, plate: Plate) -> Plate:
-        return replace(plate, slave_nodes=self.nodes_of(plate.slave_nodes)[0])
+    def plate(self, plate: Plate, start_mm: np.ndarray | None = None) -> Plate:
+        """``plate`` with its contact nodes' midpoints as contact nodes too, less those that start
+        behind it (``start_mm`` (N', 3): the refined nodes' start positions; None: all kept)."""
+        nodes = self.nodes_of(plate.slave_nodes)[0]
+        if start_mm is not None:
+            midpoint = nodes >= len(self.coarse.nodes)
+            behind = plate.gaps(start_mm[nodes]) < -PENETRATION_TOLERANCE_MM
+            nodes = nodes[~(midpoint & behind)]
+        return replace(plate, slave_nodes=nodes)
 
     def support(self, support: SurfaceSupport) -> SurfaceSupport:
         """A surface support on the refined surface: its normals and areas made again there."""
@@ -89,11 +100,12 @@ class Refinement:
         """``model`` on the refined mesh (with ``materials`` and ``plates`` in place of its own
         where given): its time step is left to the solver (it halves with the edges)."""
         loading = model.loading
-        refined_loading = replace(loading, constraints=[self.constraint(c) for c in loading.constraints],
-                                  plates=[self.plate(p) for p in (loading.plates if plates is None else plates)],
-                                  supports=[self.support(s) for s in loading.supports])
         prestate = (None if model.prestate is None else
                     ReferenceState(self.node_values(model.prestate.displacement), model.prestate.gravity))
+        start = self.refined.nodes if prestate is None else self.refined.nodes + prestate.displacement
+        refined_loading = replace(loading, constraints=[self.constraint(c) for c in loading.constraints],
+                                  plates=[self.plate(p, start) for p in (loading.plates if plates is None else plates)],
+                                  supports=[self.support(s) for s in loading.supports])
         mesh = TetMesh(self.refined.nodes, self.refined.tets, {},
                        {name: np.repeat(values, CHILDREN, axis=0) for name, values in model.mesh.cell_data.items()})
         return replace(model, mesh=mesh, materials=self.materials(model.materials if materials is None else materials),

@@ -11,7 +11,7 @@ import pytest
 from BreastBiomechLib.mesh.primitives import box_mesh
 from BreastBiomechLib.solver import (Constraint, DynamicRelaxation, ElementMaterials, Loading, Material, Model, Plate,
                                      solve)
-from BreastBiomechLib.solver.model import ReferenceState, SurfaceSupport
+from BreastBiomechLib.solver.model import PlateEdge, ReferenceState, SurfaceSupport
 from BreastBiomechLib.solver.refinement import Refinement
 from BreastBiomechLib.solver.supports import surface_normals_and_areas
 
@@ -74,6 +74,32 @@ def test_every_node_set_reaches_the_refined_nodes_it_should():
     np.testing.assert_array_equal(refined.materials.mu, model.materials.mu[parents])
     np.testing.assert_array_equal(refined.mesh.cell_data["tissue"], model.mesh.cell_data["tissue"][parents])
     assert refined.time_step is None and refined.formulation == model.formulation
+
+
+def test_a_midpoint_that_starts_behind_a_rounded_plate_edge_is_not_among_its_contact_nodes():
+    """A rounded plate edge is convex: the chord between two top nodes clear of it, one on its flat
+    face and one lifted onto its fillet, passes behind it (found by the design's floor on a case
+    whose plates the plate tilt had turned: "plate 'left' cuts into the tissue at the start").
+    That midpoint is left out of the refined plate's contact nodes, and the refined model is
+    built; every coarse contact node and the other midpoints stay."""
+    from dataclasses import replace
+
+    model = _quarter_block()
+    on_top = np.isclose(model.mesh.nodes[:, 2], SIDE)
+    far = on_top & np.isclose(model.mesh.nodes[:, 0], SIDE)
+    model.mesh.nodes[far, 2] = SIDE + 1.3  # on the fillet below, 0.03 mm clear of it
+    top = replace(model.loading.plates[1], edge=PlateEdge([1.0, 0.0, 0.0], SIDE / 2, 10.0))
+    model.loading.plates[1] = top
+    assert top.gaps(model.mesh.nodes[top.slave_nodes]).min() >= 0  # the coarse model is clear
+    refinement = Refinement(model.mesh)
+    refined = refinement.model(model)
+    kept = refined.loading.plates[1].slave_nodes
+    candidates = refinement.nodes_of(top.slave_nodes)[0]
+    behind = candidates[top.gaps(refined.mesh.nodes[candidates]) < -1e-3]
+    assert len(behind) and set(behind.tolist()).isdisjoint(kept.tolist())
+    assert (behind >= len(model.mesh.nodes)).all()  # midpoints of chords from x = SIDE / 2 to SIDE
+    assert set(kept.tolist()) == set(candidates.tolist()) - set(behind.tolist())
+    assert top.gaps(refined.mesh.nodes[kept]).min() > -1e-3
 
 
 def test_a_homogeneous_compression_is_the_same_on_the_refined_mesh():
