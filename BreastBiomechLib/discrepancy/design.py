@@ -53,6 +53,7 @@ from BreastBiomechLib.io.images import read_image
 
 GRID_MARGIN_MM = 10.0  # around the compressed breast, of a simulated acquisition's image
 POWER = 0.8  # of the detectable separation
+CHECKED = 2  # acquisitions per designed effect whose separation is checked by refitting (design_check)
 
 
 def covering_grid(points_mm: np.ndarray, spacing_mm, margin_mm: float = GRID_MARGIN_MM) -> sitk.Image:
@@ -262,6 +263,11 @@ class Design:
         lines += ["", *[f"- {a['name']}: {a['description']}" + "".join(
             f"; {effect} not solved there ({why})" for effect, why in a["skipped"].items()) for a in self.acquisitions]]
         lines += [f"- {name}: not simulated ({why})" for name, why in self.failed.items()]
+        lines += [f"- {a['name']} for {record['title']}: {a['linear_sigma']:.1f} sigma by the linearisation, "
+                  + (f"{a['separation_sigma']:.1f} with the fitted parameters refitted to what it would show "
+                     f"({_moved_words(a['refitted']['moved'])})" if "failed" not in a["refitted"]
+                     else f"not checked ({a['refitted']['failed']})")
+                  for record in self.effects for a in record.get("acquisitions", []) if "linear_sigma" in a]
         return "\n".join(lines) + "\n"
 
     def sentences(self) -> list[str]:
@@ -281,11 +287,57 @@ def _sentence(record: dict) -> str:
     if not record["acquisitions"]:
         return f"{title}: no acquisition could be simulated."
     best = record["acquisitions"][0]
+    how, linear = _checked_words(best)
     if best["separation_sigma"] < needed:
         return (f"No acquisition simulated tells {title} from {rival}: the best, {best['description']}, gives "
-                f"{best['separation_sigma']:.1f} sigma (now {now:.1f}; {needed:.1f} needed).")
+                f"{best['separation_sigma']:.1f} sigma{how} ({linear}now {now:.1f}; {needed:.1f} needed).")
     return (f"To tell {title} from {rival}, {best['description']}: expected separation "
-            f"{best['separation_sigma']:.1f} sigma (now {now:.1f}; {needed:.1f} needed).")
+            f"{best['separation_sigma']:.1f} sigma{how} ({linear}now {now:.1f}; {needed:.1f} needed).")
+
+
+def _moved_words(moved: dict) -> str:
+    """The refit's parameter changes ({key: change in its nuisance coordinate}) in words."""
+    return ", ".join(f"{key} {change:+.3g}" for key, change in moved.items()) or "no parameter moved"
+
+
+def _checked_words(acquisition: dict) -> tuple[str, str]:
+    """How an acquisition's separation was checked (:func:`_check_best`), for its sentence: the
+    words after the separation and those that open its brackets ("" where it was not checked)."""
+    if "linear_sigma" not in acquisition:
+        return "", ""
+    refitted = acquisition["refitted"]
+    if "failed" in refitted:
+        return " by the linearisation", f"its check by refitting failed: {refitted['failed']}; "
+    return (" once the fitted parameters are refitted to what it would show",
+            f"{acquisition['linear_sigma']:.1f} by the linearisation at the fit; ")
+
+
+def _check_best(record: dict, state: ModelState, measured: Observations, now: Sensitivities, kept: dict,
+                stacks: dict, say: Callable[[str], None], count: int = CHECKED) -> None:
+    """``record``'s ranked acquisitions with the best checked by refitting the fitted parameters to
+    the data its effect would make (:func:`~BreastBiomechLib.discrepancy.design_check.refitted_separation`):
+    its ``separation_sigma`` becomes the checked one (the linear one kept as ``linear_sigma``, the
+    refit as ``refitted``), the ranking is made again, and the new best is checked too, up to
+    ``count`` acquisitions. An acquisition whose refit cannot be made keeps its linear separation,
+    with the reason (``refitted``: {"failed": why})."""
+    from BreastBiomechLib.discrepancy.design_check import refitted_separation
+
+    name, rival = record["effect"], record["rival"]
+    for _ in range(count):
+        best = next((a for a in record["acquisitions"] if "linear_sigma" not in a), None)
+        if best is None or best is not record["acquisitions"][0]:
+            return
+        placed, simulated, there = kept[best["name"]]
+        stacked = stacks[best["name"]]
+        say(f"checking {best['name']} for {record['title']}: the fitted parameters refitted to what it would show")
+        try:
+            made = refitted_separation(state, placed, measured, simulated, now, there, stacked.fitted_span(), name,
+                                       None if rival is None else stacked.effects[rival])
+        except (RuntimeError, ValueError) as error:
+            best.update(linear_sigma=best["separation_sigma"], refitted={"failed": str(error)})
+            return
+        best.update(linear_sigma=best["separation_sigma"], separation_sigma=made["sigma"], refitted=made)
+        record["acquisitions"].sort(key=lambda a: -a["separation_sigma"])
 
 
 def undecided(diagnosis: dict, effects: dict) -> list[str]:
@@ -360,7 +412,7 @@ def _halved(fitted: FittedCase, state: ModelState, acquisition: Acquisition, que
 def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acquisition] | None = None,
            noise: NoiseModel | None = None, alpha: float = 0.01, state: ModelState | None = None,
            progress: Callable[[str], None] | None = None, designed_for=None,
-           observations: Observations | None = None) -> Design:
+           observations: Observations | None = None, check: int = CHECKED) -> Design:
     """The :class:`Design` of the fitted case's next measurement for the candidate ``effects``
     (names; default the whole library, less those ``state`` has added) over ``acquisitions``
     (default :func:`acquisition_library`'s of ``kinds``: kinds or names), at the model ``state``
@@ -379,7 +431,8 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
     solves are as many fewer as the other candidates have parameters). A one-plate push whose
     model, or a variant of those, does not solve (an element inverted, also with a slower load)
     is simulated half as far too (``only-<plate>-half``); an acquisition whose model does not
-    solve is in the design's ``failed``."""
+    solve is in the design's ``failed``. Each designed effect's best ``check`` acquisitions are
+    checked beyond the linearisation (:func:`_check_best`; 0: none)."""
     from dataclasses import replace
 
     say = progress or (lambda message: None)
@@ -395,10 +448,11 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         observations = observations_of(fitted, base, noise) if base is not None else _MadeFromTheSolve(
             lambda u: observations_of(fitted, u, noise))  # a diagnosis round's model: solved with its variants
     say("sensitivities in the measured states")
-    sens = sensitivities(state, observations, candidates, progress=say)
-    now = Rows.of(sens, observations if isinstance(observations, Observations) else observations.made)
+    measured_now = sensitivities(state, observations, candidates, progress=say)
+    measured = observations if isinstance(observations, Observations) else observations.made
+    now = Rows.of(measured_now, measured)
     chosen, rivals, solved = acquisition_effects(now, names, designed_for)
-    stacks, failed, made = {}, {}, []
+    stacks, failed, made, kept = {}, {}, [], {}
     undeformed = read_image(CaseLayout(fitted.case_dir).mr)
     queue = list(acquisitions)
     for acquisition in queue:  # a one-plate push that does not solve here adds its half to the queue
@@ -430,6 +484,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
                 floor_note = f"the measured states' RMS floor ({rms_floor:.2f} mm): {error}"
         rows = Rows.of(sens, features)
         stacks[acquisition.name] = now.stacked(rows)
+        kept[acquisition.name] = (ModelState(placed, state.z, state.added), features, sens)
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped,
                      "floor": floor_note, "solves": sens.solves,
@@ -456,6 +511,8 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
                    "separation_sigma": stacks[a["name"]].separation(name, rival)}
                   for a in made if name in stacks[a["name"]].effects and (rival is None or rival in stacks[a["name"]].effects)]
         record["acquisitions"] = sorted(ranked, key=lambda a: -a["separation_sigma"])
+        if check:
+            _check_best(record, state, measured, measured_now, kept, stacks, say)
         records.append(record)
     return Design(records, made, failed, alpha, {"landmark_sd_mm": noise.landmark_sd_mm,
                                                  "model_sd_mm": noise.model_sd_mm, "channels": list(noise.channels),

@@ -769,8 +769,8 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     25 % LR: the closure 10 and 20 % of the thickness further and less, all of it by either
     plate, the same closure along SI), one of them simulated from the fit (the second plate
     alone), and the chest-wall hold's separation from the fitted parameters now and with that
-    acquisition: the fitted muscle modulus takes it up in this scan, the second tells it apart
-    (rivals among candidates, and that a state never lowers a separation:
+    acquisition: the fitted muscle modulus takes it up in this scan, the second tells it apart,
+    also once the fitted parameters are refitted to the hold's data in both (rivals among candidates, and that a state never lowers a separation:
     Testing/unit/discrepancy/test_discrepancy_design.py); the report's section; a used output
     folder and an acquisition the library does not have are refused."""
     from BreastBiomechLib.cli import main
@@ -822,7 +822,15 @@ def test_the_next_measurement_is_designed_from_the_fit(null_case, tmp_path, caps
     assert hold["rival"] is None  # the only candidate: the fitted parameters are its rivals
     [alone] = hold["acquisitions"]
     assert 0.0 < hold["now_sigma"] < hold["detectable_sigma"] < alone["separation_sigma"]
+    # checked beyond the linearisation: the fitted parameters refitted to the hold's data in both
+    # scans (a stiffer muscle takes some of it up), each step one solve of the model in each scan
+    refitted = alone["refitted"]
+    assert refitted["steps"] >= 1 and refitted["solves"] >= 2 * refitted["steps"] and refitted["stopped"] is None
+    assert min(refitted["rss"][1:]) < 0.2 * refitted["rss"][0] and refitted["moved"]["muscle.E"] > 0
+    assert alone["separation_sigma"] == refitted["sigma"] <= 1.05 * alone["linear_sigma"]
     report = (out / "design.md").read_text()
+    assert "once the fitted parameters are refitted to what it would show" in report
+    assert f"{alone['linear_sigma']:.1f} sigma by the linearisation" in report
     assert report.startswith("## The next measurement") and "To tell chest-wall hold from the fitted" in report
     assert main(command) == 2 and "not empty" in capsys.readouterr().err
     assert main([*command[:4], "--out", str(tmp_path / "again"), "--acquisitions", "sideways", "--device", "cpu"]) == 2

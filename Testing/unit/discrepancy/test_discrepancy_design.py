@@ -1,8 +1,9 @@
 """The design of the next measurement's separations (discrepancy/design.py) on whitened rows made
 by hand: an effect's separation is its signature beyond the fitted parameters and its rival,
 stacking a state never lowers it, states are stacked parameter by parameter, and the closest
-rival is the most nearly parallel candidate. The whole design on a fitted case:
-Testing/integration/test_discrepancy.py."""
+rival is the most nearly parallel candidate; the check of a separation by refitting
+(discrepancy/design_check.py) on a model whose sensitivity fades as its parameter grows. The whole
+design on a fitted case: Testing/integration/test_discrepancy.py."""
 
 from __future__ import annotations
 
@@ -140,3 +141,38 @@ def test_the_next_measurement_waits_for_the_rounds_to_be_decided(tmp_path):
     for kwargs in ({"one_round": True}, {"add": "friction", "resume": True}):
         with pytest.raises(ValueError, match="once the rounds are decided"):
             run_diagnosis(tmp_path / "case", tmp_path / "fit", tmp_path / "out", design=(), **kwargs)
+
+
+def _fading():
+    """A one-parameter model whose sensitivity fades as the parameter grows (as a muscle's effect
+    on the breast does as it stiffens): f(theta) = exp(-theta) a + exp(-2 theta) b, and its
+    Jacobian."""
+    a, b = np.array([1.0, 0.0, 0.5]), np.array([0.0, 1.0, 0.5])
+    return (lambda th: np.exp(-th[0]) * a + np.exp(-2 * th[0]) * b,
+            lambda th: (-np.exp(-th[0]) * a - 2 * np.exp(-2 * th[0]) * b)[:, None])
+
+
+def test_a_refit_takes_up_what_the_linearisation_left_and_a_bound_stops_it():
+    """Data made at another value of the parameter (an effect the model takes up wholly, but only
+    nonlinearly): the linear separation at the start is 0.22 of the data's 1.40, the Broyden
+    refit finds the value (1.2 within 0.01 in six steps) and leaves nothing beyond the span; with
+    the parameter bounded before it (a modulus at the top of its range) it stops at the bound and
+    half the linear separation stays; where the model does not solve it keeps the start."""
+    from BreastBiomechLib.discrepancy.design_check import broyden_refit
+
+    f, jacobian = _fading()
+    start, low, high = np.array([0.0]), np.array([-5.0]), np.array([5.0])
+    data = f(np.array([1.2]))
+    residual = data - f(start)
+    linear = residual_norm(residual, jacobian(start))
+    assert linear == pytest.approx(0.222, abs=1e-3) and np.linalg.norm(residual) == pytest.approx(1.40, abs=0.01)
+    made = broyden_refit(lambda th: data - f(th), residual, jacobian(start), start, low, high, iterations=6)
+    assert made["theta"][0] == pytest.approx(1.2, abs=0.01) and made["steps"] == 6 and made["stopped"] is None
+    assert made["rss"][0] == pytest.approx(residual @ residual) and made["rss"][-1] < 1e-6 * made["rss"][0]
+    assert residual_norm(made["residual"], made["jacobian"]) < 0.01 * linear
+    bounded = broyden_refit(lambda th: data - f(th), residual, jacobian(start), start, low, np.array([0.5]),
+                            iterations=6)
+    assert bounded["theta"][0] == 0.5 and bounded["stopped"] == "at the parameters' bounds"
+    assert 0.4 * linear < residual_norm(bounded["residual"], bounded["jacobian"]) < linear
+    failed = broyden_refit(lambda th: None, residual, jacobian(start), start, low, high)
+    assert failed["steps"] == 0 and failed["theta"][0] == 0.0 and "did not solve" in failed["stopped"]
