@@ -21,7 +21,10 @@ The closest rival of an effect is the other candidate whose signature, beyond th
 parameters, is most nearly parallel to it (none where it is the only candidate tested); the
 fitted parameters themselves are always rivals (an effect they absorb has no separation).
 
-Linear: the signatures are the secants at this fit; the noise the diagnosis's: where it measured
+Linear: the signatures are the secants at this fit, except that each designed effect's best
+acquisitions are checked by refitting the fitted parameters to the data the effect would make
+(:mod:`~BreastBiomechLib.discrepancy.design_check`: a fitted modulus may take up more of it than
+its linear step says); the noise the diagnosis's: where it measured
 the model-error floor from the case, each simulated acquisition's floor is measured too (one
 refined solve each), else the fixed floor
 (:class:`~BreastBiomechLib.discrepancy.observations.NoiseModel`). Not in the library yet: a
@@ -448,9 +451,9 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         observations = observations_of(fitted, base, noise) if base is not None else _MadeFromTheSolve(
             lambda u: observations_of(fitted, u, noise))  # a diagnosis round's model: solved with its variants
     say("sensitivities in the measured states")
-    measured_now = sensitivities(state, observations, candidates, progress=say)
+    measured_sens = sensitivities(state, observations, candidates, progress=say)
     measured = observations if isinstance(observations, Observations) else observations.made
-    now = Rows.of(measured_now, measured)
+    now = Rows.of(measured_sens, measured)
     chosen, rivals, solved = acquisition_effects(now, names, designed_for)
     stacks, failed, made, kept = {}, {}, [], {}
     undeformed = read_image(CaseLayout(fitted.case_dir).mr)
@@ -512,7 +515,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
                   for a in made if name in stacks[a["name"]].effects and (rival is None or rival in stacks[a["name"]].effects)]
         record["acquisitions"] = sorted(ranked, key=lambda a: -a["separation_sigma"])
         if check:
-            _check_best(record, state, measured, measured_now, kept, stacks, say)
+            _check_best(record, state, measured, measured_sens, kept, stacks, say)
         records.append(record)
     return Design(records, made, failed, alpha, {"landmark_sd_mm": noise.landmark_sd_mm,
                                                  "model_sd_mm": noise.model_sd_mm, "channels": list(noise.channels),
