@@ -462,6 +462,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
         say(f"simulating acquisition {acquisition.name}: {acquisition.description}")
         started = time.perf_counter()
         placed, simulated = placed_case(fitted, acquisition, undeformed, state.z), {}
+        placed_state = ModelState(placed, state.z, state.added)
 
         def observed(u, acquisition=acquisition, simulated=simulated):
             simulated["case"] = simulated_measurement(fitted, acquisition, undeformed, state.z, u)
@@ -469,7 +470,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
 
         seen = _MadeFromTheSolve(observed)
         try:  # the model there solved in one launch with its variants; its prediction taken as measured
-            sens = sensitivities(ModelState(placed, state.z, state.added), seen, library(placed, solved),
+            sens = sensitivities(placed_state, seen, library(placed, solved),
                                  progress=say)
         except RuntimeError as error:
             failed[acquisition.name] = f"in acquisition {acquisition.name}: {error}"
@@ -487,7 +488,7 @@ def design(fitted: FittedCase, effects=None, kinds=KINDS, acquisitions: list[Acq
                 floor_note = f"the measured states' RMS floor ({rms_floor:.2f} mm): {error}"
         rows = Rows.of(sens, features)
         stacks[acquisition.name] = now.stacked(rows)
-        kept[acquisition.name] = (ModelState(placed, state.z, state.added), features, sens)
+        kept[acquisition.name] = (placed_state, features, sens)
         made.append({"name": acquisition.name, "description": acquisition.description,
                      "planes": [dict(p) for p in acquisition.planes], "features": rows.n, "skipped": rows.skipped,
                      "floor": floor_note, "solves": sens.solves,

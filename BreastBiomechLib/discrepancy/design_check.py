@@ -78,8 +78,8 @@ def refitted_separation(state: ModelState, placed: ModelState, measured: Observa
     weights = np.concatenate([1.0 / measured.sigma, 1.0 / simulated.sigma])
     data = np.concatenate([now.features + now.effects[effect] @ now.steps[effect],
                            there.features + there.effects[effect] @ there.steps[effect]])
-    keys, start, lower, upper = (np.array(column) for column in zip(*state.nuisance()))
-    start, lower, upper = (np.asarray(v, float) for v in (start, lower, upper))
+    keys, *bounds = zip(*state.nuisance())
+    start, lower, upper = (np.asarray(column, float) for column in bounds)
     solves = [0]
 
     def residual_of(theta: np.ndarray) -> np.ndarray | None:
@@ -99,5 +99,5 @@ def refitted_separation(state: ModelState, placed: ModelState, measured: Observa
     coefficients, *_ = np.linalg.lstsq(span, made["residual"], rcond=None)
     left = made["residual"] - span @ coefficients
     return {"sigma": float(np.linalg.norm(left)),
-            "moved": {str(k): float(v) for k, v in zip(keys, made["theta"] - start) if v != 0.0},
+            "moved": {k: float(v) for k, v in zip(keys, made["theta"] - start) if v != 0.0},
             "steps": made["steps"], "solves": solves[0], "rss": made["rss"], "stopped": made["stopped"]}

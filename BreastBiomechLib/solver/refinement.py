@@ -74,15 +74,12 @@ class Refinement:
         values = self._set_values(c.nodes, c.values, edges, lambda a, b: 0.5 * (a + b))
         return Constraint(nodes, mask, values, c.load_shape)
 
-    def plate(self, plate: Plate, start_mm: np.ndarray | None = None) -> Plate:
+    def plate(self, plate: Plate, start_mm: np.ndarray) -> Plate:
         """``plate`` with its contact nodes' midpoints as contact nodes too, less those that start
-        behind it (``start_mm`` (N', 3): the refined nodes' start positions; None: all kept)."""
+        behind it (``start_mm`` (N', 3): the refined nodes' start positions)."""
         nodes = self.nodes_of(plate.slave_nodes)[0]
-        if start_mm is not None:
-            midpoint = nodes >= len(self.coarse.nodes)
-            behind = plate.gaps(start_mm[nodes]) < -PENETRATION_TOLERANCE_MM
-            nodes = nodes[~(midpoint & behind)]
-        return replace(plate, slave_nodes=nodes)
+        behind = (nodes >= len(self.coarse.nodes)) & (plate.gaps(start_mm[nodes]) < -PENETRATION_TOLERANCE_MM)
+        return replace(plate, slave_nodes=nodes[~behind])
 
     def support(self, support: SurfaceSupport) -> SurfaceSupport:
         """A surface support on the refined surface: its normals and areas made again there."""
